@@ -1,0 +1,46 @@
+"""Benchmarks run by ``crs-study bench``.
+
+Each module here provides ``AREA`` (a short name, e.g. ``"render"``), ``DESCRIPTION`` and
+``run(quick: bool) -> list[Figure]``. Every figure is a ratio against a baseline measured in
+the same run on the same machine, so numbers from a noisy two-core laptop stay comparable;
+timings are medians of repeats.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class Figure:
+    """One benchmark figure: ``value`` against ``baseline`` (same unit), and the target."""
+
+    area: str
+    name: str
+    value: float
+    unit: str
+    baseline_name: str
+    baseline: float
+    target: str = ""  # e.g. "ratio >= 100"; empty when the figure is informative only
+    passed: bool | None = None  # None when there is no target
+
+    @property
+    def ratio(self) -> float:
+        return self.value / self.baseline if self.baseline else float("inf")
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "ratio": self.ratio}
+
+
+def median_seconds(func: Callable[[], object], repeat: int = 7, number: int = 1) -> float:
+    """Median wall time (s) of ``number`` calls of ``func``, over ``repeat`` repeats, per call."""
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        for _ in range(number):
+            func()
+        times.append((time.perf_counter() - start) / number)
+    return statistics.median(times)

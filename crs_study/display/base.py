@@ -1,0 +1,56 @@
+"""Display models: from actuator setpoints to the surface the skin meets.
+
+A model is built once per layout and then evaluated per frame::
+
+    model = get_model("beam", layout)          # or "nearest", "linear", "spline", ...
+    z = model.surface(setpoints_mm, xy_mm)     # heights (mm) at points (n, 2)
+
+Models register themselves in :data:`MODELS` by name when their module is imported; the
+``crs_study.display`` package imports them all. Collapse (crs-paper.md, Eq. 4, or a solver
+reaching the critical load) is raised as :class:`~crs_study.errors.CollapseError`, never
+returned as a shape.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import numpy as np
+
+from crs_study.errors import DisplayModelError
+from crs_study.layout import Layout
+
+
+class DisplayModel(ABC):
+    """Surface of a display for given setpoints; subclasses set ``name`` and ``description``."""
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+
+    def __init__(self, layout: Layout) -> None:
+        self.layout = layout
+
+    @abstractmethod
+    def surface(self, setpoints_mm: np.ndarray, xy_mm: np.ndarray) -> np.ndarray:
+        """Heights (mm) of the displayed surface at points ``xy_mm`` of shape (n, 2)."""
+
+
+#: name -> model class
+MODELS: dict[str, type[DisplayModel]] = {}
+
+
+def register(cls: type[DisplayModel]) -> type[DisplayModel]:
+    """Class decorator adding a model to :data:`MODELS`."""
+    MODELS[cls.name] = cls
+    return cls
+
+
+def get_model(name: str, layout: Layout, **options: object) -> DisplayModel:
+    import crs_study.display  # noqa: F401  (imports every model module, filling MODELS)
+
+    if name not in MODELS:
+        raise DisplayModelError(
+            f"unknown display model {name!r}; known: {', '.join(sorted(MODELS)) or 'none'}"
+        )
+    return MODELS[name](layout, **options)

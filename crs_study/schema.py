@@ -1,0 +1,63 @@
+"""The stored dataset's vocabulary, shared by the runner (writer) and the analysis (reader).
+
+One row per trial in ``sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-<task>_beh.tsv``; the
+descriptions below become the column dictionary ``task-<task>_beh.json`` (BIDS). Missing values
+are written ``n/a``. Times are seconds on the runner's monotonic clock, relative to the
+session's start, except response times (seconds from stimulus onset or offset).
+"""
+
+from __future__ import annotations
+
+TASK = "digitid"
+MISSING = "n/a"
+
+#: Trial columns in file order: name -> (description, units or levels)
+TRIAL_COLUMNS: dict[str, tuple[str, str]] = {
+    "trial_index": ("Position of the trial in the session's plan, from 0", "index"),
+    "trial_type": ("practice (with feedback, not analysed) or test", "practice|test"),
+    "block": ("Block number within the session, from 0", "index"),
+    "condition": ("Display condition, e.g. pixel-only or crs", "label"),
+    "repetition": ("Repetition of this digit within the condition, from 0", "index"),
+    "digit": ("Digit drawn on the display", "0-9"),
+    "response": ("Digit the participant reported; n/a when timed out", "0-9"),
+    "correct": ("1 when response equals digit, else 0 (n/a when timed out)", "0|1"),
+    "response_time": ("Time from stimulus onset to the response", "s"),
+    "response_time_from_offset": ("Time from stimulus offset to the response; negative when "
+                                  "answered before the stimulus ended", "s"),
+    "onset": ("Stimulus onset relative to session start", "s"),
+    "stimulus_duration": ("Time from the first to the last frame of the stimulus", "s"),
+    "timed_out": ("1 when no response came within the protocol's time limit", "0|1"),
+    "device_fault": ("1 when the device reported a fault during the trial", "0|1"),
+    "frames": ("Frames commanded during the stimulus", "count"),
+    "late_frames": ("Frames commanded later than one frame period after their due time",
+                    "count"),
+    "median_wire_latency": ("Median time from a frame's due time to its last byte on the wire",
+                            "s"),
+    "responder": ("Who answered: keypad, scripted, random or observer", "label"),
+}
+
+#: Session sidecar keys (``..._beh.json``) beyond the BIDS column descriptions.
+SESSION_KEYS: tuple[str, ...] = (
+    "TaskName",
+    "Protocol",            # the protocol file's full text
+    "ProtocolSha256",
+    "ProtocolPath",
+    "DeviceFile",          # the device file's full text
+    "DeviceFileSha256",
+    "DeviceURL",
+    "SoftwareVersion",
+    "Seed",
+    "Participant",
+    "Session",
+    "ConsentFormVersion",
+    "Responder",
+    "Clock",               # real or virtual
+    "StartTime",           # ISO 8601, UTC
+    "EndTime",
+    "Status",              # running, interrupted, complete
+    "TrialsPlanned",
+    "TrialsCompleted",
+    "TrialsSha256",        # sha256 of the _beh.tsv bytes when the session was last written
+)
+
+SESSION_STATUSES = ("running", "interrupted", "complete")
