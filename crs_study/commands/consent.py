@@ -1,0 +1,89 @@
+"""Consent records: record a participant's consent, list records, withdraw a participant.
+
+The register lives outside every dataset (owner-only permissions): --register DIR, else
+$CRS_STUDY_CONSENT_DIR, else ~/.crs-study/consent. See consent/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "consent"
+HELP = "record consent, list records, withdraw a participant (removes their data)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    def add(name: str, help_text: str) -> argparse.ArgumentParser:
+        sub = actions.add_parser(name, help=help_text, description=help_text,
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        sub.add_argument("--register", metavar="DIR", default=None,
+                         help="consent register directory (default: $CRS_STUDY_CONSENT_DIR "
+                              "or ~/.crs-study/consent)")
+        return sub
+
+    record = add("record", "record a participant's consent on a form")
+    record.add_argument("--participant", metavar="ID",
+                        help="pseudonymous label (letters and digits); generated when omitted")
+    record.add_argument("--form", required=True, metavar="FILE",
+                        help="the consent form signed (Markdown with a 'Version:' line)")
+    record.add_argument("--experimenter", required=True, metavar="INITIALS",
+                        help="initials of the experimenter taking consent")
+    record.add_argument("--name", default=None,
+                        help="the participant's name, kept in the register only (optional)")
+
+    listing = add("list", "list consent records (names hidden unless --show-names)")
+    listing.add_argument("--json", action="store_true", help="one JSON object per line")
+    listing.add_argument("--show-names", action="store_true", help="include names")
+
+    withdraw = add("withdraw", "withdraw a participant: remove all their data, keep an audit line")
+    withdraw.add_argument("--participant", required=True, metavar="ID")
+    withdraw.add_argument("--dataset", action="append", default=[], metavar="DIR",
+                          help="dataset to remove the participant from (repeatable)")
+
+    recover = add("recover", "finish a withdrawal that was interrupted")
+    recover.add_argument("--dataset", action="append", required=True, metavar="DIR")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from crs_study import consent
+
+    register = consent.Register(args.register)
+    if args.action == "record":
+        form = consent.read_form(args.form)
+        record = register.record(form, args.experimenter, args.participant, args.name)
+        print(f"consent recorded: participant {record.participant}, form version "
+              f"{record.form_version}, {record.time}, experimenter {record.experimenter}")
+        return 0
+    if args.action == "list":
+        records = register.records()
+        for record in records.values():
+            row = asdict(record)
+            if not args.show_names:
+                row.pop("name")
+            row["status"] = record.status
+            if args.json:
+                print(json.dumps(row, sort_keys=True))
+            else:
+                name = f"  {record.name}" if args.show_names and record.name else ""
+                print(f"{record.participant:12s} {record.status:10s} form {record.form_version:8s}"
+                      f" {record.time}  {record.experimenter}{name}")
+        if not records and not args.json:
+            print(f"no consent records in {register.directory}")
+        return 0
+    if args.action == "withdraw":
+        entries = consent.withdraw(args.participant, args.dataset, register.directory)
+        for entry in entries:
+            print(f"withdrawn {args.participant} from {entry['dataset']}: "
+                  f"{len(entry['removed'])} paths removed")
+        print(f"consent record of {args.participant} marked withdrawn in {register.directory}")
+        return 0
+    for dataset in args.dataset:
+        entry = consent.recover_withdrawal(dataset)
+        print(f"{dataset}: " + (f"finished withdrawal of {entry['participant']}" if entry
+                                else "no unfinished withdrawal"))
+    return 0

@@ -1,0 +1,438 @@
+"""Consent records, the gate before real sessions, and withdrawal.
+
+The **register** is a directory kept outside every dataset (owner-only: 0700, files 0600)::
+
+    register.jsonl   one JSON object per event: {"event": "consent" | "withdrawal", ...}
+    audit.jsonl      one line per completed withdrawal: label, time, what was removed
+
+Consent events hold the participant's pseudonymous label, the UTC time, the form's path,
+version and sha256, the experimenter's initials and, only when the lab chooses, a name. Names
+never leave the register: datasets hold labels alone.
+
+Withdrawal is all-or-nothing per dataset. A journal naming every path to remove is made
+durable first (``DATASET/.crs-study-withdrawal.json``); the paths are then renamed into a
+staging directory, ``participants.tsv`` is rewritten atomically, the staging directory is
+deleted, the register marks the withdrawal, the audit line is appended and the journal is
+removed. Every step is idempotent, so an interrupted withdrawal is finished by running it again
+(or :func:`recover_withdrawal`): the dataset is either as before (journal not yet written) or,
+once recovered, fully withdrawn. Files of other participants are never opened for writing.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import re
+import secrets
+import shutil
+import signal
+import string
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from crs_study.errors import ConsentError
+
+REGISTER_ENV = "CRS_STUDY_CONSENT_DIR"
+REGISTER_FILE = "register.jsonl"
+AUDIT_FILE = "audit.jsonl"
+JOURNAL_FILE = ".crs-study-withdrawal.json"
+STAGING_DIR = ".crs-study-withdrawal-staging"
+#: Test hook: kill the process at the n-th withdrawal checkpoint (simulates a power cut).
+CRASH_ENV = "CRS_STUDY_WITHDRAW_CRASH_AT"
+
+_LABEL_RE = re.compile(r"^[A-Za-z0-9]+$")
+_VERSION_RE = re.compile(r"^Version:\s*(\S+)", re.MULTILINE)
+_INITIALS_RE = re.compile(r"^[A-Za-z]{1,4}$")
+_LABEL_ALPHABET = string.ascii_lowercase + string.digits
+_TEXT_SUFFIXES = {".json", ".tsv", ".md", ".html", ".csv", ".txt", ".jsonl"}
+
+
+def default_register_dir() -> Path:
+    """``$CRS_STUDY_CONSENT_DIR``, else ``~/.crs-study/consent``."""
+    return Path(os.environ.get(REGISTER_ENV) or Path.home() / ".crs-study" / "consent")
+
+
+def check_label(label: str) -> str:
+    """A participant label must be BIDS-valid: letters and digits only."""
+    if not isinstance(label, str) or not _LABEL_RE.match(label):
+        raise ConsentError(
+            f"participant label {label!r} is not valid: use letters and digits only (BIDS)"
+        )
+    return label
+
+
+def generate_label(existing: Iterable[str] = (), length: int = 7) -> str:
+    """A random pseudonymous label such as ``p7k2m9q`` (a letter, then letters and digits)."""
+    taken = set(existing)
+    while True:
+        label = "p" + "".join(secrets.choice(_LABEL_ALPHABET) for _ in range(length - 1))
+        if label not in taken:
+            return label
+
+
+@dataclass(frozen=True)
+class ConsentForm:
+    """A versioned consent form: Markdown with a title and a ``Version:`` line."""
+
+    path: Path
+    title: str
+    version: str
+    sha256: str
+
+
+def read_form(path: str | Path) -> ConsentForm:
+    """Read and check a consent form; malformed forms are one-line :class:`ConsentError` s."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+        text = data.decode("utf-8")
+    except FileNotFoundError:
+        raise ConsentError(f"{path}: no such consent form") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConsentError(f"{path}: cannot read the consent form: {exc}") from None
+    titles = [line[2:].strip() for line in text.splitlines() if line.startswith("# ")]
+    if not titles:
+        raise ConsentError(f"{path}: not a consent form: expected a '# Title' line")
+    versions = _VERSION_RE.findall(text)
+    if len(versions) != 1:
+        raise ConsentError(
+            f"{path}: expected exactly one 'Version: X' line, found {len(versions)}"
+        )
+    if "- [ ]" not in text:
+        raise ConsentError(f"{path}: not a consent form: expected '- [ ]' consent statements")
+    return ConsentForm(path, titles[0], versions[0], hashlib.sha256(data).hexdigest())
+
+
+@dataclass(frozen=True)
+class ConsentRecord:
+    """The current consent state of one participant, folded from the register's events."""
+
+    participant: str
+    time: str
+    form_path: str
+    form_version: str
+    form_sha256: str
+    experimenter: str
+    name: str | None = None
+    withdrawn_at: str | None = None
+
+    @property
+    def status(self) -> str:
+        return "withdrawn" if self.withdrawn_at else "consented"
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def _append_durably(path: Path, line: str) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+    try:
+        os.write(fd, line.encode("utf-8") + b"\n")
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class Register:
+    """The consent register directory (see the module docstring)."""
+
+    def __init__(self, directory: str | Path | None = None) -> None:
+        self.directory = Path(directory) if directory else default_register_dir()
+        self.path = self.directory / REGISTER_FILE
+        self.audit_path = self.directory / AUDIT_FILE
+
+    def _ensure(self) -> None:
+        try:
+            self.directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+            os.chmod(self.directory, 0o700)
+        except OSError as exc:
+            raise ConsentError(f"{self.directory}: cannot create the consent register: {exc}"
+                               ) from None
+
+    def _append(self, path: Path, event: dict) -> None:
+        self._ensure()
+        _append_durably(path, json.dumps(event, sort_keys=True))
+        os.chmod(path, 0o600)
+
+    def events(self) -> list[dict]:
+        if not self.path.exists():
+            return []
+        events = []
+        for number, line in enumerate(self.path.read_text(encoding="utf-8").splitlines(), 1):
+            if not line.strip():
+                continue
+            try:
+                event = json.loads(line)
+                event["event"], event["participant"]  # noqa: B018  (required keys)
+            except (json.JSONDecodeError, KeyError, TypeError):
+                raise ConsentError(f"{self.path}:{number}: not a consent register line: "
+                                   f"{line[:60]!r}") from None
+            events.append(event)
+        return events
+
+    def records(self) -> dict[str, ConsentRecord]:
+        """The current record per participant (a later consent replaces an earlier one)."""
+        records: dict[str, ConsentRecord] = {}
+        for event in self.events():
+            label = event["participant"]
+            if event["event"] == "consent":
+                records[label] = ConsentRecord(
+                    label, event["time"], event["form_path"], event["form_version"],
+                    event["form_sha256"], event["experimenter"], event.get("name"),
+                )
+            elif event["event"] == "withdrawal" and label in records:
+                old = records[label]
+                records[label] = ConsentRecord(**{**asdict(old), "withdrawn_at": event["time"]})
+        return records
+
+    def record(self, form: ConsentForm, experimenter: str, participant: str | None = None,
+               name: str | None = None) -> ConsentRecord:
+        """Store a consent event; a label is generated when none is given."""
+        if not _INITIALS_RE.match(experimenter or ""):
+            raise ConsentError(
+                f"experimenter initials {experimenter!r} are not valid: 1 to 4 letters"
+            )
+        records = self.records()
+        if participant is None:
+            participant = generate_label(records)
+        check_label(participant)
+        if participant in records and records[participant].withdrawn_at:
+            raise ConsentError(
+                f"participant {participant!r} withdrew on {records[participant].withdrawn_at}; "
+                "give a returning person a new label"
+            )
+        event = {
+            "event": "consent", "participant": participant, "time": _now(),
+            "form_path": str(form.path), "form_version": form.version,
+            "form_sha256": form.sha256, "experimenter": experimenter.upper(),
+        }
+        if name:
+            event["name"] = name
+        self._append(self.path, event)
+        return self.records()[participant]
+
+    def mark_withdrawn(self, participant: str) -> None:
+        record = self.records().get(participant)
+        if record is not None and record.withdrawn_at:
+            return  # idempotent
+        self._append(self.path, {"event": "withdrawal", "participant": participant,
+                                 "time": _now()})
+
+    def audit(self, entry: dict) -> None:
+        if self.audit_path.exists() and any(
+            json.loads(line).get("journal_id") == entry["journal_id"]
+            for line in self.audit_path.read_text(encoding="utf-8").splitlines() if line
+        ):
+            return  # idempotent
+        self._append(self.audit_path, entry)
+
+
+def require_consent(register_dir: str | Path | None, participant: str, form_version: str
+                    ) -> ConsentRecord:
+    """The gate before a real session: a current consent on ``form_version`` or a refusal."""
+    register = Register(register_dir)
+    record = register.records().get(participant)
+    if record is None:
+        raise ConsentError(
+            f"no consent record for participant {participant!r} in {register.directory}; "
+            f"record it first: crs-study consent record --participant {participant} "
+            f"--form FORM --experimenter INITIALS"
+        )
+    if record.withdrawn_at:
+        raise ConsentError(
+            f"participant {participant!r} withdrew consent on {record.withdrawn_at}; "
+            "no session may run"
+        )
+    if record.form_version != form_version:
+        raise ConsentError(
+            f"participant {participant!r} consented to form version {record.form_version!r}, "
+            f"the protocol needs version {form_version!r}; record consent on the current form"
+        )
+    return record
+
+
+# --- withdrawal ---------------------------------------------------------------------------
+
+_checkpoints = 0
+
+
+def _checkpoint() -> None:
+    """Crash here when the test hook says so (simulates a power cut mid-withdrawal)."""
+    global _checkpoints
+    _checkpoints += 1
+    target = os.environ.get(CRASH_ENV)
+    if target and int(target) == _checkpoints:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _mentions(path: Path, pattern: re.Pattern[str]) -> bool:
+    try:
+        return bool(pattern.search(path.read_text(encoding="utf-8", errors="replace")))
+    except OSError:
+        return False
+
+
+def participant_paths(dataset: Path, participant: str) -> list[str]:
+    """Every path of ``dataset`` holding the participant's data (relative, sorted).
+
+    ``sub-<label>`` directories and files named ``sub-<label>_*`` anywhere in the dataset
+    (sessions, ``sourcedata/``, ``derivatives/``); and, under ``derivatives/``, every output
+    directory with a text file that mentions the label (group results computed from the
+    participant's data are removed whole; rerun the analysis).
+    """
+    check_label(participant)
+    prefix = f"sub-{participant}"
+    found: set[Path] = set()
+    for root, dirs, files in os.walk(dataset):
+        root_path = Path(root)
+        if root_path.name in (STAGING_DIR,):
+            dirs[:] = []
+            continue
+        for name in list(dirs):
+            if name == prefix or name.startswith(prefix + "_"):
+                found.add(root_path / name)
+                dirs.remove(name)
+        for name in files:
+            if name == prefix or name.startswith(prefix + "_") or name.startswith(prefix + "."):
+                found.add(root_path / name)
+    derivatives = dataset / "derivatives"
+    if derivatives.is_dir():
+        token = re.compile(rf"(?<![A-Za-z0-9]){re.escape(participant)}(?![A-Za-z0-9])")
+        for path in derivatives.rglob("*"):
+            if (path.is_file() and path.suffix in _TEXT_SUFFIXES
+                    and not any(p in found for p in path.parents) and _mentions(path, token)):
+                found.add(path.parent if path.parent != derivatives else path)
+    relative = sorted({p.relative_to(dataset) for p in found})
+    # drop paths inside another path already listed
+    return [str(p) for p in relative if not any(q in p.parents for q in relative)]
+
+
+def _check_not_running(dataset: Path, participant: str) -> None:
+    for lock in (dataset / f"sub-{participant}").rglob("*.lock"):
+        with open(lock, "a+") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ConsentError(
+                    f"a session of participant {participant!r} is running ({lock}); stop it first"
+                ) from None
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _write_atomically(path: Path, data: dict | str) -> None:
+    text = data if isinstance(data, str) else json.dumps(data, indent=2, sort_keys=True)
+    temp = path.with_name(path.name + ".tmp")
+    with open(temp, "w", encoding="utf-8") as handle:
+        handle.write(text)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temp, path)
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _without_participant_row(text: str, participant: str) -> str:
+    lines = text.splitlines(keepends=True)
+    keep = [line for line in lines if line.split("\t", 1)[0].strip() != f"sub-{participant}"]
+    return "".join(keep)
+
+
+def pending_withdrawal(dataset: str | Path) -> dict | None:
+    """The journal of an unfinished withdrawal in ``dataset``, or None."""
+    journal = Path(dataset) / JOURNAL_FILE
+    if not journal.exists():
+        return None
+    try:
+        return json.loads(journal.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        # A journal is written atomically, so a torn one cannot exist; an unreadable one
+        # must not be guessed at.
+        raise ConsentError(f"{journal}: unreadable withdrawal journal; inspect it by hand"
+                           ) from None
+
+
+def recover_withdrawal(dataset: str | Path) -> dict | None:
+    """Finish an interrupted withdrawal from its journal; returns the audit entry or None."""
+    dataset = Path(dataset)
+    journal = pending_withdrawal(dataset)
+    if journal is None:
+        return None
+    return _complete(dataset, journal)
+
+
+def _complete(dataset: Path, journal: dict) -> dict:
+    participant = journal["participant"]
+    staging = dataset / STAGING_DIR
+    staging.mkdir(exist_ok=True)
+    for relative in journal["paths"]:
+        source = dataset / relative
+        if source.exists() or source.is_symlink():
+            target = staging / relative
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.rename(source, target)
+            _checkpoint()
+    participants = dataset / "participants.tsv"
+    if participants.exists():
+        text = participants.read_text(encoding="utf-8")
+        reduced = _without_participant_row(text, participant)
+        if reduced != text:
+            _write_atomically(participants, reduced)
+    _checkpoint()
+    shutil.rmtree(staging, ignore_errors=False)
+    _fsync_dir(dataset)
+    _checkpoint()
+    register = Register(journal["register"])
+    register.mark_withdrawn(participant)
+    entry = {
+        "event": "withdrawal", "participant": participant, "time": journal["time"],
+        "completed": _now(), "dataset": str(dataset.resolve()), "removed": journal["paths"],
+        "participants_tsv_row_removed": True, "journal_id": journal["journal_id"],
+    }
+    register.audit(entry)
+    _checkpoint()
+    (dataset / JOURNAL_FILE).unlink()
+    _fsync_dir(dataset)
+    return entry
+
+
+def withdraw(participant: str, datasets: Iterable[str | Path],
+             register_dir: str | Path | None = None) -> list[dict]:
+    """Remove every file of ``participant`` from each dataset and mark the record withdrawn.
+
+    Returns one audit entry per dataset. Safe to run again after an interruption.
+    """
+    check_label(participant)
+    register = Register(register_dir)
+    entries = []
+    for dataset in map(Path, datasets):
+        if not dataset.is_dir():
+            raise ConsentError(f"{dataset}: no such dataset directory")
+        journal = pending_withdrawal(dataset)
+        if journal is not None and journal["participant"] != participant:
+            entries.append(_complete(dataset, journal))  # finish the other one first
+            journal = None
+        if journal is None:
+            _check_not_running(dataset, participant)
+            journal = {
+                "participant": participant, "time": _now(),
+                "register": str(register.directory.resolve()),
+                "paths": participant_paths(dataset, participant),
+                "journal_id": secrets.token_hex(8),
+            }
+            _write_atomically(dataset / JOURNAL_FILE, journal)
+            _checkpoint()
+        entries.append(_complete(dataset, journal))
+    register.mark_withdrawn(participant)
+    return entries

@@ -1,0 +1,279 @@
+"""Consent records, the gate, withdrawal (issue 6)."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from crs_study import consent
+from crs_study.cli import main
+from crs_study.errors import ConsentError
+from crs_study.paths import shipped_file
+
+FORM = shipped_file("consent/consent_form.md")
+
+
+def write_form(path: Path, version: str = "2.0", body: str = "- [ ] I agree.\n") -> Path:
+    path.write_text(f"# Consent form\n\nVersion: {version}\n\n{body}", encoding="utf-8")
+    return path
+
+
+# --- forms ----------------------------------------------------------------------------------
+
+def test_shipped_form_and_sheet_carry_version_1_0():
+    form = consent.read_form(FORM)
+    assert form.version == "1.0"
+    assert len(form.sha256) == 64
+    sheet = shipped_file("consent/information_sheet.md").read_text(encoding="utf-8")
+    assert "Version: 1.0" in sheet
+
+
+@pytest.mark.parametrize("text, match", [
+    pytest.param("Version: 1\n- [ ] yes\n", "Title", id="no-title"),
+    pytest.param("# Form\n- [ ] yes\n", "exactly one 'Version", id="no-version"),
+    pytest.param("# Form\nVersion: 1\nVersion: 2\n- [ ] yes\n", "found 2", id="two-versions"),
+    pytest.param("# Form\nVersion: 1\nI agree.\n", "consent statements", id="no-statements"),
+])
+def test_malformed_form_refused(tmp_path, text, match):
+    path = tmp_path / "form.md"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConsentError, match=match):
+        consent.read_form(path)
+
+
+def test_missing_and_binary_form_refused(tmp_path):
+    with pytest.raises(ConsentError, match="no such consent form"):
+        consent.read_form(tmp_path / "absent.md")
+    binary = tmp_path / "form.md"
+    binary.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(ConsentError, match="cannot read"):
+        consent.read_form(binary)
+
+
+# --- records --------------------------------------------------------------------------------
+
+def test_record_stores_who_when_which_form(tmp_path):
+    register = consent.Register(tmp_path / "reg")
+    record = register.record(consent.read_form(FORM), "ab", "p01", name="Ada Lovelace")
+    assert record.participant == "p01"
+    assert record.form_version == "1.0"
+    assert record.experimenter == "AB"
+    assert record.form_sha256 == consent.read_form(FORM).sha256
+    assert record.time.endswith("+00:00")
+    # owner-only permissions on the register directory and its file
+    assert stat.S_IMODE(os.stat(tmp_path / "reg").st_mode) == 0o700
+    assert stat.S_IMODE(os.stat(register.path).st_mode) == 0o600
+    assert consent.Register(tmp_path / "reg").records()["p01"].name == "Ada Lovelace"
+
+
+def test_generated_labels_are_bids_valid_and_unique(tmp_path):
+    register = consent.Register(tmp_path)
+    labels = {register.record(consent.read_form(FORM), "AB").participant for _ in range(50)}
+    assert len(labels) == 50
+    assert all(consent.check_label(label) == label for label in labels)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text(min_size=0, max_size=12))
+def test_label_check_accepts_exactly_alphanumeric(label):
+    valid = label.isascii() and label.isalnum()
+    if valid:
+        assert consent.check_label(label) == label
+    else:
+        with pytest.raises(ConsentError, match="letters and digits"):
+            consent.check_label(label)
+
+
+@pytest.mark.parametrize("initials", ["", "A1", "ABCDE", "A B"])
+def test_bad_experimenter_initials_refused(tmp_path, initials):
+    with pytest.raises(ConsentError, match="initials"):
+        consent.Register(tmp_path).record(consent.read_form(FORM), initials, "p1")
+
+
+def test_corrupt_register_line_is_a_one_line_error(tmp_path):
+    (tmp_path / consent.REGISTER_FILE).write_text('{"event": "consent"\n', encoding="utf-8")
+    with pytest.raises(ConsentError, match=r"register.jsonl:1: not a consent register line"):
+        consent.Register(tmp_path).records()
+
+
+def test_cli_record_and_list_hide_names(tmp_path, capsys):
+    reg = str(tmp_path / "reg")
+    assert main(["consent", "record", "--register", reg, "--participant", "p7",
+                 "--form", str(FORM), "--experimenter", "CD", "--name", "Grace Hopper"]) == 0
+    assert main(["consent", "list", "--register", reg, "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line[:1] == "{"]
+    assert rows == [{**rows[0], "participant": "p7", "status": "consented"}]
+    assert "name" not in rows[0]
+    assert main(["consent", "list", "--register", reg, "--show-names"]) == 0
+    assert "Grace Hopper" in capsys.readouterr().out
+
+
+def test_cli_malformed_form_is_one_line_exit_2(tmp_path, capsys):
+    bad = tmp_path / "bad.md"
+    bad.write_text("# Form\nno version\n- [ ] ok\n", encoding="utf-8")
+    code = main(["consent", "record", "--register", str(tmp_path), "--participant", "p1",
+                 "--form", str(bad), "--experimenter", "AB"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "Version" in err[0]
+
+
+# --- the gate -------------------------------------------------------------------------------
+
+def test_gate_refuses_without_record(tmp_path):
+    with pytest.raises(ConsentError, match="no consent record for participant 'p1'.*"
+                                           "crs-study consent record"):
+        consent.require_consent(tmp_path, "p1", "1.0")
+
+
+def test_gate_refuses_mismatched_version_and_admits_match(tmp_path):
+    register = consent.Register(tmp_path)
+    register.record(consent.read_form(FORM), "AB", "p1")
+    with pytest.raises(ConsentError, match="form version '1.0', the protocol needs version '2.0'"):
+        consent.require_consent(tmp_path, "p1", "2.0")
+    assert consent.require_consent(tmp_path, "p1", "1.0").participant == "p1"
+    # consent on the new form admits the new version
+    register.record(consent.read_form(write_form(tmp_path / "v2.md", "2.0")), "AB", "p1")
+    assert consent.require_consent(tmp_path, "p1", "2.0").form_version == "2.0"
+
+
+def test_gate_refuses_withdrawn_participant(tmp_path):
+    register = consent.Register(tmp_path / "reg")
+    register.record(consent.read_form(FORM), "AB", "p1")
+    dataset = tmp_path / "ds"
+    dataset.mkdir()
+    consent.withdraw("p1", [dataset], tmp_path / "reg")
+    with pytest.raises(ConsentError, match="withdrew consent"):
+        consent.require_consent(tmp_path / "reg", "p1", "1.0")
+    with pytest.raises(ConsentError, match="new label"):
+        register.record(consent.read_form(FORM), "AB", "p1")
+
+
+# --- withdrawal -----------------------------------------------------------------------------
+
+PARTICIPANTS = ("a1", "a10", "b2")
+
+
+def make_dataset(root: Path) -> Path:
+    """A dataset in the DESIGN.md layout with three participants (labels a1 and a10 share a
+    prefix on purpose)."""
+    root.mkdir(parents=True)
+    (root / "dataset_description.json").write_text('{"Name": "t"}\n')
+    rows = "".join(f"sub-{p}\t{i}\n" for i, p in enumerate(PARTICIPANTS))
+    (root / "participants.tsv").write_text("participant_id\tcounterbalance\n" + rows)
+    for p in PARTICIPANTS:
+        for ses in (1, 2):
+            beh = root / f"sub-{p}" / f"ses-{ses}" / "beh"
+            beh.mkdir(parents=True)
+            stem = f"sub-{p}_ses-{ses}_task-digitid_beh"
+            (beh / f"{stem}.tsv").write_text(f"trial_index\tdigit\n0\t{ses}\n")
+            (beh / f"{stem}.json").write_text(json.dumps({"Participant": p}))
+        src = root / "sourcedata" / f"sub-{p}" / "ses-1"
+        src.mkdir(parents=True)
+        (src / f"sub-{p}_ses-1_frames.tsv.gz").write_bytes(bytes(range(64)) + p.encode())
+        deriv = root / "derivatives" / "crs-study" / f"sub-{p}"
+        deriv.mkdir(parents=True)
+        (deriv / f"sub-{p}_accuracy.tsv").write_text("acc\n0.5\n")
+    return root
+
+
+def snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file()}
+
+
+def test_withdrawal_removes_one_participant_and_leaves_others_byte_identical(tmp_path):
+    dataset = make_dataset(tmp_path / "ds")
+    register = consent.Register(tmp_path / "reg")
+    for p in PARTICIPANTS:
+        register.record(consent.read_form(FORM), "AB", p, name=f"Name {p}")
+    before = snapshot(dataset)
+
+    entries = consent.withdraw("a1", [dataset], register.directory)
+
+    after = snapshot(dataset)
+    gone = {k for k in before if "sub-a1/" in k or "/sub-a1_" in k or k.startswith("sub-a1/")}
+    assert gone and not any(k in after for k in gone)
+    for key, data in before.items():
+        if key not in gone and key != "participants.tsv":
+            assert after[key] == data, key
+    assert after["participants.tsv"] == before["participants.tsv"].replace(b"sub-a1\t0\n", b"")
+    assert register.records()["a1"].status == "withdrawn"
+    assert register.records()["a10"].status == "consented"
+    # the audit line: label, date and what was removed, nothing of the data or the name
+    audit = [json.loads(line) for line in register.audit_path.read_text().splitlines()]
+    assert len(audit) == 1 and audit[0]["participant"] == "a1"
+    assert sorted(audit[0]["removed"]) == sorted(entries[0]["removed"])
+    assert "Name a1" not in register.audit_path.read_text()
+    assert not (dataset / consent.JOURNAL_FILE).exists()
+    assert not (dataset / consent.STAGING_DIR).exists()
+
+
+def test_withdrawal_removes_group_derivatives_that_mention_the_participant(tmp_path):
+    dataset = make_dataset(tmp_path / "ds")
+    group = dataset / "derivatives" / "crs-study" / "report"
+    group.mkdir()
+    (group / "results.json").write_text('{"participants": ["b2", "a10"]}')
+    (group / "accuracy.png").write_bytes(b"png")
+    assert "derivatives/crs-study/report" in consent.participant_paths(dataset, "b2")
+    assert "derivatives/crs-study/report" not in consent.participant_paths(dataset, "a1")
+
+
+def test_withdrawal_refused_while_a_session_runs(tmp_path):
+    dataset = make_dataset(tmp_path / "ds")
+    lock = dataset / "sub-b2" / "ses-1" / "session.lock"
+    with open(lock, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        with pytest.raises(ConsentError, match="is running"):
+            consent.withdraw("b2", [dataset], tmp_path / "reg")
+    assert (dataset / "sub-b2").exists()
+
+
+def _withdraw_in_subprocess(dataset: Path, register: Path, crash_at: int | None) -> int:
+    env = {**os.environ}
+    if crash_at is not None:
+        env[consent.CRASH_ENV] = str(crash_at)
+    code = (f"from crs_study import consent; "
+            f"consent.withdraw('a1', [{str(dataset)!r}], {str(register)!r})")
+    return subprocess.run([sys.executable, "-c", code], env=env).returncode
+
+
+def test_interrupted_withdrawal_recovers_to_a_whole_state(tmp_path):
+    """Kill the withdrawal at every checkpoint (SIGKILL, as a power cut); the dataset is then
+    either untouched or, after recovery, equal to an uninterrupted withdrawal."""
+    reference = make_dataset(tmp_path / "reference")
+    consent.withdraw("a1", [reference], tmp_path / "reg-ref")
+    whole = snapshot(reference)
+
+    crash_at = 1
+    while True:
+        dataset = make_dataset(tmp_path / f"ds{crash_at}")
+        before = snapshot(dataset)
+        code = _withdraw_in_subprocess(dataset, tmp_path / f"reg{crash_at}", crash_at)
+        if code == 0:
+            break  # no checkpoint left to crash at
+        assert code == -9
+        journal = consent.pending_withdrawal(dataset)
+        if journal is None:
+            assert snapshot(dataset) == before or snapshot(dataset) == whole
+        consent.recover_withdrawal(dataset)
+        assert snapshot(dataset) == whole, f"crash at checkpoint {crash_at}"
+        audit = consent.Register(tmp_path / f"reg{crash_at}").audit_path.read_text()
+        assert len(audit.splitlines()) == 1  # one audit line, however often it was resumed
+        crash_at += 1
+    assert crash_at > 5  # the loop really crossed the moves and phases
+
+
+def test_withdraw_cli_one_line_for_missing_dataset(tmp_path, capsys):
+    code = main(["consent", "withdraw", "--register", str(tmp_path), "--participant", "p1",
+                 "--dataset", str(tmp_path / "nope")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "no such dataset" in err[0]
