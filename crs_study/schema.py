@@ -34,6 +34,8 @@ TRIAL_COLUMNS: dict[str, tuple[str, str]] = {
     "median_wire_latency": ("Median time from a frame's due time to its last byte on the wire",
                             "s"),
     "responder": ("Who answered: keypad, scripted, random or observer", "label"),
+    "trial_end": ("End of the trial, inter-trial interval included, relative to session start "
+                  "(a resumed session continues from the last stored trial_end)", "s"),
 }
 
 #: Session sidecar keys (``..._beh.json``) beyond the BIDS column descriptions.
@@ -58,6 +60,10 @@ SESSION_KEYS: tuple[str, ...] = (
     "TrialsPlanned",
     "TrialsCompleted",
     "TrialsSha256",        # sha256 of the _beh.tsv bytes when the session was last written
+    "PlanSha256",          # sha256 of the trial plan (checked on resume)
+    "Counterbalance",      # counterbalance index the plan was made with
+    "Resumes",             # UTC times the session was resumed after an interruption
+    "Faults",              # device faults: trial index, time, message
 )
 
 SESSION_STATUSES = ("running", "interrupted", "complete")
