@@ -37,7 +37,7 @@ import numpy as np
 
 from crs_study.errors import RenderError
 from crs_study.layout import Layout
-from crs_study.targets import _ARC_NODES, _ARC_WEIGHTS, Bump
+from crs_study.targets import Bump, arc_excess
 
 ClampPolicy = Literal["clip", "error"]
 
@@ -51,29 +51,24 @@ class Rendering:
 
 
 class BeamGeometry:
-    """Quadrature points along every beam line, precomputed once per layout (vectorised arcs)."""
+    """Every beam line of a layout as arrays, precomputed once, for vectorised arc lengths."""
 
-    def __init__(self, layout: Layout, panels: int = 16) -> None:
+    def __init__(self, layout: Layout) -> None:
         self.layout = layout
-        starts = np.array([b.start for b in layout.beams], dtype=float).reshape(-1, 2)
+        self.starts = np.array([b.start for b in layout.beams], dtype=float).reshape(-1, 2)
         ends = np.array([b.end for b in layout.beams], dtype=float).reshape(-1, 2)
-        spans = np.linalg.norm(ends - starts, axis=1)
-        self.straight = spans
-        self.units = (ends - starts) / spans[:, None] if len(spans) else starts
-        unit_s = (np.arange(panels) + 0.5)[:, None] / panels + _ARC_NODES[None, :] / (2 * panels)
-        unit_s = unit_s.ravel()  # fractions of the span, shape (panels * nodes,)
-        self.weights = (np.tile(_ARC_WEIGHTS, panels) / (2 * panels))[None, :] * spans[:, None]
-        self.points = (starts[:, None, :]
-                       + (unit_s[None, :, None] * spans[:, None, None]) * self.units[:, None, :])
+        self.straight = np.hypot(*(ends - self.starts).T)
+        self.units = (ends - self.starts) / np.where(self.straight > 0, self.straight, 1.0)[:, None]
         self.start_servo = np.array([b.start_servo for b in layout.beams], dtype=int)
         self.end_servo = np.array([b.end_servo for b in layout.beams], dtype=int)
 
+    def feeds(self, target: Bump) -> np.ndarray:
+        """Target arc length minus straight length along each beam line between its clamps."""
+        return arc_excess(target, self.starts, self.units, self.straight)
+
     def arc_lengths(self, target: Bump) -> np.ndarray:
         """Target arc length along each beam line between its clamps (mm)."""
-        slopes = np.stack([
-            target.slope_along(self.points[i], self.units[i]) for i in range(len(self.units))
-        ]) if len(self.units) else np.zeros((0, 1))
-        return np.sum(self.weights * np.sqrt(1.0 + slopes**2), axis=1)
+        return self.straight + self.feeds(target)
 
 
 def split_feed(total_mm: np.ndarray, end_travel_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -102,8 +97,7 @@ def render_crs(layout: Layout, target: Bump, geometry: BeamGeometry | None = Non
                ) -> np.ndarray:
     geometry = geometry or BeamGeometry(layout)
     setpoints = render_pixel_only(layout, target)
-    feed = geometry.arc_lengths(target) - geometry.straight
-    start, end = split_feed(np.maximum(feed, 0.0), layout.boundary_travel_mm)
+    start, end = split_feed(geometry.feeds(target), layout.boundary_travel_mm)
     setpoints[geometry.start_servo] = start
     setpoints[geometry.end_servo] = end
     return setpoints
