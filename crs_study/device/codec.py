@@ -1,0 +1,574 @@
+"""The Hiwonder/LOBOT LSC-series controller protocol: frames as typed data, bytes, and back.
+
+Pure code, no I/O (hardware.md, "Hiwonder / LOBOT LSC-series PWM servo controller protocol")::
+
+    0x55 0x55  Length  Command  parameters...     Length = len(parameters) + 2
+
+so a frame is ``Length + 2`` bytes; no ID byte, no checksum; 16-bit values little-endian.
+
+Host to board (commands)          code  Length   parameters
+    SERVO_MOVE                       3  3n + 5   n, time lo, time hi, n x (id, pos lo, pos hi)
+    ACTION_GROUP_RUN                 6  5        group, times lo, times hi (0 = forever)
+    ACTION_GROUP_STOP                7  2        -
+    ACTION_GROUP_SPEED              11  5        group (0xFF = all), percent lo, percent hi
+    GET_BATTERY_VOLTAGE             15  2        -
+    MULT_SERVO_UNLOAD               20  n + 3    n, ids
+    MULT_SERVO_POS_READ             21  n + 3    n, ids
+
+Board to host (replies and notices)
+    action group running             6  5        group, times lo, times hi
+    action group stopped             7  2        -
+    action group complete            8  5        group, times lo, times hi
+    battery voltage                 15  4        millivolts lo, hi
+    servo positions                 21  3n + 3   n, n x (id, pos lo, pos hi)
+
+The lengths of the 0x06/0x07/0x08 notices follow Hiwonder's LobotServoController reference
+code (the vendor protocol sheet lists the codes only); they are the same layout as the
+corresponding commands.
+
+Value ranges enforced by the encoders (and by the decoder, which is how it resynchronises):
+pulse width 500..2500 us, move time 0..30000 ms (hardware.md), servo ids 0..32 (the largest
+channel a device file may name: ``channel_base`` <= 1 and at most 32 channels), ids unique in a
+frame, at least one servo per multi-servo frame, 8- and 16-bit fields in range.
+
+Decoder guarantee (tested): bytes that are a concatenation of valid frames and garbage runs
+come back as exactly those frames, with each garbage run reported as skipped at its stream
+offset, whenever no garbage run contains ``55 55`` or ends in ``55`` (then no header can start
+in garbage). Garbage that does hold a header is resolved by checking the candidate frame's
+length, command and values; a candidate that fails is dropped one byte at a time, so the
+decoder resynchronises on the next real header. For any input at all the decoder never raises,
+accounts for every byte (frames + skipped + pending = bytes fed) and gives the same result
+however the stream is cut into chunks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from enum import Enum, IntEnum
+from numbers import Integral
+from typing import ClassVar
+
+from crs_study.errors import DeviceError
+
+HEADER = b"\x55\x55"
+PULSE_MIN_US = 500
+PULSE_MAX_US = 2500
+MOVE_TIME_MAX_MS = 30000
+SERVO_ID_MAX = 32
+
+
+class Command(IntEnum):
+    """Command codes, host to board."""
+
+    SERVO_MOVE = 3
+    ACTION_GROUP_RUN = 6
+    ACTION_GROUP_STOP = 7
+    ACTION_GROUP_SPEED = 11
+    GET_BATTERY_VOLTAGE = 15
+    MULT_SERVO_UNLOAD = 20
+    MULT_SERVO_POS_READ = 21
+
+
+class Reply(IntEnum):
+    """Codes of frames the board sends."""
+
+    ACTION_GROUP_RUNNING = 6
+    ACTION_GROUP_STOPPED = 7
+    ACTION_GROUP_COMPLETE = 8
+    BATTERY_VOLTAGE = 15
+    SERVO_POSITIONS = 21
+
+
+class Direction(Enum):
+    """Which way the bytes travel: decides how command codes are read."""
+
+    HOST = "host"  # host -> board: commands
+    BOARD = "board"  # board -> host: replies and notices
+
+
+# ---------------------------------------------------------------------------------------------
+# checks
+
+
+def _check_int(name: str, value: object, low: int, high: int) -> int:
+    """``value`` as an int if it is a whole number in [low, high] (numpy integers too)."""
+    if isinstance(value, bool) or not isinstance(value, Integral) or not low <= value <= high:
+        raise DeviceError(
+            f"LSC frame: {name}: expected a whole number {low}..{high}, got {value!r}"
+        )
+    return int(value)
+
+
+def _check_ids(ids: Iterable[int]) -> tuple[int, ...]:
+    ids = tuple(_check_int("servo id", i, 0, SERVO_ID_MAX) for i in ids)
+    if not ids:
+        raise DeviceError("LSC frame: expected at least one servo id, got none")
+    if len(set(ids)) != len(ids):
+        raise DeviceError(f"LSC frame: servo ids repeat in {list(ids)!r}")
+    return ids
+
+
+def _u16(value: int) -> bytes:
+    return bytes((value & 0xFF, value >> 8))
+
+
+def _frame(code: int, params: bytes) -> bytes:
+    return HEADER + bytes((len(params) + 2, code)) + params
+
+
+# ---------------------------------------------------------------------------------------------
+# messages: host -> board
+
+
+@dataclass(frozen=True)
+class ServoMove:
+    """Move servos to pulse widths (us) over ``time_ms``: ``positions`` = ((id, pulse), ...)."""
+
+    positions: tuple[tuple[int, int], ...]
+    time_ms: int
+    code: ClassVar[int] = Command.SERVO_MOVE
+
+    def __post_init__(self) -> None:
+        positions = tuple((_check_int("servo id", i, 0, SERVO_ID_MAX),
+                           _check_int(f"servo {i} pulse width (us)", p, PULSE_MIN_US, PULSE_MAX_US))
+                          for i, p in self.positions)
+        _check_ids(i for i, _ in positions)
+        object.__setattr__(self, "time_ms", _check_int("move time (ms)", self.time_ms, 0,
+                                                      MOVE_TIME_MAX_MS))
+        object.__setattr__(self, "positions", positions)
+
+    def encode(self) -> bytes:
+        body = bytes((len(self.positions),)) + _u16(self.time_ms)
+        for servo, pulse in self.positions:
+            body += bytes((servo,)) + _u16(pulse)
+        return _frame(self.code, body)
+
+
+@dataclass(frozen=True)
+class ActionGroupRun:
+    """Run stored action group ``group`` ``times`` times (0 = forever)."""
+
+    group: int
+    times: int
+    code: ClassVar[int] = Command.ACTION_GROUP_RUN
+
+    def __post_init__(self) -> None:
+        _check_int("action group", self.group, 0, 255)
+        _check_int("repetitions", self.times, 0, 0xFFFF)
+
+    def encode(self) -> bytes:
+        return _frame(self.code, bytes((self.group,)) + _u16(self.times))
+
+
+@dataclass(frozen=True)
+class ActionGroupStop:
+    """Stop the running action group."""
+
+    code: ClassVar[int] = Command.ACTION_GROUP_STOP
+
+    def encode(self) -> bytes:
+        return _frame(self.code, b"")
+
+
+@dataclass(frozen=True)
+class ActionGroupSpeed:
+    """Set action group ``group``'s speed in percent (group 0xFF = all groups)."""
+
+    group: int
+    percent: int
+    code: ClassVar[int] = Command.ACTION_GROUP_SPEED
+
+    def __post_init__(self) -> None:
+        _check_int("action group", self.group, 0, 255)
+        _check_int("speed (%)", self.percent, 0, 0xFFFF)
+
+    def encode(self) -> bytes:
+        return _frame(self.code, bytes((self.group,)) + _u16(self.percent))
+
+
+@dataclass(frozen=True)
+class GetBatteryVoltage:
+    """Ask for the supply voltage; the board answers with :class:`BatteryVoltage`."""
+
+    code: ClassVar[int] = Command.GET_BATTERY_VOLTAGE
+
+    def encode(self) -> bytes:
+        return _frame(self.code, b"")
+
+
+@dataclass(frozen=True)
+class MultServoUnload:
+    """Switch the listed servos off (no holding torque)."""
+
+    ids: tuple[int, ...]
+    code: ClassVar[int] = Command.MULT_SERVO_UNLOAD
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ids", _check_ids(self.ids))
+
+    def encode(self) -> bytes:
+        return _frame(self.code, bytes((len(self.ids), *self.ids)))
+
+
+@dataclass(frozen=True)
+class MultServoPosRead:
+    """Ask for the listed servos' positions; the board answers with :class:`ServoPositions`."""
+
+    ids: tuple[int, ...]
+    code: ClassVar[int] = Command.MULT_SERVO_POS_READ
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ids", _check_ids(self.ids))
+
+    def encode(self) -> bytes:
+        return _frame(self.code, bytes((len(self.ids), *self.ids)))
+
+
+# ---------------------------------------------------------------------------------------------
+# messages: board -> host
+
+
+@dataclass(frozen=True)
+class ActionGroupRunning:
+    """Notice: action group ``group`` started, to run ``times`` times."""
+
+    group: int
+    times: int
+    code: ClassVar[int] = Reply.ACTION_GROUP_RUNNING
+
+    def __post_init__(self) -> None:
+        _check_int("action group", self.group, 0, 255)
+        _check_int("repetitions", self.times, 0, 0xFFFF)
+
+    def encode(self) -> bytes:
+        return _frame(self.code, bytes((self.group,)) + _u16(self.times))
+
+
+@dataclass(frozen=True)
+class ActionGroupStopped:
+    """Notice: the action group was stopped."""
+
+    code: ClassVar[int] = Reply.ACTION_GROUP_STOPPED
+
+    def encode(self) -> bytes:
+        return _frame(self.code, b"")
+
+
+@dataclass(frozen=True)
+class ActionGroupComplete:
+    """Notice: action group ``group`` finished its ``times`` runs."""
+
+    group: int
+    times: int
+    code: ClassVar[int] = Reply.ACTION_GROUP_COMPLETE
+
+    def __post_init__(self) -> None:
+        _check_int("action group", self.group, 0, 255)
+        _check_int("repetitions", self.times, 0, 0xFFFF)
+
+    def encode(self) -> bytes:
+        return _frame(self.code, bytes((self.group,)) + _u16(self.times))
+
+
+@dataclass(frozen=True)
+class BatteryVoltage:
+    """Reply to :class:`GetBatteryVoltage`: ``55 55 04 0F lo hi``, millivolts."""
+
+    millivolts: int
+    code: ClassVar[int] = Reply.BATTERY_VOLTAGE
+
+    def __post_init__(self) -> None:
+        _check_int("battery voltage (mV)", self.millivolts, 0, 0xFFFF)
+
+    def encode(self) -> bytes:
+        return _frame(self.code, _u16(self.millivolts))
+
+
+@dataclass(frozen=True)
+class ServoPositions:
+    """Reply to :class:`MultServoPosRead`: ((id, position), ...)."""
+
+    positions: tuple[tuple[int, int], ...]
+    code: ClassVar[int] = Reply.SERVO_POSITIONS
+
+    def __post_init__(self) -> None:
+        positions = tuple((_check_int("servo id", i, 0, SERVO_ID_MAX),
+                           _check_int(f"servo {i} position", p, 0, 0xFFFF))
+                          for i, p in self.positions)
+        _check_ids(i for i, _ in positions)
+        object.__setattr__(self, "positions", positions)
+
+    def encode(self) -> bytes:
+        body = bytes((len(self.positions),))
+        for servo, pos in self.positions:
+            body += bytes((servo,)) + _u16(pos)
+        return _frame(self.code, body)
+
+
+HostMessage = (ServoMove | ActionGroupRun | ActionGroupStop | ActionGroupSpeed
+               | GetBatteryVoltage | MultServoUnload | MultServoPosRead)
+BoardMessage = (ActionGroupRunning | ActionGroupStopped | ActionGroupComplete | BatteryVoltage
+                | ServoPositions)
+Message = HostMessage | BoardMessage
+
+
+# ---------------------------------------------------------------------------------------------
+# encoder functions
+
+
+def servo_move(positions: Mapping[int, int] | Iterable[tuple[int, int]], time_ms: int) -> bytes:
+    """SERVO_MOVE frame: ``servo_move({1: 2000}, 1000)`` = ``55 55 08 03 01 E8 03 01 D0 07``."""
+    items = positions.items() if isinstance(positions, Mapping) else positions
+    return ServoMove(tuple(items), time_ms).encode()
+
+
+def action_group_run(group: int, times: int = 1) -> bytes:
+    return ActionGroupRun(group, times).encode()
+
+
+def action_group_stop() -> bytes:
+    return ActionGroupStop().encode()
+
+
+def action_group_speed(group: int, percent: int) -> bytes:
+    return ActionGroupSpeed(group, percent).encode()
+
+
+def get_battery_voltage() -> bytes:
+    return GetBatteryVoltage().encode()
+
+
+def mult_servo_unload(ids: Iterable[int]) -> bytes:
+    return MultServoUnload(tuple(ids)).encode()
+
+
+def mult_servo_pos_read(ids: Iterable[int]) -> bytes:
+    return MultServoPosRead(tuple(ids)).encode()
+
+
+def battery_voltage_reply(millivolts: int) -> bytes:
+    """The board's reply ``55 55 04 0F lo hi``."""
+    return BatteryVoltage(millivolts).encode()
+
+
+def servo_positions_reply(positions: Mapping[int, int] | Iterable[tuple[int, int]]) -> bytes:
+    items = positions.items() if isinstance(positions, Mapping) else positions
+    return ServoPositions(tuple(items)).encode()
+
+
+# ---------------------------------------------------------------------------------------------
+# decoding
+
+
+class _Invalid(Exception):
+    """A candidate frame that cannot be what it claims."""
+
+
+def _expect_length(length: int, want: int, what: str) -> None:
+    if length != want:
+        raise _Invalid(f"bad length {length} for {what} (expected {want})")
+
+
+def _n_servos(length: int, per: int, extra: int, what: str) -> int:
+    n, rest = divmod(length - extra, per)
+    if rest or n < 1 or n > SERVO_ID_MAX + 1:
+        raise _Invalid(f"bad length {length} for {what}")
+    return n
+
+
+def _check_length(direction: Direction, code: int, length: int) -> None:
+    """Check a candidate's Length byte against its command code; raise _Invalid if wrong."""
+    if direction is Direction.HOST:
+        fixed = {Command.ACTION_GROUP_RUN: 5, Command.ACTION_GROUP_STOP: 2,
+                 Command.ACTION_GROUP_SPEED: 5, Command.GET_BATTERY_VOLTAGE: 2}
+        if code == Command.SERVO_MOVE:
+            _n_servos(length, 3, 5, "SERVO_MOVE")
+        elif code in (Command.MULT_SERVO_UNLOAD, Command.MULT_SERVO_POS_READ):
+            _n_servos(length, 1, 3, Command(code).name)
+        elif code in fixed:
+            _expect_length(length, fixed[code], Command(code).name)
+        else:
+            raise _Invalid(f"unknown command 0x{code:02X}")
+    else:
+        fixed = {Reply.ACTION_GROUP_RUNNING: 5, Reply.ACTION_GROUP_STOPPED: 2,
+                 Reply.ACTION_GROUP_COMPLETE: 5, Reply.BATTERY_VOLTAGE: 4}
+        if code == Reply.SERVO_POSITIONS:
+            _n_servos(length, 3, 3, "SERVO_POSITIONS")
+        elif code in fixed:
+            _expect_length(length, fixed[code], Reply(code).name)
+        else:
+            raise _Invalid(f"unknown reply 0x{code:02X}")
+
+
+def _u16_at(params: bytes, i: int) -> int:
+    return params[i] | (params[i + 1] << 8)
+
+
+def _triples(params: bytes, start: int, n: int) -> tuple[tuple[int, int], ...]:
+    return tuple((params[start + 3 * k], _u16_at(params, start + 3 * k + 1)) for k in range(n))
+
+
+def _parse(direction: Direction, code: int, params: bytes) -> Message:
+    """Typed message for a complete candidate. Raise _Invalid when a value is impossible."""
+    try:
+        if direction is Direction.HOST:
+            if code == Command.SERVO_MOVE:
+                n = params[0]
+                if 3 * n + 3 != len(params):
+                    raise _Invalid(f"servo count {n} does not match length {len(params) + 2}")
+                return ServoMove(_triples(params, 3, n), _u16_at(params, 1))
+            if code == Command.ACTION_GROUP_RUN:
+                return ActionGroupRun(params[0], _u16_at(params, 1))
+            if code == Command.ACTION_GROUP_STOP:
+                return ActionGroupStop()
+            if code == Command.ACTION_GROUP_SPEED:
+                return ActionGroupSpeed(params[0], _u16_at(params, 1))
+            if code == Command.GET_BATTERY_VOLTAGE:
+                return GetBatteryVoltage()
+            n = params[0]
+            if n + 1 != len(params):
+                raise _Invalid(f"servo count {n} does not match length {len(params) + 2}")
+            kind = MultServoUnload if code == Command.MULT_SERVO_UNLOAD else MultServoPosRead
+            return kind(tuple(params[1:]))
+        if code == Reply.ACTION_GROUP_RUNNING:
+            return ActionGroupRunning(params[0], _u16_at(params, 1))
+        if code == Reply.ACTION_GROUP_STOPPED:
+            return ActionGroupStopped()
+        if code == Reply.ACTION_GROUP_COMPLETE:
+            return ActionGroupComplete(params[0], _u16_at(params, 1))
+        if code == Reply.BATTERY_VOLTAGE:
+            return BatteryVoltage(_u16_at(params, 0))
+        n = params[0]
+        if 3 * n + 1 != len(params):
+            raise _Invalid(f"servo count {n} does not match length {len(params) + 2}")
+        return ServoPositions(_triples(params, 1, n))
+    except DeviceError as exc:
+        raise _Invalid(str(exc).removeprefix("LSC frame: ")) from None
+
+
+def decode_frame(data: bytes, direction: Direction | str = Direction.HOST) -> Message:
+    """The message in ``data``, which must be exactly one valid frame; else :class:`DeviceError`."""
+    direction = Direction(direction)
+    if len(data) < 4 or data[:2] != HEADER or data[2] + 2 != len(data):
+        raise DeviceError(f"LSC frame: expected one frame 55 55 LEN CMD ..., got {data.hex(' ')!r}")
+    try:
+        _check_length(direction, data[3], data[2])
+        return _parse(direction, data[3], bytes(data[4:]))
+    except _Invalid as exc:
+        raise DeviceError(f"LSC frame {data.hex(' ')!r}: {exc}") from None
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A decoded frame: where it started in the stream, its bytes, and what it says."""
+
+    offset: int
+    raw: bytes
+    message: Message
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """A run of bytes the decoder could not frame, at stream ``offset``."""
+
+    offset: int
+    data: bytes
+    reason: str
+
+
+@dataclass
+class FrameDecoder:
+    """Streaming LSC decoder: ``feed(bytes) -> list[Frame]``; garbage goes to :attr:`skipped`.
+
+    Adjacent skipped bytes are merged into one :class:`Skipped` run (the reason is the first
+    one's). :meth:`take_skipped` hands the runs over and forgets them; :meth:`flush` ends the
+    stream, reporting an unfinished frame as skipped ("truncated").
+    """
+
+    direction: Direction | str = Direction.HOST
+    skipped: list[Skipped] = field(default_factory=list)
+    skipped_bytes: int = 0
+    frames_decoded: int = 0
+    _buffer: bytearray = field(default_factory=bytearray, repr=False)
+    _offset: int = 0  # stream offset of _buffer[0]
+
+    def __post_init__(self) -> None:
+        self.direction = Direction(self.direction)
+
+    @property
+    def pending(self) -> bytes:
+        """Bytes held back: the start of a frame that may still complete."""
+        return bytes(self._buffer)
+
+    def feed(self, data: bytes) -> list[Frame]:
+        self._buffer += data
+        frames: list[Frame] = []
+        buf = self._buffer
+        pos = 0
+        while True:
+            start = buf.find(HEADER, pos)
+            if start < 0:
+                # keep a trailing 0x55: it may be the first half of a header
+                keep = len(buf) - 1 if buf.endswith(b"\x55") and len(buf) > pos else len(buf)
+                self._skip(pos, keep, "no frame header")
+                pos = keep
+                break
+            self._skip(pos, start, "no frame header")
+            pos = start
+            if len(buf) - pos < 4:
+                break
+            length, code = buf[pos + 2], buf[pos + 3]
+            try:
+                _check_length(self.direction, code, length)
+            except _Invalid as exc:
+                self._skip(pos, pos + 1, str(exc))
+                pos += 1
+                continue
+            end = pos + length + 2
+            if len(buf) < end:
+                break
+            try:
+                message = _parse(self.direction, code, bytes(buf[pos + 4:end]))
+            except _Invalid as exc:
+                self._skip(pos, pos + 1, str(exc))
+                pos += 1
+                continue
+            frames.append(Frame(self._offset + pos, bytes(buf[pos:end]), message))
+            pos = end
+        del buf[:pos]
+        self._offset += pos
+        self.frames_decoded += len(frames)
+        return frames
+
+    def flush(self) -> list[Frame]:
+        """End of stream: whatever is pending can no longer complete; report it skipped."""
+        self._skip(0, len(self._buffer), "truncated frame")
+        self._offset += len(self._buffer)
+        self._buffer.clear()
+        return []
+
+    def take_skipped(self) -> list[Skipped]:
+        runs, self.skipped = self.skipped, []
+        return runs
+
+    def _skip(self, start: int, stop: int, reason: str) -> None:
+        if stop <= start:
+            return
+        offset = self._offset + start
+        data = bytes(self._buffer[start:stop])
+        self.skipped_bytes += len(data)
+        last = self.skipped[-1] if self.skipped else None
+        if last is not None and last.offset + len(last.data) == offset:
+            self.skipped[-1] = Skipped(last.offset, last.data + data, last.reason)
+        else:
+            self.skipped.append(Skipped(offset, data, reason))
+
+
+def decode_all(data: bytes, direction: Direction | str = Direction.HOST
+               ) -> tuple[list[Frame], list[Skipped]]:
+    """Decode a complete byte string: its frames, and every skipped run (tail included)."""
+    decoder = FrameDecoder(direction)
+    frames = decoder.feed(data)
+    decoder.flush()
+    return frames, decoder.skipped

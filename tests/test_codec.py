@@ -1,0 +1,261 @@
+"""LSC codec: published byte vectors, round trips, value checks, streaming resynchronisation.
+
+Byte vectors: ../shared/reference/hardware.md, "Published test vectors" (Hiwonder LSC-series
+communication protocol sheet).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from crs_study.device import codec
+from crs_study.device.codec import (
+    ActionGroupComplete,
+    ActionGroupRun,
+    ActionGroupRunning,
+    ActionGroupSpeed,
+    ActionGroupStop,
+    ActionGroupStopped,
+    BatteryVoltage,
+    Direction,
+    FrameDecoder,
+    GetBatteryVoltage,
+    MultServoPosRead,
+    MultServoUnload,
+    ServoMove,
+    ServoPositions,
+    decode_all,
+    decode_frame,
+)
+from crs_study.errors import DeviceError
+
+VECTOR_ONE_SERVO = bytes.fromhex("55 55 08 03 01 E8 03 01 D0 07")  # servo 1 -> 2000 in 1000 ms
+VECTOR_TWO_SERVOS = bytes.fromhex("55 55 0B 03 02 20 03 02 B0 04 09 FC 08")  # 2 -> 1200, 9 -> 2300
+VECTOR_BATTERY = bytes.fromhex("55 55 04 0F 4C 1D")  # 7500 mV
+
+
+def test_published_servo_move_vectors_encode_exactly():
+    assert codec.servo_move({1: 2000}, 1000) == VECTOR_ONE_SERVO
+    assert codec.servo_move([(2, 1200), (9, 2300)], 800) == VECTOR_TWO_SERVOS
+
+
+def test_published_servo_move_vectors_decode_exactly():
+    assert decode_frame(VECTOR_ONE_SERVO) == ServoMove(((1, 2000),), 1000)
+    assert decode_frame(VECTOR_TWO_SERVOS) == ServoMove(((2, 1200), (9, 2300)), 800)
+
+
+def test_published_battery_reply_decodes_to_7500_mv():
+    assert decode_frame(VECTOR_BATTERY, "board") == BatteryVoltage(7500)
+    assert codec.battery_voltage_reply(7500) == VECTOR_BATTERY
+
+
+def test_fixed_frames_match_the_protocol_table():
+    # hardware.md table: Length 5 / 2 / 5 / 2, n + 3
+    assert codec.action_group_run(3, 0) == bytes.fromhex("55 55 05 06 03 00 00")
+    assert codec.action_group_stop() == bytes.fromhex("55 55 02 07")
+    assert codec.action_group_speed(0xFF, 150) == bytes.fromhex("55 55 05 0B FF 96 00")
+    assert codec.get_battery_voltage() == bytes.fromhex("55 55 02 0F")
+    assert codec.mult_servo_unload([1, 2, 3]) == bytes.fromhex("55 55 06 14 03 01 02 03")
+    assert codec.mult_servo_pos_read([4]) == bytes.fromhex("55 55 04 15 01 04")
+    # position reply: Length 3n + 3
+    assert codec.servo_positions_reply({4: 1500}) == bytes.fromhex("55 55 06 15 01 04 DC 05")
+
+
+def test_servo_move_accepts_numpy_integers():
+    assert codec.servo_move({np.int64(1): np.int32(2000)}, np.int64(1000)) == VECTOR_ONE_SERVO
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        pytest.param(lambda: codec.servo_move({1: 499}, 100),
+                     r"servo 1 pulse width.*500\.\.2500.*499", id="pulse-low"),
+        pytest.param(lambda: codec.servo_move({1: 2501}, 100), r"500\.\.2500.*2501",
+                     id="pulse-high"),
+        pytest.param(lambda: codec.servo_move({1: 1500}, 30001), r"move time.*0\.\.30000.*30001",
+                     id="time"),
+        pytest.param(lambda: codec.servo_move({1: 1500}, -1), r"move time.*-1", id="time-neg"),
+        pytest.param(lambda: codec.servo_move({}, 100), r"at least one servo", id="empty"),
+        pytest.param(lambda: codec.servo_move([(1, 1500), (1, 1600)], 100), r"repeat",
+                     id="dup-id"),
+        pytest.param(lambda: codec.servo_move({33: 1500}, 100), r"servo id.*0\.\.32.*33",
+                     id="id-range"),
+        pytest.param(lambda: codec.servo_move({1: 1500.0}, 100), r"whole number.*1500\.0",
+                     id="float-pulse"),
+        pytest.param(lambda: codec.mult_servo_unload(range(256)), r"servo id", id="n>255"),
+        pytest.param(lambda: codec.action_group_run(256, 1), r"action group.*0\.\.255.*256",
+                     id="group"),
+        pytest.param(lambda: codec.action_group_run(1, 65536), r"repetitions.*65536", id="times"),
+        pytest.param(lambda: codec.action_group_speed(1, -5), r"speed.*-5", id="speed"),
+        pytest.param(lambda: codec.battery_voltage_reply(70000), r"battery.*70000", id="mv"),
+        pytest.param(lambda: codec.servo_move({True: 1500}, 100), r"servo id.*True", id="bool"),
+    ],
+)
+def test_invalid_values_raise_device_error(make, match):
+    with pytest.raises(DeviceError, match=match):
+        make()
+
+
+def test_decode_frame_rejects_wrong_input():
+    with pytest.raises(DeviceError, match="expected one frame"):
+        decode_frame(VECTOR_ONE_SERVO[:-1])
+    with pytest.raises(DeviceError, match="unknown command 0x42"):
+        decode_frame(bytes.fromhex("55 55 02 42"))
+    with pytest.raises(DeviceError, match="pulse width"):
+        decode_frame(bytes.fromhex("55 55 08 03 01 E8 03 01 00 00"))
+
+
+# ---------------------------------------------------------------------------------------------
+# streaming decoder
+
+
+def test_garbage_holding_a_header_is_skipped_and_the_next_frame_found():
+    # garbage with 55 55 and an impossible command, then a real frame
+    garbage = bytes.fromhex("00 55 55 09 42 13")
+    frames, skipped = decode_all(garbage + VECTOR_ONE_SERVO)
+    assert [f.raw for f in frames] == [VECTOR_ONE_SERVO]
+    assert frames[0].offset == len(garbage)
+    assert [(s.offset, s.data) for s in skipped] == [(0, garbage)]
+
+
+def test_truncated_frame_followed_by_a_frame_resynchronises():
+    # a frame cut off after 6 bytes, then complete frames: the stub swallows the next header,
+    # its values are impossible (servo id 0x55), so the decoder drops it and finds the frames
+    stream = VECTOR_ONE_SERVO[:6] + VECTOR_ONE_SERVO + VECTOR_TWO_SERVOS
+    frames, skipped = decode_all(stream)
+    assert [f.raw for f in frames] == [VECTOR_ONE_SERVO, VECTOR_TWO_SERVOS]
+    assert [(s.offset, s.data) for s in skipped] == [(0, VECTOR_ONE_SERVO[:6])]
+
+
+@pytest.mark.parametrize(
+    ("bad", "reason"),
+    [
+        pytest.param("55 55 09 03", "bad length 9 for SERVO_MOVE", id="servo-move-length"),
+        pytest.param("55 55 03 07", "bad length 3 for ACTION_GROUP_STOP", id="stop-length"),
+        pytest.param("55 55 02 63", "unknown command 0x63", id="unknown"),
+        pytest.param("55 55 0B 03 01 E8 03 01 D0 07 02 D0 07",
+                     "servo count 1 does not match length 11", id="count-mismatch"),
+    ],
+)
+def test_bad_lengths_and_unknown_commands_are_reported(bad, reason):
+    frames, skipped = decode_all(bytes.fromhex(bad) + VECTOR_BATTERY + VECTOR_ONE_SERVO)
+    assert [f.raw for f in frames] == [VECTOR_ONE_SERVO]  # battery reply is not a command
+    assert skipped[0].offset == 0 and skipped[0].reason.startswith(reason)
+    assert b"".join(s.data for s in skipped) == bytes.fromhex(bad) + VECTOR_BATTERY
+
+
+def test_board_direction_reads_replies_and_notices():
+    stream = (VECTOR_BATTERY + codec.servo_positions_reply({1: 1500, 2: 900})
+              + ActionGroupRunning(2, 1).encode() + ActionGroupStopped().encode()
+              + ActionGroupComplete(2, 1).encode())
+    frames, skipped = decode_all(stream, Direction.BOARD)
+    assert [f.message for f in frames] == [
+        BatteryVoltage(7500), ServoPositions(((1, 1500), (2, 900))), ActionGroupRunning(2, 1),
+        ActionGroupStopped(), ActionGroupComplete(2, 1),
+    ]
+    assert skipped == []
+
+
+def test_partial_frame_waits_and_flush_reports_it_truncated():
+    decoder = FrameDecoder()
+    assert decoder.feed(VECTOR_ONE_SERVO[:7]) == []
+    assert decoder.pending == VECTOR_ONE_SERVO[:7]
+    assert [f.raw for f in decoder.feed(VECTOR_ONE_SERVO[7:])] == [VECTOR_ONE_SERVO]
+    decoder.feed(VECTOR_ONE_SERVO[:5])
+    decoder.flush()
+    assert [(s.offset, s.data, s.reason) for s in decoder.take_skipped()] == [
+        (10, VECTOR_ONE_SERVO[:5], "truncated frame")
+    ]
+    assert decoder.skipped == [] and decoder.skipped_bytes == 5
+
+
+def test_a_lone_trailing_0x55_is_held_back_for_the_next_chunk():
+    decoder = FrameDecoder()
+    assert decoder.feed(b"\x01\x55") == []
+    assert decoder.pending == b"\x55"
+    assert [f.raw for f in decoder.feed(VECTOR_ONE_SERVO[1:])] == [VECTOR_ONE_SERVO]
+
+
+# ---------------------------------------------------------------------------------------------
+# property tests
+
+_ids = st.integers(0, codec.SERVO_ID_MAX)
+_positions = st.lists(st.tuples(_ids, st.integers(500, 2500)), min_size=1, max_size=33,
+                      unique_by=lambda p: p[0])
+_id_lists = st.lists(_ids, min_size=1, max_size=33, unique=True)
+_u8, _u16 = st.integers(0, 255), st.integers(0, 0xFFFF)
+
+host_messages = st.one_of(
+    st.builds(ServoMove, _positions.map(tuple), st.integers(0, 30000)),
+    st.builds(ActionGroupRun, _u8, _u16),
+    st.just(ActionGroupStop()),
+    st.builds(ActionGroupSpeed, _u8, _u16),
+    st.just(GetBatteryVoltage()),
+    st.builds(MultServoUnload, _id_lists.map(tuple)),
+    st.builds(MultServoPosRead, _id_lists.map(tuple)),
+)
+board_messages = st.one_of(
+    st.builds(ActionGroupRunning, _u8, _u16),
+    st.just(ActionGroupStopped()),
+    st.builds(ActionGroupComplete, _u8, _u16),
+    st.builds(BatteryVoltage, _u16),
+    st.builds(ServoPositions,
+              st.lists(st.tuples(_ids, _u16), min_size=1, max_size=33,
+                       unique_by=lambda p: p[0]).map(tuple)),
+)
+# Garbage in which no header can start: no 55 55, and not ending in 55 (the guarantee).
+headerless_noise = st.binary(max_size=12).filter(
+    lambda b: b"\x55\x55" not in b and not b.endswith(b"\x55")
+)
+
+
+@pytest.mark.parametrize("direction", [Direction.HOST, Direction.BOARD])
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_random_frames_with_noise_between_all_come_back(direction, data):
+    messages = data.draw(st.lists(host_messages if direction is Direction.HOST
+                                  else board_messages, max_size=8))
+    noises = data.draw(st.lists(headerless_noise, min_size=len(messages) + 1,
+                                max_size=len(messages) + 1))
+    stream, expected_frames, expected_skips = b"", [], []
+    for message, noise in zip(messages, noises, strict=False):
+        if noise:
+            expected_skips.append((len(stream), noise))
+        stream += noise
+        expected_frames.append((len(stream), message))
+        stream += message.encode()
+    if noises[-1]:
+        expected_skips.append((len(stream), noises[-1]))
+    stream += noises[-1]
+
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=5)))
+    decoder = FrameDecoder(direction)
+    frames = []
+    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
+        frames += decoder.feed(stream[a:b])
+    decoder.flush()
+    assert [(f.offset, f.message) for f in frames] == expected_frames
+    assert [(s.offset, s.data) for s in decoder.skipped] == expected_skips
+
+
+@settings(max_examples=200, deadline=None)
+@given(stream=st.binary(max_size=200), cuts=st.lists(st.integers(0, 200), max_size=6),
+       direction=st.sampled_from(Direction))
+def test_any_bytes_are_accounted_for_whatever_the_chunking(stream, cuts, direction):
+    whole, whole_skipped = decode_all(stream, direction)
+    decoder = FrameDecoder(direction)
+    frames = []
+    bounds = sorted(min(c, len(stream)) for c in cuts)
+    for a, b in zip([0, *bounds], [*bounds, len(stream)], strict=True):
+        frames += decoder.feed(stream[a:b])
+    decoder.flush()
+    assert frames == whole
+    assert decoder.skipped == whole_skipped
+    pieces = sorted([(f.offset, f.raw) for f in frames]
+                    + [(s.offset, s.data) for s in decoder.skipped])
+    assert b"".join(p for _, p in pieces) == stream  # every byte, in order, exactly once
+    for f in frames:
+        assert decode_frame(f.raw, direction) == f.message
