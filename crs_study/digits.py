@@ -1,0 +1,156 @@
+"""Digit strokes: the ten digits as polylines, and motion along them at constant speed.
+
+The shipped strokes are in ``crs_study/data/digits.toml`` (documented there: unit box, x right,
+y up, strokes in drawing order); a protocol may name its own file. Loading is strict: every
+problem is a one-line :class:`~crs_study.errors.ProtocolError` naming the file, the key and
+the value.
+
+Motion: a stroke is a polyline P_0 .. P_m. Its arc-length parameter is the cumulative chord
+length s_0 = 0, s_j = s_{j-1} + |P_j - P_{j-1}|, and the point at arc length s is the linear
+interpolation between the chord ends that bracket s (:func:`point_at`). At speed v (mm/s) and
+frame rate f (frames/s) the bump centre of frame k is at s_k = min(k v / f, L); the stroke's
+last frame is the first one that reaches the end (:func:`sample_stroke`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from crs_study._toml import Section, read_toml
+from crs_study.errors import ProtocolError
+
+#: Format number of the strokes file this module reads.
+STROKES_FORMAT = 1
+
+
+def shipped_strokes_path() -> Path:
+    """The strokes file that ships with the package."""
+    return Path(str(resources.files("crs_study") / "data" / "digits.toml"))
+
+
+@dataclass(frozen=True, eq=False)
+class Digit:
+    """One digit: its strokes in the unit box (each an (m, 2) read-only array)."""
+
+    value: int
+    strokes: tuple[np.ndarray, ...]
+
+    def scaled(self, width_mm: float, height_mm: float,
+               centre_mm: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, ...]:
+        """Strokes in millimetres: x -> cx + (x - 1/2) w, y -> cy + (y - 1/2) h."""
+        scale = np.array([width_mm, height_mm], dtype=float)
+        offset = np.asarray(centre_mm, dtype=float)
+        return tuple((s - 0.5) * scale + offset for s in self.strokes)
+
+    def length_mm(self, width_mm: float, height_mm: float) -> float:
+        """Total drawn length (sum of stroke arc lengths) at the given size."""
+        return float(sum(arc_lengths(s)[-1] for s in self.scaled(width_mm, height_mm)))
+
+
+def arc_lengths(points: np.ndarray) -> np.ndarray:
+    """Cumulative chord length s_j of a polyline (m, 2): s_0 = 0, s_j = s_{j-1} + |dP_j|."""
+    points = np.asarray(points, dtype=float)
+    chords = np.hypot(*np.diff(points, axis=0).T)
+    return np.concatenate([[0.0], np.cumsum(chords)])
+
+
+def point_at(points: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points (k, 2) at arc lengths ``s`` (k,) along the polyline, clipped to [0, L]."""
+    points = np.asarray(points, dtype=float)
+    cumulative = arc_lengths(points)
+    s = np.clip(np.asarray(s, dtype=float), 0.0, cumulative[-1])
+    return np.column_stack([np.interp(s, cumulative, points[:, 0]),
+                            np.interp(s, cumulative, points[:, 1])])
+
+
+def frames_for_stroke(length_mm: float, speed_mm_s: float, frame_rate_hz: float) -> int:
+    """Frames that draw a stroke of ``length_mm``: ceil(L f / v) + 1 (first and last point)."""
+    steps = length_mm * frame_rate_hz / speed_mm_s
+    # Guard against 3.0000000001 from rounding: a stroke exactly k steps long takes k + 1.
+    return int(math.ceil(steps - 1e-9)) + 1
+
+
+def sample_stroke(points_mm: np.ndarray, speed_mm_s: float, frame_rate_hz: float
+                  ) -> np.ndarray:
+    """Bump centres (n, 2) for one stroke at speed v and frame rate f: s_k = min(k v / f, L)."""
+    length = arc_lengths(points_mm)[-1]
+    n = frames_for_stroke(length, speed_mm_s, frame_rate_hz)
+    s = np.arange(n) * (speed_mm_s / frame_rate_hz)
+    return point_at(points_mm, s)
+
+
+def resample_by_arc_length(points: np.ndarray, n: int) -> np.ndarray:
+    """``n`` points equally spaced in arc length along a polyline (ends included)."""
+    cumulative = arc_lengths(points)
+    return point_at(points, np.linspace(0.0, cumulative[-1], n))
+
+
+@lru_cache(maxsize=16)
+def _load_cached(path: str, mtime_ns: int) -> dict[int, Digit]:
+    return _parse(read_toml(path, ProtocolError), path)
+
+
+def load_digits(path: str | Path | None = None) -> dict[int, Digit]:
+    """Read a strokes file (the shipped one when ``path`` is None), strictly.
+
+    Returns a dict digit -> :class:`Digit`. Cached per file and modification time.
+    """
+    path = Path(path) if path is not None else shipped_strokes_path()
+    try:
+        mtime = path.stat().st_mtime_ns
+    except FileNotFoundError:
+        raise ProtocolError(f"{path}: no such strokes file") from None
+    except OSError as exc:
+        raise ProtocolError(f"{path}: cannot read the strokes file: {exc}") from None
+    return _load_cached(str(path), mtime)
+
+
+def _parse(data: dict, source: str) -> dict[int, Digit]:
+    root = Section(data, Path(source).name, error=ProtocolError)
+    version = root.integer("format")
+    if version != STROKES_FORMAT:
+        raise root.fail("format", f"expected {STROKES_FORMAT}, got {version!r}")
+    table = root.table("digits")
+    root.done()
+    digits: dict[int, Digit] = {}
+    for key in list(table.data):
+        if key not in {str(d) for d in range(10)}:
+            raise table.fail(key, f"expected a digit 0 to 9 as the key, got {key!r}")
+        entry = table.table(key)
+        raw_strokes = entry.array("strokes")
+        entry.done()
+        if not raw_strokes:
+            raise entry.fail("strokes", "expected at least one stroke, got []")
+        strokes = tuple(
+            _parse_stroke(stroke, entry, f"strokes[{i}]") for i, stroke in enumerate(raw_strokes)
+        )
+        digits[int(key)] = Digit(int(key), strokes)
+    table.done()
+    if not digits:
+        raise root.fail("digits", "expected at least one digit, got none")
+    return dict(sorted(digits.items()))
+
+
+def _parse_stroke(raw: object, entry: Section, key: str) -> np.ndarray:
+    if not isinstance(raw, list) or len(raw) < 2:
+        raise entry.fail(key, f"expected a list of at least 2 [x, y] points, got {raw!r}")
+    points = []
+    for j, point in enumerate(raw):
+        if (not isinstance(point, list) or len(point) != 2
+                or any(isinstance(c, bool) or not isinstance(c, int | float) for c in point)):
+            raise entry.fail(f"{key}[{j}]", f"expected [x, y] numbers, got {point!r}")
+        if not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in point):
+            raise entry.fail(f"{key}[{j}]", f"expected x and y in the unit box [0, 1], "
+                             f"got {point!r}")
+        points.append((float(point[0]), float(point[1])))
+    array = np.array(points)
+    if arc_lengths(array)[-1] <= 0.0:
+        raise entry.fail(key, f"a stroke must have a length > 0, got all points at {raw[0]!r}")
+    array.setflags(write=False)
+    return array

@@ -1,0 +1,241 @@
+"""Trial plans: a protocol, a participant and a session expanded into a fixed list of trials.
+
+Determinism (the cross-machine contract)
+    The seed is ``int.from_bytes(sha256("crs-study plan v1" NUL study_id NUL version NUL
+    participant NUL session)[:8], "big")``; the generator is
+    ``numpy.random.Generator(PCG64(seed))``. Only ``Generator.random()`` (uniform doubles in
+    [0, 1), a stable function of PCG64's output) is drawn; every choice is made from those
+    doubles here (index = floor(u n)), not by numpy's shuffling or sampling routines, whose
+    algorithms may change between numpy versions. So the same inputs give the same plan on
+    any machine and numpy version; ``tests/test_plan.py`` pins one plan.
+
+Design
+    Blocks: with ``ordering = "blocked"`` each block shows one condition. The block order
+    comes from the counterbalance index k (the participant's order of arrival, from 0), not
+    from the seed: ``none`` A B ..; ``alternate`` A B for even k, B A for odd k; ``abba``
+    A B B A for even k, B A A B for odd k (repetitions r of a condition dealt to its two
+    blocks as r = 0, 2, 4 .. and 1, 3, ..); ``latin`` row k mod rows of a balanced Latin
+    square (Williams 1949; 2n rows for odd n). ``ordering = "interleaved"``: one block with
+    every condition mixed.
+
+    Practice: ``practice_trials`` per condition at the start of the condition's first block
+    (or of every block), digits cycling through a shuffled list of the protocol's digits,
+    with feedback when the protocol says so. Test trials: every digit ``repetitions`` times
+    per condition. Within a block the order is random under the run constraint: no digit more
+    than ``max_same_digit_run`` times in a row, practice and test trials together.
+
+    The constraint is met constructively: each next trial is drawn with probability
+    proportional to the remaining count of its (condition, digit) among those that would not
+    extend a run beyond the limit; a dead end (only the blocked digit left) restarts the
+    block with the same generator (rare: a fraction of a percent of blocks for 10 digits).
+
+    Breaks: ``break_before`` on a trial preceded by a multiple of ``break_every`` trials of
+    its block. Block starts carry the condition's prompt to the experimenter instead.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from crs_study.errors import ProtocolError
+from crs_study.protocol import Protocol
+
+#: Restarts allowed per block before the run constraint is declared unsatisfiable.
+MAX_RESTARTS = 10_000
+
+
+@dataclass(frozen=True)
+class PlannedTrial:
+    """One trial of a plan (see the contract in the module docstring)."""
+
+    index: int
+    trial_type: Literal["practice", "test"]
+    block: int
+    condition: str
+    repetition: int
+    digit: int
+    feedback: bool
+    break_before: bool
+    prompt_before: str | None
+
+
+@dataclass(frozen=True)
+class TrialPlan:
+    """The trials of one session, in order, and the seed and counterbalance that made them."""
+
+    seed: int
+    counterbalance: int
+    trials: tuple[PlannedTrial, ...]
+    block_conditions: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.trials)
+
+    def count(self, trial_type: str | None = None, condition: str | None = None) -> int:
+        return sum(1 for t in self.trials
+                   if (trial_type is None or t.trial_type == trial_type)
+                   and (condition is None or t.condition == condition))
+
+    def sha256(self) -> str:
+        """Fingerprint of the plan (seed, counterbalance, every trial), e.g. to check a resume."""
+        rows = [f"{self.seed}\t{self.counterbalance}"]
+        rows += ["\t".join(str(v) for v in (t.index, t.trial_type, t.block, t.condition,
+                                              t.repetition, t.digit, int(t.feedback),
+                                              int(t.break_before), t.prompt_before or ""))
+                 for t in self.trials]
+        return hashlib.sha256("\n".join(rows).encode()).hexdigest()
+
+
+def plan_seed(study_id: str, version: str, participant: str, session: int) -> int:
+    """The plan's seed: the first 8 bytes (big-endian) of a sha256 of the identifying fields."""
+    text = "\0".join(["crs-study plan v1", study_id, version, participant, str(int(session))])
+    return int.from_bytes(hashlib.sha256(text.encode("utf-8")).digest()[:8], "big")
+
+
+def williams_square(n: int) -> list[list[int]]:
+    """Balanced Latin square rows for n treatments (Williams 1949); 2n rows when n is odd.
+
+    First row 0, 1, n-1, 2, n-2, ...; row i adds i mod n. Each treatment follows each other
+    equally often (once for even n, twice over the 2n rows for odd n).
+    """
+    first = [0]
+    low, high = 1, n - 1
+    while len(first) < n:
+        first.append(low)
+        low += 1
+        if len(first) < n:
+            first.append(high)
+            high -= 1
+    rows = [[(c + i) % n for c in first] for i in range(n)]
+    if n % 2:
+        rows += [row[::-1] for row in rows]
+    return rows
+
+
+def block_order(protocol: Protocol, counterbalance: int) -> tuple[str, ...]:
+    """Conditions of the blocks, in order, for counterbalance index ``counterbalance``."""
+    if counterbalance < 0:
+        raise ProtocolError(f"counterbalance index must be >= 0, got {counterbalance!r}")
+    base = list(protocol.conditions)
+    scheme = protocol.design.counterbalancing
+    if protocol.design.ordering == "interleaved":
+        return ("+".join(base),)
+    if scheme == "none":
+        return tuple(base)
+    if scheme == "alternate":
+        return tuple(base if counterbalance % 2 == 0 else base[::-1])
+    if scheme == "abba":
+        first = base if counterbalance % 2 == 0 else base[::-1]
+        return tuple(first + first[::-1])
+    rows = williams_square(len(base))
+    return tuple(base[i] for i in rows[counterbalance % len(rows)])
+
+
+class _Draw:
+    """Choices from ``Generator.random()`` doubles only (see the module docstring)."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.Generator(np.random.PCG64(seed))
+
+    def index(self, n: int) -> int:
+        return min(int(self.rng.random() * n), n - 1)
+
+    def weighted(self, weights: Sequence[int]) -> int:
+        total = sum(weights)
+        target = self.rng.random() * total
+        running = 0
+        for i, w in enumerate(weights):
+            running += w
+            if target < running:
+                return i
+        return max(i for i, w in enumerate(weights) if w > 0)
+
+    def shuffled(self, items: Sequence) -> list:
+        out = list(items)
+        for i in range(len(out) - 1, 0, -1):  # Fisher-Yates
+            j = self.index(i + 1)
+            out[i], out[j] = out[j], out[i]
+        return out
+
+
+def constrained_order(groups: dict[tuple[str, int], list[int]], max_run: int, draw: _Draw,
+                      history: Sequence[int] = ()) -> list[tuple[str, int, int]]:
+    """Order (condition, digit, repetition) items so no digit runs longer than ``max_run``.
+
+    ``groups`` maps (condition, digit) to its repetitions (taken smallest first); ``history``
+    is the digits shown just before (so the constraint holds across the junction).
+    """
+    keys = list(groups)
+    for _ in range(MAX_RESTARTS):
+        remaining = {k: sorted(v) for k, v in groups.items()}
+        recent = list(history)
+        out: list[tuple[str, int, int]] = []
+        total = sum(len(v) for v in remaining.values())
+        while len(out) < total:
+            blocked = recent[-1] if len(recent) >= max_run and \
+                len(set(recent[-max_run:])) == 1 else None
+            weights = [len(remaining[k]) if k[1] != blocked else 0 for k in keys]
+            if not any(weights):
+                break  # dead end: restart
+            key = keys[draw.weighted(weights)]
+            out.append((key[0], key[1], remaining[key].pop(0)))
+            recent.append(key[1])
+        else:
+            return out
+    raise ProtocolError(f"design.max_same_digit_run: cannot order {sum(map(len, groups.values()))}"
+                        f" trials with no digit more than {max_run} times in a row")
+
+
+def make_plan(protocol: Protocol, participant: str, session: int, counterbalance: int
+              ) -> TrialPlan:
+    """The session's trial plan (deterministic; see the module docstring)."""
+    seed = plan_seed(protocol.study_id, protocol.version, participant, session)
+    draw = _Draw(seed)
+    design = protocol.design
+    digits = protocol.digits
+    blocks = block_order(protocol, counterbalance)
+    conditions_of = [b.split("+") for b in blocks]
+    appearances: dict[str, int] = {}
+    trials: list[PlannedTrial] = []
+
+    for block, conditions in enumerate(conditions_of):
+        practice_groups: dict[tuple[str, int], list[int]] = {}
+        test_groups: dict[tuple[str, int], list[int]] = {}
+        for condition in conditions:
+            nth = appearances.get(condition, 0)
+            appearances[condition] = nth + 1
+            per_condition = blocks.count(condition) if design.ordering == "blocked" else 1
+            reps = [r for r in range(design.repetitions) if r % per_condition == nth]
+            for digit in digits:
+                test_groups[(condition, digit)] = list(reps)
+            if design.practice_trials and (nth == 0 or design.practice_in == "every-block"):
+                cycle: list[int] = []
+                while len(cycle) < design.practice_trials:
+                    cycle += draw.shuffled(digits)
+                for digit in cycle[: design.practice_trials]:
+                    shown = practice_groups.setdefault((condition, digit), [])
+                    shown.append(len(shown))  # repetition: the digit's nth practice trial
+        practice = constrained_order(practice_groups, design.max_same_digit_run, draw)
+        test = constrained_order(test_groups, design.max_same_digit_run, draw,
+                                 history=[d for _, d, _ in practice])
+        prompt = None
+        if design.ordering == "blocked":
+            prompt = protocol.prompt(conditions[0]) or \
+                f"Block {block + 1} of {len(blocks)}: {conditions[0]}"
+        items = [("practice", *p) for p in practice] + [("test", *t) for t in test]
+        for position, (kind, condition, digit, repetition) in enumerate(items):
+            feedback = protocol.feedback_practice if kind == "practice" else \
+                protocol.feedback_test
+            trials.append(PlannedTrial(
+                index=len(trials), trial_type=kind, block=block, condition=condition,
+                repetition=repetition, digit=digit, feedback=feedback,
+                break_before=bool(design.break_every and position
+                                  and position % design.break_every == 0),
+                prompt_before=prompt if position == 0 else None,
+            ))
+    return TrialPlan(seed, counterbalance, tuple(trials), blocks)

@@ -1,0 +1,506 @@
+"""Protocol files: what a digit-identification study runs, read strictly and checked on the device.
+
+A protocol is a TOML file with five tables (``protocols/README.md`` documents every key):
+``[study]`` (id, version, device, consent form, analysis plan), ``[stimulus]`` (digits, their
+size in pixel pitches, the bump, stroke speed, placement, frame rate), ``[conditions]``
+(registered display conditions and the experimenter's prompt for each), ``[design]``
+(repetitions, blocking, counterbalancing, run constraint, practice, breaks, inter-trial
+interval) and ``[responses]`` (keys, time limit, feedback).
+
+Reading is strict (:mod:`crs_study._toml`): unknown keys, wrong types and out-of-range values
+are one-line :class:`~crs_study.errors.ProtocolError` s naming the file, the line where the key
+is found, the key path and the value. Then the protocol is checked against its device
+(:func:`check_on_device`): the bump centre's path must stay inside the pixel area, the bump
+within the pixels' travel, the CRS within its limits (boundary feed within the boundary travel,
+no collapse Delta >= 1 by Eq. 4, curvature below yield) and the frame rate within the wire.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from crs_study._toml import Section
+from crs_study.errors import ConfigError, ConsentError, CrsStudyError, ProtocolError
+from crs_study.layout import BUILTIN_DEVICES, Layout, load_layout
+
+#: Closed choices.
+PLACEMENTS = ("centre", "offset")
+ORDERINGS = ("blocked", "interleaved")
+COUNTERBALANCING = ("none", "alternate", "abba", "latin")
+PRACTICE_IN = ("first-block", "every-block")
+FEEDBACK = ("none", "practice", "all")
+
+#: Keys that may be left out (with the default used then). Every other key is required.
+OPTIONAL_KEYS: dict[str, object] = {
+    "study.title": "",
+    "stimulus.strokes_file": None,
+    "stimulus.offset_mm": (0.0, 0.0),
+    "stimulus.stroke_pause_s": 0.4,
+    "stimulus.start_hold_s": 0.3,
+    "stimulus.end_hold_s": 0.3,
+    "conditions.prompts": {},
+    "design.practice_in": "first-block",
+    "design.break_duration_s": 30.0,
+    "responses.time_limit_s": None,
+    "responses.expected_response_s": 2.0,
+}
+
+_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+@dataclass(frozen=True)
+class StimulusSpec:
+    """The ``[stimulus]`` table: what is drawn, how big, how fast. Lengths in mm, times in s."""
+
+    digits: tuple[int, ...]
+    strokes_file: str | None  # resolved path, None for the shipped strokes
+    digit_height_pitch: float
+    digit_width_pitch: float
+    bump_diameter_mm: float
+    bump_height_mm: float
+    stroke_speed_mm_s: float
+    placement: str
+    offset_mm: tuple[float, float]
+    frame_rate_hz: float
+    stroke_pause_s: float
+    start_hold_s: float
+    end_hold_s: float
+
+
+@dataclass(frozen=True)
+class DesignSpec:
+    """The ``[design]`` table: how trials are repeated, ordered and paced."""
+
+    repetitions: int
+    ordering: str
+    counterbalancing: str
+    max_same_digit_run: int
+    practice_trials: int
+    practice_in: str
+    break_every: int
+    break_duration_s: float
+    inter_trial_interval_s: float
+
+
+@dataclass(frozen=True)
+class ResponseSpec:
+    """The ``[responses]`` table. ``keys[i]`` answers ``stimulus.digits[i]``."""
+
+    keys: tuple[str, ...]
+    time_limit_s: float | None  # from stimulus offset; None: no limit
+    feedback: str
+    expected_response_s: float
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """A validated protocol. Build with :func:`load_protocol`."""
+
+    path: Path
+    text: str
+    sha256: str
+    study_id: str
+    version: str
+    title: str
+    device: str  # built-in device name, or a resolved device file path
+    consent_form: str
+    consent_form_version: str
+    analysis_plan: str
+    conditions: tuple[str, ...]
+    condition_prompts: tuple[tuple[str, str], ...]
+    stimulus: StimulusSpec
+    design: DesignSpec
+    responses: ResponseSpec
+    checks: tuple[str, ...] = field(default=(), compare=False)  # what check_on_device passed
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.stimulus.frame_rate_hz
+
+    @property
+    def time_limit_s(self) -> float | None:
+        return self.responses.time_limit_s
+
+    @property
+    def inter_trial_interval_s(self) -> float:
+        return self.design.inter_trial_interval_s
+
+    @property
+    def feedback_practice(self) -> bool:
+        return self.responses.feedback in ("practice", "all")
+
+    @property
+    def feedback_test(self) -> bool:
+        return self.responses.feedback == "all"
+
+    @property
+    def digits(self) -> tuple[int, ...]:
+        return self.stimulus.digits
+
+    def prompt(self, condition: str) -> str | None:
+        """The experimenter's prompt before a block of ``condition`` (None when not given)."""
+        return dict(self.condition_prompts).get(condition)
+
+    def key_for(self, digit: int) -> str:
+        return self.responses.keys[self.stimulus.digits.index(digit)]
+
+    def digit_for_key(self, key: str) -> int | None:
+        keys = self.responses.keys
+        return self.stimulus.digits[keys.index(key)] if key in keys else None
+
+    def layout(self) -> Layout:
+        """The device's layout (cached per device file)."""
+        return _layout(self.device)
+
+
+_LAYOUTS: dict[str, Layout] = {}
+
+
+def _layout(device: str) -> Layout:
+    if device not in _LAYOUTS:
+        _LAYOUTS[device] = load_layout(device)
+    return _LAYOUTS[device]
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+
+
+def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:
+    """Read, validate and check a protocol file; every problem is a one-line ProtocolError.
+
+    ``check_device=False`` skips :func:`check_on_device` (only for tools that inspect a
+    protocol's keys; a runner must never skip it).
+    """
+    import tomllib
+
+    path = Path(path)
+    source = str(path)
+    try:
+        raw = path.read_bytes()
+        text = raw.decode("utf-8")
+    except FileNotFoundError:
+        raise ProtocolError(f"{source}: no such protocol file") from None
+    except IsADirectoryError:
+        raise ProtocolError(f"{source}: expected a protocol file, got a directory") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"{source}: cannot read: {_one_line(exc)}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ProtocolError(f"{source}: not valid TOML: {_one_line(exc)}") from None
+    try:
+        protocol = protocol_from_dict(data, path, text, hashlib.sha256(raw).hexdigest())
+        if check_device:
+            checks = check_on_device(protocol)
+            protocol = _replace(protocol, checks=checks)
+    except ConfigError as exc:
+        raise ProtocolError(_locate_message(str(exc), source, text)) from None
+    return protocol
+
+
+def _replace(protocol: Protocol, **changes: object) -> Protocol:
+    from dataclasses import replace
+
+    return replace(protocol, **changes)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def protocol_from_dict(data: dict, path: Path, text: str = "", sha256: str = "") -> Protocol:
+    """Build a :class:`Protocol` from parsed TOML, checking every key (no device checks)."""
+    source = str(path)
+    root = Section(data, source, error=ProtocolError)
+    study = root.table("study")
+    conditions_table = root.table("conditions")
+    stimulus_table = root.table("stimulus")
+    design_table = root.table("design")
+    responses_table = root.table("responses")
+    root.done()
+
+    study_id = _identifier(study, "id")
+    version = _nonempty(study, "version")
+    title = study.string("title", "")
+    device = _device(study, path)
+    consent_form = _nonempty(study, "consent_form")
+    consent_form_version = _nonempty(study, "consent_form_version")
+    analysis_plan = _nonempty(study, "analysis_plan")
+    study.done()
+
+    conditions, prompts = _conditions(conditions_table)
+    stimulus = _stimulus(stimulus_table, path)
+    design = _design(design_table, conditions)
+    responses = _responses(responses_table, stimulus.digits)
+
+    return Protocol(
+        path=path, text=text, sha256=sha256, study_id=study_id, version=version, title=title,
+        device=device, consent_form=consent_form, consent_form_version=consent_form_version,
+        analysis_plan=analysis_plan, conditions=conditions, condition_prompts=prompts,
+        stimulus=stimulus, design=design, responses=responses,
+    )
+
+
+def _nonempty(section: Section, key: str) -> str:
+    value = section.string(key)
+    if not value.strip() or "\n" in value:
+        raise section.fail(key, f"expected a non-empty one-line string, got {value!r}")
+    return value
+
+
+def _identifier(section: Section, key: str) -> str:
+    value = section.string(key)
+    if not _ID_RE.match(value):
+        raise section.fail(key, "expected letters, digits, '.', '_' or '-' (starting with a "
+                           f"letter or digit), got {value!r}")
+    return value
+
+
+def _device(study: Section, path: Path) -> str:
+    value = _nonempty(study, "device")
+    if value in BUILTIN_DEVICES:
+        return value
+    device_path = Path(value)
+    if not device_path.is_absolute():
+        device_path = path.parent / device_path
+    if not device_path.is_file():
+        raise study.fail("device", f"expected a built-in device ({', '.join(BUILTIN_DEVICES)}) "
+                         f"or a device file, got {value!r} (no file at {device_path})")
+    return str(device_path)
+
+
+def _conditions(table: Section) -> tuple[tuple[str, ...], tuple[tuple[str, str], ...]]:
+    from crs_study.render import CONDITIONS
+
+    names = table.array("names")
+    if len(names) < 1:
+        raise table.fail("names", "expected at least one condition, got []")
+    for i, name in enumerate(names):
+        if not isinstance(name, str) or name not in CONDITIONS:
+            raise table.fail(f"names[{i}]", f"expected a registered condition "
+                             f"({', '.join(sorted(CONDITIONS))}), got {name!r}")
+    if len(set(names)) != len(names):
+        raise table.fail("names", f"a condition appears twice in {names!r}")
+    prompts_table = table.table("prompts", {})
+    prompts = []
+    for name in list(prompts_table.data):
+        if name not in names:
+            raise prompts_table.fail(name, f"expected a prompt for one of the conditions "
+                                     f"{names!r}, got a prompt for {name!r}")
+        prompts.append((name, _nonempty(prompts_table, name)))
+    prompts_table.done()
+    table.done()
+    return tuple(names), tuple(prompts)
+
+
+def _stimulus(table: Section, path: Path) -> StimulusSpec:
+    digits = table.array("digits")
+    for i, d in enumerate(digits):
+        if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= 9:
+            raise table.fail(f"digits[{i}]", f"expected a digit 0 to 9, got {d!r}")
+    if len(set(digits)) != len(digits):
+        raise table.fail("digits", f"a digit appears twice in {digits!r}")
+    if len(digits) < 2:
+        raise table.fail("digits", f"expected at least 2 digits to choose from, got {digits!r}")
+    strokes_file = None
+    if table.has("strokes_file"):
+        value = _nonempty(table, "strokes_file")
+        candidate = Path(value) if Path(value).is_absolute() else path.parent / value
+        if not candidate.is_file():
+            raise table.fail("strokes_file", f"expected a strokes file, got {value!r} "
+                             f"(no file at {candidate})")
+        strokes_file = str(candidate)
+    else:
+        table.raw("strokes_file", None)
+
+    def positive(key: str, maximum: float) -> float:
+        return table.number(key, minimum=0.0, exclusive_minimum=True, maximum=maximum)
+
+    height = positive("digit_height_pitch", 20.0)
+    width = positive("digit_width_pitch", 20.0)
+    diameter = positive("bump_diameter_mm", 1000.0)
+    bump_height = positive("bump_height_mm", 100.0)
+    speed = positive("stroke_speed_mm_s", 1000.0)
+    placement = table.string("placement", choices=PLACEMENTS)
+    offset = (0.0, 0.0)
+    if table.has("offset_mm"):
+        raw = table.array("offset_mm")
+        if (len(raw) != 2 or any(isinstance(c, bool) or not isinstance(c, int | float)
+                                 or not math.isfinite(c) for c in raw)):
+            raise table.fail("offset_mm", f"expected [x, y] in mm, got {raw!r}")
+        if placement != "offset":
+            raise table.fail("offset_mm", f"only used with placement = \"offset\", "
+                             f"got placement = {placement!r}")
+        offset = (float(raw[0]), float(raw[1]))
+    elif placement == "offset":
+        raise table.fail("offset_mm", "missing: placement = \"offset\" needs offset_mm = [x, y]")
+    frame_rate = positive("frame_rate_hz", 1000.0)
+    pause = table.number("stroke_pause_s", 0.4, minimum=0.0, maximum=10.0)
+    start_hold = table.number("start_hold_s", 0.3, minimum=0.0, maximum=10.0)
+    end_hold = table.number("end_hold_s", 0.3, minimum=0.0, maximum=10.0)
+    table.done()
+    return StimulusSpec(tuple(digits), strokes_file, height, width, diameter, bump_height, speed,
+                        placement, offset, frame_rate, pause, start_hold, end_hold)
+
+
+def _design(table: Section, conditions: tuple[str, ...]) -> DesignSpec:
+    repetitions = table.integer("repetitions", minimum=1, maximum=1000)
+    ordering = table.string("ordering", choices=ORDERINGS)
+    counterbalancing = table.string("counterbalancing", choices=COUNTERBALANCING)
+    if ordering == "interleaved" and counterbalancing != "none":
+        raise table.fail("counterbalancing", "interleaved conditions have no block order to "
+                         f"counterbalance: expected \"none\", got {counterbalancing!r}")
+    if counterbalancing == "abba" and repetitions < 2:
+        raise table.fail("counterbalancing", "\"abba\" splits the repetitions over two blocks "
+                         f"per condition: needs repetitions >= 2, got {repetitions!r}")
+    max_run = table.integer("max_same_digit_run", minimum=1, maximum=1000)
+    practice = table.integer("practice_trials", minimum=0, maximum=1000)
+    practice_in = table.string("practice_in", "first-block", choices=PRACTICE_IN)
+    break_every = table.integer("break_every", minimum=0, maximum=100000)
+    break_duration = table.number("break_duration_s", 30.0, minimum=0.0, maximum=3600.0)
+    iti = table.number("inter_trial_interval_s", minimum=0.0, maximum=60.0)
+    table.done()
+    return DesignSpec(repetitions, ordering, counterbalancing, max_run, practice, practice_in,
+                      break_every, break_duration, iti)
+
+
+def _responses(table: Section, digits: tuple[int, ...]) -> ResponseSpec:
+    keys = table.array("keys")
+    if len(keys) != len(digits):
+        raise table.fail("keys", f"expected {len(digits)} keys (one per digit of "
+                         f"stimulus.digits), got {keys!r}")
+    for i, key in enumerate(keys):
+        if not isinstance(key, str) or len(key) != 1 or not key.isprintable() or key == " ":
+            raise table.fail(f"keys[{i}]", f"expected a single printable character, got {key!r}")
+    if len(set(keys)) != len(keys):
+        raise table.fail("keys", f"a key appears twice in {keys!r}")
+    time_limit = None
+    if table.has("time_limit_s"):
+        time_limit = table.number("time_limit_s", minimum=0.0, exclusive_minimum=True,
+                                  maximum=3600.0)
+    else:
+        table.raw("time_limit_s", None)
+    feedback = table.string("feedback", choices=FEEDBACK)
+    expected = table.number("expected_response_s", 2.0, minimum=0.0, maximum=3600.0)
+    table.done()
+    return ResponseSpec(tuple(keys), time_limit, feedback, expected)
+
+
+# --------------------------------------------------------------------------------------------
+# Semantic checks on the device
+
+
+def check_on_device(protocol: Protocol) -> tuple[str, ...]:
+    """Check the protocol against its device; return one line per check passed.
+
+    Raises :class:`ProtocolError` (naming the protocol key) for the first check that fails.
+    The heavy part (rendering every frame of every digit) is cached per stimulus and device.
+    """
+    source = str(protocol.path)
+    try:
+        layout = protocol.layout()
+    except ConfigError as exc:
+        raise ProtocolError(f"{source}: study.device: {_one_line(exc)}") from None
+    passed = [f"device {layout.name}: {layout.n_pixels} pixels, {len(layout.beams)} beams, "
+              f"{layout.n_actuators} actuators"]
+    passed += _consent_check(protocol, source)
+    from crs_study.stimulus import device_limits
+
+    try:
+        passed += device_limits(protocol.stimulus, protocol.conditions, layout)
+    except CrsStudyError as exc:
+        message = _one_line(exc)
+        if not message.startswith(source):
+            message = f"{source}: {message}"
+        raise ProtocolError(message) from None
+    return tuple(passed)
+
+
+def _consent_check(protocol: Protocol, source: str) -> list[str]:
+    from crs_study.consent import read_form
+    from crs_study.paths import shipped_file
+
+    form_path = Path(protocol.consent_form)
+    candidate = protocol.path.parent / form_path
+    try:
+        resolved = candidate if candidate.is_file() else shipped_file(form_path)
+        form = read_form(resolved)
+    except (ConfigError, ConsentError) as exc:
+        raise ProtocolError(f"{source}: study.consent_form: {_one_line(exc)}") from None
+    if form.version != protocol.consent_form_version:
+        raise ProtocolError(
+            f"{source}: study.consent_form_version: expected the form's version "
+            f"{form.version!r} ({protocol.consent_form}), got {protocol.consent_form_version!r}"
+        )
+    return [f"consent form {protocol.consent_form} version {form.version}"]
+
+
+def analysis_plan_path(protocol: Protocol) -> Path | None:
+    """The analysis plan's path when it exists (beside the protocol or shipped), else None."""
+    from crs_study.paths import shipped_file
+
+    candidate = protocol.path.parent / protocol.analysis_plan
+    if candidate.is_file():
+        return candidate
+    try:
+        return shipped_file(protocol.analysis_plan)
+    except ConfigError:
+        return None
+
+
+# --------------------------------------------------------------------------------------------
+# Line numbers for messages
+
+_KEY_PATH = r"[A-Za-z0-9_\-]+(?:\[\d+\])*(?:\.[A-Za-z0-9_\-]+(?:\[\d+\])*)*"
+
+
+def _locate_message(message: str, source: str, text: str) -> str:
+    """Insert the TOML line of the key a message names: ``file:LINE: key: ...``."""
+    prefix = f"{source}: "
+    if not message.startswith(prefix):
+        return message
+    rest = message[len(prefix):]
+    key_path = None
+    match = re.match(rf"^({_KEY_PATH}): (unknown key|missing required key) '([^']*)'", rest)
+    if match:
+        key_path = f"{match.group(1)}.{match.group(3)}" if match.group(2) == "unknown key" \
+            else match.group(1)
+    else:
+        match = re.match(r"^(unknown key|missing required key) '([^']*)'", rest)
+        if match:
+            key_path = match.group(2) if match.group(1) == "unknown key" else None
+        else:
+            match = re.match(rf"^({_KEY_PATH}): ", rest)
+            key_path = match.group(1) if match else None
+    line = find_line(text, key_path) if key_path else None
+    return f"{source}:{line}: {rest}" if line else message
+
+
+def find_line(text: str, key_path: str) -> int | None:
+    """1-based line of ``key_path`` (``design.repetitions``, ``stimulus.digits[2]``) in a TOML
+    text: the key's own line, else its table's header, else None."""
+    parts = re.sub(r"\[\d+\]", "", key_path).split(".")
+    table: list[str] = []
+    best: int | None = None
+    for number, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        header = re.match(r"^\[\[?\s*([^\]]+?)\s*\]\]?", stripped)
+        if header:
+            table = [p.strip().strip('"') for p in header.group(1).split(".")]
+            if table == parts:
+                return number
+            if best is None and table == parts[: len(table)]:
+                best = number
+            continue
+        key = re.match(r'^("?)([A-Za-z0-9_\-]+)\1\s*=', stripped)
+        if key and table + [key.group(2)] == parts:
+            return number
+        inline = len(parts) > len(table) + 1
+        if key and inline and table + [key.group(2)] == parts[: len(table) + 1]:
+            best = number  # a key inside an inline table
+    return best
