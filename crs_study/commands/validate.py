@@ -1,0 +1,181 @@
+"""Check a protocol strictly and print its plan: trials, expected duration, frames, wire use.
+
+Every key is checked (unknown keys, types, ranges: one-line errors naming file, line, key and
+value), then the stimulus against the device: inside the display, within the pixels' travel
+and the CRS limits, the frame rate within the wire. Wire use is reported two ways: full
+frames (every channel of every controller in every frame, the bound the check uses) and
+changed-only frames (channels whose pulse width changes, as measured on the rendered frames).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "validate"
+HELP = "check a protocol and print its plan (trials, duration, frames, wire use)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("protocol", metavar="PROTOCOL", help="protocol file (TOML)")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument("--participant", default="example", metavar="ID",
+                        help="participant label for --list (the plan depends on it)")
+    parser.add_argument("--session", type=int, default=1, metavar="N", help="session number")
+    parser.add_argument("--counterbalance", type=int, default=0, metavar="K",
+                        help="counterbalance index (order of arrival, from 0)")
+    parser.add_argument("--list", action="store_true", help="also list every planned trial")
+
+
+def summarise(protocol, participant: str = "example", session: int = 1,
+              counterbalance: int = 0) -> dict:
+    """The plan summary :func:`run` prints, as plain data."""
+    import numpy as np
+
+    from crs_study.device.base import (
+        BYTE_TIME_S,
+        channels_per_controller,
+        full_frame_rate_hz,
+        full_frame_wire_time_s,
+        servo_move_bytes,
+    )
+    from crs_study.plan import block_order, make_plan
+    from crs_study.protocol import analysis_plan_path
+    from crs_study.render import Renderer
+    from crs_study.stimulus import make_stimulus, render_frames
+
+    layout = protocol.layout()
+    plan = make_plan(protocol, participant, session, counterbalance)
+    stimuli = {d: make_stimulus(protocol, layout, d) for d in protocol.digits}
+    frames = {d: s.n_frames for d, s in stimuli.items()}
+    period = 1.0 / protocol.frame_rate_hz
+
+    seconds = 0.0
+    for trial in plan.trials:
+        seconds += stimuli[trial.digit].duration_s + protocol.responses.expected_response_s
+        seconds += protocol.inter_trial_interval_s
+        if trial.break_before:
+            seconds += protocol.design.break_duration_s
+    breaks = sum(t.break_before for t in plan.trials)
+    prompts = sum(t.prompt_before is not None for t in plan.trials)
+
+    per_controller = channels_per_controller(layout)
+    full_bytes = sum(servo_move_bytes(n) for n in per_controller.values() if n)
+    full_time = full_frame_wire_time_s(layout)
+    controller_of = np.array([[a.controller == c.name for a in layout.actuators]
+                              for c in layout.controllers])
+    changed = {}
+    for condition in protocol.conditions:
+        renderer = Renderer(layout, condition)
+        total_bytes, busiest, n_frames = 0, 0.0, 0
+        for stim in stimuli.values():
+            pulses = np.rint(np.array([layout.pulse_us(f) for f in render_frames(stim,
+                                                                                   renderer)]))
+            before = np.vstack([np.rint(layout.pulse_us(layout.neutral_setpoints())),
+                                pulses[:-1]])
+            moved = pulses != before  # (n_frames, n_actuators)
+            counts = moved.astype(int) @ controller_of.T.astype(int)  # (frames, controllers)
+            frame_bytes = np.where(counts > 0, 3 * counts + 7, 0)
+            total_bytes += int(frame_bytes.sum())
+            busiest = max(busiest, float(frame_bytes.max()) * BYTE_TIME_S)
+            n_frames += len(pulses)
+        changed[condition] = {
+            "mean_bytes_per_frame": total_bytes / n_frames,
+            "busiest_frame_wire_ms": busiest * 1e3,
+            "busiest_frame_budget_percent": 100.0 * busiest / period,
+        }
+
+    counts = {c: {"practice": plan.count("practice", c), "test": plan.count("test", c)}
+              for c in protocol.conditions}
+    schemes = protocol.design.counterbalancing
+    orders = sorted({block_order(protocol, k) for k in range(12)})
+    plan_file = analysis_plan_path(protocol)
+    return {
+        "protocol": str(protocol.path),
+        "sha256": protocol.sha256,
+        "study": {"id": protocol.study_id, "version": protocol.version,
+                  "title": protocol.title, "device": layout.name},
+        "trials": {"total": len(plan), "practice": plan.count("practice"),
+                   "test": plan.count("test"), "per_condition": counts,
+                   "blocks": len(plan.block_conditions), "breaks": breaks,
+                   "experimenter_prompts": prompts},
+        "block_orders": {"counterbalancing": schemes, "orders": [list(o) for o in orders]},
+        "expected_duration_s": seconds,
+        "frames_per_trial": {"min": min(frames.values()), "max": max(frames.values()),
+                             "mean": float(np.mean(list(frames.values()))),
+                             "per_digit": {str(d): n for d, n in frames.items()}},
+        "stimulus_duration_s": {str(d): s.duration_s for d, s in stimuli.items()},
+        "frame_rate_hz": protocol.frame_rate_hz,
+        "wire": {
+            "full_frame_bytes": full_bytes,
+            "full_frame_busiest_controller_ms": full_time * 1e3,
+            "full_frame_budget_percent": 100.0 * full_time / period,
+            "full_frame_max_rate_hz": full_frame_rate_hz(layout),
+            "changed_only": changed,
+        },
+        "checks": list(protocol.checks),
+        "analysis_plan": {"path": protocol.analysis_plan, "found": plan_file is not None},
+        "example_plan": {"participant": participant, "session": session,
+                         "counterbalance": counterbalance, "seed": plan.seed,
+                         "blocks": list(plan.block_conditions)},
+        "_plan": plan,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    from crs_study.protocol import load_protocol
+
+    protocol = load_protocol(args.protocol)
+    summary = summarise(protocol, args.participant, args.session, args.counterbalance)
+    plan = summary.pop("_plan")
+    if args.list:
+        summary["plan_trials"] = [vars(t) if hasattr(t, "__dict__") else t._asdict()
+                                  for t in plan.trials]
+    if args.json:
+        print(json.dumps(summary, indent=2, sort_keys=True, default=str))
+        return 0
+    print(_text(summary))
+    if args.list:
+        print()
+        print("index type     block condition   rep digit feedback break prompt")
+        for t in plan.trials:
+            print(f"{t.index:5d} {t.trial_type:8s} {t.block:5d} {t.condition:11s} "
+                  f"{t.repetition:3d} {t.digit:5d} {'yes' if t.feedback else 'no':8s} "
+                  f"{'yes' if t.break_before else '':5s} {t.prompt_before or ''}")
+    return 0
+
+
+def _text(s: dict) -> str:
+    minutes = s["expected_duration_s"] / 60
+    t = s["trials"]
+    lines = [
+        f"{s['protocol']}: valid ({s['study']['id']} {s['study']['version']}, "
+        f"device {s['study']['device']}, sha256 {s['sha256'][:12]})",
+        f"trials: {t['total']} ({t['practice']} practice, {t['test']} test) in {t['blocks']} "
+        f"blocks, {t['breaks']} breaks, {t['experimenter_prompts']} experimenter prompts",
+    ]
+    for condition, c in t["per_condition"].items():
+        lines.append(f"  {condition}: {c['practice']} practice, {c['test']} test")
+    orders = " | ".join(" ".join(o) for o in s["block_orders"]["orders"])
+    lines.append(f"block orders ({s['block_orders']['counterbalancing']}): {orders}")
+    f = s["frames_per_trial"]
+    lines.append(f"frames per trial: {f['min']} to {f['max']} (mean {f['mean']:.1f}) at "
+                 f"{s['frame_rate_hz']:g} frames/s")
+    lines.append(f"expected duration: {minutes:.1f} min (stimuli, expected responses, "
+                 "inter-trial intervals and breaks; not the experimenter's block changes)")
+    w = s["wire"]
+    lines.append(f"wire, full frames: {w['full_frame_bytes']} bytes/frame over all controllers, "
+                 f"busiest controller {w['full_frame_busiest_controller_ms']:.1f} ms = "
+                 f"{w['full_frame_budget_percent']:.0f} % of the frame period "
+                 f"(max {w['full_frame_max_rate_hz']:.2f} frames/s)")
+    for condition, c in w["changed_only"].items():
+        lines.append(f"wire, changed channels only, {condition}: "
+                     f"{c['mean_bytes_per_frame']:.1f} bytes/frame on average, busiest frame "
+                     f"{c['busiest_frame_wire_ms']:.1f} ms = "
+                     f"{c['busiest_frame_budget_percent']:.0f} % of the period")
+    lines.append("checks passed:")
+    lines += [f"  ok  {c}" for c in s["checks"]]
+    plan = s["analysis_plan"]
+    state = "found" if plan["found"] else "NOT FOUND: declare it before the first real session"
+    lines.append(f"analysis plan {plan['path']}: {state}")
+    return "\n".join(lines)
