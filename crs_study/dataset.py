@@ -1,0 +1,467 @@
+"""The stored dataset: BIDS ``beh``, written trial by trial so that nothing is ever lost.
+
+Layout (DESIGN.md, "The stored dataset")::
+
+    DATASET/
+      dataset_description.json, participants.tsv, participants.json, task-digitid_beh.json
+      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.tsv    one row per trial
+      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.json   session sidecar
+      sub-<id>/ses-<n>/.sub-<id>_ses-<n>.lock                       the runner's lock
+      sourcedata/sub-<id>/ses-<n>/..._trial-<k>_frames.tsv.gz       per-frame device log
+      sourcedata/sub-<id>/ses-<n>/..._beh-torn-<time>.bin           bytes cut from a torn tail
+
+Durability (the order matters): a trial's frame log is written to a temporary file, fsynced
+and renamed into place; then its row is appended to the ``_beh.tsv`` with a single
+``write`` and fsynced; then the sidecar is rewritten atomically (temporary file, fsync,
+``os.replace``, fsync of the directory). The TSV is the authority on which trials are done;
+the sidecar may lag it by one trial after a crash and is brought up to date on resume.
+
+A process killed in the middle of an append can leave a torn last line (no newline, or fewer
+fields than the header). :meth:`SessionStore.recover_rows` cuts it off, keeps the cut bytes
+under ``sourcedata/`` and fsyncs, so the trial is rerun, never duplicated. A malformed line
+anywhere else is a :class:`~crs_study.errors.DatasetError` (the file was edited by hand).
+
+The lock is ``fcntl.flock`` on a hidden file beside the session: the kernel drops it when the
+process dies, so a crash never leaves a stale lock, and a second runner on the same session
+is refused with a one-line :class:`~crs_study.errors.SessionError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import fcntl
+import gzip
+import hashlib
+import io
+import json
+import math
+import os
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from crs_study import __version__, schema
+from crs_study.errors import DatasetError, SessionError
+
+BIDS_VERSION = "1.10.0"
+DATASET_LOCK = ".crs-study.lock"
+PARTICIPANT_COLUMNS = ("participant_id", "counterbalance")
+PARTICIPANTS_SIDECAR = {
+    "participant_id": {"Description": "Pseudonymous participant label (never a name)"},
+    "counterbalance": {
+        "Description": "Counterbalancing index: the participant's 0-based order of arrival in "
+        "the dataset (or as set with --counterbalance); the protocol maps it to the order of "
+        "the condition blocks",
+        "Units": "index",
+    },
+}
+_LABEL_RE = re.compile(r"^[A-Za-z0-9]+$")
+
+
+def check_label(label: str) -> str:
+    """BIDS participant labels: letters and digits only."""
+    if not isinstance(label, str) or not _LABEL_RE.match(label):
+        raise SessionError(f"participant label {label!r} is not valid: use letters and digits "
+                           "only (BIDS), e.g. p7k2m9q")
+    return label
+
+
+def utc_now() -> str:
+    """The current time, ISO 8601 in UTC, to the second."""
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+# --- durable file primitives -------------------------------------------------------------------
+
+def fsync_dir(directory: Path) -> None:
+    """Make a directory's entries (a created or renamed file) durable."""
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def make_dirs(directory: Path) -> None:
+    """Create ``directory`` and its parents, fsyncing each new entry's parent."""
+    missing = []
+    path = directory
+    while not path.exists():
+        missing.append(path)
+        path = path.parent
+    for path in reversed(missing):
+        path.mkdir(exist_ok=True)
+        fsync_dir(path.parent)
+
+
+def write_atomically(path: Path, data: bytes | str) -> None:
+    """Replace ``path`` whole or not at all: temporary file, fsync, ``os.replace``, dir fsync."""
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    temp = path.with_name(f".{path.name}.tmp")
+    with open(temp, "wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temp, path)
+    fsync_dir(path.parent)
+
+
+def json_text(data: Any) -> str:
+    return json.dumps(data, indent=2, ensure_ascii=False) + "\n"
+
+
+def format_value(value: Any) -> str:
+    """A TSV cell: ``n/a`` for missing, 0/1 for booleans, floats to the microsecond."""
+    if value is None:
+        return schema.MISSING
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return schema.MISSING
+        text = f"{value:.6f}"
+        return "0.000000" if text == "-0.000000" else text
+    text = str(value)
+    if any(c in text for c in "\t\n\r"):
+        raise DatasetError(f"a TSV value may not contain tabs or newlines: {text!r}")
+    return text
+
+
+def tsv_line(values: Sequence[Any]) -> str:
+    return "\t".join(format_value(v) for v in values) + "\n"
+
+
+# --- the dataset -------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SessionPaths:
+    """Where one session's files live."""
+
+    root: Path
+    participant: str
+    session: int
+
+    @property
+    def stem(self) -> str:
+        return f"sub-{self.participant}_ses-{self.session}_task-{schema.TASK}"
+
+    @property
+    def session_dir(self) -> Path:
+        return self.root / f"sub-{self.participant}" / f"ses-{self.session}"
+
+    @property
+    def beh_dir(self) -> Path:
+        return self.session_dir / "beh"
+
+    @property
+    def tsv(self) -> Path:
+        return self.beh_dir / f"{self.stem}_beh.tsv"
+
+    @property
+    def sidecar(self) -> Path:
+        return self.beh_dir / f"{self.stem}_beh.json"
+
+    @property
+    def lock(self) -> Path:
+        return self.session_dir / f".sub-{self.participant}_ses-{self.session}.lock"
+
+    @property
+    def source_dir(self) -> Path:
+        return (self.root / "sourcedata" / f"sub-{self.participant}"
+                / f"ses-{self.session}")
+
+    def frame_log(self, trial_index: int) -> Path:
+        return self.source_dir / f"{self.stem}_trial-{trial_index:04d}_frames.tsv.gz"
+
+
+class Dataset:
+    """A BIDS dataset directory: top-level files, participants, sessions."""
+
+    def __init__(self, root: str | Path, name: str = "crs-study digit identification") -> None:
+        self.root = Path(root)
+        self.name = name
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the dataset-wide lock (short updates of shared files such as participants)."""
+        make_dirs(self.root)
+        with open(self.root / DATASET_LOCK, "a+") as handle:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(handle, fcntl.LOCK_UN)
+
+    def ensure(self) -> None:
+        """Create the top-level files that are missing (never rewrites existing ones)."""
+        if self.root.exists() and not self.root.is_dir():
+            raise DatasetError(f"{self.root}: exists and is not a directory")
+        with self.locked():
+            files = {
+                "dataset_description.json": json_text({
+                    "Name": self.name,
+                    "BIDSVersion": BIDS_VERSION,
+                    "DatasetType": "raw",
+                    "GeneratedBy": [{
+                        "Name": "crs-study",
+                        "Version": __version__,
+                        "Description": "CRS haptic display digit-identification sessions",
+                    }],
+                }),
+                "participants.json": json_text(PARTICIPANTS_SIDECAR),
+                f"task-{schema.TASK}_beh.json": json_text(column_dictionary()),
+                "participants.tsv": "\t".join(PARTICIPANT_COLUMNS) + "\n",
+            }
+            for name, text in files.items():
+                if not (self.root / name).exists():
+                    write_atomically(self.root / name, text)
+
+    def participants(self) -> dict[str, int]:
+        """Label -> counterbalance index, from ``participants.tsv``."""
+        path = self.root / "participants.tsv"
+        if not path.exists():
+            return {}
+        rows = list(csv.reader(io.StringIO(path.read_text(encoding="utf-8")), delimiter="\t"))
+        if not rows or tuple(rows[0][:2]) != PARTICIPANT_COLUMNS:
+            raise DatasetError(f"{path}: expected columns {PARTICIPANT_COLUMNS}, got "
+                               f"{rows[0] if rows else []!r}")
+        found = {}
+        for number, row in enumerate(rows[1:], start=2):
+            if not row:
+                continue
+            try:
+                label = row[0].removeprefix("sub-")
+                found[label] = int(row[1])
+            except (IndexError, ValueError):
+                raise DatasetError(f"{path}:{number}: malformed row {row!r}") from None
+        return found
+
+    def register_participant(self, label: str, counterbalance: int | None = None) -> int:
+        """The participant's counterbalance index, adding the participant when new.
+
+        A new participant gets ``counterbalance`` when given, else the number of participants
+        already in the dataset (0-based order of arrival). A known participant keeps the index
+        stored; asking for another one is a :class:`SessionError`.
+        """
+        check_label(label)
+        self.ensure()
+        with self.locked():
+            known = self.participants()
+            if label in known:
+                if counterbalance is not None and counterbalance != known[label]:
+                    raise SessionError(
+                        f"participant {label!r} has counterbalance {known[label]} in "
+                        f"{self.root / 'participants.tsv'}; --counterbalance {counterbalance} "
+                        "disagrees")
+                return known[label]
+            index = len(known) if counterbalance is None else int(counterbalance)
+            if index < 0:
+                raise SessionError(f"counterbalance must be >= 0, got {index!r}")
+            known[label] = index
+            lines = ["\t".join(PARTICIPANT_COLUMNS) + "\n"]
+            lines += [tsv_line([f"sub-{k}", v]) for k, v in sorted(known.items())]
+            write_atomically(self.root / "participants.tsv", "".join(lines))
+            return index
+
+    def session_paths(self, participant: str, session: int) -> SessionPaths:
+        check_label(participant)
+        if not isinstance(session, int) or session < 1:
+            raise SessionError(f"session must be a whole number >= 1, got {session!r}")
+        return SessionPaths(self.root, participant, session)
+
+    def sessions(self, participant: str) -> list[int]:
+        """Session numbers of a participant found in the dataset."""
+        base = self.root / f"sub-{check_label(participant)}"
+        found = []
+        for path in base.glob("ses-*"):
+            suffix = path.name.removeprefix("ses-")
+            if suffix.isdigit():
+                found.append(int(suffix))
+        return sorted(found)
+
+
+def column_dictionary() -> dict[str, dict[str, str]]:
+    """The BIDS column dictionary (``task-digitid_beh.json``) from :mod:`crs_study.schema`."""
+    columns = {}
+    for name, (description, units) in schema.TRIAL_COLUMNS.items():
+        entry = {"LongName": name.replace("_", " "), "Description": description}
+        if "|" in units or units == "0-9":
+            entry["Levels"] = units
+        else:
+            entry["Units"] = units
+        columns[name] = entry
+    return {"TaskName": schema.TASK, **columns}
+
+
+# --- one session -------------------------------------------------------------------------------
+
+class SessionStore:
+    """A session's files, held under the session lock by one runner.
+
+    Use as a context manager (or :meth:`acquire` / :meth:`release`).
+    """
+
+    def __init__(self, paths: SessionPaths, columns: Sequence[str] | None = None) -> None:
+        self.paths = paths
+        self.columns = tuple(columns or schema.TRIAL_COLUMNS)
+        self._lock_handle: Any = None
+        self._hash = hashlib.sha256()
+        self._created = False
+
+    # --- lock ---
+    def acquire(self) -> None:
+        make_dirs(self.paths.session_dir)
+        handle = open(self.paths.lock, "a+")  # noqa: SIM115 - held until release()
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            raise SessionError(
+                f"session {self.paths.session} of participant {self.paths.participant!r} is "
+                f"in use by another runner ({self.paths.lock})") from None
+        self._lock_handle = handle
+
+    def release(self) -> None:
+        if self._lock_handle is not None:
+            fcntl.flock(self._lock_handle, fcntl.LOCK_UN)
+            self._lock_handle.close()
+            self._lock_handle = None
+
+    def __enter__(self) -> SessionStore:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.release()
+
+    # --- reading ---
+    def exists(self) -> bool:
+        return self.paths.tsv.exists() or self.paths.sidecar.exists()
+
+    def read_sidecar(self) -> dict | None:
+        path = self.paths.sidecar
+        if not path.exists():
+            return None
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f"{path}: not a readable session sidecar: {exc}") from None
+        if not isinstance(data, dict):
+            raise DatasetError(f"{path}: expected a JSON object, got {type(data).__name__}")
+        return data
+
+    def recover_rows(self) -> list[dict[str, str]]:
+        """The rows stored so far; a torn last line is cut off (backed up) first.
+
+        Also positions the running sha256 so :attr:`trials_sha256` covers the whole file.
+        """
+        path = self.paths.tsv
+        if not path.exists():
+            return []
+        data = path.read_bytes()
+        header = "\t".join(self.columns).encode() + b"\n"
+        if not data.startswith(header):
+            if header.startswith(data):  # killed while writing the header
+                self._cut(data, 0)
+                return []
+            first = data.split(b"\n", 1)[0].decode("utf-8", "replace")
+            raise DatasetError(f"{path}: unexpected header {first!r}; expected the columns of "
+                               f"crs_study.schema.TRIAL_COLUMNS")
+        keep = len(data) if data.endswith(b"\n") else data.rfind(b"\n") + 1
+        lines = data[len(header):keep].split(b"\n")[:-1] if keep > len(header) else []
+        rows: list[dict[str, str]] = []
+        for number, line in enumerate(lines, start=2):
+            fields = line.decode("utf-8", "replace").split("\t")
+            if len(fields) != len(self.columns) or "\x00" in line.decode("latin-1"):
+                if number == len(lines) + 1:  # a malformed last line: torn as well
+                    keep -= len(line) + 1
+                    break
+                raise DatasetError(f"{path}:{number}: expected {len(self.columns)} fields, "
+                                   f"got {len(fields)}; the file was edited or damaged")
+            rows.append(dict(zip(self.columns, fields, strict=True)))
+        if keep < len(data):
+            self._cut(data, keep)
+        self._hash = hashlib.sha256(data[:keep])
+        self._created = keep > 0
+        return rows
+
+    def _cut(self, data: bytes, keep: int) -> None:
+        """Truncate the TSV to ``keep`` bytes, saving the rest under ``sourcedata``."""
+        make_dirs(self.paths.source_dir)
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
+        backup = self.paths.source_dir / f"{self.paths.stem}_beh-torn-{stamp}.bin"
+        write_atomically(backup, data[keep:])
+        with open(self.paths.tsv, "r+b") as handle:
+            handle.truncate(keep)
+            handle.flush()
+            os.fsync(handle.fileno())
+
+    # --- writing ---
+    def create(self) -> None:
+        """Start the TSV with its header (durably) if it has none."""
+        if self._created:
+            return
+        make_dirs(self.paths.beh_dir)
+        header = ("\t".join(self.columns) + "\n").encode()
+        fd = os.open(self.paths.tsv, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            os.write(fd, header)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        fsync_dir(self.paths.beh_dir)
+        self._hash = hashlib.sha256(header)
+        self._created = True
+
+    def append_row(self, row: dict[str, Any]) -> None:
+        """Append one trial, durably (single write, fsync) before returning."""
+        if not self._created:
+            self.create()
+        missing = [c for c in self.columns if c not in row]
+        if missing:
+            raise DatasetError(f"trial row lacks columns {missing}")
+        line = tsv_line([row[c] for c in self.columns]).encode("utf-8")
+        fd = os.open(self.paths.tsv, os.O_WRONLY | os.O_APPEND)
+        try:
+            written = os.write(fd, line)
+            if written != len(line):
+                raise DatasetError(f"{self.paths.tsv}: short write ({written} of {len(line)} "
+                                   "bytes); disk full?")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        self._hash.update(line)
+
+    @property
+    def trials_sha256(self) -> str:
+        """sha256 of the TSV bytes as written so far."""
+        return self._hash.hexdigest()
+
+    def write_sidecar(self, metadata: dict[str, Any]) -> None:
+        make_dirs(self.paths.beh_dir)
+        write_atomically(self.paths.sidecar, json_text(metadata))
+
+    def write_frame_log(self, trial_index: int, columns: Sequence[str],
+                        rows: Sequence[Sequence[Any]]) -> Path:
+        """The per-frame device log of one trial, gzip TSV, atomically and durably."""
+        make_dirs(self.paths.source_dir)
+        text = "\t".join(columns) + "\n" + "".join(tsv_line(r) for r in rows)
+        data = gzip.compress(text.encode("utf-8"), compresslevel=6, mtime=0)
+        path = self.paths.frame_log(trial_index)
+        write_atomically(path, data)
+        return path
+
+
+def read_frame_log(path: str | Path) -> list[dict[str, str]]:
+    """Rows of a per-trial frame log (for inspection and tests)."""
+    text = gzip.decompress(Path(path).read_bytes()).decode("utf-8")
+    return list(csv.DictReader(io.StringIO(text), delimiter="\t"))

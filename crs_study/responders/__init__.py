@@ -1,0 +1,44 @@
+"""Responders: who answers a trial. Chosen on the command line by a spec string:
+
+``keypad``
+    a person at the terminal, one keypress per answer (:mod:`.keypad`);
+``scripted:FILE``
+    answers read from a file, line k for trial k (:mod:`.scripted`);
+``random``
+    a guessing simulated participant (:mod:`.random`);
+``observer``
+    a perceptual observer that senses the displayed surface (:mod:`.observer`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from crs_study.errors import ConfigError
+from crs_study.responders.base import Responder, Response, StimulusRecord, trial_rng
+
+SPECS = ("keypad", "scripted:FILE", "random", "observer")
+
+__all__ = ["SPECS", "Responder", "Response", "StimulusRecord", "make_responder", "trial_rng"]
+
+
+def make_responder(spec: str, *, seed: int, layout: Any = None, protocol: Any = None,
+                   **options: Any) -> Responder:
+    """The responder for ``spec`` (see the module docstring); simulated ones use ``seed``."""
+    if spec == "keypad":
+        from crs_study.responders.keypad import KeypadResponder
+
+        return KeypadResponder(**options)
+    if spec.startswith("scripted:") and len(spec) > len("scripted:"):
+        from crs_study.responders.scripted import ScriptedResponder
+
+        return ScriptedResponder(spec[len("scripted:"):])
+    if spec == "random":
+        from crs_study.responders.random import RandomResponder
+
+        return RandomResponder(seed, **options)
+    if spec == "observer":
+        from crs_study.responders.observer import PerceptualObserver
+
+        return PerceptualObserver(layout, protocol, seed, **options)
+    raise ConfigError(f"unknown responder {spec!r}; expected one of: {', '.join(SPECS)}")

@@ -1,0 +1,133 @@
+"""The responder interface: who answers a trial (a person at the keypad or a simulation).
+
+The runner plays a stimulus, then asks its :class:`Responder` for a :class:`Response`. The
+responder sees only what a participant could sense (:class:`StimulusRecord`: the displayed
+setpoints frame by frame and the digits to choose from), never the true digit.
+
+Times: ``Response.response_time_s`` is measured from stimulus onset on the runner's clock.
+Simulated responders advance a :class:`~crs_study.clock.VirtualClock` by their simulated
+response time (``clock.sleep_until(stimulus.onset_time + rt)``); the keypad waits for a key.
+Simulated responders draw their randomness from ``np.random.default_rng([seed, trial.index])``
+so a resumed session reproduces an uninterrupted one exactly.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from crs_study.clock import Clock
+    from crs_study.layout import Layout
+
+
+@dataclass(frozen=True)
+class StimulusRecord:
+    """What was displayed in one trial, as a participant could sense it.
+
+    Attributes
+    ----------
+    layout : the device's layout.
+    condition : display condition (``pixel-only``, ``crs``, ...).
+    frame_times : (n,) s from onset: when each row of ``setpoints`` was displayed.
+    setpoints : (n, n_actuators) mm: the displayed setpoints (``device.displayed_setpoints``).
+    digit_choices : the digits a response may name.
+    onset_time : clock time of the stimulus onset (first frame commanded).
+    offset_time : clock time of the stimulus offset (last frame commanded).
+    """
+
+    layout: Layout
+    condition: str
+    frame_times: np.ndarray
+    setpoints: np.ndarray
+    digit_choices: tuple[int, ...]
+    onset_time: float = 0.0
+    offset_time: float = 0.0
+
+    @property
+    def duration_s(self) -> float:
+        """Stimulus duration: offset minus onset (s)."""
+        return self.offset_time - self.onset_time
+
+
+@dataclass(frozen=True)
+class Response:
+    """A participant's answer: the digit (None when timed out) and the time from onset (s)."""
+
+    digit: int | None
+    response_time_s: float
+
+    @property
+    def timed_out(self) -> bool:
+        return self.digit is None
+
+
+class Responder(ABC):
+    """Answers trials. Subclasses set :attr:`name` and implement :meth:`respond`.
+
+    Optional hooks: :meth:`begin_trial` is called just before the first frame (the keypad
+    starts listening there, so keys typed during the stimulus count), :meth:`end_trial` after
+    the response. A responder is a context manager for the whole session (the keypad puts the
+    terminal in cbreak mode on enter and restores it on exit).
+    """
+
+    name: str = "responder"
+    #: True when the responder needs real (wall) time: a person answers.
+    needs_real_clock: bool = False
+    #: True when the responder is a simulation (prompts to the experimenter auto-continue).
+    simulated: bool = True
+
+    @abstractmethod
+    def respond(self, trial: Any, stimulus: StimulusRecord, clock: Clock,
+                time_limit_s: float | None) -> Response:
+        """The response to ``trial``; ``time_limit_s`` counts from stimulus offset."""
+
+    def begin_trial(self, trial: Any, onset_time: float, clock: Clock) -> None:
+        """Called just before the stimulus onset (clock time ``onset_time``)."""
+        return None
+
+    def end_trial(self) -> None:
+        """Called after the response (and feedback) of each trial."""
+        return None
+
+    def feedback(self, trial: Any, response: Response, correct: bool) -> None:
+        """Feedback after a practice trial; the default does nothing."""
+        return None
+
+    def prompt(self, text: str, clock: Clock) -> None:
+        """An experimenter prompt (a break, mount the skeleton); simulations continue at once."""
+        return None
+
+    def __enter__(self) -> Responder:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release what the responder holds (terminal modes, files). Idempotent."""
+        return None
+
+
+def trial_rng(seed: int, trial_index: int) -> np.random.Generator:
+    """The generator of one trial: ``default_rng([seed, trial_index])`` (resume-safe)."""
+    return np.random.default_rng([int(seed), int(trial_index)])
+
+
+def respond_at(clock: Clock, stimulus: StimulusRecord, response_time_s: float,
+               time_limit_s: float | None, digit: int | None) -> Response:
+    """Advance ``clock`` to ``onset + response_time_s`` and answer, honouring the time limit.
+
+    A simulated response later than ``offset + time_limit_s`` becomes a time-out at that
+    deadline (digit None, response time = the deadline from onset).
+    """
+    if time_limit_s is not None:
+        deadline = stimulus.duration_s + time_limit_s
+        if response_time_s > deadline:
+            clock.sleep_until(stimulus.onset_time + deadline)
+            return Response(None, deadline)
+    clock.sleep_until(stimulus.onset_time + response_time_s)
+    return Response(digit, response_time_s)

@@ -1,0 +1,95 @@
+"""Responses read from a file: for tests, demonstrations and replaying a known session.
+
+File format (UTF-8 text), one line per trial in plan order (line k answers trial k; blank
+lines and lines starting with ``#`` are skipped; a first line ``digit<TAB>rt`` is a header)::
+
+    7            digit 7, answered 0.5 s after the stimulus offset (the default)
+    3<TAB>1.25   digit 3, answered 1.25 s after the stimulus offset
+    n/a          no answer: a time-out
+
+The second column, when present, is the response time in seconds **from stimulus offset**
+(so a script does not depend on stimulus durations); it may be negative (an answer during the
+stimulus) but not before the onset. Because line k belongs to trial k, a resumed session
+continues with the right line.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from crs_study.errors import ConfigError, SessionError
+from crs_study.responders.base import Responder, Response, StimulusRecord, respond_at
+
+DEFAULT_RT_AFTER_OFFSET_S = 0.5
+
+
+def parse_script(text: str, source: str = "<script>") -> list[tuple[int | None, float]]:
+    """Lines of a response script as ``(digit or None, rt from offset)`` pairs."""
+    entries: list[tuple[int | None, float]] = []
+    lines = text.splitlines()
+    for number, raw in enumerate(lines, start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.split("\t") if "\t" in line else line.split()
+        if not entries and [f.lower() for f in fields] in (["digit"], ["digit", "rt"]):
+            continue  # header
+        if len(fields) > 2:
+            raise ConfigError(f"{source}:{number}: expected 'digit' or 'digit<TAB>rt', "
+                              f"got {raw!r}")
+        digit_text = fields[0]
+        if digit_text == "n/a":
+            digit = None
+        elif len(digit_text) == 1 and digit_text.isdigit():
+            digit = int(digit_text)
+        else:
+            raise ConfigError(f"{source}:{number}: expected a digit 0-9 or n/a, got "
+                              f"{digit_text!r}")
+        rt = DEFAULT_RT_AFTER_OFFSET_S
+        if len(fields) == 2:
+            try:
+                rt = float(fields[1])
+            except ValueError:
+                raise ConfigError(f"{source}:{number}: expected a response time in seconds, "
+                                  f"got {fields[1]!r}") from None
+            if not math.isfinite(rt):
+                raise ConfigError(f"{source}:{number}: response time must be finite, "
+                                  f"got {fields[1]!r}")
+        entries.append((digit, rt))
+    return entries
+
+
+class ScriptedResponder(Responder):
+    """Answers trial k with line k of a script (see the module docstring)."""
+
+    name = "scripted"
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise ConfigError(f"scripted responses: no such file {str(self.path)!r}") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"scripted responses: cannot read {str(self.path)!r}: "
+                              f"{exc}") from None
+        self.entries = parse_script(text, str(self.path))
+
+    def respond(self, trial: Any, stimulus: StimulusRecord, clock: Any,
+                time_limit_s: float | None) -> Response:
+        if trial.index >= len(self.entries):
+            raise SessionError(f"scripted responses {str(self.path)!r} have "
+                               f"{len(self.entries)} entries; trial {trial.index} needs one more")
+        digit, after_offset = self.entries[trial.index]
+        if digit is not None and digit not in stimulus.digit_choices:
+            raise SessionError(f"scripted responses {str(self.path)!r}: entry {trial.index + 1} "
+                               f"answers {digit!r}, not one of {stimulus.digit_choices}")
+        rt = max(0.0, stimulus.duration_s + after_offset)
+        if digit is None:
+            limit = time_limit_s if time_limit_s is not None else after_offset
+            deadline = max(0.0, stimulus.duration_s + limit)
+            clock.sleep_until(stimulus.onset_time + deadline)
+            return Response(None, deadline)
+        return respond_at(clock, stimulus, rt, time_limit_s, digit)
