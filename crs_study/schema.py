@@ -25,9 +25,11 @@ TRIAL_COLUMNS: dict[str, tuple[str, str]] = {
     "response_time_from_offset": ("Time from stimulus offset to the response; negative when "
                                   "answered before the stimulus ended", "s"),
     "onset": ("Stimulus onset relative to session start", "s"),
-    "stimulus_duration": ("Time from the first to the last frame of the stimulus", "s"),
+    "stimulus_duration": ("Time from the first frame to the end of the last frame's period "
+                          "(the stimulus offset: the display then returns to flat)", "s"),
     "timed_out": ("1 when no response came within the protocol's time limit", "0|1"),
-    "device_fault": ("1 when the device reported a fault during the trial", "0|1"),
+    "device_fault": ("1 when a device fault interrupted an earlier attempt of this trial "
+                     "(the session stopped and the trial was rerun on resume)", "0|1"),
     "frames": ("Frames commanded during the stimulus", "count"),
     "late_frames": ("Frames commanded later than one frame period after their due time",
                     "count"),
