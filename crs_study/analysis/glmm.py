@@ -1,0 +1,380 @@
+"""Binomial-logit mixed models by maximum likelihood, validated against R's lme4.
+
+``fit_glmm(data, "correct", "condition", "participant")`` is lme4's
+``glmer(correct ~ condition + (1 | participant), family = binomial)``: fixed effects from a
+patsy formula with treatment contrasts, one random intercept (Laplace or adaptive Gauss-Hermite
+quadrature) or several crossed ones (Laplace), responses as 0/1 rows or successes out of
+``trials`` per row (lme4's ``cbind(successes, failures)`` form).
+
+Rows sharing the grouping levels and the design row are pooled into one binomial row before
+fitting: the likelihood kernel is the same, the binomial constants of the data as given are
+added back, so 16,000 trials of a two-condition design cost as much as 80 rows.
+
+Where maximum likelihood fails the fit still returns, with a sentence in ``warnings``:
+
+* **separation** (a condition at 100 % or 0 %, or any direction in which the data are
+  separated; found by the linear program of Konis 2007, as R's ``detectseparation``): the
+  maximum-likelihood estimate is infinite, so the coefficients get independent normal priors,
+  N(0, 10^2) on the intercept and N(0, 2.5^2) on every other coefficient (the scales of
+  Gelman, Jakulin, Pittau & Su 2008, Ann. Appl. Stat. 2:1360, in the normal form that blme's
+  ``bglmer`` offers as a fixed-effect prior); estimates are then posterior modes, standard
+  errors come from the penalised information;
+* **a variance at zero**: reported as exactly 0, the fixed effects are those of the model
+  without that term; a likelihood-ratio test of that variance is a 50:50 mixture of chi2(0)
+  and chi2(1) (Self & Liang 1987, JASA 82:605);
+* **a grouping factor with one level** (a single participant): no variance is estimable, the
+  term is dropped; with none left the model is a logistic regression by statsmodels' GLM;
+* **a level with no rows** (a missing condition) or aliased design columns: dropped.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import optimize, stats
+from scipy.special import gammaln
+
+from crs_study.analysis.glmm_core import BinomialData, CrossedFactors, NoRandom, SingleFactor
+from crs_study.analysis.glmm_fit import fit_glm, optimise, profile_interval
+from crs_study.analysis.glmm_result import P_FLOOR, GlmmResult, LrtResult, format_pvalue
+from crs_study.errors import AnalysisError
+
+__all__ = ["fit_glmm", "lrt", "profile_conf_int", "GlmmResult", "LrtResult", "format_pvalue",
+           "PRIOR_SD_INTERCEPT", "PRIOR_SD_COEFFICIENT"]
+
+#: Prior standard deviations used against separation (Gelman et al. 2008 scales, normal form).
+PRIOR_SD_INTERCEPT = 10.0
+PRIOR_SD_COEFFICIENT = 2.5
+_MAX_QUADRATURE = 50
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """A prepared fit: the objective and how to read its parameter vector."""
+
+    model: object
+    names: list[str]
+    groups: tuple[str, ...]
+    prior_sd: np.ndarray | None  # per fixed coefficient, None when unpenalised
+    user_constant: float
+
+    @property
+    def n_fixed(self) -> int:
+        return len(self.names)
+
+    def objective(self, theta: np.ndarray, grad: bool = True):
+        """Penalised log-likelihood kernel (and gradient)."""
+        out = self.model.loglik(theta, grad)
+        if self.prior_sd is None:
+            return out
+        beta = theta[: self.n_fixed]
+        pen = -0.5 * float(np.sum((beta / self.prior_sd) ** 2))
+        if not grad:
+            return out + pen
+        value, g = out
+        g = g.copy()
+        g[: self.n_fixed] -= beta / self.prior_sd**2
+        return value + pen, g
+
+
+def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
+             groups: str | Sequence[str] = (), *, trials: str | None = None,
+             method: str = "laplace", n_quadrature: int = 25,
+             aggregate: bool = True) -> GlmmResult:
+    """Fit ``response ~ fixed + (1 | g1) [+ (1 | g2) ...]``, binomial with logit link, by ML.
+
+    Parameters
+    ----------
+    data : DataFrame with one row per trial (``response`` 0/1) or per binomial count.
+    response : column of 0/1 outcomes, or of successes when ``trials`` is given.
+    fixed : right-hand side of a patsy formula (e.g. ``"C(condition, Treatment('off'))"``),
+        or a design matrix (DataFrame, one column per coefficient, rows as ``data``).
+    groups : grouping factor(s) of the random intercepts; several are crossed.
+    trials : column of the number of trials per row (lme4's ``cbind(y, trials - y)``).
+    method : ``"laplace"`` or ``"agq"`` (adaptive Gauss-Hermite; one random intercept only).
+    n_quadrature : quadrature points for ``"agq"`` (lme4's ``nAGQ``).
+    aggregate : pool identical rows before fitting (same estimates; off only for timing).
+
+    Notes
+    -----
+    Maximises the Laplace or AGQ marginal log-likelihood jointly over ``(beta, sigma)``
+    (lme4's second optimisation stage) with L-BFGS-B and ``sigma >= 0``; standard errors from
+    the inverse of the observed information of that objective, fixed-effects block (lme4's
+    ``calc.vcov.hess``), the Hessian by central differences of the gradient.
+    """
+    notes: list[str] = []
+    group_list = [groups] if isinstance(groups, str) else list(groups)
+    _check_arguments(data, response, trials, group_list, method, n_quadrature)
+    data = _drop_unused_levels(data, fixed, notes)
+    X, names = _design(data, fixed)
+    X, names = _drop_aliased(X, names, notes)
+    y, m, user_constant = _response(data, response, trials)
+    codes, kept = _group_codes(data, group_list, notes)
+    if method == "agq" and len(kept) > 1:
+        raise AnalysisError(f"adaptive quadrature needs a single random intercept (as lme4's "
+                            f"nAGQ > 1); got crossed groups {kept!r}: use method='laplace'")
+    separated = _separated_coefficients(X, y, m, names)
+    prior_sd = None
+    penalty = None
+    if separated:
+        prior_sd = np.where(np.array(names) == "Intercept", PRIOR_SD_INTERCEPT,
+                            PRIOR_SD_COEFFICIENT)
+        penalty = (f"normal priors N(0, {PRIOR_SD_INTERCEPT:g}^2) on the intercept and "
+                   f"N(0, {PRIOR_SD_COEFFICIENT:g}^2) on the other coefficients")
+        notes.append(f"complete or quasi-complete separation: the maximum-likelihood estimate of "
+                     f"{separated!r} is infinite (a condition at 100 % or 0 % correct?); fitted "
+                     f"instead with {penalty} (posterior mode); treat p-values as approximate")
+    fixed_text = fixed if isinstance(fixed, str) else "<design matrix>"
+    if not kept and prior_sd is None:
+        return fit_glm(X, y, m, names, user_constant, len(data), response, fixed_text,
+                        tuple(group_list), notes)
+    binomial = _pool(X, y, m, codes) if aggregate else _unpooled(X, y, m, codes)
+    if not kept:
+        model = NoRandom(binomial)
+    elif len(kept) == 1:
+        model = SingleFactor(binomial, n_quadrature if method == "agq" else 1)
+    else:
+        model = CrossedFactors(binomial)
+    problem = _Problem(model, names, tuple(kept), prior_sd, user_constant)
+    return optimise(problem, len(data), response, fixed_text, tuple(group_list),
+                     "glm" if not kept else method,
+                     n_quadrature if method == "agq" and kept else (1 if kept else 0),
+                     {g: int(c.max()) + 1 for g, c in zip(kept, codes, strict=True)},
+                     penalty, notes)
+
+
+# ----------------------------------------------------------------------------- preparation
+def _check_arguments(data, response, trials, group_list, method, n_quadrature) -> None:
+    if not isinstance(data, pd.DataFrame):
+        raise AnalysisError(f"fit_glmm expects a pandas DataFrame, got {type(data).__name__}")
+    for role, col in [("response", response), ("trials", trials)] + [
+            ("group", g) for g in group_list]:
+        if col is not None and col not in data.columns:
+            raise AnalysisError(f"{role} column {col!r} is not in the data; columns: "
+                                f"{list(data.columns)!r}")
+    if method not in ("laplace", "agq"):
+        raise AnalysisError(f"method must be 'laplace' or 'agq', got {method!r}")
+    if not isinstance(n_quadrature, int | np.integer) or not 1 <= n_quadrature <= _MAX_QUADRATURE:
+        raise AnalysisError(f"n_quadrature must be an integer in 1..{_MAX_QUADRATURE}, "
+                            f"got {n_quadrature!r}")
+    if len(data) == 0:
+        raise AnalysisError("no rows to fit: the data frame is empty")
+
+
+def _drop_unused_levels(data: pd.DataFrame, fixed, notes: list[str]) -> pd.DataFrame:
+    """Remove categories without rows from categorical columns named in the formula."""
+    if not isinstance(fixed, str):
+        return data
+    tokens = set(re.findall(r"[A-Za-z_][A-Za-z0-9_.]*", fixed))
+    out = data
+    for col in data.columns:
+        if col in tokens and isinstance(data[col].dtype, pd.CategoricalDtype):
+            present = set(data[col].dropna().unique())
+            unused = [c for c in data[col].cat.categories if c not in present]
+            if unused:
+                out = out.copy() if out is data else out
+                out[col] = out[col].cat.remove_unused_categories()
+                notes.append(f"level(s) {unused!r} of {col!r} have no trials; dropped from the "
+                             f"model")
+    return out
+
+
+def _design(data: pd.DataFrame, fixed) -> tuple[np.ndarray, list[str]]:
+    if isinstance(fixed, pd.DataFrame):
+        if len(fixed) != len(data):
+            raise AnalysisError(f"design matrix has {len(fixed)} rows, the data {len(data)}")
+        X = fixed.to_numpy(dtype=float)
+        names = [str(c) for c in fixed.columns]
+    elif isinstance(fixed, str):
+        if "~" in fixed:
+            raise AnalysisError(f"fixed is the right-hand side of a formula (e.g. 'condition'), "
+                                f"got {fixed!r}; give the response as response=")
+        import patsy
+
+        try:
+            design = patsy.dmatrix(fixed, data, NA_action="raise", return_type="dataframe")
+        except patsy.PatsyError as exc:
+            message = str(exc).splitlines()[0]
+            raise AnalysisError(f"fixed-effects formula {fixed!r}: {message}") from None
+        X = design.to_numpy(dtype=float)
+        names = list(design.columns)
+    else:
+        raise AnalysisError(f"fixed must be a formula string or a DataFrame, got "
+                            f"{type(fixed).__name__}")
+    if not np.all(np.isfinite(X)):
+        raise AnalysisError("the fixed-effects design has missing or infinite values")
+    return X, names
+
+
+def _drop_aliased(X: np.ndarray, names: list[str], notes: list[str]):
+    """Drop design columns that are zero or linear combinations of others (lme4 does too)."""
+    from scipy.linalg import qr
+
+    if X.shape[1] == 0:
+        raise AnalysisError("the fixed-effects design has no columns")
+    _, R, piv = qr(X, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(R))
+    rank = int(np.sum(diag > max(X.shape) * np.finfo(float).eps * diag[0])) if diag[0] else 0
+    if rank == X.shape[1]:
+        return X, names
+    keep = np.sort(piv[:rank])
+    dropped = [names[i] for i in sorted(piv[rank:])]
+    notes.append(f"fixed-effect column(s) {dropped!r} are empty or aliased with others "
+                 f"(a condition without trials?); dropped")
+    return X[:, keep], [names[i] for i in keep]
+
+
+def _response(data: pd.DataFrame, response: str, trials: str | None):
+    """Successes, trials and the binomial constant ``sum log C(trials, successes)``."""
+    y = pd.to_numeric(data[response], errors="coerce").to_numpy(dtype=float)
+    bad = ~np.isfinite(y)
+    if bad.any():
+        first = data[response].to_numpy()[bad][0]
+        raise AnalysisError(f"response {response!r} has {int(bad.sum())} missing or non-numeric "
+                            f"value(s), e.g. {first!r}")
+    if trials is None:
+        if not np.all((y == 0) | (y == 1)):
+            raise AnalysisError(f"response {response!r} must be 0/1 per trial (or give trials=), "
+                                f"got {y[(y != 0) & (y != 1)][0]!r}")
+        return y, np.ones_like(y), 0.0
+    m = pd.to_numeric(data[trials], errors="coerce").to_numpy(dtype=float)
+    if not np.all(np.isfinite(m)) or np.any(m < 0) or np.any(m != np.round(m)):
+        raise AnalysisError(f"trials {trials!r} must be non-negative integers")
+    if np.any(y < 0) or np.any(y > m) or np.any(y != np.round(y)):
+        raise AnalysisError(f"response {response!r} must be integers between 0 and {trials!r}")
+    constant = float(np.sum(gammaln(m + 1) - gammaln(y + 1) - gammaln(m - y + 1)))
+    return y, m, constant
+
+
+def _group_codes(data: pd.DataFrame, group_list: list[str], notes: list[str]):
+    codes, kept = [], []
+    for g in group_list:
+        if data[g].isna().any():
+            raise AnalysisError(f"group column {g!r} has {int(data[g].isna().sum())} missing "
+                                f"value(s)")
+        c, levels = pd.factorize(data[g], sort=True)
+        if len(levels) < 2:
+            notes.append(f"grouping factor {g!r} has a single level ({levels[0]!r}): its "
+                         f"variance is not estimable; the random intercept was dropped")
+            continue
+        codes.append(c.astype(np.intp))
+        kept.append(g)
+    if group_list and not kept:
+        notes.append("no random effect left: fitted a fixed-effects logistic regression")
+    return codes, kept
+
+
+def _pool(X, y, m, codes) -> BinomialData:
+    """Sum successes and trials over rows with equal group levels and design row."""
+    key = np.column_stack([*(c.astype(float) for c in codes), X])
+    unique, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    k = len(codes)
+    return BinomialData(unique[:, k:], np.bincount(inverse, y), np.bincount(inverse, m),
+                        tuple(unique[:, i].astype(np.intp) for i in range(k)),
+                        tuple(int(c.max()) + 1 for c in codes))
+
+
+def _unpooled(X, y, m, codes) -> BinomialData:
+    return BinomialData(X, y, m, tuple(codes), tuple(int(c.max()) + 1 for c in codes))
+
+
+def _separated_coefficients(X, y, m, names) -> list[str]:
+    """Coefficients whose ML estimate is infinite (Konis 2007 linear program).
+
+    Finds a direction ``d`` with ``x_i'd >= 0`` on rows with only successes, ``<= 0`` on rows
+    with only failures, ``= 0`` on mixed rows, maximising the total margin; a positive
+    optimum means (quasi-)complete separation, and ``d``'s non-zero entries name the
+    coefficients that run away.
+    """
+    key, inverse = np.unique(X, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    ys, ms = np.bincount(inverse, y), np.bincount(inverse, m)
+    keep = ms > 0
+    key, ys, ms = key[keep], ys[keep], ms[keep]
+    sign = np.where(ys == ms, 1.0, np.where(ys == 0, -1.0, 0.0))
+    if not np.any(sign):
+        return []
+    signed = key[sign != 0] * sign[sign != 0, None]
+    mixed = key[sign == 0]
+    res = optimize.linprog(-signed.sum(axis=0), A_ub=-signed, b_ub=np.zeros(len(signed)),
+                           A_eq=mixed if len(mixed) else None,
+                           b_eq=np.zeros(len(mixed)) if len(mixed) else None,
+                           bounds=[(-1, 1)] * X.shape[1], method="highs")
+    if res.status != 0 or -res.fun <= 1e-7:
+        return []
+    return [n for n, d in zip(names, res.x, strict=True) if abs(d) > 1e-7]
+
+
+# ----------------------------------------------------------------------------- inference
+def lrt(full: GlmmResult, reduced: GlmmResult) -> LrtResult:
+    """Likelihood-ratio test of ``reduced`` nested in ``full`` (same data, same response).
+
+    ``statistic = 2 (l_full - l_reduced)`` against chi2 with the difference in parameters as
+    degrees of freedom; when the reduced model lacks one variance component the null sits on
+    the boundary and the reference is the mixture ``0.5 chi2(df - 1) + 0.5 chi2(df)`` (Self &
+    Liang 1987; Stram & Lee 1994, Biometrics 50:1171).
+    """
+    notes: list[str] = []
+    if full.nobs != reduced.nobs or full.response != reduced.response:
+        raise AnalysisError(f"lrt needs two fits of the same data: full has {full.nobs} rows of "
+                            f"{full.response!r}, reduced {reduced.nobs} rows of "
+                            f"{reduced.response!r}")
+    df = full.n_params - reduced.n_params
+    if df < 1:
+        raise AnalysisError(f"lrt: the full model must have more parameters than the reduced "
+                            f"one, got {full.n_params} and {reduced.n_params}")
+    if {full.method, reduced.method} == {"laplace", "agq"}:
+        raise AnalysisError("lrt: compare fits made with the same method (laplace or agq), got "
+                            f"{full.method!r} and {reduced.method!r}")
+    if not set(reduced.params.index) <= set(full.params.index) or not set(
+            reduced.variance_components.index) <= set(full.variance_components.index):
+        notes.append("the reduced model's terms are not a subset of the full model's; check "
+                     "that the models are nested")
+    if full.penalty or reduced.penalty:
+        notes.append("a fit is penalised against separation: the likelihood ratio is "
+                     "approximate")
+    notes += [f"full model: {w}" for w in full.warnings]
+    notes += [f"reduced model: {w}" for w in reduced.warnings]
+    statistic = 2.0 * (full.loglike - reduced.loglike)
+    if statistic < -1e-6:
+        notes.append(f"the reduced model fits better than the full one (statistic "
+                     f"{statistic:.3g}): an optimisation failed; statistic set to 0")
+    statistic = max(statistic, 0.0)
+    n_var = len(full.variance_components) - len(reduced.variance_components)
+    if n_var == 1:
+        low = stats.chi2.sf(statistic, df - 1) if df > 1 else float(statistic == 0.0)
+        pvalue = 0.5 * low + 0.5 * stats.chi2.sf(statistic, df)
+        distribution = f"0.5 chi2({df - 1}) + 0.5 chi2({df})"
+    else:
+        pvalue = stats.chi2.sf(statistic, df)
+        distribution = f"chi2({df})"
+        if n_var > 1:
+            notes.append("several variances tested at once: the chi2 reference is conservative")
+    return LrtResult(statistic=float(statistic), df=int(df),
+                     pvalue=float(max(pvalue, P_FLOOR)), distribution=distribution,
+                     loglike_full=full.loglike, loglike_reduced=reduced.loglike,
+                     warnings=tuple(notes))
+
+
+def profile_conf_int(result: GlmmResult, level: float = 0.95,
+                     terms: Sequence[str] | None = None) -> pd.DataFrame:
+    """Profile-likelihood intervals of fixed effects (lme4's ``confint(method = "profile")``).
+
+    Columns ``ci_low``, ``ci_high`` (log-odds); an end is infinite when the profile does not
+    drop by ``chi2_1(level) / 2`` within 2^12 standard errors.
+    """
+    if result.method == "glm" and result._model is None:
+        raise AnalysisError("profile intervals need a likelihood fitted here; this result is a "
+                            "statsmodels GLM (use its conf_int)")
+    names = list(result.params.index) if terms is None else list(terms)
+    unknown = [t for t in names if t not in result.params.index]
+    if unknown:
+        raise AnalysisError(f"unknown term {unknown[0]!r}; terms: {list(result.params.index)!r}")
+    rows = {t: profile_interval(result, list(result.params.index).index(t), level)
+            for t in names}
+    return pd.DataFrame.from_dict(rows, orient="index", columns=["ci_low", "ci_high"])

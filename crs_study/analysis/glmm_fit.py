@@ -1,0 +1,209 @@
+"""Outer optimisation of the GLMM objective, the observed information and the GLM fallback."""
+
+from __future__ import annotations
+
+import warnings as _warnings
+
+import numpy as np
+import pandas as pd
+from scipy import optimize, stats
+
+from crs_study.analysis.glmm_core import CrossedFactors
+from crs_study.analysis.glmm_result import GlmmResult
+
+_BOUNDARY_SIGMA = 1e-4  # a standard deviation below this is the boundary value 0
+_CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
+
+
+class _Counted:
+    """Wraps an objective for the minimiser: ``-value``, ``-gradient``, counts calls."""
+
+    def __init__(self, problem, fixed_values: dict[int, float]):
+        self.problem = problem
+        self.fixed_values = fixed_values  # parameter index -> value held fixed
+        self.calls = 0
+
+    def full(self, free: np.ndarray) -> np.ndarray:
+        theta = np.empty(len(free) + len(self.fixed_values))
+        mask = np.ones(len(theta), bool)
+        for i, v in self.fixed_values.items():
+            theta[i], mask[i] = v, False
+        theta[mask] = free
+        return theta
+
+    def __call__(self, free: np.ndarray):
+        self.calls += 1
+        value, g = self.problem.objective(self.full(free))
+        keep = [i for i in range(len(g)) if i not in self.fixed_values]
+        if not np.isfinite(value):
+            return np.inf, np.zeros(len(free))
+        return -value, -g[keep]
+
+
+def _minimise(problem, start: np.ndarray, fixed_values: dict[int, float]):
+    counted = _Counted(problem, fixed_values)
+    free_index = [i for i in range(len(start)) if i not in fixed_values]
+    bounds = [(None, None) if i < problem.n_fixed else (0.0, None) for i in free_index]
+    res = optimize.minimize(counted, start[free_index], jac=True, method="L-BFGS-B",
+                            bounds=bounds,
+                            options={"maxiter": 2000, "ftol": 1e-15, "gtol": 1e-7})
+    return counted.full(res.x), res, counted.calls
+
+
+def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, ...],
+             method: str, n_quadrature: int, n_groups: dict[str, int], penalty: str | None,
+             notes: list[str]) -> GlmmResult:
+    """Maximise the (penalised) marginal log-likelihood and assemble the result."""
+    n_fixed, n_var = problem.n_fixed, problem.model.n_variance
+    start = np.r_[np.zeros(n_fixed), np.ones(n_var)]  # lme4 starts at theta = 1
+    theta, res, calls = _minimise(problem, start, {})
+    iterations = int(res.nit)
+    at_zero = {n_fixed + k: 0.0 for k in range(n_var) if theta[n_fixed + k] < _BOUNDARY_SIGMA}
+    if at_zero:  # re-fit on the boundary so the fixed effects are exactly those at sigma = 0
+        theta, res, more = _minimise(problem, theta, at_zero)
+        calls += more
+        iterations += int(res.nit)
+        for k in at_zero:
+            g = problem.groups[k - n_fixed]
+            notes.append(f"the variance of the random intercept for {g!r} is estimated at 0 "
+                         f"(boundary, a singular fit): the data show no variation between "
+                         f"{g!r} levels beyond chance; a likelihood-ratio test of this variance "
+                         f"follows a 50:50 mixture of chi2(0) and chi2(1)")
+    value, gradient = problem.objective(theta)
+    free = [i for i in range(len(theta)) if i not in at_zero]
+    information = -_hessian(problem, theta, free)
+    max_grad = float(np.max(np.abs(gradient[free]))) if free else 0.0
+    converged = bool(np.isfinite(value) and 2.0 * max_grad < _CONVERGED_GRADIENT)
+    if not converged:
+        try:  # lme4 scales the gradient by the Hessian before judging it
+            step = np.linalg.solve(information, gradient[free])
+            converged = bool(np.max(np.abs(step)) < 1e-4)
+        except np.linalg.LinAlgError:
+            pass
+    if not converged:
+        notes.append(f"the optimiser did not converge (max |gradient| {max_grad:.3g}, "
+                     f"{res.message}); estimates may be unreliable")
+    cov = _fixed_covariance(information, n_fixed, notes)
+    names = problem.names
+    loglike = float(problem.model.loglik(theta, grad=False)) + problem.user_constant
+    return GlmmResult(
+        params=pd.Series(theta[:n_fixed], index=names, name="estimate"),
+        bse=pd.Series(np.sqrt(np.diag(cov)), index=names, name="std_error"),
+        cov_params=pd.DataFrame(cov, index=names, columns=names),
+        variance_components=pd.Series(theta[n_fixed:] ** 2, index=list(problem.groups),
+                                      name="variance", dtype=float),
+        loglike=loglike, nobs=nobs, n_groups=n_groups, method=method,
+        n_quadrature=n_quadrature, converged=converged, n_function_evaluations=calls,
+        n_iterations=iterations, max_abs_gradient=max_grad, response=response, fixed=fixed,
+        groups=groups, penalty=penalty, warnings=tuple(notes),
+        _model=(problem, theta, tuple(at_zero)))
+
+
+def _hessian(problem, theta: np.ndarray, free: list[int]) -> np.ndarray:
+    """Hessian of the objective over the ``free`` parameters, by central differences.
+
+    Differences of the analytic gradient where the model has one; of values otherwise
+    (crossed random effects, whose gradient is itself a difference).
+    """
+    k = len(free)
+    H = np.zeros((k, k))
+    steps = [1e-4 * max(1.0, abs(theta[i])) for i in free]
+    if not isinstance(problem.model, CrossedFactors):
+        for a, (i, h) in enumerate(zip(free, steps, strict=True)):
+            up, down = theta.copy(), theta.copy()
+            up[i] += h
+            down[i] -= h
+            H[a] = (problem.objective(up)[1][free] - problem.objective(down)[1][free]) / (2 * h)
+        problem.objective(theta)  # restore the warm start at the optimum
+        return 0.5 * (H + H.T)
+    steps = [1e-3 * max(1.0, abs(theta[i])) for i in free]
+
+    def f(shift: dict[int, float]) -> float:
+        t = theta.copy()
+        for i, d in shift.items():
+            t[i] += d
+        return problem.objective(t, grad=False)
+
+    centre = f({})
+    for a in range(k):
+        i, hi = free[a], steps[a]
+        H[a, a] = (f({i: hi}) - 2 * centre + f({i: -hi})) / hi**2
+        for b in range(a):
+            j, hj = free[b], steps[b]
+            H[a, b] = H[b, a] = (f({i: hi, j: hj}) - f({i: hi, j: -hj}) - f({i: -hi, j: hj})
+                                 + f({i: -hi, j: -hj})) / (4 * hi * hj)
+    return H
+
+
+def _fixed_covariance(information: np.ndarray, n_fixed: int, notes: list[str]) -> np.ndarray:
+    """``inverse(information)[beta, beta]`` (lme4 calc.vcov.hess), with honest fallbacks."""
+    try:
+        np.linalg.cholesky(information)
+        return np.linalg.inv(information)[:n_fixed, :n_fixed]
+    except np.linalg.LinAlgError:
+        pass
+    block = information[:n_fixed, :n_fixed]
+    try:
+        np.linalg.cholesky(block)
+        notes.append("the information matrix of all parameters is not positive definite; "
+                     "standard errors treat the variance(s) as known")
+        return np.linalg.inv(block)
+    except np.linalg.LinAlgError:
+        notes.append("the information matrix of the fixed effects is singular; standard errors "
+                     "are not available (NaN)")
+        return np.full((n_fixed, n_fixed), np.nan)
+
+
+def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes) -> GlmmResult:
+    """Fixed-effects logistic regression by statsmodels' GLM (no random effect estimable)."""
+    import statsmodels.api as sm
+
+    with _warnings.catch_warnings(record=True) as caught:
+        _warnings.simplefilter("always")
+        fit = sm.GLM(np.column_stack([y, m - y]), X, family=sm.families.Binomial()).fit()
+    notes.extend(f"statsmodels GLM: {w.message}" for w in caught)
+    eta = X @ fit.params
+    loglike = float(np.sum(y * eta - m * np.logaddexp(0.0, eta))) + user_constant
+    cov = np.asarray(fit.cov_params())
+    return GlmmResult(
+        params=pd.Series(fit.params, index=names, name="estimate"),
+        bse=pd.Series(np.sqrt(np.diag(cov)), index=names, name="std_error"),
+        cov_params=pd.DataFrame(cov, index=names, columns=names),
+        variance_components=pd.Series([], index=[], name="variance", dtype=float),
+        loglike=loglike, nobs=nobs, n_groups={}, method="glm", n_quadrature=0,
+        converged=bool(fit.converged), n_function_evaluations=int(fit.fit_history["iteration"]),
+        n_iterations=int(fit.fit_history["iteration"]), max_abs_gradient=float(np.max(np.abs(
+            X.T @ (y - m / (1 + np.exp(-eta)))))), response=response, fixed=fixed,
+        groups=groups, penalty=None, warnings=tuple(notes))
+
+
+def profile_interval(result: GlmmResult, index: int, level: float) -> tuple[float, float]:
+    """Profile-likelihood interval of fixed effect ``index``: ``2 (l_max - l_prof(b)) = chi2``.
+
+    Each profile point re-maximises over the other parameters (Venzon & Moolgavkar 1988 in
+    the plain bracketing form); the ends are found with Brent's method.
+    """
+    problem, theta_hat, at_zero = result._model
+    target = stats.chi2.ppf(level, 1) / 2.0
+    top = problem.objective(theta_hat, grad=False)
+    se = float(result.bse.iloc[index]) if np.isfinite(result.bse.iloc[index]) else 1.0
+
+    def drop(b: float) -> float:
+        fixed_values = {index: b, **{k: 0.0 for k in at_zero}}
+        theta, _, _ = _minimise(problem, theta_hat, fixed_values)
+        return top - problem.objective(theta, grad=False) - target
+
+    ends = []
+    for direction in (-1.0, 1.0):
+        width = 2.0 * se
+        for _ in range(12):
+            if drop(theta_hat[index] + direction * width) > 0:
+                break
+            width *= 2.0
+        else:
+            ends.append(direction * np.inf)
+            continue
+        a, b = sorted((theta_hat[index], theta_hat[index] + direction * width))
+        ends.append(optimize.brentq(drop, a, b, xtol=1e-6))
+    problem.objective(theta_hat)
+    return ends[0], ends[1]
