@@ -1,0 +1,358 @@
+"""The GLMM against lme4 (cbpp), against scipy quadrature, and where maximum likelihood fails."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import integrate, stats
+from scipy.special import expit
+
+from crs_study.analysis.glmm import (
+    PRIOR_SD_COEFFICIENT,
+    fit_glmm,
+    format_pvalue,
+    lrt,
+    profile_conf_int,
+)
+from crs_study.analysis.glmm_core import BinomialData, CrossedFactors, SingleFactor
+from crs_study.analysis.glmm_simulate import simulate_trials
+from crs_study.errors import AnalysisError
+
+CBPP = "/work/shared/reference/data/cbpp.csv"
+PERIOD = ["Intercept", "C(period)[T.2]", "C(period)[T.3]", "C(period)[T.4]"]
+
+
+@pytest.fixture(scope="module")
+def cbpp() -> pd.DataFrame:
+    return pd.read_csv(CBPP)
+
+
+@pytest.fixture(scope="module")
+def cbpp_laplace(cbpp):
+    return fit_glmm(cbpp, "incidence", "C(period)", "herd", trials="size")
+
+
+@pytest.fixture(scope="module")
+def cbpp_trials(cbpp) -> pd.DataFrame:
+    """cbpp expanded to one 0/1 row per animal (842 rows)."""
+    rows = cbpp.loc[cbpp.index.repeat(cbpp["size"])].reset_index(drop=True)
+    rank = rows.groupby(["herd", "period"]).cumcount()
+    rows["sick"] = (rank < rows["incidence"]).astype(int)
+    return rows
+
+
+@pytest.fixture(scope="module")
+def two_conditions() -> pd.DataFrame:
+    return simulate_trials(np.random.default_rng(7), 20, 60, [0.2, 0.9], 0.5)
+
+
+# ------------------------------------------------------------------------- lme4's cbpp example
+def test_cbpp_laplace_matches_lme4(cbpp_laplace):
+    # lme4: glmer(cbind(incidence, size - incidence) ~ period + (1 | herd), cbpp, binomial)
+    # (shared/reference/data/README.md): -1.39855, -0.99234, -1.12868, -1.58030; herd variance
+    # 0.412455; logLik -92.0266; summary prints AIC 194.1, BIC 204.2, deviance 184.1.
+    r = cbpp_laplace
+    assert list(r.params.index) == PERIOD
+    np.testing.assert_allclose(r.params, [-1.39855, -0.99234, -1.12868, -1.58030], atol=1e-3)
+    assert r.variance_components["herd"] == pytest.approx(0.412455, rel=0.01)
+    assert r.loglike == pytest.approx(-92.0266, abs=1e-3)
+    assert (round(r.aic, 1), round(r.bic, 1), round(r.deviance, 1)) == (194.1, 204.2, 184.1)
+    assert r.converged and r.method == "laplace" and r.warnings == ()
+    assert r.n_groups == {"herd": 15} and r.nobs == 56
+
+
+def test_cbpp_standard_errors_match_lme4(cbpp_laplace):
+    # lme4's vcov(use.hessian = TRUE) (inverse Hessian of the deviance, beta block), as recorded
+    # by a third-party lme4 cross-check ("se_hessian" of cbpp, nAGQ = 1; summary prints
+    # 0.2325, 0.3066, 0.3266, 0.4274): 0.2324733, 0.3066413, 0.3266372, 0.4274372.
+    np.testing.assert_allclose(cbpp_laplace.bse, [0.2324733, 0.3066413, 0.3266372, 0.4274372],
+                               rtol=0.01)
+    # The beta-conditional SEs (MixedModels.jl, lme4 use.hessian = FALSE): 0.227891, 0.305385,
+    # 0.326049, 0.428795 -- the variance's uncertainty moves them by at most ~2 %.
+    np.testing.assert_allclose(cbpp_laplace.bse, [0.227891, 0.305385, 0.326049, 0.428795],
+                               rtol=0.03)
+    # lme4 summary: z -6.016, -3.236, -3.455, -3.697; p 1.79e-09, 0.001212, 0.000549, 0.000218
+    np.testing.assert_allclose(cbpp_laplace.zvalues, [-6.016, -3.236, -3.455, -3.697], atol=0.01)
+    np.testing.assert_allclose(cbpp_laplace.pvalues, [1.79e-09, 0.001212, 0.000549, 0.000218],
+                               rtol=0.03)
+
+
+def test_cbpp_agq25_matches_lme4(cbpp):
+    # lme4 glmer(..., nAGQ = 25) (shared/reference/data/README.md): -1.39923, -0.99141,
+    # -1.12782, -1.57947.
+    r = fit_glmm(cbpp, "incidence", "C(period)", "herd", trials="size", method="agq")
+    np.testing.assert_allclose(r.params, [-1.39923, -0.99141, -1.12782, -1.57947], atol=1e-3)
+    assert r.method == "agq" and r.n_quadrature == 25 and r.converged
+
+
+def test_cbpp_agq7_matches_lme4(cbpp):
+    # lme4 nAGQ = 7, as recorded by a third-party cross-check: beta -1.3992298, -0.9913961,
+    # -1.1278329, -1.5794439; herd sd 0.6475178; se 0.2335116, 0.3067674, 0.3267698, 0.4275907.
+    r = fit_glmm(cbpp, "incidence", "C(period)", "herd", trials="size", method="agq",
+                 n_quadrature=7)
+    np.testing.assert_allclose(r.params, [-1.3992298, -0.9913961, -1.1278329, -1.5794439],
+                               atol=1e-4)
+    assert math.sqrt(r.variance_components["herd"]) == pytest.approx(0.6475178, rel=1e-3)
+    np.testing.assert_allclose(r.bse, [0.2335116, 0.3067674, 0.3267698, 0.4275907], rtol=0.01)
+
+
+def test_cbpp_as_zero_one_trials(cbpp_laplace, cbpp_trials):
+    # README: the same fit on the 842 expanded 0/1 trials has a log-likelihood lower by the
+    # binomial constants, 185.4757; the estimates are the same.
+    r = fit_glmm(cbpp_trials, "sick", "C(period)", "herd")
+    assert len(cbpp_trials) == 842 and r.nobs == 842
+    np.testing.assert_allclose(r.params, cbpp_laplace.params, atol=1e-6)
+    assert cbpp_laplace.loglike - r.loglike == pytest.approx(185.4757, abs=1e-3)
+
+
+# ------------------------------------------------------------------------ the numerical core
+def _cbpp_data(cbpp) -> BinomialData:
+    X = np.column_stack([np.ones(len(cbpp))] + [(cbpp["period"] == k).to_numpy(float)
+                                                for k in (2, 3, 4)])
+    codes = (cbpp["herd"].to_numpy() - 1).astype(np.intp)
+    return BinomialData(X, cbpp["incidence"].to_numpy(float), cbpp["size"].to_numpy(float),
+                        (codes,), (15,))
+
+
+@settings(max_examples=15, deadline=None)
+@given(theta=st.lists(st.floats(-2.0, 2.0), min_size=5, max_size=5),
+       n_quadrature=st.sampled_from([1, 2, 5, 11]))
+def test_gradient_is_exact(cbpp, theta, n_quadrature):
+    """The implicit-derivative gradient equals central differences of the objective."""
+    model = SingleFactor(_cbpp_data(cbpp), n_quadrature)
+    theta = np.asarray(theta)
+    theta[-1] = abs(theta[-1]) + 0.05
+    _, g = model.loglik(theta)
+    h = 1e-6
+    numeric = [(model.loglik(theta + h * e, False) - model.loglik(theta - h * e, False)) / (2 * h)
+               for e in np.eye(5)]
+    np.testing.assert_allclose(g, numeric, rtol=1e-5, atol=1e-5)
+
+
+def test_agq_equals_scipy_quadrature(cbpp):
+    """AGQ with 25 points = the marginal likelihood integrated by scipy.integrate.quad."""
+    data = _cbpp_data(cbpp)
+    theta = np.array([-1.4, -1.0, -1.1, -1.6, 0.9])
+    eta_fixed = data.X @ theta[:4]
+    exact = 0.0
+    for j in range(15):
+        rows = data.group_codes[0] == j
+        y, m, off = data.successes[rows], data.trials[rows], eta_fixed[rows]
+
+        def density(u, y=y, m=m, off=off):
+            eta = off + theta[4] * u
+            return np.exp(np.sum(y * eta - m * np.logaddexp(0, eta))) * stats.norm.pdf(u)
+
+        exact += math.log(integrate.quad(density, -12, 12, epsabs=0, epsrel=1e-12)[0])
+    assert SingleFactor(data, 25).loglik(theta, False) == pytest.approx(exact, abs=1e-8)
+    # Laplace is the one-point rule, and off by a little on these small herds
+    laplace = SingleFactor(data, 1).loglik(theta, False)
+    assert laplace == SingleFactor(data, 1).loglik(theta, False)
+    assert 1e-4 < abs(laplace - exact) < 0.5
+
+
+def test_crossed_laplace_reduces_to_single_factor(cbpp):
+    data = _cbpp_data(cbpp)
+    crossed = BinomialData(data.X, data.successes, data.trials,
+                           (data.group_codes[0], np.arange(56) % 3), (15, 3))
+    theta = np.array([-1.4, -1.0, -1.1, -1.6, 0.7])
+    single = SingleFactor(data, 1).loglik(theta, False)
+    assert CrossedFactors(crossed).loglik(np.r_[theta, 0.0], False) == pytest.approx(single,
+                                                                                     abs=1e-9)
+
+
+def test_crossed_laplace_against_dense_computation(rng):
+    """Sparse PIRLS + splu log-determinant = a dense Newton solve + slogdet, written apart."""
+    n, J1, J2 = 120, 6, 4
+    X = np.column_stack([np.ones(n), rng.integers(0, 2, n)])
+    g1, g2 = rng.integers(0, J1, n), rng.integers(0, J2, n)
+    m = rng.integers(1, 6, n).astype(float)
+    y = rng.binomial(m.astype(int), 0.6).astype(float)
+    theta = np.array([0.3, 0.5, 0.8, 0.6])
+    Z = np.zeros((n, J1 + J2))
+    Z[np.arange(n), g1] = theta[2]
+    Z[np.arange(n), J1 + g2] = theta[3]
+    u = np.zeros(J1 + J2)
+    for _ in range(50):
+        p = expit(X @ theta[:2] + Z @ u)
+        H = Z.T @ (Z * (m * p * (1 - p))[:, None]) + np.eye(J1 + J2)
+        u = u + np.linalg.solve(H, Z.T @ (y - m * p) - u)
+    eta = X @ theta[:2] + Z @ u
+    p = expit(eta)
+    H = Z.T @ (Z * (m * p * (1 - p))[:, None]) + np.eye(J1 + J2)
+    dense = np.sum(y * eta - m * np.log1p(np.exp(eta))) - u @ u / 2 - np.linalg.slogdet(H)[1] / 2
+    data = BinomialData(X, y, m, (g1, g2), (J1, J2))
+    assert CrossedFactors(data).loglik(theta, False) == pytest.approx(dense, abs=1e-9)
+
+
+def test_pooling_rows_changes_nothing(two_conditions):
+    pooled = fit_glmm(two_conditions, "correct", "condition", "participant")
+    raw = fit_glmm(two_conditions, "correct", "condition", "participant", aggregate=False)
+    np.testing.assert_allclose(pooled.params, raw.params, atol=1e-6)
+    np.testing.assert_allclose(pooled.bse, raw.bse, rtol=1e-4)
+    assert pooled.loglike == pytest.approx(raw.loglike, abs=1e-6)
+
+
+def test_three_conditions_and_reference_level(rng):
+    df = simulate_trials(rng, 15, 80, [0.0, 0.5, 1.2], 0.4)
+    r = fit_glmm(df, "correct", "condition", "participant")
+    assert list(r.params.index) == ["Intercept", "condition[T.c1]", "condition[T.c2]"]
+    other = fit_glmm(df, "correct", "C(condition, Treatment('c2'))", "participant")
+    # the c0-vs-c2 contrast flips sign with the reference level; the fit is the same model
+    assert other.params.iloc[1] == pytest.approx(-r.params.iloc[2], abs=1e-4)
+    assert other.loglike == pytest.approx(r.loglike, abs=1e-6)
+
+
+def test_crossed_participant_and_digit(rng):
+    df = simulate_trials(rng, 20, 100, [0.0, 0.8], 0.5, digit_variance=0.4)
+    r = fit_glmm(df, "correct", "condition", ["participant", "digit"])
+    assert r.n_groups == {"participant": 20, "digit": 10} and r.converged
+    assert set(r.variance_components.index) == {"participant", "digit"}
+    single = fit_glmm(df, "correct", "condition", "participant")
+    test = lrt(r, single)
+    assert test.distribution == "0.5 chi2(0) + 0.5 chi2(1)" and test.statistic > 0
+    with pytest.raises(AnalysisError, match="single random intercept"):
+        fit_glmm(df, "correct", "condition", ["participant", "digit"], method="agq")
+
+
+# ---------------------------------------------------------------------- result and inference
+def test_result_object(cbpp_laplace):
+    r = cbpp_laplace
+    frame = r.to_frame()
+    assert list(frame.columns) == ["estimate", "std_error", "z", "p_value", "ci_low", "ci_high",
+                                   "odds_ratio", "or_ci_low", "or_ci_high"]
+    np.testing.assert_allclose(frame["ci_high"] - frame["estimate"], 1.959964 * r.bse,
+                               rtol=1e-6)
+    np.testing.assert_allclose(r.odds_ratios()["odds_ratio"], np.exp(r.params))
+    np.testing.assert_allclose(r.odds_ratios(0.9)["ci_low"], np.exp(r.conf_int(0.9)["ci_low"]))
+    json.dumps(r.to_dict())
+    text = r.summary()
+    assert "Laplace" in text and "C(period)[T.4]" in text and "0.4125" in text
+
+
+def test_lrt_of_period(cbpp, cbpp_laplace):
+    reduced = fit_glmm(cbpp, "incidence", "1", "herd", trials="size")
+    test = lrt(cbpp_laplace, reduced)
+    assert test.df == 3 and test.distribution == "chi2(3)"
+    assert test.statistic == pytest.approx(2 * (cbpp_laplace.loglike - reduced.loglike))
+    assert test.pvalue == pytest.approx(stats.chi2.sf(test.statistic, 3))
+    with pytest.raises(AnalysisError, match="more parameters"):
+        lrt(reduced, cbpp_laplace)
+    with pytest.raises(AnalysisError, match="same data"):
+        lrt(cbpp_laplace, fit_glmm(cbpp.iloc[:40], "incidence", "1", "herd", trials="size"))
+
+
+def test_profile_interval_brackets_the_estimate(cbpp_laplace):
+    prof = profile_conf_int(cbpp_laplace, terms=["C(period)[T.2]"])
+    wald = cbpp_laplace.conf_int().loc["C(period)[T.2]"]
+    low, high = prof.loc["C(period)[T.2]"]
+    assert low < cbpp_laplace.params["C(period)[T.2]"] < high
+    assert low == pytest.approx(wald["ci_low"], abs=0.1)
+    assert high == pytest.approx(wald["ci_high"], abs=0.1)
+    with pytest.raises(AnalysisError, match="unknown term 'period'"):
+        profile_conf_int(cbpp_laplace, terms=["period"])
+
+
+@pytest.mark.parametrize(("p", "text"), [(0.0312, "0.0312"), (3e-17, "< 1e-16"),
+                                         (float("nan"), "n/a")])
+def test_format_pvalue(p, text):
+    assert format_pvalue(p) == text
+
+
+# ------------------------------------------------------------ where maximum likelihood fails
+@pytest.mark.parametrize("outcome", [1, 0], ids=["all-correct", "all-wrong"])
+def test_separation_gives_finite_penalised_estimates(two_conditions, outcome):
+    df = two_conditions.copy()
+    df.loc[df["condition"] == "c1", "correct"] = outcome
+    r = fit_glmm(df, "correct", "condition", "participant")
+    assert r.penalty is not None and "separation" in r.warnings[0]
+    assert "condition[T.c1]" in r.warnings[0]
+    assert np.all(np.isfinite(r.params)) and np.all(np.isfinite(r.bse))
+    assert np.sign(r.params["condition[T.c1]"]) == (1 if outcome else -1)
+    assert abs(r.params["condition[T.c1]"]) < 5 * PRIOR_SD_COEFFICIENT
+    assert np.all(r.pvalues > 0)
+
+
+def test_everything_correct(two_conditions):
+    df = two_conditions.assign(correct=1)
+    r = fit_glmm(df, "correct", "condition", "participant")
+    assert "['Intercept', 'condition[T.c1]']" in r.warnings[0]
+    assert np.all(np.isfinite(r.params)) and np.all(np.isfinite(r.bse))
+
+
+def test_variance_at_zero(rng):
+    df = simulate_trials(rng, 20, 40, [0.0, 0.7], 0.0)
+    r = fit_glmm(df, "correct", "condition", "participant")
+    assert r.variance_components["participant"] == 0.0 and r.boundary == ("participant",)
+    assert any("estimated at 0" in w and "mixture" in w for w in r.warnings)
+    glm = fit_glmm(df, "correct", "condition", [])
+    np.testing.assert_allclose(r.params, glm.params, atol=1e-5)
+    np.testing.assert_allclose(r.bse, glm.bse, rtol=1e-4)
+    test = lrt(r, glm)
+    assert test.statistic == pytest.approx(0.0, abs=1e-6) and test.pvalue == 1.0
+
+
+def test_single_participant_falls_back_to_glm(two_conditions):
+    import statsmodels.api as sm
+
+    one = two_conditions[two_conditions["participant"] == "p000"]
+    r = fit_glmm(one, "correct", "condition", "participant")
+    assert r.method == "glm" and "single level" in r.warnings[0]
+    X = np.column_stack([np.ones(len(one)), (one["condition"] == "c1").to_numpy(float)])
+    reference = sm.Logit(one["correct"].to_numpy(float), X).fit(disp=0)
+    np.testing.assert_allclose(r.params, reference.params, atol=1e-6)
+    np.testing.assert_allclose(r.bse, reference.bse, rtol=1e-6)
+    assert r.loglike == pytest.approx(reference.llf, abs=1e-8)
+
+
+def test_missing_condition_level_is_dropped(rng):
+    df = simulate_trials(rng, 12, 30, [0.0, 0.5, 1.0], 0.3)
+    df = df[df["condition"] != "c1"]
+    r = fit_glmm(df, "correct", "condition", "participant")
+    assert list(r.params.index) == ["Intercept", "condition[T.c2]"]
+    assert "['c1']" in r.warnings[0]
+    explicit = fit_glmm(df.assign(condition=df["condition"].astype(str)), "correct",
+                        "C(condition, levels=['c0', 'c1', 'c2'])", "participant")
+    assert "aliased" in explicit.warnings[0] and len(explicit.params) == 2
+
+
+def test_p_value_is_never_zero(rng):
+    df = simulate_trials(rng, 30, 400, [-2.0, 3.0], 0.2)
+    r = fit_glmm(df, "correct", "condition", "participant")
+    assert r.zvalues.iloc[1] > 40
+    assert r.pvalues.iloc[1] > 0.0 and format_pvalue(r.pvalues.iloc[1]) == "< 1e-16"
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"response": "answer"}, "response column 'answer' is not in the data"),
+    ({"groups": "subject"}, "group column 'subject'"),
+    ({"fixed": "correct ~ condition"}, "right-hand side"),
+    ({"fixed": "nonsense_column"}, "fixed-effects formula 'nonsense_column'"),
+    ({"method": "pql"}, "method must be 'laplace' or 'agq', got 'pql'"),
+    ({"method": "agq", "n_quadrature": 0}, "n_quadrature must be an integer"),
+    ({"response": "digit"}, "must be 0/1 per trial"),
+    ({"trials": "digit"}, "integers between 0 and 'digit'"),
+])
+def test_bad_input(two_conditions, kwargs, match):
+    args = {"response": "correct", "fixed": "condition", "groups": "participant", **kwargs}
+    with pytest.raises(AnalysisError, match=match):
+        fit_glmm(two_conditions, **args)
+
+
+def test_missing_values_are_errors(two_conditions):
+    df = two_conditions.copy()
+    df["correct"] = df["correct"].astype(float)
+    df.loc[3, "correct"] = np.nan
+    with pytest.raises(AnalysisError, match="1 missing or non-numeric"):
+        fit_glmm(df, "correct", "condition", "participant")
+    df = two_conditions.copy()
+    df["participant"] = df["participant"].astype(object)
+    df.loc[5, "participant"] = None
+    with pytest.raises(AnalysisError, match="group column 'participant' has 1 missing"):
+        fit_glmm(df, "correct", "condition", "participant")
