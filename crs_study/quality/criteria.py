@@ -1,0 +1,277 @@
+"""The paper's display-quality criteria: peak position distortion D_P and shape distortion D_S.
+
+For a bump of diameter (wavelength) l centred at X (crs-paper.md; the ideal shape, its
+Supplementary Equation 4 and Eq. 7, is the raised cosine phi = [1 + cos(2 pi |x - X| / l)] / 2
+on |x - X| <= l/2)::
+
+    D_P = E( |x_r - X| / l )                                             (Eqs. 1, 5)
+    D_S = E( sqrt( int_S (phi - psi)^2 / int_S phi^2 ) ),  S = {|x - X| <= l/2}   (Eqs. 2, 6)
+
+psi is the displayed surface (a display model fed the setpoints the renderer gives for the
+bump), x_r its highest point. X is uniform over the display; on the (infinite) lattice every
+term is periodic in X, so E is taken over one lattice cell (:mod:`crs_study.quality.lattices`).
+
+Numerics, and their error
+-------------------------
+* E over X: Gauss-Legendre on the cell (1D: panels cut where the support's ends cross a pixel
+  or a mid-point, so the integrand is smooth on each panel; 2D: the Voronoi cell cut into
+  triangles at its centre, Duffy-mapped product rule).
+* int_S: 1D Gauss-Legendre on panels cut at the pixels and mid-points (exact breaks for the
+  nearest and linear models); 2D polar product rule about X (Gauss-Legendre in rho, the
+  periodic trapezoid rule in theta), about ``resolution`` nodes per pitch each way.
+* x_r: the model's own ``peak_xy(setpoints)`` where it has one (``nearest``, ``linear``: the
+  highest pixel); otherwise the maximum on a grid of pitch/8 over the support widened by half
+  a pitch, refined by four zooms (each 11 points a side over +-1 old spacing) to pitch/5000.
+The defaults keep the value within the ``tolerance`` recorded on the result, measured in the
+tests as the change when the node counts double (see ``Distortion.error`` for a per-run figure).
+
+Range: d/l must lie in [:data:`MIN_D_OVER_L`, the lattice's covering limit]: below, the bump
+spans so many pixels that the 2D integrals grow as (l/d)^2 (use the paper's linear laws
+there, :data:`THEORY`); above, a bump can sit wholly between pixels, the display is flat and
+x_r has no meaning. Both are :class:`~crs_study.errors.DisplayModelError`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from crs_study.display.base import DisplayModel, get_model
+from crs_study.errors import DisplayModelError, RenderError
+from crs_study.layout import Layout
+from crs_study.quality.lattices import (
+    LATTICES,
+    LatticeName,
+    cell_rule,
+    cell_vertices,
+    lattice_of,
+    periodic_layout,
+)
+from crs_study.render import Renderer
+from crs_study.targets import Bump
+
+#: Smallest d/l computed (the bump then spans 50 pitches).
+MIN_D_OVER_L = 0.02
+#: Largest d/l per lattice: beyond, the support (radius l/2) can miss every pixel, since a
+#: point can be the cell circumradius from its nearest pixel (d/2, d/sqrt 2, d/sqrt 3).
+MAX_D_OVER_L = {"1d": 1.0, "square": 1.0 / math.sqrt(2.0), "hex": math.sqrt(3.0) / 2.0}
+
+#: Default bump height (mm): well inside the 9 mm travel, slopes small enough that the
+#: compressed beam stays far from its yield curvature for l >= 30 mm.
+DEFAULT_HEIGHT_MM = 5.0
+
+#: The paper's theory lines (crs-paper.md): (lattice, model) -> (quantity, coefficient, power).
+#: D = coefficient * (d/l)^power. Pixel-only D_P is exact theory; the D_S lines are fits.
+THEORY = {
+    ("1d", "nearest"): {"D_P": (0.25, 1), "D_S": (0.994, 1)},
+    ("square", "nearest"): {"D_P": (0.3826, 1), "D_S": (1.412, 1)},
+    ("hex", "nearest"): {"D_P": (0.3510, 1), "D_S": (1.318, 1)},
+    ("1d", "linear"): {"D_P": (0.25, 1), "D_S": (1.545, 2)},
+}
+
+#: Models whose surface, fed symmetric setpoints, has the lattice's point symmetry on any
+#: patch: their expectation may use the fundamental part of the cell (1D: half the cell).
+#: The Delaunay triangulation of a square lattice is not unique, so ``linear`` is symmetric
+#: on the line and the hexagonal lattice only.
+SYMMETRIC_MODELS = {"nearest": {"1d", "square", "hex"}, "linear": {"1d", "hex"}}
+
+
+@dataclass(frozen=True)
+class Distortion:
+    """D_P and D_S of one display model on one lattice at one d/l (dimensionless)."""
+
+    layout: str  # "1d" | "square" | "hex"
+    model: str
+    d_over_l: float
+    D_P: float
+    D_S: float
+    positions: int  # peak positions X the expectation used
+    error: dict = field(default_factory=dict)  # {"D_P": .., "D_S": ..}: change at half the nodes
+    device: str = ""  # layout the surfaces were computed on
+
+    def row(self) -> dict:
+        """The JSON row of ``crs-study quality --json``."""
+        return {"layout": self.layout, "model": self.model, "d_over_l": self.d_over_l,
+                "D_P": self.D_P, "D_S": self.D_S}
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def theory(lattice: str, model: str, quantity: str, d_over_l: float | np.ndarray) -> float | None:
+    """The paper's line for (lattice, model, quantity) at d/l, or None when it gives none."""
+    line = THEORY.get((lattice, model), {}).get(quantity)
+    if line is None:
+        return None
+    coefficient, power = line
+    return coefficient * np.asarray(d_over_l) ** power
+
+
+def check_d_over_l(lattice: LatticeName, d_over_l: float) -> None:
+    if lattice not in LATTICES:
+        raise DisplayModelError(f"unknown lattice {lattice!r}; known: {', '.join(LATTICES)}")
+    upper = MAX_D_OVER_L[lattice]
+    if not (np.isfinite(d_over_l) and MIN_D_OVER_L <= d_over_l <= upper):
+        raise DisplayModelError(
+            f"d/l = {d_over_l!r} is outside [{MIN_D_OVER_L}, {upper:.4f}] for the {lattice} "
+            f"lattice: below, the bump spans too many pixels to integrate (use the paper's "
+            f"linear laws); above, a bump can fall between pixels and show nothing"
+        )
+
+
+class _Evaluator:
+    """Per-(model, layout, l) machinery: renderer, quadrature templates, peak search."""
+
+    def __init__(self, model: DisplayModel, layout: Layout, lattice: LatticeName, l: float,
+                 height: float, condition: str, resolution: int) -> None:
+        self.model, self.layout, self.lattice = model, layout, lattice
+        self.l, self.height, self.d = l, height, layout.pitch_mm
+        self.renderer = Renderer(layout, condition, policy="error")
+        self.resolution = resolution
+        self.peak_xy = getattr(model, "peak_xy", None)
+        if lattice != "1d":
+            radius = 0.5 * l
+            n_rho = max(16, math.ceil(resolution * radius / self.d))
+            n_theta = max(32, math.ceil(2 * math.pi * resolution * radius / self.d))
+            x, w = np.polynomial.legendre.leggauss(n_rho)
+            rho, w_rho = 0.5 * radius * (x + 1.0), 0.5 * radius * w
+            theta = 2 * math.pi * np.arange(n_theta) / n_theta
+            self.offsets = (rho[:, None, None] * np.stack([np.cos(theta), np.sin(theta)], -1)
+                            ).reshape(-1, 2)
+            self.weights = np.repeat(w_rho * rho * 2 * math.pi / n_theta, n_theta)
+        self.coarse = max(self.d / 8.0, 1e-9)
+
+    def _segment_rule(self, centre: float) -> tuple[np.ndarray, np.ndarray]:
+        """1D: nodes and weights on [X - l/2, X + l/2] cut at pixels and mid-points."""
+        lo, hi = centre - 0.5 * self.l, centre + 0.5 * self.l
+        half_pitch = 0.5 * self.d
+        k = np.arange(math.ceil(lo / half_pitch), math.floor(hi / half_pitch) + 1)
+        edges = np.unique(np.concatenate([[lo, hi], k * half_pitch]))
+        x, w = np.polynomial.legendre.leggauss(max(4, self.resolution // 2))
+        mids, halves = 0.5 * (edges[1:] + edges[:-1]), 0.5 * np.diff(edges)
+        nodes = (mids[:, None] + halves[:, None] * x).ravel()
+        return np.column_stack([nodes, np.zeros_like(nodes)]), (halves[:, None] * w).ravel()
+
+    def __call__(self, origin: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+        """(|x_r - X| / l, shape distortion) for a bump at X = origin + x."""
+        centre = origin + x
+        bump = Bump((float(centre[0]), float(centre[1])), self.l, self.height)
+        try:
+            setpoints = self.renderer.render(bump).setpoints
+        except RenderError as exc:
+            raise DisplayModelError(f"quality at d/l = {self.d / self.l:.4g}: {exc}") from None
+        if self.lattice == "1d":
+            points, weights = self._segment_rule(float(centre[0]))
+        else:
+            points, weights = centre + self.offsets, self.weights
+        grid = None if self.peak_xy is not None else self._coarse_grid(centre)
+        evaluate = points if grid is None else np.concatenate([points, grid])
+        values = self.model.surface(setpoints, evaluate)
+        psi = values[: len(points)]
+        phi = bump.height(points)
+        shape = math.sqrt(np.dot(weights, (phi - psi) ** 2) / np.dot(weights, phi**2))
+        if self.peak_xy is not None:
+            peak = np.asarray(self.peak_xy(setpoints), dtype=float)
+            top = float(values.max()) if len(values) else 0.0
+        else:
+            peak, top = self._search_peak(setpoints, grid, values[len(points):])
+        if not top > 1e-9 * self.height:
+            raise DisplayModelError(
+                f"{self.model.name}: the display is flat for a bump at {tuple(centre)!r} "
+                f"(d/l = {self.d / self.l:.4g}): no peak; use a smaller d/l"
+            )
+        if self.lattice == "1d":
+            return abs(peak[0] - centre[0]) / self.l, shape
+        return math.hypot(peak[0] - centre[0], peak[1] - centre[1]) / self.l, shape
+
+    def _coarse_grid(self, centre: np.ndarray) -> np.ndarray:
+        reach = 0.5 * self.l + 0.5 * self.d
+        n = math.ceil(reach / self.coarse)
+        ticks = np.arange(-n, n + 1) * self.coarse
+        if self.lattice == "1d":
+            return np.column_stack([centre[0] + ticks, np.zeros_like(ticks)])
+        gx, gy = np.meshgrid(ticks, ticks, indexing="ij")
+        keep = gx**2 + gy**2 <= reach**2
+        return centre + np.column_stack([gx[keep], gy[keep]])
+
+    def _search_peak(self, setpoints: np.ndarray, grid: np.ndarray, values: np.ndarray
+                     ) -> tuple[np.ndarray, float]:
+        top = float(values.max())
+        tied = values >= top - 1e-12 * max(abs(top), 1.0)
+        if np.count_nonzero(tied) > 1:  # a plateau: its centroid (as for the pixel-only cells)
+            return grid[tied].mean(axis=0), top
+        best, spacing = grid[int(np.argmax(values))], self.coarse
+        ticks = np.linspace(-1.0, 1.0, 11)
+        for _ in range(4):
+            if self.lattice == "1d":
+                local = np.column_stack([best[0] + spacing * ticks, np.zeros_like(ticks)])
+            else:
+                gx, gy = np.meshgrid(ticks, ticks, indexing="ij")
+                local = best + spacing * np.column_stack([gx.ravel(), gy.ravel()])
+            z = self.model.surface(setpoints, local)
+            k = int(np.argmax(z))
+            if z[k] > top:
+                best, top = local[k], float(z[k])
+            spacing *= 0.2
+        return best, top
+
+
+def distortion(model: str | DisplayModel, lattice: LatticeName, d_over_l: float, *,
+               layout: Layout | None = None, height_mm: float = DEFAULT_HEIGHT_MM,
+               condition: str = "crs", order: int = 4, resolution: int = 12,
+               symmetric: bool | None = None, estimate_error: bool = False) -> Distortion:
+    """D_P and D_S (Eqs. 1, 2, 5, 6) of a display model on a lattice at one d/l.
+
+    Parameters
+    ----------
+    model : a registered model name (``"nearest"``, ``"linear"``, ``"beam"``, ...) or a model
+        built for ``layout``.
+    lattice : ``"1d"``, ``"square"`` or ``"hex"``.
+    layout : the device to compute on, e.g. the published ``crs2d``; the bump's peak runs over
+        the cell of the pixel nearest the pixels' centroid. Default: a periodic patch
+        (:func:`~crs_study.quality.lattices.periodic_layout`) at the shipped device's pitch.
+    height_mm : z_f of the bump; the criteria are scale-free for linear models.
+    condition : how setpoints are rendered (``"crs"`` feeds the beams; pixel-only models
+        ignore the feed).
+    order, resolution : Gauss order per cell panel; quadrature nodes per pitch for int_S.
+    symmetric : use the fundamental part of the cell; default from :data:`SYMMETRIC_MODELS`.
+    estimate_error : also compute with half the order and resolution and record the change.
+    """
+    check_d_over_l(lattice, d_over_l)
+    name = model if isinstance(model, str) else model.name
+    if layout is None:
+        template = None if isinstance(model, str) else model.layout
+        pitch = (template.pitch_mm if template is not None else
+                 (30.0 if lattice != "1d" else 30.0))
+        cell_reach = float(np.max(np.hypot(*cell_vertices(lattice, pitch).T)))
+        layout = periodic_layout(lattice, pitch, 0.5 * pitch / d_over_l + cell_reach)
+    elif lattice_of(layout) != lattice:
+        raise DisplayModelError(f"{layout.source}: a {layout.lattice!r} layout cannot give "
+                                f"{lattice!r} distortions")
+    display = get_model(model, layout) if isinstance(model, str) else model
+    if symmetric is None:
+        symmetric = lattice in SYMMETRIC_MODELS.get(name, set())
+    l = layout.pitch_mm / d_over_l
+    centroid = layout.pixel_xy.mean(axis=0)
+    origin = layout.pixel_xy[int(np.argmin(np.hypot(*(layout.pixel_xy - centroid).T)))]
+
+    def expectation(order: int, resolution: int) -> tuple[float, float, int]:
+        evaluator = _Evaluator(display, layout, lattice, l, height_mm, condition, resolution)
+        breaks = None
+        if lattice == "1d":  # where the support's ends cross a pixel or a mid-point
+            half = 0.5 * layout.pitch_mm
+            shift = (0.5 * l) % half
+            breaks = np.array([shift, half - shift, shift - half, -shift])
+        xs, ws = cell_rule(lattice, layout.pitch_mm, order, symmetric, breaks)
+        values = np.array([evaluator(origin, x) for x in xs])
+        dp, ds = ws @ values
+        return float(dp), float(ds), len(xs)
+
+    dp, ds, n = expectation(order, resolution)
+    error = {}
+    if estimate_error:
+        dp2, ds2, _ = expectation(max(2, order // 2), max(4, resolution // 2))
+        error = {"D_P": abs(dp - dp2), "D_S": abs(ds - ds2)}
+    return Distortion(lattice, name, float(d_over_l), dp, ds, n, error, layout.name)
