@@ -28,6 +28,8 @@ def make_responder(spec: str, *, seed: int, layout: Any = None, protocol: Any = 
     if spec == "keypad":
         from crs_study.responders.keypad import KeypadResponder
 
+        if protocol is not None and "keys" not in options:
+            options["keys"] = {protocol.key_for(d): d for d in protocol.digits}
         return KeypadResponder(**options)
     if spec.startswith("scripted:") and len(spec) > len("scripted:"):
         from crs_study.responders.scripted import ScriptedResponder

@@ -8,8 +8,9 @@ response before the stimulus offset has a negative response time from offset), a
 times are exact to the millisecond on the same monotonic clock the runner uses
 (:class:`~crs_study.clock.RealClock`).
 
-Keys: the digits ``0``-``9`` answer; ``q`` (or Escape) asks for a safe pause (as Ctrl-C);
-anything else is ignored. At an experimenter prompt, Space or Enter continues.
+Keys: the protocol's response keys (by default the digits ``0``-``9``) answer; ``q`` (or
+Escape) asks for a safe pause (as Ctrl-C); anything else is ignored. At an experimenter
+prompt, Space or Enter continues.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import time
 import tty
 from typing import Any, TextIO
 
-from crs_study.errors import SessionError
+from crs_study.errors import ConfigError, SessionError
 from crs_study.responders.base import Responder, Response, StimulusRecord
 
 QUIT_KEYS = frozenset({"q", "Q", "\x1b"})
@@ -43,8 +44,13 @@ class KeypadResponder(Responder):
     simulated = False
 
     def __init__(self, fd: int | None = None, output: TextIO | None = None,
-                 poll_s: float = 0.02) -> None:
-        self.fd = sys.stdin.fileno() if fd is None else fd
+                 poll_s: float = 0.02, keys: dict[str, int] | None = None) -> None:
+        self.keys = dict(keys) if keys is not None else {str(d): d for d in range(10)}
+        clash = sorted(set(self.keys) & QUIT_KEYS)
+        if clash:
+            raise ConfigError(f"keypad: response key {clash[0]!r} is also the pause key; "
+                              f"choose another (pause keys: q, Q, Escape)")
+        self.fd = fd  # None: stdin, looked up when the keypad opens
         self.output = output if output is not None else sys.stderr
         self.poll_s = poll_s
         self._keys: queue.Queue[tuple[float, str]] = queue.Queue()
@@ -57,7 +63,12 @@ class KeypadResponder(Responder):
     def open(self) -> None:
         if self._thread is not None:
             return
-        if not os.isatty(self.fd):
+        if self.fd is None:
+            try:
+                self.fd = sys.stdin.fileno()
+            except (OSError, ValueError, AttributeError):
+                self.fd = -1
+        if self.fd < 0 or not os.isatty(self.fd):
             raise SessionError("the keypad responder needs a terminal on stdin; use "
                                "--responder scripted:FILE or random without one")
         self._saved = termios.tcgetattr(self.fd)
@@ -129,7 +140,7 @@ class KeypadResponder(Responder):
         self.open()
         onset = stimulus.onset_time if self._onset is None else self._onset
         deadline = None if time_limit_s is None else stimulus.offset_time + time_limit_s
-        choices = {str(d) for d in stimulus.digit_choices}
+        choices = set(stimulus.digit_choices)
         while True:
             key = self._next_key(deadline)
             if key is None:
@@ -139,8 +150,9 @@ class KeypadResponder(Responder):
                 continue
             if char in QUIT_KEYS:
                 raise PauseRequested()
-            if char in choices:
-                return Response(int(char), when - onset)
+            digit = self.keys.get(char)
+            if digit is not None and digit in choices:
+                return Response(digit, when - onset)
 
     def end_trial(self) -> None:
         self._onset = None

@@ -1,0 +1,86 @@
+"""The main job on embedded defaults: rehearse the default protocol and analyse it.
+
+Dry-runs protocols/digit_identification.toml with simulated participants (perceptual
+observers) on the simulated device and a virtual clock, analyses the dataset when the
+analysis is installed, and prints the headline (accuracy per condition with confidence
+intervals, the test, the chart) and where the dataset and the report were written. A new
+output directory is made every time; nothing is overwritten.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from datetime import datetime
+from pathlib import Path
+
+NAME = "demo"
+HELP = "dry-run the default protocol with simulated participants, analyse, print the headline"
+DEFAULT_PROTOCOL = "protocols/digit_identification.toml"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
+                        help="dataset directory (default: ./crs-study-output/demo-<time>); "
+                        "must not exist yet")
+    parser.add_argument("--participants", type=int, default=12, metavar="N",
+                        help="simulated participants")
+    parser.add_argument("--protocol", default=DEFAULT_PROTOCOL, metavar="PROTOCOL",
+                        help="protocol file")
+    parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="J",
+                        help="worker processes")
+    parser.add_argument("--json", action="store_true",
+                        help="print a JSON summary on stdout and no progress")
+
+
+def fresh_directory(base: Path | None = None) -> Path:
+    """``./crs-study-output/demo-<time>``, with a suffix if that exists already."""
+    base = base or Path("crs-study-output")
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    candidate = base / f"demo-{stamp}"
+    number = 2
+    while candidate.exists():
+        candidate = base / f"demo-{stamp}-{number}"
+        number += 1
+    return candidate
+
+
+def run(args: argparse.Namespace) -> int:
+    from crs_study.commands.run import stderr_progress
+    from crs_study.errors import SessionError
+    from crs_study.paths import shipped_file
+    from crs_study.runner import dry_run
+
+    out = args.out or fresh_directory()
+    if out.exists() and any(out.iterdir()):
+        raise SessionError(f"--out {os.fspath(out)!r} exists and is not empty; the demo never "
+                           "overwrites: choose a new directory")
+    protocol = shipped_file(args.protocol)
+    show = stderr_progress(not args.json)
+    results = dry_run(protocol, args.participants, out, jobs=args.jobs, progress=show)
+    summary: dict = {"dataset": os.fspath(out), "participants": len(results),
+                     "trials": sum(r.trials_completed for r in results)}
+    try:
+        from crs_study.analysis.report import analyze_dataset
+    except ImportError:
+        analyze_dataset = None
+    if analyze_dataset is None:
+        summary["analysis"] = "unavailable (crs_study.analysis.report is not installed)"
+    else:
+        result = analyze_dataset(out)
+        summary.update(headline=result.headline, report=os.fspath(result.report_path),
+                       results=os.fspath(result.results_path))
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    print(f"demo: {summary['participants']} simulated participants, {summary['trials']} trials, "
+          f"dataset in {summary['dataset']}")
+    if "headline" in summary:
+        print(summary["headline"])
+        print(f"report: {summary['report']}")
+        print(f"results: {summary['results']}")
+    else:
+        print(f"analysis: {summary['analysis']}", file=sys.stderr)
+    return 0

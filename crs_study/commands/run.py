@@ -1,0 +1,110 @@
+"""Run (or resume) one participant session of a protocol on a device.
+
+Every trial is stored durably before the next begins. After an interruption (Ctrl-C, a power
+cut, a device fault) run the same command again: the session resumes at the next unfinished
+trial of the same plan. A completed session is never overwritten: pass --session N for
+another session. Sessions on a real device (not sim://) need a consent record first
+(crs-study consent record).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+NAME = "run"
+HELP = "run or resume a participant session on a device"
+EXIT_INTERRUPTED = 130
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("protocol", metavar="PROTOCOL", help="protocol file (TOML)")
+    parser.add_argument("--participant", required=True, metavar="ID",
+                        help="participant label (letters and digits; never a name)")
+    parser.add_argument("--device", required=True, metavar="URL",
+                        help="serial:///dev/ttyUSB0,/dev/ttyUSB1 or sim://")
+    parser.add_argument("--out", required=True, metavar="DATASET", type=Path,
+                        help="dataset directory (BIDS); created when missing")
+    parser.add_argument("--session", type=int, default=1, metavar="N",
+                        help="session number (a completed session is never overwritten)")
+    parser.add_argument("--responder", default="keypad",
+                        metavar="keypad|scripted:FILE|random|observer",
+                        help="who answers: a person at the terminal, a script, or a simulation")
+    parser.add_argument("--clock", choices=("real", "virtual", "auto"), default="auto",
+                        help="auto: virtual for sim:// with a simulated responder, else real")
+    parser.add_argument("--counterbalance", type=int, default=None, metavar="K",
+                        help="counterbalance index (default: the participant's order of arrival "
+                        "in the dataset)")
+    parser.add_argument("--consent-register", type=Path, default=None, metavar="DIR",
+                        help="consent register (default: $CRS_STUDY_CONSENT_DIR or "
+                        "~/.crs-study/consent); needed for devices other than sim://")
+    parser.add_argument("--seed-check", action="store_true",
+                        help="print the seed and plan hash, compare with a stored session, "
+                        "write nothing")
+    parser.add_argument("--json", action="store_true",
+                        help="print a JSON summary on stdout and no progress")
+
+
+def spec_from_args(args: argparse.Namespace):
+    from crs_study.runner import SessionSpec
+
+    return SessionSpec(
+        protocol=Path(args.protocol), participant=args.participant, dataset=args.out,
+        device_url=args.device, session=args.session, responder=args.responder,
+        clock=args.clock, counterbalance=args.counterbalance,
+        consent_register=args.consent_register,
+    )
+
+
+def stderr_progress(enabled: bool):
+    """A progress callback writing one updating line on stderr (None when disabled)."""
+    if not enabled:
+        return None
+    tty = sys.stderr.isatty()
+
+    def show(text: str) -> None:
+        if tty:
+            sys.stderr.write("\r" + text + "\x1b[K")
+        else:
+            sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+
+    return show
+
+
+def run(args: argparse.Namespace) -> int:
+    from crs_study.runner import run_session, seed_check
+
+    spec = spec_from_args(args)
+    if args.seed_check:
+        report = seed_check(spec)
+        if args.json:
+            print(json.dumps(report))
+        else:
+            for key, value in report.items():
+                print(f"{key}: {value}")
+        return 0
+    quiet = args.json
+    show = stderr_progress(not quiet)
+    result = run_session(spec, progress=show)
+    if show and sys.stderr.isatty():
+        sys.stderr.write("\n")
+    if args.json:
+        print(json.dumps({
+            "status": result.status, "participant": result.participant,
+            "session": result.session, "trials_planned": result.trials_planned,
+            "trials_completed": result.trials_completed, "trials_run": result.trials_run,
+            "late_frames": result.late_frames, "session_seconds": result.session_seconds,
+            "wall_seconds": result.wall_seconds, "tsv": os.fspath(result.tsv),
+            "sidecar": os.fspath(result.sidecar)}))
+    if result.status == "interrupted":
+        print(f"crs-study run: paused at trial {result.trials_completed + 1}/"
+              f"{result.trials_planned}; the session is marked interrupted: run the same "
+              "command to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if not args.json:
+        print(result.message)
+    return 0

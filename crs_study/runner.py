@@ -1,0 +1,566 @@
+"""The session runner: plays a protocol's trial plan on a device and stores every trial durably.
+
+One trial (all times on the session's :class:`~crs_study.clock.Clock`):
+
+1. a prompt to the experimenter at a block start or a break (mount or remove the skeleton);
+   simulated responders continue at once, the keypad waits for Space or Enter;
+2. the stimulus: the pre-rendered frames of the (digit, condition) pair are commanded at the
+   protocol's frame rate, each at its due time ``onset + frame_times[k]`` (``sleep_until``); a
+   frame commanded more than one period after its due time counts as late; the displayed
+   setpoints are sampled one period after each frame (what the skin meets) for the responder;
+   at the offset, the end of the last frame's period (``onset + n / f``), the display returns
+   to the neutral (flat) pose;
+3. the response (:class:`~crs_study.responders.base.Responder`), with the protocol's time limit
+   from stimulus offset;
+4. the trial's frame log and its row are stored durably (:mod:`crs_study.dataset`), then the
+   sidecar; feedback after practice trials; the inter-trial interval.
+
+Session time: ``onset`` and ``trial_end`` are seconds since the session started, not counting
+the time a session spent interrupted: a resumed session continues from the last stored
+``trial_end``. Each trial ends on a whole millisecond of session time, so a resumed session on
+a virtual clock reproduces an uninterrupted one bit for bit (every column of every row).
+
+Failures: Ctrl-C (or the keypad's quit key, or SIGTERM) is a safe pause: the display goes
+neutral, the session is marked ``interrupted`` and the run returns status ``interrupted``
+(exit 130). A :class:`~crs_study.errors.DeviceError` during a trial marks the session
+interrupted, records the fault in the sidecar, moves to neutral and is raised again as one
+line; the trial is rerun on resume and its row then says ``device_fault = 1``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crs_study import __version__, schema
+from crs_study.clock import RealClock, VirtualClock
+from crs_study.dataset import Dataset, SessionStore, sha256_bytes, utc_now
+from crs_study.errors import DeviceError, SessionError
+
+#: Session time spent before the first trial (and before a resumed one) with the display
+#: neutral, so every trial starts from a settled, flat display.
+SETTLE_S = 1.0
+FRAME_LOG_COLUMNS = ("kind", "frame", "due", "commanded_at", "wire_done_at", "bytes",
+                     "channels", "merged")
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """What ``crs-study run`` asks for."""
+
+    protocol: Path
+    participant: str
+    dataset: Path
+    device_url: str = "sim://"
+    session: int = 1
+    responder: str = "keypad"
+    clock: str = "auto"  # "real", "virtual" or "auto" (virtual for sim:// with a simulation)
+    counterbalance: int | None = None
+    consent_register: Path | None = None
+
+
+@dataclass(frozen=True)
+class SessionResult:
+    """How a run ended."""
+
+    status: str  # "complete", "interrupted" or "already-complete"
+    participant: str
+    session: int
+    trials_planned: int
+    trials_completed: int
+    trials_run: int  # trials played by this invocation
+    late_frames: int
+    session_seconds: float  # session time covered by this invocation
+    wall_seconds: float
+    tsv: Path
+    sidecar: Path
+    message: str = ""
+
+
+def plan_sha256(plan: Any) -> str:
+    """The plan's fingerprint: ``plan.sha256()``, else sha256 of canonical JSON of it."""
+    if callable(getattr(plan, "sha256", None)):
+        return plan.sha256()
+    trials = [asdict(t) if is_dataclass(t) else dict(t) for t in plan.trials]
+    text = json.dumps({"seed": int(plan.seed), "counterbalance": int(plan.counterbalance),
+                       "trials": trials}, sort_keys=True, default=str)
+    return sha256_bytes(text.encode("utf-8"))
+
+
+def ceil_ms(seconds: float) -> float:
+    """The next whole millisecond at or after ``seconds`` (exactly ``k / 1000``)."""
+    return math.ceil(round(seconds * 1000.0, 6)) / 1000.0
+
+
+class StimulusCache:
+    """Rendered frames per (digit, condition), computed once (a digit's stimulus never varies)."""
+
+    def __init__(self, protocol: Any, layout: Any) -> None:
+        self.protocol = protocol
+        self.layout = layout
+        self._renderers: dict[str, Any] = {}
+        self._stimuli: dict[int, Any] = {}
+        self._frames: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
+
+    def get(self, digit: int, condition: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(frame_times (n,), setpoints (n, n_actuators))``."""
+        key = (int(digit), condition)
+        if key not in self._frames:
+            from crs_study.render import Renderer
+            from crs_study.stimulus import make_stimulus, render_frames
+
+            if digit not in self._stimuli:
+                self._stimuli[digit] = make_stimulus(self.protocol, self.layout, digit)
+            if condition not in self._renderers:
+                self._renderers[condition] = Renderer(self.layout, condition)
+            stimulus = self._stimuli[digit]
+            frames = np.asarray(render_frames(stimulus, self._renderers[condition]), float)
+            times = np.asarray(stimulus.frame_times, dtype=float)
+            if frames.ndim != 2 or len(frames) != len(times) or len(times) == 0:
+                raise SessionError(f"stimulus of digit {digit} ({condition}): {len(times)} "
+                                   f"frame times but frames of shape {frames.shape}")
+            self._frames[key] = (times, frames)
+        return self._frames[key]
+
+
+_caches: dict[tuple[str, str], StimulusCache] = {}
+
+
+def stimulus_cache(protocol: Any, layout: Any) -> StimulusCache:
+    """One cache per protocol and device file per process (shared by dry-run participants)."""
+    key = (protocol.sha256, layout.source)
+    if key not in _caches:
+        _caches[key] = StimulusCache(protocol, layout)
+    return _caches[key]
+
+
+def _device_file_text(layout: Any, protocol: Any) -> str:
+    from crs_study.layout import device_file_path
+
+    for candidate in (getattr(protocol, "device_path", None), layout.source, protocol.device):
+        if candidate is None:
+            continue
+        path = device_file_path(candidate)
+        if path.exists():
+            return path.read_text(encoding="utf-8")
+    raise SessionError(f"cannot find the device file {protocol.device!r} to store with the "
+                       "session")
+
+
+def _choose_clock(spec: SessionSpec, responder: Any) -> str:
+    if spec.clock not in ("real", "virtual", "auto"):
+        raise SessionError(f"--clock must be real, virtual or auto, got {spec.clock!r}")
+    if spec.clock == "auto":
+        return "virtual" if spec.device_url.startswith("sim://") and responder.simulated \
+            else "real"
+    if spec.clock == "virtual" and responder.needs_real_clock:
+        raise SessionError(f"the {responder.name} responder needs --clock real (a person answers "
+                           "in real time)")
+    return spec.clock
+
+
+class _SigtermAsInterrupt:
+    """Within the block, SIGTERM raises KeyboardInterrupt (a safe pause); main thread only."""
+
+    def __enter__(self) -> None:
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            def handler(signum: int, frame: object) -> None:
+                raise KeyboardInterrupt
+            self._old = signal.signal(signal.SIGTERM, handler)
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
+
+
+class _IgnoreInterrupts:
+    """Defer Ctrl-C while the session is being put safely to rest (main thread only)."""
+
+    def __enter__(self) -> None:
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+
+@dataclass
+class _Session:
+    """Mutable state of one run."""
+
+    spec: SessionSpec
+    protocol: Any
+    layout: Any
+    plan: Any
+    store: SessionStore
+    metadata: dict[str, Any]
+    rows: list[dict[str, str]]
+    faults: set[int] = field(default_factory=set)
+    late_frames: int = 0
+
+
+def prepare(spec: SessionSpec) -> tuple[Any, Any, Any, Dataset]:
+    """Load the protocol, layout and plan for ``spec`` (nothing is written)."""
+    from crs_study.plan import make_plan
+    from crs_study.protocol import load_protocol
+
+    dataset = Dataset(spec.dataset)
+    dataset.session_paths(spec.participant, spec.session)  # checks label and session
+    protocol = load_protocol(spec.protocol)
+    layout = protocol.layout()
+    known = dataset.participants() if (spec.dataset / "participants.tsv").exists() else {}
+    if spec.participant in known:
+        counterbalance = known[spec.participant]
+        if spec.counterbalance is not None and spec.counterbalance != counterbalance:
+            raise SessionError(
+                f"participant {spec.participant!r} has counterbalance {counterbalance} in "
+                f"{spec.dataset / 'participants.tsv'}; --counterbalance {spec.counterbalance} "
+                "disagrees")
+    else:
+        counterbalance = len(known) if spec.counterbalance is None else spec.counterbalance
+    plan = make_plan(protocol, spec.participant, spec.session, counterbalance)
+    return protocol, layout, plan, dataset
+
+
+def check_resume(stored: dict, expected: dict, sidecar: Path) -> None:
+    """A stored session may only be resumed with the same plan: one line saying what differs."""
+    for key, label in (("ProtocolSha256", "protocol file"), ("Seed", "seed"),
+                       ("Counterbalance", "counterbalance"), ("PlanSha256", "trial plan"),
+                       ("DeviceFileSha256", "device file")):
+        if key in stored and stored[key] != expected[key]:
+            raise SessionError(
+                f"{sidecar}: cannot resume: the {label} differs ({key} stored "
+                f"{stored[key]!r}, now {expected[key]!r}); use the original files or start "
+                "another --session")
+
+
+def _check_rows(rows: list[dict[str, str]], plan: Any, tsv: Path) -> None:
+    if len(rows) > len(plan.trials):
+        raise SessionError(f"{tsv}: {len(rows)} rows but the plan has {len(plan.trials)} trials")
+    for k, row in enumerate(rows):
+        trial = plan.trials[k]
+        stored = (row["trial_index"], row["condition"], row["digit"])
+        wanted = (str(trial.index), trial.condition, str(trial.digit))
+        if stored != wanted:
+            raise SessionError(f"{tsv}: row {k + 1} holds (trial_index, condition, digit) = "
+                               f"{stored}, the plan says {wanted}; the file does not belong "
+                               "to this plan")
+
+
+def seed_check(spec: SessionSpec) -> dict[str, Any]:
+    """The seed and plan of ``spec``, checked against a stored session (nothing is written).
+
+    A stored session whose seed, protocol, counterbalance, plan or device file differ is a
+    :class:`SessionError` naming the difference.
+    """
+    protocol, layout, plan, dataset = prepare(spec)
+    paths = dataset.session_paths(spec.participant, spec.session)
+    device_text = _device_file_text(layout, protocol)
+    expected = {
+        "ProtocolSha256": protocol.sha256, "Seed": int(plan.seed),
+        "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
+        "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
+    }
+    stored = SessionStore(paths).read_sidecar()
+    if stored is not None:
+        check_resume(stored, expected, paths.sidecar)
+    return {
+        "participant": spec.participant, "session": spec.session,
+        "seed": expected["Seed"], "counterbalance": expected["Counterbalance"],
+        "trials": len(plan.trials), "plan_sha256": expected["PlanSha256"],
+        "protocol_sha256": expected["ProtocolSha256"],
+        "stored": "none" if stored is None else
+        f"{stored.get('Status')} ({stored.get('TrialsCompleted')}/"
+        f"{stored.get('TrialsPlanned')} trials), matches",
+    }
+
+
+def run_session(spec: SessionSpec, *, progress: Progress | None = None,
+                responder: Any = None, device_options: dict | None = None) -> SessionResult:
+    """Run (or resume) one session; see the module docstring."""
+    from crs_study.device.base import open_device
+    from crs_study.responders import make_responder
+
+    wall_start = time.perf_counter()
+    protocol, layout, plan, dataset = prepare(spec)
+    paths = dataset.session_paths(spec.participant, spec.session)
+    n_trials = len(plan.trials)
+    device_text = _device_file_text(layout, protocol)
+    expected = {
+        "ProtocolSha256": protocol.sha256, "Seed": int(plan.seed),
+        "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
+        "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
+    }
+    store = SessionStore(paths)
+    with store:
+        stored = store.read_sidecar()
+        rows = store.recover_rows()
+        if stored is not None:
+            check_resume(stored, expected, paths.sidecar)
+        _check_rows(rows, plan, paths.tsv)
+        if stored is not None and stored.get("Status") == "complete" and len(rows) == n_trials:
+            return SessionResult(
+                "already-complete", spec.participant, spec.session, n_trials, n_trials, 0, 0,
+                0.0, 0.0, paths.tsv, paths.sidecar,
+                f"session {spec.session} of participant {spec.participant} is complete "
+                f"({n_trials} trials) in {paths.tsv.parent}; nothing to do (a new session "
+                "needs --session N)")
+        if not spec.device_url.startswith("sim://"):
+            from crs_study.consent import require_consent
+
+            require_consent(spec.consent_register, spec.participant,
+                            protocol.consent_form_version)
+        if responder is None:
+            responder = make_responder(spec.responder, seed=int(plan.seed), layout=layout,
+                                       protocol=protocol)
+        clock_kind = _choose_clock(spec, responder)
+        dataset.register_participant(spec.participant, int(plan.counterbalance))
+        metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
+                             responder.name, n_trials)
+        faults = {int(f["trial"]) for f in metadata["Faults"]}
+        state = _Session(spec, protocol, layout, plan, store, metadata, rows, faults)
+        resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
+        if clock_kind == "virtual":
+            clock: Any = VirtualClock(start=resume_at - SETTLE_S)
+        else:
+            clock = RealClock()
+        cache = stimulus_cache(protocol, layout)
+        store.create()
+        _save(state, "running")
+        first = len(rows)
+        status = "interrupted"
+        origin = 0.0
+        try:
+            with _SigtermAsInterrupt(), responder, open_device(
+                    spec.device_url, layout, clock, **(device_options or {})) as device:
+                device.neutral()
+                if clock_kind == "virtual":
+                    clock.sleep_until(resume_at)
+                else:
+                    clock.sleep(SETTLE_S)
+                    origin = clock.now() - resume_at
+                for k in range(first, n_trials):
+                    if progress:
+                        progress(f"sub-{spec.participant} ses-{spec.session}: trial "
+                                 f"{k + 1}/{n_trials}")
+                    _run_trial(state, device, responder, clock, origin, cache, plan.trials[k])
+                status = "complete"
+        except KeyboardInterrupt:
+            status = "interrupted"
+        except DeviceError as error:
+            k = len(state.rows)
+            state.metadata["Faults"].append({"trial": k, "time": utc_now(), "message": str(error)})
+            with _IgnoreInterrupts():
+                _save(state, "interrupted")
+            raise DeviceError(f"device fault at trial {k + 1}/{n_trials}: {error}; the session "
+                              "is marked interrupted: run the same command to resume") from None
+        finally:
+            if status != "complete":
+                with _IgnoreInterrupts():
+                    _save(state, "interrupted")
+        if status == "complete":
+            _save(state, "complete")
+        done = len(state.rows)
+        return SessionResult(
+            status, spec.participant, spec.session, n_trials, done, done - first,
+            state.late_frames, (clock.now() - origin) - resume_at,
+            time.perf_counter() - wall_start, paths.tsv, paths.sidecar,
+            f"session {spec.session} of participant {spec.participant}: {done}/{n_trials} "
+            f"trials in {paths.tsv}")
+
+
+def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, expected: dict,
+              stored: dict | None, clock_kind: str, responder_name: str,
+              n_trials: int) -> dict[str, Any]:
+    previous = stored or {}
+    resumes = list(previous.get("Resumes", []))
+    if stored is not None:
+        resumes.append(utc_now())
+    return {
+        "TaskName": schema.TASK,
+        "TaskDescription": "Identify the digit drawn by a moving bump on the CRS display",
+        "Protocol": protocol.text,
+        "ProtocolSha256": protocol.sha256,
+        "ProtocolPath": str(protocol.path),
+        "StudyId": protocol.study_id,
+        "StudyVersion": protocol.version,
+        "DeviceFile": device_text,
+        "DeviceFileSha256": expected["DeviceFileSha256"],
+        "DeviceURL": spec.device_url,
+        "SoftwareVersion": __version__,
+        "Seed": int(plan.seed),
+        "Counterbalance": int(plan.counterbalance),
+        "PlanSha256": expected["PlanSha256"],
+        "Participant": spec.participant,
+        "Session": spec.session,
+        "ConsentFormVersion": protocol.consent_form_version,
+        "Responder": responder_name,
+        "Clock": clock_kind,
+        "FrameRateHz": float(protocol.frame_rate_hz),
+        "StartTime": previous.get("StartTime", utc_now()),
+        "EndTime": None,
+        "Status": "running",
+        "TrialsPlanned": n_trials,
+        "TrialsCompleted": 0,
+        "TrialsSha256": None,
+        "Resumes": resumes,
+        "Faults": list(previous.get("Faults", [])),
+    }
+
+
+def _save(state: _Session, status: str) -> None:
+    meta = state.metadata
+    meta["Status"] = status
+    meta["TrialsCompleted"] = len(state.rows)
+    meta["TrialsSha256"] = state.store.trials_sha256
+    meta["EndTime"] = utc_now() if status != "running" else None
+    state.store.write_sidecar(meta)
+
+
+def _digit_choices(protocol: Any) -> tuple[int, ...]:
+    digits = getattr(protocol, "digits", None)
+    return tuple(int(d) for d in digits) if digits is not None else tuple(range(10))
+
+
+def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin: float,
+               cache: StimulusCache, trial: Any) -> None:
+    from crs_study.responders.base import StimulusRecord
+
+    protocol = state.protocol
+    if trial.prompt_before or trial.break_before:
+        responder.prompt(trial.prompt_before or "Break: rest, then continue", clock)
+    frame_times, frames = cache.get(trial.digit, trial.condition)
+    period = 1.0 / float(protocol.frame_rate_hz)
+    n = len(frame_times)
+    displayed = np.empty_like(frames)
+    reports = []
+    late = 0
+    onset = clock.now()
+    responder.begin_trial(trial, onset, clock)
+    for i in range(n):
+        due = onset + frame_times[i]
+        clock.sleep_until(due)
+        now = clock.now()
+        if i:
+            displayed[i - 1] = device.displayed_setpoints(now)
+        if now - due > period:
+            late += 1
+        reports.append(device.send(frames[i]))
+    offset = onset + float(frame_times[-1]) + period  # end of the last frame's period
+    clock.sleep_until(offset)
+    displayed[n - 1] = device.displayed_setpoints(clock.now())
+    neutral_due = clock.now()
+    neutral = device.neutral()  # the display goes flat at the stimulus offset
+    record = StimulusRecord(state.layout, trial.condition, frame_times + period, displayed,
+                            _digit_choices(protocol), onset, offset)
+    response = responder.respond(trial, record, clock, protocol.time_limit_s)
+    duration = offset - onset
+    rt = float(response.response_time_s)
+    correct = None if response.digit is None else int(response.digit == trial.digit)
+    trial_end = ceil_ms(clock.now() - origin + float(protocol.inter_trial_interval_s))
+    latencies = [r.wire_done_at - (onset + frame_times[i]) for i, r in enumerate(reports)]
+    row = {
+        "trial_index": trial.index, "trial_type": trial.trial_type, "block": trial.block,
+        "condition": trial.condition, "repetition": trial.repetition, "digit": trial.digit,
+        "response": response.digit, "correct": correct, "response_time": rt,
+        "response_time_from_offset": rt - duration, "onset": onset - origin,
+        "stimulus_duration": duration, "timed_out": int(response.digit is None),
+        "device_fault": int(trial.index in state.faults), "frames": n, "late_frames": late,
+        "median_wire_latency": float(np.median(latencies)), "responder": responder.name,
+        "trial_end": trial_end,
+    }
+    log = [("stimulus", i, onset + frame_times[i] - origin, r.commanded_at - origin,
+            r.wire_done_at - origin, ",".join(map(str, r.bytes_sent)), r.channels_sent,
+            int(r.merged), *np.round(frames[i], 4).tolist()) for i, r in enumerate(reports)]
+    log.append(("neutral", n, neutral_due - origin, neutral.commanded_at - origin,
+                neutral.wire_done_at - origin, ",".join(map(str, neutral.bytes_sent)),
+                neutral.channels_sent, int(neutral.merged),
+                *state.layout.neutral_setpoints().tolist()))
+    columns = FRAME_LOG_COLUMNS + tuple(f"a{j:02d}" for j in range(frames.shape[1]))
+    state.store.write_frame_log(trial.index, columns, log)
+    state.store.append_row(row)
+    state.rows.append({k: str(v) for k, v in row.items()})
+    state.late_frames += late
+    _save(state, "running")
+    if trial.feedback:
+        responder.feedback(trial, response, bool(correct))
+    responder.end_trial()
+    clock.sleep_until(origin + trial_end)
+
+
+# --- dry-runs: many simulated participants ------------------------------------------------------
+
+def simulated_labels(n: int, prefix: str = "sim") -> list[str]:
+    """``sim01`` .. ``simNN`` (at least two digits, so labels sort in order)."""
+    if not isinstance(n, int) or n < 1:
+        raise SessionError(f"--participants must be a whole number >= 1, got {n!r}")
+    width = max(2, len(str(n)))
+    return [f"{prefix}{i:0{width}d}" for i in range(1, n + 1)]
+
+
+def _dry_run_one(spec: SessionSpec) -> SessionResult:
+    return run_session(spec)
+
+
+def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, jobs: int = 1,
+            responder: str = "observer", device_url: str = "sim://", prefix: str = "sim",
+            progress: Progress | None = None) -> list[SessionResult]:
+    """Session 1 of ``participants`` simulated participants on a virtual clock.
+
+    Participant i (from 0) gets counterbalance index i, so the protocol's block orders are
+    balanced across the N. With ``jobs > 1`` sessions run in that many worker processes (each
+    session is written by one process; the dataset lock serialises ``participants.tsv``).
+    Completed sessions already in the dataset are left as they are (a rerun resumes).
+    """
+    if not device_url.startswith("sim://"):
+        raise SessionError(f"a dry-run uses the simulated device (sim://...), got "
+                           f"{device_url!r}; use crs-study run for a real device")
+    if not isinstance(jobs, int) or jobs < 1:
+        raise SessionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
+    labels = simulated_labels(participants, prefix)
+    Dataset(dataset).ensure()
+    specs = [SessionSpec(Path(protocol), label, Path(dataset), device_url, 1, responder,
+                         "virtual", i) for i, label in enumerate(labels)]
+    results: list[SessionResult] = []
+
+    def note(result: SessionResult) -> None:
+        results.append(result)
+        if progress:
+            progress(f"dry-run: {len(results)}/{len(specs)} participants "
+                     f"(sub-{result.participant}: {result.status}, "
+                     f"{result.trials_completed} trials)")
+
+    if jobs == 1 or len(specs) == 1:
+        for spec in specs:
+            note(run_session(spec))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(jobs, len(specs)),
+                                 mp_context=context) as pool:
+            futures = [pool.submit(_dry_run_one, spec) for spec in specs]
+            try:
+                for future in as_completed(futures):
+                    note(future.result())
+            except BaseException:
+                for future in futures:
+                    future.cancel()
+                raise
+    order = {label: i for i, label in enumerate(labels)}
+    return sorted(results, key=lambda r: order[r.participant])

@@ -1,0 +1,65 @@
+"""Helpers shared by the runner's tests: a tiny protocol and a fake device (test-only)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from crs_study.device.base import Device, FrameReport, full_frame_wire_time_s
+from crs_study.errors import DeviceError
+from crs_study.paths import shipped_file
+
+
+def tiny_protocol(directory: Path, name: str = "tiny.toml", *, digits=(1, 4, 7),
+                  repetitions: int = 1, practice: int = 1, speed: float = 60.0,
+                  iti: float = 0.5, time_limit: float = 10.0, break_every: int = 0,
+                  study_id: str = "tiny") -> Path:
+    """The shipped pilot protocol made small: few digits, fast strokes, short holds."""
+    text = shipped_file("protocols/pilot.toml").read_text(encoding="utf-8")
+    changes = {
+        "id": f'"{study_id}"',
+        "digits": "[" + ", ".join(map(str, digits)) + "]",
+        "keys": "[" + ", ".join(f'"{d}"' for d in digits) + "]",
+        "repetitions": str(repetitions), "practice_trials": str(practice),
+        "stroke_speed_mm_s": str(speed), "inter_trial_interval_s": str(iti),
+        "start_hold_s": "0.1", "end_hold_s": "0.1", "stroke_pause_s": "0.2",
+        "time_limit_s": str(time_limit), "break_every": str(break_every),
+    }
+    for key, value in changes.items():
+        text, count = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value}", text)
+        assert count == 1, key
+    path = directory / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+class FakeDevice(Device):
+    """Shows what it was told at once; the wire takes one full frame; faults on request."""
+
+    def __init__(self, layout, clock=None, fail_at: int | None = None) -> None:
+        super().__init__(layout, clock)
+        self.sent: list[np.ndarray] = []
+        self.fail_at = fail_at
+        self.closed = False
+        self.current = layout.neutral_setpoints()
+
+    def open(self) -> None:
+        self.closed = False
+
+    def send(self, setpoints_mm, move_ms=None) -> FrameReport:
+        if self.fail_at is not None and len(self.sent) == self.fail_at:
+            raise DeviceError("fake port vanished")
+        now = self.clock.now()
+        self.sent.append(np.array(setpoints_mm))
+        self.current = np.array(setpoints_mm)
+        return FrameReport(now, now + full_frame_wire_time_s(self.layout), (64, 43), 37)
+
+    def close(self) -> None:
+        if not self.closed:
+            self.current = self.layout.neutral_setpoints()
+            self.closed = True
+
+    def displayed_setpoints(self, t=None) -> np.ndarray:
+        return self.current.copy()

@@ -1,0 +1,294 @@
+"""The session runner on a fake device: trial flow, durability, resume, faults, pauses."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+
+import numpy as np
+import pytest
+from _session_helpers import FakeDevice, tiny_protocol
+
+import crs_study.device.base as device_base
+from crs_study.dataset import read_frame_log
+from crs_study.errors import ConsentError, DeviceError, SessionError
+from crs_study.responders.base import Responder, Response
+from crs_study.responders.random import RandomResponder
+from crs_study.runner import (
+    SessionSpec,
+    ceil_ms,
+    dry_run,
+    run_session,
+    seed_check,
+    simulated_labels,
+)
+
+
+@pytest.fixture
+def devices(monkeypatch):
+    """Every device the runner opens is a FakeDevice; options set per test."""
+    made: list[FakeDevice] = []
+    options: dict = {}
+
+    def fake_open(url, layout, clock=None, **kw):
+        device = FakeDevice(layout, clock, **options)
+        made.append(device)
+        return device
+
+    monkeypatch.setattr(device_base, "open_device", fake_open)
+    made_options = options
+    return made, made_options
+
+
+def read_rows(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle, delimiter="\t"))
+
+
+class Recorder(RandomResponder):
+    """A random responder that remembers prompts and can pause at a chosen trial."""
+
+    def __init__(self, seed, pause_at=None):
+        super().__init__(seed)
+        self.prompts, self.records, self.pause_at = [], [], pause_at
+
+    def prompt(self, text, clock):
+        self.prompts.append(text)
+
+    def respond(self, trial, stimulus, clock, time_limit_s):
+        if trial.index == self.pause_at:
+            raise KeyboardInterrupt
+        self.records.append(stimulus)
+        return super().respond(trial, stimulus, clock, time_limit_s)
+
+
+def plan_seed_of(participant="p01", session=1):
+    from crs_study.plan import plan_seed
+
+    return plan_seed("tiny", "1.0.0", participant, session)
+
+
+def spec_for(tmp_path, protocol, name="ds", **kw):
+    base = dict(protocol=protocol, participant="p01", dataset=tmp_path / name,
+                device_url="sim://", responder="random", clock="virtual")
+    base.update(kw)
+    return SessionSpec(**base)
+
+
+def test_a_session_runs_and_is_stored(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    responder = Recorder(seed=5)
+    notes = []
+    result = run_session(spec_for(tmp_path, protocol), responder=responder,
+                         progress=notes.append)
+    assert result.status == "complete" and result.trials_completed == 8 == result.trials_run
+    rows = read_rows(result.tsv)
+    assert [int(r["trial_index"]) for r in rows] == list(range(8))
+    assert notes[-1].endswith("trial 8/8")
+    meta = json.loads(result.sidecar.read_text())
+    assert meta["Status"] == "complete" and meta["TrialsCompleted"] == 8
+    assert meta["TrialsSha256"] == hashlib.sha256(result.tsv.read_bytes()).hexdigest()
+    assert meta["Protocol"] == protocol.read_text()
+    assert meta["ProtocolSha256"] == hashlib.sha256(protocol.read_bytes()).hexdigest()
+    assert "[geometry]" in meta["DeviceFile"] and meta["ConsentFormVersion"] == "1.0"
+    assert len(responder.prompts) == 2  # one per condition block
+    device = devices[0][0]
+    for row, record in zip(rows, responder.records, strict=True):
+        n = int(row["frames"])
+        duration = float(row["stimulus_duration"])
+        assert math.isclose(duration, n / 15.0, abs_tol=1e-6)
+        assert record.setpoints.shape == (n, 37) and "true digit" not in repr(record)
+        assert math.isclose(float(row["response_time_from_offset"]),
+                            float(row["response_time"]) - duration, abs_tol=2e-6)
+        assert row["correct"] == str(int(row["response"] == row["digit"]))
+        assert float(row["trial_end"]) * 1000 == pytest.approx(
+            round(float(row["trial_end"]) * 1000), abs=1e-6)
+        log = read_frame_log(result.tsv.parents[3] / "sourcedata/sub-p01/ses-1"
+                             / f"sub-p01_ses-1_task-digitid_trial-{int(row['trial_index']):04d}"
+                               "_frames.tsv.gz")
+        assert [r["kind"] for r in log] == ["stimulus"] * n + ["neutral"]
+        due = np.array([float(r["due"]) for r in log[:n]])
+        assert np.allclose(np.diff(due), 1 / 15, atol=2e-6)  # the steady frame rate
+    onsets = [float(r["onset"]) for r in rows]
+    ends = [float(r["trial_end"]) for r in rows]
+    assert all(e <= o for e, o in zip(ends[:-1], onsets[1:], strict=True))  # one after another
+    assert device.closed and np.all(device.current == 0)  # left neutral
+
+
+def test_a_complete_session_is_never_rewritten(tmp_path, devices):
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path))
+    first = run_session(spec)
+    before = {p: p.read_bytes() for p in spec.dataset.rglob("*") if p.is_file()}
+    again = run_session(spec)
+    assert again.status == "already-complete" and "--session N" in again.message
+    after = {p: p.read_bytes() for p in spec.dataset.rglob("*") if p.is_file()}
+    assert after == before
+    second = run_session(spec_for(tmp_path, spec.protocol, session=2))
+    assert second.status == "complete" and second.tsv != first.tsv
+
+
+def test_pause_then_resume_equals_uninterrupted(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    whole = run_session(spec_for(tmp_path, protocol, "whole"))
+    spec = spec_for(tmp_path, protocol, "parts")
+    paused = run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=3))
+    assert paused.status == "interrupted" and paused.trials_completed == 3
+    assert json.loads(paused.sidecar.read_text())["Status"] == "interrupted"
+    assert np.all(devices[0][-1].current == 0)  # the display was put to rest
+    resumed = run_session(spec)
+    assert resumed.status == "complete" and resumed.trials_run == 5
+    assert resumed.tsv.read_bytes() == whole.tsv.read_bytes()
+    meta = json.loads(resumed.sidecar.read_text())
+    assert len(meta["Resumes"]) == 1 and meta["Status"] == "complete"
+
+
+def test_device_fault_interrupts_and_resumes(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    spec = spec_for(tmp_path, protocol)
+    devices[1]["fail_at"] = 40  # during trial 2 or 3
+    with pytest.raises(DeviceError, match=r"^device fault at trial \d/8: fake port vanished; "):
+        run_session(spec)
+    meta = json.loads(spec.dataset.joinpath(
+        "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json").read_text())
+    assert meta["Status"] == "interrupted" and meta["Faults"][0]["message"] == \
+        "fake port vanished"
+    faulted = meta["Faults"][0]["trial"]
+    assert meta["TrialsCompleted"] == faulted
+    devices[1]["fail_at"] = None
+    result = run_session(spec)
+    rows = read_rows(result.tsv)
+    assert len(rows) == 8
+    assert [r["device_fault"] for r in rows] == ["1" if i == faulted else "0" for i in range(8)]
+
+
+def test_resume_refuses_a_changed_protocol(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    spec = spec_for(tmp_path, protocol)
+    run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=2))
+    protocol.write_text(protocol.read_text().replace("inter_trial_interval_s = 0.5",
+                                                     "inter_trial_interval_s = 0.6"))
+    with pytest.raises(SessionError, match="cannot resume: the protocol file differs"):
+        run_session(spec)
+    with pytest.raises(SessionError, match="protocol file differs"):
+        seed_check(spec)
+
+
+def test_resume_cuts_a_torn_row(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    whole = run_session(spec_for(tmp_path, protocol, "whole"))
+    spec = spec_for(tmp_path, protocol, "parts")
+    paused = run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=4))
+    with open(paused.tsv, "ab") as handle:
+        handle.write(b"4\ttest\t1\tcrs\t0\t7\t3")  # killed in the middle of a write
+    run_session(spec)
+    assert paused.tsv.read_bytes() == whole.tsv.read_bytes()
+    torn = list((spec.dataset / "sourcedata/sub-p01/ses-1").glob("*torn*.bin"))
+    assert [t.read_bytes() for t in torn] == [b"4\ttest\t1\tcrs\t0\t7\t3"]
+
+
+def test_timeouts_and_answers_during_the_stimulus(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path, time_limit=2.0)
+    script = tmp_path / "answers.txt"
+    script.write_text("digit\trt\nn/a\n4\t-0.2\n7\t5.0\n" + "1\n" * 5)
+    result = run_session(spec_for(tmp_path, protocol, responder=f"scripted:{script}"))
+    rows = read_rows(result.tsv)
+    assert rows[0]["response"] == "n/a" and rows[0]["timed_out"] == "1"
+    assert rows[0]["correct"] == "n/a"
+    assert float(rows[0]["response_time_from_offset"]) == pytest.approx(2.0)
+    assert float(rows[1]["response_time_from_offset"]) == pytest.approx(-0.2)
+    assert rows[2]["timed_out"] == "1"  # 5 s after offset is beyond the 2 s limit
+    assert rows[3]["response"] == "1" and rows[3]["responder"] == "scripted"
+
+
+def test_late_frames_are_counted(tmp_path, devices, monkeypatch):
+    def slow_send(self, setpoints_mm, move_ms=None):
+        report = original(self, setpoints_mm)
+        if len(self.sent) % 5 == 0:
+            self.clock.advance(0.2)  # a hiccup of three frame periods
+        return report
+
+    original = FakeDevice.send
+    monkeypatch.setattr(FakeDevice, "send", slow_send)
+    result = run_session(spec_for(tmp_path, tiny_protocol(tmp_path)))
+    rows = read_rows(result.tsv)
+    assert sum(int(r["late_frames"]) for r in rows) == result.late_frames > 0
+
+
+def test_keypad_needs_the_real_clock(tmp_path, devices):
+    with pytest.raises(SessionError, match="keypad responder needs --clock real"):
+        run_session(spec_for(tmp_path, tiny_protocol(tmp_path), responder="keypad"))
+
+
+def test_real_devices_need_consent(tmp_path, devices):
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path), device_url="serial:///dev/null",
+                    consent_register=tmp_path / "register")
+    with pytest.raises(ConsentError, match="no consent record for participant 'p01'"):
+        run_session(spec)
+    assert not (spec.dataset / "sub-p01/ses-1/beh").exists()
+
+
+def test_counterbalance_follows_arrival(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    first = run_session(spec_for(tmp_path, protocol, participant="a1"))
+    second = run_session(spec_for(tmp_path, protocol, participant="b2"))
+    order = [read_rows(r.tsv)[0]["condition"] for r in (first, second)]
+    assert order == ["pixel-only", "crs"]  # "alternate": arrival 0 then 1
+    report = seed_check(spec_for(tmp_path, protocol, participant="b2"))
+    assert report["counterbalance"] == 1 and report["stored"].startswith("complete")
+
+
+def test_random_responder_is_resume_safe():
+    class Trial:
+        index = 3
+
+    class Stim:
+        digit_choices = (1, 4, 7)
+        duration_s, onset_time = 1.0, 0.0
+
+    from crs_study.clock import VirtualClock
+
+    answers = [RandomResponder(9).respond(Trial, Stim, VirtualClock(), None) for _ in range(2)]
+    assert answers[0] == answers[1]
+
+
+def test_ceil_ms_is_exact():
+    assert ceil_ms(1.2341) == 1.235 and ceil_ms(2.0) == 2.0 and ceil_ms(0.0004) == 0.001
+
+
+def test_simulated_labels():
+    assert simulated_labels(3) == ["sim01", "sim02", "sim03"]
+    assert simulated_labels(100)[0] == "sim001"
+    with pytest.raises(SessionError, match="--participants must be"):
+        simulated_labels(0)
+
+
+def test_dry_run_counterbalances(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    notes = []
+    results = dry_run(protocol, 3, tmp_path / "ds", responder="random", progress=notes.append)
+    assert [r.participant for r in results] == ["sim01", "sim02", "sim03"]
+    assert notes[-1].startswith("dry-run: 3/3 participants")
+    lines = (tmp_path / "ds/participants.tsv").read_text().splitlines()
+    assert lines[1:] == ["sub-sim01\t0", "sub-sim02\t1", "sub-sim03\t2"]
+    with pytest.raises(SessionError, match="uses the simulated device"):
+        dry_run(protocol, 1, tmp_path / "x", device_url="serial:///dev/ttyUSB0")
+
+
+class _Fixed(Responder):
+    name = "fixed"
+
+    def respond(self, trial, stimulus, clock, time_limit_s):
+        return Response(stimulus.digit_choices[0], stimulus.duration_s + 0.1)
+
+
+def test_feedback_only_on_practice(tmp_path, devices):
+    calls = []
+
+    class Feedback(_Fixed):
+        def feedback(self, trial, response, correct):
+            calls.append((trial.trial_type, correct))
+
+    run_session(spec_for(tmp_path, tiny_protocol(tmp_path)), responder=Feedback())
+    assert [c[0] for c in calls] == ["practice", "practice"]
