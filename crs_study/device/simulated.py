@@ -1,0 +1,500 @@
+"""SimulatedDevice: the serial device's bytes, decoded by virtual LSC-24 boards, on any clock.
+
+The device turns setpoints into LSC frames exactly as :class:`SerialDevice` does (calibration,
+changed-only channels, the same codec), "puts them on a wire" that takes ``10 / baud`` seconds
+a byte, and hands each frame's bytes to a :class:`~.virtual_controller.VirtualController`
+(one per controller in the device file) at the time its last byte arrives. The boards decode
+the bytes and move model servos; :meth:`SimulatedDevice.displayed_setpoints` reads the servo
+positions back through the inverse calibration, which is what the participant's skin meets.
+
+No threads, no sleeping: the wire and the servos are computed, so the device runs on a
+:class:`~crs_study.clock.VirtualClock` as fast as the computer allows, and on a
+:class:`~crs_study.clock.RealClock` in step with wall time.
+
+The wire (per controller port)
+    A frame of ``b`` bytes occupies the wire for ``b * 10 / baud`` s from when the wire is
+    free. A frame sent while the wire is busy is *merged*, never queued: it replaces whatever
+    frame was waiting, and when the wire frees the waiting setpoints go out as one frame of
+    the channels that differ from what was last sent. Latency therefore never exceeds two
+    frame times. ``FrameReport.wire_done_at`` of a merged frame is the predicted end of the
+    waiting frame.
+
+URL syntax (options may also be given as keyword arguments; keywords win)::
+
+    sim://[?key=value[&key=value...]]
+
+    baud=9600            bits per second on every port (10 bits a byte, 8N1)
+    move_ms=0            SERVO_MOVE time when send() is given none (0: as fast as servos go)
+    refresh_s=1.0        send every channel at least this often (0: never force a refresh)
+    battery_mv=7400      what each board reports while healthy
+    seed=0               seed of the garbage generator
+    garbage_rate=0.01    probability, per byte sent, that one random byte is inserted before it
+    disconnect_at=3.5    every port vanishes 3.5 s after open(); ``B@3.5``: only port B
+    stall=A:3@2.0        channel A:3 stalls 2.0 s after open(); several: ``A:3@2,B:1@4``
+    brownout_at=5.0      the servo supply browns out 5.0 s after open(); ``A@5``: board A only
+
+Times are seconds after :meth:`SimulatedDevice.open`. A malformed or unknown option is a
+one-line :class:`~crs_study.errors.DeviceError`.
+
+Faults, as the caller sees them
+    * disconnect: :meth:`send` at or after the time raises ``DeviceError("... port vanished
+      ...")`` at once (bytes of a frame still on the wire at that moment are cut off and the
+      board counts the stub as a bad frame); :meth:`close` still attempts the neutral pose,
+      swallows the failure and releases everything.
+    * garbage: the boards' decoders resynchronise; bad frames are counted per board
+      (:attr:`VirtualController.bad_frames`). No checksum protects an LSC frame, so garbage
+      inside a frame can move a servo wrongly until the next frame for it (as on hardware).
+    * stall: the servo stays where it was; :meth:`displayed_setpoints` shows it there. Nothing
+      is raised (a PWM servo gives no feedback).
+    * brown-out: servos go limp and sink to base, the board ignores moves and reports
+      :data:`~.virtual_controller.BROWNOUT_BATTERY_MV`; the next :meth:`send` raises
+      ``DeviceError("... brown-out ...")`` (the decision: a fault is an exception, like a
+      vanished port, so the runner's one ``except DeviceError`` records ``device_fault``).
+      Every fault met is also appended to :attr:`SimulatedDevice.faults`.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from dataclasses import dataclass, fields, replace
+from urllib.parse import parse_qsl, urlsplit
+
+import numpy as np
+
+from crs_study.clock import Clock
+from crs_study.device.base import BAUD_RATE, BITS_PER_BYTE, Device, FrameReport
+from crs_study.device.calibration import PulseMap
+from crs_study.device.codec import FrameDecoder, get_battery_voltage, servo_move
+from crs_study.device.virtual_controller import (
+    NORMAL_BATTERY_MV,
+    ServoSpec,
+    VirtualController,
+    speed_us_per_s,
+)
+from crs_study.errors import DeviceError
+from crs_study.layout import Layout
+
+#: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell).
+LOW_BATTERY_MV = 6000
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Options of a ``sim://`` URL (module docstring)."""
+
+    baud: int = BAUD_RATE
+    move_ms: int = 0
+    refresh_s: float = 1.0
+    battery_mv: int = NORMAL_BATTERY_MV
+    seed: int = 0
+    garbage_rate: float = 0.0
+    disconnect_at: tuple[tuple[str | None, float], ...] = ()  # (controller or None = all, s)
+    stall: tuple[tuple[str, int, float], ...] = ()  # (controller, channel, s)
+    brownout_at: tuple[tuple[str | None, float], ...] = ()
+
+    @classmethod
+    def parse(cls, url: str, layout: Layout, **overrides: object) -> SimOptions:
+        """Options from ``url`` and keyword ``overrides``; one-line DeviceError when malformed."""
+        parts = urlsplit(url)
+        if parts.scheme != "sim" or parts.netloc or parts.path not in ("", "/"):
+            raise DeviceError(f"simulated device URL {url!r}: expected sim://[?key=value&...]")
+        pairs: list[tuple[str, object]] = parse_qsl(parts.query, keep_blank_values=True,
+                                                   strict_parsing=False)
+        pairs += list(overrides.items())
+        valid = [f.name for f in fields(cls)]
+        values: dict[str, object] = {}
+        for key, raw in pairs:
+            if key not in valid:
+                raise DeviceError(
+                    f"{url!r}: unknown option {key!r}; valid: {', '.join(valid)}"
+                )
+            parsed = _PARSERS[key](url, key, raw, layout)
+            if key in ("stall", "disconnect_at", "brownout_at"):
+                # repeated keys add up (``stall=A:1@1&stall=A:2@2``)
+                parsed = values.get(key, ()) + parsed  # type: ignore[operator]
+            values[key] = parsed
+        return replace(cls(), **values)
+
+
+def _number(url: str, key: str, raw: object, kind: type, low: float, high: float
+            ) -> float | int:
+    what = "a whole number" if kind is int else "a number"
+    try:
+        if isinstance(raw, bool):
+            raise TypeError
+        if kind is int:
+            value: float | int = int(raw, 10) if isinstance(raw, str) else operator.index(raw)
+        else:
+            value = float(raw)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        value = math.nan
+    if not low <= value <= high:
+        raise DeviceError(f"{url!r}: option {key}: expected {what} in [{low}, {high}], "
+                          f"got {raw!r}")
+    return value
+
+
+def _controller_names(layout: Layout) -> list[str]:
+    return [c.name for c in layout.controllers]
+
+
+def _timed(url: str, key: str, raw: object, layout: Layout) -> tuple[tuple[str | None, float], ...]:
+    """``T`` (every controller) or ``NAME@T``, comma separated."""
+    out: list[tuple[str | None, float]] = []
+    for item in str(raw).split(","):
+        name, at, when = item.strip().rpartition("@")
+        controller = name if at else None
+        if controller is not None and controller not in _controller_names(layout):
+            raise DeviceError(
+                f"{url!r}: option {key}: unknown controller {controller!r} in {item!r} "
+                f"(controllers: {', '.join(_controller_names(layout))})"
+            )
+        out.append((controller, float(_number(url, key, when, float, 0.0, 1e9))))
+    return tuple(out)
+
+
+def _stalls(url: str, key: str, raw: object, layout: Layout) -> tuple[tuple[str, int, float], ...]:
+    """``CONTROLLER:CHANNEL@T``, comma separated; the channel must drive an actuator."""
+    known = {(a.controller, a.channel) for a in layout.actuators}
+    out = []
+    for item in str(raw).split(","):
+        ref, at, when = item.strip().partition("@")
+        name, colon, channel = ref.partition(":")
+        if not (at and colon and channel.isdigit()):
+            raise DeviceError(f"{url!r}: option stall: expected CONTROLLER:CHANNEL@SECONDS like "
+                              f"'A:3@2.0', got {item!r}")
+        if (name, int(channel)) not in known:
+            raise DeviceError(f"{url!r}: option stall: {ref!r} drives no actuator of "
+                              f"{layout.name}")
+        out.append((name, int(channel), float(_number(url, key, when, float, 0.0, 1e9))))
+    return tuple(out)
+
+
+_PARSERS = {
+    "baud": lambda u, k, r, lay: _number(u, k, r, int, 300, 10_000_000),
+    "move_ms": lambda u, k, r, lay: _number(u, k, r, int, 0, 30000),
+    "refresh_s": lambda u, k, r, lay: _number(u, k, r, float, 0.0, 3600.0),
+    "battery_mv": lambda u, k, r, lay: _number(u, k, r, int, 0, 0xFFFF),
+    "seed": lambda u, k, r, lay: _number(u, k, r, int, 0, 2**63 - 1),
+    "garbage_rate": lambda u, k, r, lay: _number(u, k, r, float, 0.0, 1.0),
+    "disconnect_at": _timed,
+    "stall": _stalls,
+    "brownout_at": _timed,
+}
+
+
+class _FrameBuilder:
+    """Setpoints (mm) to per-controller SERVO_MOVE bytes: calibration, limits, changed-only.
+
+    Calibration and limits are the serial device's :class:`~.calibration.PulseMap`; the
+    frames are the codec's. Stands in for a shared frame builder.
+    """
+
+    def __init__(self, layout: Layout) -> None:
+        self.layout = layout
+        self.pulse_map = PulseMap.from_layout(layout)
+        pm = self.pulse_map
+        self.zero = np.asarray(pm.zero_us)
+        self.scale = (pm.full_us - pm.zero_us) / pm.travel_mm  # us per mm
+        # per controller: actuator indices and their channel ids (the LSC servo ids)
+        self.members = [np.flatnonzero(pm.controller_index == c.index)
+                        for c in layout.controllers]
+        self.ids = [pm.servo_id[m].tolist() for m in self.members]
+
+    def pulses(self, setpoints_mm: np.ndarray) -> np.ndarray:
+        """Whole-us pulse widths per actuator; DeviceError for a value outside its range."""
+        return self.pulse_map.to_pulses(setpoints_mm)
+
+    def frame(self, controller: int, pulses: np.ndarray, last: np.ndarray | None,
+              move_ms: int) -> tuple[bytes, int]:
+        """SERVO_MOVE bytes for the channels of ``controller`` that differ from ``last``."""
+        mine = pulses[self.members[controller]]
+        changed = np.arange(len(mine)) if last is None else np.flatnonzero(mine != last)
+        if not len(changed):
+            return b"", 0
+        ids = self.ids[controller]
+        values = mine.tolist()
+        return servo_move([(ids[k], values[k]) for k in changed.tolist()], move_ms), len(changed)
+
+    def changed_count(self, controller: int, pulses: np.ndarray, last: np.ndarray | None) -> int:
+        if last is None:
+            return len(self.members[controller])
+        return int(np.count_nonzero(pulses[self.members[controller]] != last))
+
+
+class _Wire:
+    """One port: what is on the wire, what waits for it, and the board at the far end."""
+
+    def __init__(self, board: VirtualController, byte_s: float) -> None:
+        self.board = board
+        self.byte_s = byte_s
+        self.free_at = -math.inf  # when the last byte of the frame on the wire has left
+        self.start_at = -math.inf  # when that frame's first byte went out
+        self.flying: bytes = b""  # the frame on the wire, not yet delivered
+        self.last_sent: np.ndarray | None = None  # pulses last put on the wire (this board)
+        self.last_full_at = -math.inf  # when every channel was last sent
+        self.waiting: np.ndarray | None = None  # merged pulses waiting for the wire (all)
+        self.waiting_move_ms = 0
+        self.vanish_at = math.inf
+        self.cut = False  # the port vanished
+
+
+class SimulatedDevice(Device):
+    """A CRS display on virtual LSC-24 boards (module docstring). Build with :meth:`from_url`."""
+
+    def __init__(self, layout: Layout, clock: Clock | None = None,
+                 options: SimOptions | None = None, record: bool = False) -> None:
+        super().__init__(layout, clock)
+        self.options = options or SimOptions()
+        self.url = "sim://"
+        self.record = record
+        self.builder = _FrameBuilder(layout)
+        self.byte_s = BITS_PER_BYTE / self.options.baud
+        self.boards: list[VirtualController] = []
+        self._wires: list[_Wire] = []
+        self.faults: list[str] = []
+        self.opened_at: float | None = None
+        self.closed = False
+        self.neutral_attempted = False
+        self._rng = np.random.default_rng(self.options.seed)
+        names = _controller_names(layout)
+        offsets = np.cumsum([0] + [c.channels for c in layout.controllers])
+        # actuator -> position in the boards' concatenated channel arrays
+        self._flat = np.array(
+            [offsets[names.index(a.controller)] + a.channel
+             - layout.controllers[names.index(a.controller)].channel_base
+             for a in layout.actuators], dtype=np.intp)
+        self._fault_at = math.inf  # earliest scheduled disconnect or brown-out
+
+    @classmethod
+    def from_url(cls, url: str, layout: Layout, clock: Clock | None = None,
+                 **options: object) -> SimulatedDevice:
+        record = bool(options.pop("record", False))
+        device = cls(layout, clock, SimOptions.parse(url, layout, **options), record=record)
+        device.url = url
+        return device
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def open(self) -> None:
+        if self.opened_at is not None:
+            return
+        t0 = self.clock.now()
+        self.opened_at = t0
+        opts = self.options
+        self.boards, self._wires = [], []
+        for c in self.layout.controllers:
+            specs = [ServoSpec() for _ in range(c.channels)]
+            for a in self.layout.actuators:
+                if a.controller == c.name:
+                    cal = a.calibration
+                    specs[a.channel - c.channel_base] = ServoSpec(
+                        rest_us=cal.zero_us,
+                        max_speed_us_s=speed_us_per_s(cal.zero_us, cal.full_us, cal.travel_mm,
+                                                      self.layout.servo_speed_s_per_mm),
+                    )
+            board = VirtualController(c.name, c.channels, c.channel_base, specs,
+                                      opts.battery_mv, t0, record=self.record)
+            self.boards.append(board)
+            self._wires.append(_Wire(board, self.byte_s))
+        names = _controller_names(self.layout)
+        for name, at in opts.disconnect_at:
+            for i, wire in enumerate(self._wires):
+                if name in (None, names[i]):
+                    wire.vanish_at = min(wire.vanish_at, t0 + at)
+        for name, channel, at in opts.stall:
+            self.boards[names.index(name)].stall(channel, t0 + at)
+        for name, at in opts.brownout_at:
+            for i, board in enumerate(self.boards):
+                if name in (None, names[i]):
+                    board.brownout(t0 + at)
+        times = [w.vanish_at for w in self._wires] + [t0 + at for _, at in opts.brownout_at]
+        self._fault_at = min(times, default=math.inf)
+        self._check_batteries(t0)
+
+    def _check_batteries(self, t: float) -> None:
+        """Ask every board for its battery voltage, as the serial device does on open."""
+        query = get_battery_voltage()
+        replied_at = t
+        for wire in self._wires:
+            wire.free_at = t + len(query) * self.byte_s
+            reply = wire.board.receive(query, wire.free_at)
+            replied_at = max(replied_at, wire.free_at + len(reply) * self.byte_s)
+            frames = FrameDecoder("board").feed(reply)
+            mv = frames[0].message.millivolts if frames else None
+            if mv is None or mv < LOW_BATTERY_MV:
+                raise DeviceError(f"{self.url}: controller {wire.board.name}: battery reads "
+                                  f"{mv!r} mV, below {LOW_BATTERY_MV} mV; charge or check it")
+        # the ports are written concurrently; open() returns once the last reply is in
+        self.clock.sleep_until(replied_at)
+
+    def close(self) -> None:
+        if self.closed or self.opened_at is None:
+            self.closed = True
+            return
+        try:
+            self.neutral_attempted = True
+            self._send(self.layout.neutral_setpoints(), None, check_faults=False)
+        except DeviceError as exc:
+            self.faults.append(f"close: neutral pose not reached: {exc}")
+        finally:
+            # like a flushed port: whatever is on or waiting for the wire still goes out
+            self._advance(max(w.free_at for w in self._wires) + self._frame_s_bound())
+            for wire in self._wires:
+                if wire.cut:
+                    wire.board.end_of_stream()
+            self.closed = True
+
+    def _frame_s_bound(self) -> float:
+        return max(len(m) * 3 + 7 for m in self.builder.members) * self.byte_s
+
+
+
+    # -- sending ------------------------------------------------------------------------------
+
+    def send(self, setpoints_mm: np.ndarray, move_ms: int | None = None) -> FrameReport:
+        return self._send(setpoints_mm, move_ms, check_faults=True)
+
+    def _send(self, setpoints_mm: np.ndarray, move_ms: int | None, check_faults: bool
+              ) -> FrameReport:
+        if self.opened_at is None or self.closed:
+            state = "closed" if self.closed else "not open"
+            raise DeviceError(f"{self.url}: cannot send: the device is {state}")
+        t = self.clock.now()
+        if t >= self._fault_at:
+            self._advance(t)
+            self._raise_faults(t, check_faults)
+        else:
+            self._advance(t)
+        pulses = self.builder.pulses(setpoints_mm)
+        if move_ms is None:
+            move_ms = self.options.move_ms
+        elif isinstance(move_ms, bool) or not isinstance(move_ms, int | np.integer) \
+                or not 0 <= move_ms <= 30000:
+            raise DeviceError(f"{self.url}: move_ms: expected a whole number 0..30000, "
+                              f"got {move_ms!r}")
+        done_at = t
+        bytes_sent = []
+        channels = 0
+        merged = False
+        for k, wire in enumerate(self._wires):
+            if wire.free_at > t:  # busy: replace whatever waits, never queue
+                merged = True
+                wire.waiting, wire.waiting_move_ms = pulses, move_ms
+                last = None if wire.free_at - wire.last_full_at >= self._refresh_s() \
+                    else wire.last_sent
+                n = self.builder.changed_count(k, pulses, last)
+                size = 3 * n + 7 if n else 0
+                done = wire.free_at + size * self.byte_s
+            else:
+                size, n = self._start(k, wire, pulses, move_ms, t)
+                done = wire.free_at if size else t
+            bytes_sent.append(size)
+            channels += n
+            done_at = max(done_at, done)
+        return FrameReport(t, done_at, tuple(bytes_sent), channels, merged)
+
+    def _refresh_s(self) -> float:
+        return self.options.refresh_s if self.options.refresh_s > 0 else math.inf
+
+    def _start(self, k: int, wire: _Wire, pulses: np.ndarray, move_ms: int, t: float
+               ) -> tuple[int, int]:
+        """Put the frame for ``pulses`` on free wire ``k`` at ``t``; (bytes, channels)."""
+        full = t - wire.last_full_at >= self._refresh_s()
+        data, n = self.builder.frame(k, pulses, None if full else wire.last_sent, move_ms)
+        if full:
+            wire.last_full_at = t
+        if data:
+            wire.flying = data
+            wire.start_at = t
+            wire.free_at = t + len(data) * self.byte_s
+            wire.last_sent = pulses[self.builder.members[k]]
+        return len(data), n
+
+    def _advance(self, t: float) -> None:
+        """Deliver every frame whose last byte has arrived by ``t``; start waiting frames."""
+        for k, wire in enumerate(self._wires):
+            horizon = min(t, wire.vanish_at)
+            while wire.free_at <= horizon and (wire.flying or wire.waiting is not None):
+                if wire.flying:
+                    self._deliver(wire, wire.flying, wire.free_at)
+                    wire.flying = b""
+                if wire.waiting is not None:
+                    pulses, wire.waiting = wire.waiting, None
+                    self._start(k, wire, pulses, wire.waiting_move_ms, wire.free_at)
+            if t >= wire.vanish_at and not wire.cut:
+                wire.cut = True
+                wire.waiting = None
+                if wire.flying and wire.free_at > wire.vanish_at:
+                    arrived = int((wire.vanish_at - wire.start_at) / self.byte_s)
+                    if arrived > 0:
+                        self._deliver(wire, wire.flying[:arrived],
+                                      wire.start_at + arrived * self.byte_s)
+                wire.flying = b""
+                wire.free_at = wire.vanish_at
+
+    def _deliver(self, wire: _Wire, data: bytes, t: float) -> None:
+        rate = self.options.garbage_rate
+        if rate > 0.0:
+            data = self._garble(data, rate)
+        wire.board.receive(data, t)
+
+    def _garble(self, data: bytes, rate: float) -> bytes:
+        """Insert one random byte before each byte of ``data`` with probability ``rate``."""
+        count = int(self._rng.binomial(len(data), rate))
+        if not count:
+            return data
+        where = np.sort(self._rng.integers(0, len(data) + 1, count))
+        noise = self._rng.integers(0, 256, count).tolist()
+        out = bytearray()
+        previous = 0
+        for position, value in zip(where.tolist(), noise, strict=True):
+            out += data[previous:position]
+            out.append(value)
+            previous = position
+        out += data[previous:]
+        return bytes(out)
+
+    def _raise_faults(self, t: float, brownout_too: bool) -> None:
+        for wire in self._wires:
+            if wire.cut:
+                self._fault(f"{self.url}: controller {wire.board.name}: port vanished at "
+                            f"{wire.vanish_at - self.opened_at:.3f} s after open")
+        if brownout_too:
+            for board in self.boards:
+                board.battery_mv(t)  # fires the board's events up to t
+                if board.browned_out_at is not None:
+                    self._fault(
+                        f"{self.url}: controller {board.name}: brown-out at "
+                        f"{board.browned_out_at - self.opened_at:.3f} s after open: battery "
+                        f"reads {board.battery_mv()} mV, servos limp"
+                    )
+
+    def _fault(self, message: str) -> None:
+        if message not in self.faults:
+            self.faults.append(message)
+        raise DeviceError(message)
+
+    # -- what the skin meets ------------------------------------------------------------------
+
+    def displayed_setpoints(self, t: float | None = None) -> np.ndarray:
+        """Modelled actuator positions at ``t`` (default now), mm in actuator order.
+
+        Servo pulse widths from the boards, through the inverse calibration. ``t`` should not
+        precede a frame already delivered (the model keeps only each servo's current move).
+        """
+        if t is None:
+            t = self.clock.now()
+        if self.boards:
+            self._advance(t)
+            us = np.concatenate([b.positions_us(t) for b in self.boards])[self._flat]
+        else:
+            us = self.builder.zero
+        return (us - self.builder.zero) / self.builder.scale
+
+    def battery_mv(self) -> list[float | None]:
+        if not self.boards:
+            return [None] * len(self.layout.controllers)
+        t = self.clock.now()
+        return [float(b.battery_mv(t)) for b in self.boards]
