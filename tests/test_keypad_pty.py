@@ -1,0 +1,149 @@
+"""The keypad responder in a real terminal: a pseudo-terminal pair, keys written to the master.
+
+Response times are checked against time.monotonic (CLOCK_MONOTONIC, one clock for every
+process on Linux): the key's time stamp is never before the moment the key was written and at
+most a few milliseconds after it (the reader thread wakes on select()).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+import termios
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from crs_study.clock import RealClock
+from crs_study.responders.base import StimulusRecord
+from crs_study.responders.keypad import KeypadResponder, PauseRequested
+
+#: Allowed delay between writing a key and its time stamp (s). Typically well under 1 ms;
+#: the margin absorbs scheduling on a loaded two-core CI machine.
+STAMP_SLACK_S = 0.005
+
+
+class Trial:
+    index, digit = 0, 7
+
+
+@pytest.fixture
+def terminal():
+    master, slave = os.openpty()
+    yield master, slave
+    os.close(master)
+    os.close(slave)
+
+
+def stimulus(onset, duration):
+    return StimulusRecord(None, "crs", np.zeros(1), np.zeros((1, 1)), tuple(range(10)), onset,
+                          onset + duration)
+
+
+def test_one_key_no_enter_timed_to_the_ms(terminal):
+    master, slave = terminal
+    before = termios.tcgetattr(slave)
+    clock = RealClock()
+    errors = []
+    with KeypadResponder(fd=slave, output=io.StringIO()) as keypad:
+        assert not termios.tcgetattr(slave)[3] & termios.ICANON  # cbreak: no Enter needed
+        for digit in (7, 3, 0):
+            onset = clock.now()
+            keypad.begin_trial(Trial, onset, clock)
+            time.sleep(0.05)
+            written = time.monotonic()
+            os.write(master, str(digit).encode())
+            answer = keypad.respond(Trial, stimulus(onset, 0.02), clock, 5.0)
+            keypad.end_trial()
+            assert answer.digit == digit
+            errors.append(answer.response_time_s - (written - onset))
+    assert termios.tcgetattr(slave) == before  # the terminal is restored
+    assert min(errors) >= 0 and max(errors) < STAMP_SLACK_S, errors
+
+
+def test_keys_during_the_stimulus_count(terminal):
+    master, slave = terminal
+    clock = RealClock()
+    with KeypadResponder(fd=slave, output=io.StringIO()) as keypad:
+        onset = clock.now()
+        keypad.begin_trial(Trial, onset, clock)
+        time.sleep(0.03)
+        os.write(master, b"x5")  # an unknown key is ignored, 5 answers mid-stimulus
+        time.sleep(0.1)  # the stimulus goes on; respond() is called after the offset
+        answer = keypad.respond(Trial, stimulus(onset, 0.12), clock, 5.0)
+    assert answer.digit == 5
+    assert 0.03 <= answer.response_time_s < 0.03 + 0.03
+    assert answer.response_time_s - 0.12 < 0  # negative RT from offset
+
+
+def test_keys_before_onset_are_dropped_and_time_out(terminal):
+    master, slave = terminal
+    clock = RealClock()
+    with KeypadResponder(fd=slave, output=io.StringIO()) as keypad:
+        os.write(master, b"4")
+        time.sleep(0.05)
+        onset = clock.now()
+        keypad.begin_trial(Trial, onset, clock)
+        answer = keypad.respond(Trial, stimulus(onset, 0.01), clock, 0.1)
+    assert answer.digit is None and answer.response_time_s == pytest.approx(0.11)
+    assert clock.now() - onset >= 0.11
+
+
+def test_quit_key_pauses_and_prompt_waits_for_space(terminal):
+    master, slave = terminal
+    clock = RealClock()
+    with KeypadResponder(fd=slave, output=io.StringIO()) as keypad:
+        os.write(master, b" ")
+        keypad.prompt("Mount the skeleton", clock)
+        onset = clock.now()
+        keypad.begin_trial(Trial, onset, clock)
+        os.write(master, b"q")
+        with pytest.raises(PauseRequested):
+            keypad.respond(Trial, stimulus(onset, 0.0), clock, 5.0)
+        assert issubclass(PauseRequested, KeyboardInterrupt)
+
+
+def test_stdin_of_a_child_process(terminal):
+    """The keypad on a child's stdin (a real tty), as in `crs-study run --responder keypad`."""
+    master, slave = terminal
+    script = textwrap.dedent("""
+        import sys, time
+        import numpy as np
+        from crs_study.clock import RealClock
+        from crs_study.responders.base import StimulusRecord
+        from crs_study.responders.keypad import KeypadResponder
+        class Trial:
+            index, digit = 0, 2
+        clock = RealClock()
+        with KeypadResponder(output=sys.stderr) as keypad:
+            onset = clock.now()
+            keypad.begin_trial(Trial, onset, clock)
+            print(f"ready {onset!r}", flush=True)
+            rec = StimulusRecord(None, "crs", np.zeros(1), np.zeros((1, 1)), tuple(range(10)),
+                                 onset, onset)
+            answer = keypad.respond(Trial, rec, clock, 10.0)
+        print(f"answer {answer.digit} {answer.response_time_s!r}", flush=True)
+    """)
+    child = subprocess.Popen([sys.executable, "-c", script], stdin=slave,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        ready = child.stdout.readline().split()
+        assert ready[0] == "ready", child.stderr.read()
+        onset = float(ready[1])
+        time.sleep(0.2)
+        written = time.monotonic()
+        os.write(master, b"2")
+        answer = child.stdout.readline().split()
+        child.wait(timeout=10)
+    finally:
+        child.kill()
+        child.wait()
+        child.stdout.close()
+        child.stderr.close()
+    assert answer[:2] == ["answer", "2"]
+    error = float(answer[2]) - (written - onset)
+    assert 0 <= error < STAMP_SLACK_S
