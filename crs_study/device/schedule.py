@@ -1,0 +1,306 @@
+"""Frame scheduling: what a stimulus costs on the wire, the frame rate it allows, its latency.
+
+The wire (hardware.md): each controller has its own 9600-baud port, 10 bits a byte
+(1.0417 ms), written concurrently; a SERVO_MOVE for n servos is 3 n + 7 bytes. A frame is on the
+wire until its busiest controller's bytes have left.
+
+Changed-only frames: a channel goes into a controller's SERVO_MOVE only when its whole-us pulse
+width differs by more than ``deadband_us`` from what was last sent on it (dead-band 0: any
+change; default :data:`DEFAULT_DEADBAND_US`). Send-everything frames carry every channel of
+the controller.
+
+Merging, never queueing (:class:`~crs_study.device.serial_device.SerialDevice` and the
+simulated device behave alike): a frame handed over while its port's wire is busy waits; a
+newer frame replaces it; when the wire frees, the channels whose latest wanted pulse differs
+from the last sent go out as one SERVO_MOVE. The latency of frame k is the time from its
+stimulus time ``t_k = k / f`` to the last byte of the write that carries it (or a newer frame
+that superseded it), the worst over controllers. Latency therefore stays bounded (about two
+writes) however fast frames come.
+
+Balance: the device file fixes which channel is on which controller, so software cannot move
+channels; :func:`channel_balance` reports how evenly the file spreads them (the full frame is
+bounded by the busiest controller) and :class:`~.serial_device.SerialDevice` warns when the
+busiest controller's full frame is more than 10 % longer than an even split's. The shipped
+2D device file is balanced, 19 channels on A and 18 on B.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from crs_study.device.base import BYTE_TIME_S, full_frame_rate_hz, servo_move_bytes
+from crs_study.device.calibration import PulseMap
+from crs_study.device.codec import servo_move
+from crs_study.errors import DeviceError
+from crs_study.layout import Layout
+
+#: Default dead-band (us): a channel is resent when its pulse moved by more than this. 1 us is
+#: 0.009 mm on a 9 mm / 1000 us servo, far below feel, and it stops a slowly drifting channel
+#: (typically a boundary servo's feed, sub-micron per frame) from costing 3 bytes every frame;
+#: the full refresh puts the exact value on the wire at its interval.
+DEFAULT_DEADBAND_US = 1
+
+#: A busiest controller whose full frame is this much longer than an even split's is reported.
+IMBALANCE_WARN = 0.10
+
+
+class ChannelSplit:
+    """Which actuators sit on which controller, and SERVO_MOVE frames of changed channels.
+
+    ``members[c]`` are the actuator indices on controller ``c`` (device-file order), ``ids[c]``
+    their servo ids. Shared by the serial and the simulated device.
+    """
+
+    def __init__(self, layout: Layout) -> None:
+        acts = layout.actuators
+        self.layout = layout
+        self.names = tuple(c.name for c in layout.controllers)
+        self.members = tuple(np.array([a.index for a in acts if a.controller == name],
+                                      dtype=np.intp) for name in self.names)
+        self.ids = tuple(np.array([acts[i].channel for i in m], dtype=np.int64)
+                         for m in self.members)
+
+    def changed(self, controller: int, pulses: np.ndarray, last_sent: np.ndarray | None,
+                deadband_us: int = DEFAULT_DEADBAND_US) -> np.ndarray:
+        """Local indices (into ``members[controller]``) of channels to send.
+
+        ``pulses`` is the full actuator vector; ``last_sent`` this controller's last sent
+        pulses (None: unknown, send all).
+        """
+        mine = pulses[self.members[controller]]
+        if last_sent is None:
+            return np.arange(len(mine))
+        return np.flatnonzero(np.abs(mine - last_sent) > deadband_us)
+
+    def frame(self, controller: int, pulses: np.ndarray, local: np.ndarray, move_ms: int
+              ) -> bytes:
+        """SERVO_MOVE bytes moving channels ``local`` of ``controller`` (b"" when none)."""
+        if not len(local):
+            return b""
+        ids = self.ids[controller][local].tolist()
+        values = pulses[self.members[controller][local]].tolist()
+        return servo_move(list(zip(ids, values, strict=True)), move_ms)
+
+
+@dataclass(frozen=True)
+class Balance:
+    """How the device file spreads channels over controllers."""
+
+    counts: dict[str, int]
+    busiest: str
+    full_frame_bytes: int  # busiest controller, every channel
+    even_split_bytes: int  # what an even split would need
+    excess: float  # full_frame_bytes / even_split_bytes - 1
+
+    @property
+    def balanced(self) -> bool:
+        return self.excess <= IMBALANCE_WARN
+
+    def describe(self) -> str:
+        counts = ", ".join(f"{name}: {n}" for name, n in self.counts.items())
+        verdict = "balanced" if self.balanced else (
+            f"unbalanced: {self.busiest}'s full frame is {self.excess:.0%} longer than an even "
+            f"split's; move channels to the other controller(s) in the device file")
+        return f"channels per controller {counts} ({verdict})"
+
+
+def channel_balance(layout: Layout) -> Balance:
+    counts = {c.name: 0 for c in layout.controllers}
+    for a in layout.actuators:
+        counts[a.controller] += 1
+    busiest = max(counts, key=counts.__getitem__)
+    even = math.ceil(layout.n_actuators / len(counts))
+    full = servo_move_bytes(counts[busiest])
+    return Balance(counts, busiest, full, servo_move_bytes(even),
+                   full / servo_move_bytes(even) - 1.0)
+
+
+@dataclass(frozen=True, eq=False)
+class WirePlan:
+    """Wire use and latency of one stimulus at one frame rate. Build with :func:`wire_plan`.
+
+    Rates in frames/s, times in seconds, bytes per controller in device-file order.
+    """
+
+    frame_rate_hz: float
+    deadband_us: int
+    controllers: tuple[str, ...]
+    full_bytes: tuple[int, ...]  # every channel, per controller
+    changed_bytes: np.ndarray  # (n_frames, n_controllers): each frame's changed channels
+    full_frame_rate_hz: float  # wire bound, every channel in every frame
+    changed_only_rate_hz: float  # highest rate at which frames 1.. fit their period
+    latency_changed_s: np.ndarray  # (n_frames,) changed-only, merging
+    latency_full_s: np.ndarray  # (n_frames,) send-everything, merging
+    merged_changed: int  # frames superseded before they reached the wire
+    merged_full: int
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.latency_changed_s)
+
+    @property
+    def median_latency_s(self) -> float:
+        return float(np.median(self.latency_changed_s)) if self.n_frames else 0.0
+
+    @property
+    def max_latency_s(self) -> float:
+        return float(np.max(self.latency_changed_s)) if self.n_frames else 0.0
+
+    @property
+    def median_latency_full_s(self) -> float:
+        return float(np.median(self.latency_full_s)) if self.n_frames else 0.0
+
+    @property
+    def max_latency_full_s(self) -> float:
+        return float(np.max(self.latency_full_s)) if self.n_frames else 0.0
+
+    @property
+    def within_full_bound(self) -> bool:
+        """Every frame fits its period even if every channel changes (refreshes included)."""
+        return self.frame_rate_hz <= self.full_frame_rate_hz * (1 + 1e-9)
+
+    @property
+    def within_changed_bound(self) -> bool:
+        return self.frame_rate_hz <= self.changed_only_rate_hz * (1 + 1e-9)
+
+    def summary(self) -> dict:
+        """Plain numbers (ms, frames/s, bytes) for printing or JSON."""
+        busiest = self.changed_bytes.max(axis=1) if self.n_frames else np.zeros(0)
+        return {
+            "frame_rate_hz": self.frame_rate_hz,
+            "frames": self.n_frames,
+            "deadband_us": self.deadband_us,
+            "full_frame_bytes": dict(zip(self.controllers, self.full_bytes, strict=True)),
+            "full_frame_rate_hz": self.full_frame_rate_hz,
+            "changed_only_rate_hz": self.changed_only_rate_hz,
+            "changed_bytes_busiest_median": float(np.median(busiest)) if len(busiest) else 0.0,
+            "changed_bytes_busiest_max": int(busiest.max()) if len(busiest) else 0,
+            "latency_changed_ms": {"median": self.median_latency_s * 1e3,
+                                   "max": self.max_latency_s * 1e3},
+            "latency_full_ms": {"median": self.median_latency_full_s * 1e3,
+                                "max": self.max_latency_full_s * 1e3},
+            "merged_changed": self.merged_changed,
+            "merged_full": self.merged_full,
+            "within_full_bound": self.within_full_bound,
+            "within_changed_bound": self.within_changed_bound,
+        }
+
+
+def changed_bytes_per_frame(pulses: np.ndarray, split: ChannelSplit,
+                            initial: np.ndarray | None, deadband_us: int = DEFAULT_DEADBAND_US
+                            ) -> np.ndarray:
+    """Bytes each frame needs per controller when every frame goes out on its own.
+
+    ``pulses`` (n_frames, n_actuators) whole us; ``initial`` the pulses already on the wire
+    before frame 0 (None: unknown, frame 0 sends every channel).
+    """
+    out = np.zeros((len(pulses), len(split.members)), dtype=np.int64)
+    for c in range(len(split.members)):
+        last = None if initial is None else initial[split.members[c]].copy()
+        for k, frame in enumerate(pulses):
+            local = split.changed(c, frame, last, deadband_us)
+            if len(local):
+                out[k, c] = servo_move_bytes(len(local))
+                mine = frame[split.members[c]]
+                if last is None:
+                    last = mine.copy()
+                else:
+                    last[local] = mine[local]
+    return out
+
+
+def _simulate_port(pulses: np.ndarray, times: np.ndarray, last: np.ndarray | None,
+                   deadband_us: int, send_all: bool) -> tuple[np.ndarray, int]:
+    """Latency per frame and merged count on one port (see module docstring)."""
+    n = len(times)
+    latency = np.zeros(n)
+    free_at = -math.inf
+    waiting: list[int] = []
+    merged = 0
+    last = None if last is None else last.copy()
+
+    def write(start: float) -> float:
+        nonlocal last
+        wanted = pulses[waiting[-1]]
+        if send_all or last is None:
+            changed = np.arange(len(wanted))
+        else:
+            changed = np.flatnonzero(np.abs(wanted - last) > deadband_us)
+        done = start + servo_move_bytes(len(changed)) * BYTE_TIME_S if len(changed) else start
+        for j in waiting:
+            latency[j] = done - times[j]
+        if last is None:
+            last = wanted.copy()
+        else:
+            last[changed] = wanted[changed]
+        waiting.clear()
+        return done
+
+    for k in range(n):
+        if waiting and free_at < times[k]:  # the wire freed before frame k: the waiting go
+            free_at = write(free_at)
+        merged += len(waiting)  # a frame still waiting is superseded by frame k
+        waiting[:] = [*waiting, k]
+        if free_at <= times[k]:
+            free_at = write(times[k])
+    if waiting:
+        write(free_at)
+    return latency, merged
+
+
+def wire_plan(layout: Layout, setpoints_sequence: np.ndarray, frame_rate_hz: float,
+              deadband_us: int = DEFAULT_DEADBAND_US,
+              initial_setpoints: np.ndarray | None = None) -> WirePlan:
+    """Wire use and latency of a stimulus (n_frames x n_actuators, mm) at ``frame_rate_hz``.
+
+    Frame k is due at ``k / frame_rate_hz``. ``initial_setpoints`` is the pose before frame 0
+    (default: neutral, as between trials). Setpoints outside calibrated limits raise
+    :class:`DeviceError` (they could never be sent).
+    """
+    if not (math.isfinite(frame_rate_hz) and frame_rate_hz > 0):
+        raise DeviceError(f"frame rate: expected a number > 0 frames/s, got {frame_rate_hz!r}")
+    pulse_map = PulseMap.from_layout(layout)
+    pulses = pulse_map.to_pulses(np.asarray(setpoints_sequence, dtype=float).reshape(
+        -1, layout.n_actuators))
+    initial = pulse_map.to_pulses(layout.neutral_setpoints() if initial_setpoints is None
+                                  else initial_setpoints)
+    split = ChannelSplit(layout)
+    changed = changed_bytes_per_frame(pulses, split, initial, deadband_us)
+    times = np.arange(len(pulses)) / frame_rate_hz
+    lat_changed = np.zeros(len(pulses))
+    lat_full = np.zeros(len(pulses))
+    merged_changed = merged_full = 0
+    for members in split.members:
+        mine = pulses[:, members]
+        lc, mc = _simulate_port(mine, times, initial[members], deadband_us, send_all=False)
+        lf, mf = _simulate_port(mine, times, initial[members], deadband_us, send_all=True)
+        lat_changed = np.maximum(lat_changed, lc)
+        lat_full = np.maximum(lat_full, lf)
+        merged_changed = max(merged_changed, mc)
+        merged_full = max(merged_full, mf)
+    steady = changed[1:].max() if len(changed) > 1 else 0
+    return WirePlan(
+        frame_rate_hz=float(frame_rate_hz), deadband_us=int(deadband_us),
+        controllers=split.names,
+        full_bytes=tuple(servo_move_bytes(len(m)) if len(m) else 0 for m in split.members),
+        changed_bytes=changed, full_frame_rate_hz=full_frame_rate_hz(layout),
+        changed_only_rate_hz=1.0 / (steady * BYTE_TIME_S) if steady else math.inf,
+        latency_changed_s=lat_changed, latency_full_s=lat_full,
+        merged_changed=merged_changed, merged_full=merged_full,
+    )
+
+
+def max_frame_rate_hz(layout: Layout, setpoints_sequence: np.ndarray,
+                      deadband_us: int = DEFAULT_DEADBAND_US,
+                      initial_setpoints: np.ndarray | None = None) -> float:
+    """Highest frame rate at which every frame after the first fits its period on the wire.
+
+    1 / (largest changed-only SERVO_MOVE over frames 1.. and controllers x 1.0417 ms). The
+    first frame (onset from ``initial_setpoints``) may take longer; it merges, never queues.
+    Infinite when nothing changes after the first frame.
+    """
+    return wire_plan(layout, setpoints_sequence, 1.0, deadband_us,
+                     initial_setpoints).changed_only_rate_hz
