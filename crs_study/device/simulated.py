@@ -26,6 +26,7 @@ URL syntax (options may also be given as keyword arguments; keywords win)::
     baud=9600            bits per second on every port (10 bits a byte, 8N1)
     move_ms=0            SERVO_MOVE time when send() is given none (0: as fast as servos go)
     refresh_s=1.0        send every channel at least this often (0: never force a refresh)
+    deadband_us=1        resend a channel when its pulse moved by more than this (schedule.py)
     battery_mv=7400      what each board reports while healthy
     seed=0               seed of the garbage generator
     garbage_rate=0.01    probability, per byte sent, that one random byte is inserted before it
@@ -65,7 +66,8 @@ import numpy as np
 from crs_study.clock import Clock
 from crs_study.device.base import BAUD_RATE, BITS_PER_BYTE, Device, FrameReport
 from crs_study.device.calibration import PulseMap
-from crs_study.device.codec import FrameDecoder, get_battery_voltage, servo_move
+from crs_study.device.codec import FrameDecoder, get_battery_voltage
+from crs_study.device.schedule import DEFAULT_DEADBAND_US, ChannelSplit
 from crs_study.device.virtual_controller import (
     NORMAL_BATTERY_MV,
     ServoSpec,
@@ -88,6 +90,7 @@ class SimOptions:
     baud: int = BAUD_RATE
     move_ms: int = 0
     refresh_s: float = 1.0
+    deadband_us: int = DEFAULT_DEADBAND_US
     battery_mv: int = NORMAL_BATTERY_MV
     seed: int = 0
     garbage_rate: float = 0.0
@@ -176,6 +179,7 @@ def _stalls(url: str, key: str, raw: object, layout: Layout) -> tuple[tuple[str,
 _PARSERS = {
     "baud": lambda u, k, r, lay: _number(u, k, r, int, 300, 10_000_000),
     "move_ms": lambda u, k, r, lay: _number(u, k, r, int, 0, 30000),
+    "deadband_us": lambda u, k, r, lay: _number(u, k, r, int, 0, 2000),
     "refresh_s": lambda u, k, r, lay: _number(u, k, r, float, 0.0, 3600.0),
     "battery_mv": lambda u, k, r, lay: _number(u, k, r, int, 0, 0xFFFF),
     "seed": lambda u, k, r, lay: _number(u, k, r, int, 0, 2**63 - 1),
@@ -187,52 +191,48 @@ _PARSERS = {
 
 
 class _FrameBuilder:
-    """Setpoints (mm) to per-controller SERVO_MOVE bytes: calibration, limits, changed-only.
+    """Setpoints (mm) to per-controller SERVO_MOVE bytes, as the serial device builds them.
 
-    Calibration and limits are the serial device's :class:`~.calibration.PulseMap`; the
-    frames are the codec's. Stands in for a shared frame builder.
+    Calibration and limits: :class:`~.calibration.PulseMap`; which channels go out:
+    :class:`~.schedule.ChannelSplit` (changed by more than the dead-band since last sent);
+    the bytes: the codec. Encoded frames are remembered by content, because a dry-run replays
+    each digit's stimulus many times and encoding (with the codec's value checks) would
+    otherwise dominate :meth:`SimulatedDevice.send`.
     """
 
-    def __init__(self, layout: Layout) -> None:
+    def __init__(self, layout: Layout, deadband_us: int) -> None:
         self.layout = layout
+        self.deadband_us = deadband_us
         self.pulse_map = PulseMap.from_layout(layout)
+        self.split = ChannelSplit(layout)
         pm = self.pulse_map
         self.zero = np.asarray(pm.zero_us)
         self.scale = (pm.full_us - pm.zero_us) / pm.travel_mm  # us per mm
-        # per controller: actuator indices and their channel ids (the LSC servo ids)
-        self.members = [np.flatnonzero(pm.controller_index == c.index)
-                        for c in layout.controllers]
-        self.ids = [pm.servo_id[m].tolist() for m in self.members]
-        # Frames already encoded by the codec, by content: a dry-run replays each digit's
-        # stimulus many times, and encoding (with the codec's value checks) dominates send().
+        self.members = self.split.members
         self._encoded: dict[tuple[int, int, bytes, bytes], bytes] = {}
 
     def pulses(self, setpoints_mm: np.ndarray) -> np.ndarray:
         """Whole-us pulse widths per actuator; DeviceError for a value outside its range."""
         return self.pulse_map.to_pulses(setpoints_mm)
 
-    def frame(self, controller: int, pulses: np.ndarray, last: np.ndarray | None,
-              move_ms: int) -> tuple[bytes, int]:
-        """SERVO_MOVE bytes for the channels of ``controller`` that differ from ``last``."""
-        mine = pulses[self.members[controller]]
-        changed = np.arange(len(mine)) if last is None else np.flatnonzero(mine != last)
-        if not len(changed):
-            return b"", 0
-        key = (controller, move_ms, changed.tobytes(), mine[changed].tobytes())
+    def changed(self, controller: int, pulses: np.ndarray, last: np.ndarray | None
+                ) -> np.ndarray:
+        return self.split.changed(controller, pulses, last, self.deadband_us)
+
+    def frame(self, controller: int, pulses: np.ndarray, local: np.ndarray, move_ms: int
+              ) -> bytes:
+        """SERVO_MOVE bytes for channels ``local`` of ``controller`` (b"" when none)."""
+        if not len(local):
+            return b""
+        key = (controller, move_ms, local.tobytes(),
+               pulses[self.members[controller][local]].tobytes())
         data = self._encoded.get(key)
         if data is None:
-            ids = self.ids[controller]
-            values = mine.tolist()
-            data = servo_move([(ids[k], values[k]) for k in changed.tolist()], move_ms)
+            data = self.split.frame(controller, pulses, local, move_ms)
             if len(self._encoded) >= ENCODE_CACHE_SIZE:
                 self._encoded.clear()
             self._encoded[key] = data
-        return data, len(changed)
-
-    def changed_count(self, controller: int, pulses: np.ndarray, last: np.ndarray | None) -> int:
-        if last is None:
-            return len(self.members[controller])
-        return int(np.count_nonzero(pulses[self.members[controller]] != last))
+        return data
 
 
 class _Wire:
@@ -261,7 +261,7 @@ class SimulatedDevice(Device):
         self.options = options or SimOptions()
         self.url = "sim://"
         self.record = record
-        self.builder = _FrameBuilder(layout)
+        self.builder = _FrameBuilder(layout, self.options.deadband_us)
         self.byte_s = BITS_PER_BYTE / self.options.baud
         self.boards: list[VirtualController] = []
         self._wires: list[_Wire] = []
@@ -396,7 +396,7 @@ class SimulatedDevice(Device):
                 wire.waiting, wire.waiting_move_ms = pulses, move_ms
                 last = None if wire.free_at - wire.last_full_at >= self._refresh_s() \
                     else wire.last_sent
-                n = self.builder.changed_count(k, pulses, last)
+                n = len(self.builder.changed(k, pulses, last))
                 size = 3 * n + 7 if n else 0
                 done = wire.free_at + size * self.byte_s
             else:
@@ -414,15 +414,20 @@ class SimulatedDevice(Device):
                ) -> tuple[int, int]:
         """Put the frame for ``pulses`` on free wire ``k`` at ``t``; (bytes, channels)."""
         full = t - wire.last_full_at >= self._refresh_s()
-        data, n = self.builder.frame(k, pulses, None if full else wire.last_sent, move_ms)
+        local = self.builder.changed(k, pulses, None if full else wire.last_sent)
+        data = self.builder.frame(k, pulses, local, move_ms)
         if full:
             wire.last_full_at = t
         if data:
             wire.flying = data
             wire.start_at = t
             wire.free_at = t + len(data) * self.byte_s
-            wire.last_sent = pulses[self.builder.members[k]]
-        return len(data), n
+            mine = pulses[self.builder.members[k]]
+            if wire.last_sent is None or full:
+                wire.last_sent = mine.copy()
+            else:
+                wire.last_sent[local] = mine[local]
+        return len(data), len(local)
 
     def _advance(self, t: float) -> None:
         """Deliver every frame whose last byte has arrived by ``t``; start waiting frames."""
