@@ -1,0 +1,496 @@
+"""SerialDevice: the CRS display on LSC-24 boards through pyserial, one port per controller.
+
+URL syntax::
+
+    serial://PORT[,PORT...]
+
+one PORT per ``[[controllers]]`` table of the device file, in file order. A PORT is a device
+path (``/dev/ttyUSB0``, ``COM3``) or any pyserial URL (``spy:///dev/ttyUSB0``, ``loop://``,
+``rfc2217://host:port``, or a scheme registered through ``serial.protocol_handler_packages``,
+such as the simulator's); it is handed to :func:`serial.serial_for_url` unchanged, so a
+``?query`` inside a PORT belongs to that port's pyserial URL. A PORT cannot contain a comma.
+Device options (:class:`SerialOptions`) are keyword arguments of :meth:`SerialDevice.from_url`
+(the ``crs-study device`` flags), never part of the URL.
+
+Writing (see :mod:`~crs_study.device.schedule` for the model)
+    Ports run 9600 baud 8N1 with read and write timeouts. Each port has a writer thread, so
+    controllers are written concurrently. :meth:`SerialDevice.send` converts setpoints to
+    whole-us pulses (refusing anything outside calibrated limits before any byte moves), stores
+    them as the port's *latest wanted pulses* and returns at once. The writer sends, when the
+    port's wire is free, one SERVO_MOVE of the channels whose wanted pulse differs from the
+    last sent by more than the dead-band; a frame handed over while a previous one still waits
+    replaces it (merged, never queued), so latency never grows. Every ``refresh_s`` the next
+    frame carries every channel (a frame the board lost or garbled is repaired). The wire is
+    free when the bytes already written have had their time at ``10 / baud`` s a byte
+    (``pace``); writing no faster than that keeps the OS and USB buffers from holding old
+    frames.
+
+Balance: the device file fixes which channel is on which controller; :meth:`SerialDevice.open`
+warns (:class:`DeviceWarning`) when the busiest controller's full frame is more than 10 %
+longer than an even split's (:func:`~crs_study.device.schedule.channel_balance`).
+
+Safety: :meth:`SerialDevice.open` asks each board for its battery voltage (a board that does
+not answer gives None and a :class:`DeviceWarning`; one below ``min_battery_mv`` is a
+:class:`DeviceError`). A port that fails (vanished, write timeout, stalled writer) makes the next
+:meth:`SerialDevice.send` raise :class:`DeviceError`; a reader thread per port notices a
+vanished port within ``read_timeout_s`` even when nothing is being sent. :meth:`close` (also on
+error and Ctrl-C through the context manager) sends every channel to the neutral pose, waits
+for it to leave, and releases the ports in ``finally``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from crs_study.clock import Clock
+from crs_study.device.base import BITS_PER_BYTE, Device, FrameReport, servo_move_bytes
+from crs_study.device.calibration import PulseMap
+from crs_study.device.codec import (
+    MOVE_TIME_MAX_MS,
+    BatteryVoltage,
+    Direction,
+    FrameDecoder,
+    get_battery_voltage,
+)
+from crs_study.device.schedule import DEFAULT_DEADBAND_US, ChannelSplit, channel_balance
+from crs_study.errors import DeviceError
+from crs_study.layout import Layout
+
+#: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell); the
+#: same threshold as the simulated device. 0 turns the check off.
+LOW_BATTERY_MV = 6000
+
+
+class DeviceWarning(UserWarning):
+    """Something odd but not fatal about the device (no battery answer, unbalanced channels)."""
+
+
+@dataclass(frozen=True)
+class SerialOptions:
+    """Options of :class:`SerialDevice` (all times in seconds unless named otherwise)."""
+
+    move_ms: int | None = None  # SERVO_MOVE time when send() gets none; None: one full frame
+    refresh_s: float = 1.0  # send every channel at least this often (0: never)
+    deadband_us: int = DEFAULT_DEADBAND_US  # resend a channel when it moved more than this
+    baud: int = 9600  # the LSC boards support 9600 only (hardware.md)
+    pace: bool = True  # write no faster than the wire carries bytes
+    lead_s: float = 0.002  # write this early before the wire frees, against wake-up jitter
+    write_timeout_s: float = 0.5
+    read_timeout_s: float = 0.05
+    battery_timeout_s: float = 0.3  # how long to wait for a battery reply on open
+    check_battery: bool = True
+    min_battery_mv: int = LOW_BATTERY_MV
+    neutral_move_ms: int = 500  # move time of the neutral pose on close
+
+    def __post_init__(self) -> None:
+        def need(name: str, ok: bool, expected: str) -> None:
+            if not ok:
+                raise DeviceError(f"serial option {name}: expected {expected}, "
+                                  f"got {getattr(self, name)!r}")
+
+        for name in ("refresh_s", "lead_s"):
+            need(name, _finite(getattr(self, name)) and getattr(self, name) >= 0, "a number >= 0")
+        for name in ("write_timeout_s", "read_timeout_s", "battery_timeout_s"):
+            need(name, _finite(getattr(self, name)) and getattr(self, name) > 0, "a number > 0")
+        need("move_ms", self.move_ms is None or _whole(self.move_ms, 0, MOVE_TIME_MAX_MS),
+             f"a whole number of ms 0..{MOVE_TIME_MAX_MS}")
+        need("neutral_move_ms", _whole(self.neutral_move_ms, 0, MOVE_TIME_MAX_MS),
+             f"a whole number of ms 0..{MOVE_TIME_MAX_MS}")
+        need("deadband_us", _whole(self.deadband_us, 0, 100), "a whole number of us 0..100")
+        need("baud", _whole(self.baud, 300, 4_000_000), "a baud rate")
+        need("min_battery_mv", _whole(self.min_battery_mv, 0, 65535), "a whole number of mV")
+
+    @classmethod
+    def from_options(cls, options: dict[str, Any]) -> SerialOptions:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise DeviceError(f"unknown serial option(s) {', '.join(map(repr, unknown))}; "
+                              f"known: {', '.join(sorted(known))}")
+        return cls(**options)
+
+
+def _finite(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _whole(x: object, low: int, high: int) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool) and low <= x <= high
+
+
+def parse_serial_url(url: str) -> list[str]:
+    """The port specs of ``serial://PORT[,PORT...]`` (module docstring)."""
+    if not url.startswith("serial://"):
+        raise DeviceError(f"serial device URL: expected serial://PORT[,PORT...], got {url!r}")
+    specs = url[len("serial://"):].split(",")
+    if any(not s.strip() for s in specs):
+        raise DeviceError(f"serial device URL {url!r}: expected one port per controller, "
+                          f"separated by commas, got an empty port")
+    return [s.strip() for s in specs]
+
+
+class _Port:
+    """One controller's port: latest wanted pulses, a writer thread, a reader thread."""
+
+    def __init__(self, device: SerialDevice, index: int, spec: str | Any) -> None:
+        self.device = device
+        self.index = index
+        self.name = device.layout.controllers[index].name
+        self.spec = spec if isinstance(spec, str) else getattr(spec, "name", repr(spec))
+        self.serial: Any = None if isinstance(spec, str) else spec
+        self.cond = threading.Condition()
+        self.wanted: np.ndarray | None = None  # full actuator pulse vector last handed over
+        self.wanted_seq = 0
+        self.sent_seq = 0
+        self.move_ms = 0
+        self.force_full = False
+        self.last_sent: np.ndarray | None = None  # this controller's channels
+        self.free_at = -math.inf  # clock time the bytes written so far have left
+        self.last_full_at = -math.inf
+        self.writing_since: float | None = None
+        self.error: BaseException | None = None
+        self.stopping = False
+        self.frames_written = 0
+        self.bytes_written = 0
+        self.battery_mv: int | None = None
+        self.decoder = FrameDecoder(Direction.BOARD)
+        self.threads: list[threading.Thread] = []
+
+    @property
+    def label(self) -> str:
+        return f"controller {self.name} on {self.spec}"
+
+    # -- opening -------------------------------------------------------------------------
+
+    def open(self) -> None:
+        import serial
+
+        options = self.device.options
+        if self.serial is None:
+            try:
+                self.serial = serial.serial_for_url(
+                    self.spec, baudrate=options.baud, bytesize=serial.EIGHTBITS,
+                    parity=serial.PARITY_NONE, stopbits=serial.STOPBITS_ONE,
+                    timeout=options.read_timeout_s, write_timeout=options.write_timeout_s,
+                )
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise DeviceError(f"{self.label}: cannot open the port: {exc}") from None
+
+    def query_battery(self) -> int | None:
+        """Ask the board for its voltage; None when it does not answer in time."""
+        options = self.device.options
+        try:
+            self.serial.reset_input_buffer()
+            self.serial.write(get_battery_voltage())
+            deadline = time.monotonic() + options.battery_timeout_s
+            while time.monotonic() < deadline:
+                data = self.serial.read(max(1, self.serial.in_waiting))
+                for frame in self.decoder.feed(data):
+                    if isinstance(frame.message, BatteryVoltage):
+                        return frame.message.millivolts
+        except Exception as exc:  # noqa: BLE001 - pyserial raises several kinds
+            raise DeviceError(f"{self.label}: port failed during the battery check: {exc}"
+                              ) from None
+        return None
+
+    def start(self) -> None:
+        for target, kind in ((self._write_loop, "writer"), (self._read_loop, "reader")):
+            thread = threading.Thread(target=target, name=f"lsc-{kind}-{self.name}", daemon=True)
+            thread.start()
+            self.threads.append(thread)
+
+    # -- writing -------------------------------------------------------------------------
+
+    def _due(self, now: float) -> bool:
+        if self.wanted is None:
+            return False
+        refresh = self.device.options.refresh_s
+        return (self.wanted_seq != self.sent_seq or self.force_full
+                or (refresh > 0 and now - self.last_full_at >= refresh))
+
+    def _write_loop(self) -> None:
+        device = self.device
+        clock, options, split = device.clock, device.options, device.split
+        byte_s = BITS_PER_BYTE / options.baud
+        while True:
+            with self.cond:
+                while not self.stopping and self.error is None and not self._due(clock.now()):
+                    timeout = None
+                    if options.refresh_s > 0 and self.wanted is not None:
+                        timeout = max(1e-3, self.last_full_at + options.refresh_s - clock.now())
+                    self.cond.wait(timeout)
+                if self.stopping or self.error is not None:
+                    return  # close() waited for the neutral pose before stopping
+                wait = self.free_at - options.lead_s - clock.now() if options.pace else 0.0
+            if wait > 0:
+                clock.sleep(min(wait, 0.05))
+                continue
+            with self.cond:
+                now = clock.now()
+                full = (self.force_full or self.last_sent is None
+                        or (options.refresh_s > 0 and now - self.last_full_at >= options.refresh_s))
+                local = (np.arange(len(split.members[self.index])) if full else
+                         split.changed(self.index, self.wanted, self.last_sent,
+                                       options.deadband_us))
+                data = split.frame(self.index, self.wanted, local, self.move_ms)
+                mine = self.wanted[split.members[self.index]]
+                if self.last_sent is None:
+                    self.last_sent = mine.copy()
+                else:
+                    self.last_sent[local] = mine[local]
+                if full:
+                    self.last_full_at = now
+                    self.force_full = False
+                self.sent_seq = self.wanted_seq
+                self.writing_since = now if data else None
+            if not data:
+                continue
+            try:
+                self.serial.write(data)
+            except Exception as exc:  # noqa: BLE001 - SerialException, OSError, timeouts
+                with self.cond:
+                    self.error = exc
+                    self.writing_since = None
+                    self.cond.notify_all()
+                return
+            with self.cond:
+                self.free_at = max(now, self.free_at) + len(data) * byte_s
+                self.writing_since = None
+                self.frames_written += 1
+                self.bytes_written += len(data)
+                self.cond.notify_all()
+
+    def _read_loop(self) -> None:
+        while True:
+            with self.cond:
+                if self.stopping or self.error is not None:
+                    return
+            try:
+                data = self.serial.read(max(1, self.serial.in_waiting))
+            except Exception as exc:  # noqa: BLE001 - a vanished port raises several kinds
+                with self.cond:
+                    if not self.stopping:
+                        self.error = exc
+                    self.cond.notify_all()
+                return
+            for frame in self.decoder.feed(data):
+                if isinstance(frame.message, BatteryVoltage):
+                    self.battery_mv = frame.message.millivolts
+
+    # -- status and shutdown ---------------------------------------------------------------
+
+    def check(self, now: float) -> None:
+        """Raise DeviceError if this port failed or its writer is stuck."""
+        if self.error is not None:
+            raise DeviceError(f"{self.label}: port failed: {self.error}")
+        stuck = self.device.options.write_timeout_s + 0.5
+        if self.writing_since is not None and now - self.writing_since > stuck:
+            raise DeviceError(f"{self.label}: a write has not finished for "
+                              f"{now - self.writing_since:.2f} s (port stalled)")
+        if self.threads and not all(t.is_alive() for t in self.threads) and not self.stopping:
+            raise DeviceError(f"{self.label}: the port's I/O thread stopped")
+
+    def wait_sent(self, timeout_s: float) -> bool:
+        """Wait (real time) until what was handed over has been written; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self.cond:
+            while (self.wanted_seq != self.sent_seq or self.force_full
+                   or self.writing_since is not None) and self.error is None:
+                left = deadline - time.monotonic()
+                if left <= 0 or not any(t.is_alive() for t in self.threads[:1]):
+                    return False
+                self.cond.wait(min(left, 0.05))
+            return self.error is None
+
+    def stop(self) -> None:
+        with self.cond:
+            self.stopping = True
+            self.cond.notify_all()
+        for thread in self.threads:
+            thread.join(timeout=self.device.options.write_timeout_s + 1.0)
+
+    def close(self) -> None:
+        if self.serial is not None:
+            try:
+                self.serial.close()
+            except Exception:  # noqa: BLE001 - closing a vanished port may fail; it is gone
+                pass
+
+
+class SerialDevice(Device):
+    """A CRS display on real LSC-24 boards (module docstring). Build with :meth:`from_url`.
+
+    ``ports`` holds one pyserial URL or path per controller, or ready serial-like objects
+    (``write``, ``read``, ``in_waiting``, ``reset_input_buffer``, ``close``), e.g. for tests.
+    """
+
+    def __init__(self, layout: Layout, ports: Sequence[str | Any], clock: Clock | None = None,
+                 options: SerialOptions | None = None) -> None:
+        super().__init__(layout, clock)
+        if len(ports) != len(layout.controllers):
+            names = ", ".join(c.name for c in layout.controllers)
+            raise DeviceError(
+                f"serial device: expected {len(layout.controllers)} port(s), one per controller "
+                f"({names}) in device-file order, got {len(ports)}: {list(ports)!r}"
+            )
+        self.options = options or SerialOptions()
+        self.pulse_map = PulseMap.from_layout(layout)
+        self.split = ChannelSplit(layout)
+        self.balance = channel_balance(layout)
+        self.ports = [_Port(self, i, spec) for i, spec in enumerate(ports)]
+        self.default_move_ms = (self.options.move_ms if self.options.move_ms is not None else
+                                math.ceil(servo_move_bytes(max(self.balance.counts.values()))
+                                          * BITS_PER_BYTE / self.options.baud * 1000))
+        self.faults: list[str] = []
+        self._last_setpoints = layout.neutral_setpoints()
+        self._state = "new"
+
+    @classmethod
+    def from_url(cls, url: str, layout: Layout, clock: Clock | None = None, **options: Any
+                 ) -> SerialDevice:
+        return cls(layout, parse_serial_url(url), clock, SerialOptions.from_options(options))
+
+    # -- Device interface ------------------------------------------------------------------
+
+    def open(self) -> None:
+        if self._state != "new":
+            raise DeviceError(f"serial device: cannot open a device that is {self._state}")
+        self._state = "opening"
+        if not self.balance.balanced:
+            warnings.warn(f"{self.layout.name}: {self.balance.describe()}", DeviceWarning,
+                          stacklevel=2)
+        try:
+            for port in self.ports:
+                port.open()
+            if self.options.check_battery:
+                self._check_batteries()
+            for port in self.ports:
+                port.start()
+        except BaseException:
+            self._state = "closed"
+            for port in self.ports:
+                port.stop()
+                port.close()
+            raise
+        self._state = "open"
+
+    def _check_batteries(self) -> None:
+        for port in self.ports:
+            port.battery_mv = port.query_battery()
+            if port.battery_mv is None:
+                warnings.warn(f"{port.label}: no answer to GET_BATTERY_VOLTAGE within "
+                              f"{self.options.battery_timeout_s:g} s; battery unknown",
+                              DeviceWarning, stacklevel=3)
+            elif port.battery_mv < self.options.min_battery_mv:
+                raise DeviceError(
+                    f"{port.label}: battery {port.battery_mv} mV is below the "
+                    f"{self.options.min_battery_mv} mV minimum (option min_battery_mv); "
+                    f"charge or replace it"
+                )
+
+    def send(self, setpoints_mm: np.ndarray, move_ms: int | None = None) -> FrameReport:
+        commanded_at = self.clock.now()
+        if self._state != "open":
+            raise DeviceError(f"serial device: send() on a device that is {self._state}; "
+                              f"open it first (use it as a context manager)")
+        pulses = self.pulse_map.to_pulses(setpoints_mm)
+        move = self.default_move_ms if move_ms is None else move_ms
+        if not _whole(move, 0, MOVE_TIME_MAX_MS):
+            raise DeviceError(f"move time: expected a whole number of ms 0..{MOVE_TIME_MAX_MS}, "
+                              f"got {move!r}")
+        for port in self.ports:
+            port.check(commanded_at)
+        byte_s = BITS_PER_BYTE / self.options.baud
+        sent, done, channels, merged = [], commanded_at, 0, False
+        for port in self.ports:
+            with port.cond:
+                merged |= port.wanted_seq != port.sent_seq
+                port.wanted = pulses
+                port.wanted_seq += 1
+                port.move_ms = move
+                full = port.last_sent is None or port.force_full
+                local = (self.split.members[port.index] if full else
+                         self.split.changed(port.index, pulses, port.last_sent,
+                                            self.options.deadband_us))
+                n_bytes = servo_move_bytes(len(local)) if len(local) else 0
+                start = max(commanded_at, port.free_at)
+                done = max(done, start + n_bytes * byte_s)
+                port.cond.notify_all()
+            sent.append(n_bytes)
+            channels += len(local)
+        self._last_setpoints = np.asarray(setpoints_mm, dtype=float).copy()
+        return FrameReport(commanded_at, done, tuple(sent), channels, merged)
+
+    def close(self) -> None:
+        if self._state in ("closed", "new"):
+            self._state = "closed"
+            return
+        self._state = "closing"
+        try:
+            self._neutral_on_close()
+        finally:
+            for port in self.ports:
+                port.stop()
+            for port in self.ports:
+                port.close()
+            self._state = "closed"
+
+    def _neutral_on_close(self) -> None:
+        """Every channel to neutral, slowly; best effort, failures recorded in ``faults``."""
+        pulses = self.pulse_map.to_pulses(self.layout.neutral_setpoints())
+        byte_s = BITS_PER_BYTE / self.options.baud
+        for port in self.ports:
+            with port.cond:
+                healthy = port.error is None and all(t.is_alive() for t in port.threads)
+                if healthy:
+                    port.wanted = pulses
+                    port.wanted_seq += 1
+                    port.move_ms = self.options.neutral_move_ms
+                    port.force_full = True
+                    port.cond.notify_all()
+            if not healthy:
+                self._neutral_direct(port, pulses)
+        budget = (2 * servo_move_bytes(self.layout.n_actuators) * byte_s
+                  + self.options.write_timeout_s)
+        for port in self.ports:
+            if port.error is None and port.threads and not port.wait_sent(budget):
+                self.faults.append(f"{port.label}: neutral pose not confirmed sent "
+                                   f"({port.error or 'timeout'})")
+        self._last_setpoints = self.layout.neutral_setpoints()
+
+    def _neutral_direct(self, port: _Port, pulses: np.ndarray) -> None:
+        local = np.arange(len(self.split.members[port.index]))
+        data = self.split.frame(port.index, pulses, local, self.options.neutral_move_ms)
+        try:
+            if port.serial is not None and data:
+                port.serial.write(data)
+        except Exception as exc:  # noqa: BLE001 - the port already failed; report, go on
+            self.faults.append(f"{port.label}: neutral pose not sent: {exc}")
+
+    def wait_sent(self, timeout_s: float = 1.0) -> bool:
+        """Wait until every frame handed over has been written (or merged and written).
+
+        Returns False when ``timeout_s`` (real time) passes first or a port failed.
+        """
+        deadline = time.monotonic() + timeout_s
+        return all(p.wait_sent(max(0.0, deadline - time.monotonic())) for p in self.ports)
+
+    def displayed_setpoints(self, t: float | None = None) -> np.ndarray:
+        """The last commanded setpoints: PWM servos report no position."""
+        return self._last_setpoints.copy()
+
+    def battery_mv(self) -> list[float | None]:
+        return [None if p.battery_mv is None else float(p.battery_mv) for p in self.ports]
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        """Frames and bytes written per controller so far."""
+        return {p.name: {"frames": p.frames_written, "bytes": p.bytes_written}
+                for p in self.ports}

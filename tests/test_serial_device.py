@@ -1,0 +1,366 @@
+"""SerialDevice over pyserial: pseudo-terminal pairs and fake ports play the LSC boards.
+
+The far end of each pty decodes what SerialDevice writes with the codec (host direction) and
+answers GET_BATTERY_VOLTAGE like a board (hardware.md: reply ``55 55 04 0F lo hi``).
+"""
+
+from __future__ import annotations
+
+import os
+import pty
+import select
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from crs_study.clock import RealClock
+from crs_study.device import codec
+from crs_study.device.base import BYTE_TIME_S, open_device
+from crs_study.device.serial_device import (
+    DeviceWarning,
+    SerialDevice,
+    SerialOptions,
+    parse_serial_url,
+)
+from crs_study.errors import DeviceError
+
+FRAME_S = 64 * BYTE_TIME_S  # a full 19-servo frame, 66.7 ms
+
+
+class PtyBoard:
+    """The board end of a pty pair: decodes host frames, answers battery requests."""
+
+    def __init__(self, battery_mv: int | None = 7400, garbage: bytes = b"") -> None:
+        self.master, slave = pty.openpty()
+        self.path = os.ttyname(slave)
+        self._slave = slave  # kept open so the master sees no hang-up before the device opens
+        self.battery_mv = battery_mv
+        self.garbage = garbage
+        self.raw = bytearray()
+        self.frames: list[codec.Frame] = []
+        self.decoder = codec.FrameDecoder(codec.Direction.HOST)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.01)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 4096)
+            except OSError:
+                return
+            self.raw += data
+            for frame in self.decoder.feed(data):
+                self.frames.append(frame)
+                if isinstance(frame.message, codec.GetBatteryVoltage) and self.battery_mv:
+                    os.write(self.master, self.garbage + codec.battery_voltage_reply(
+                        self.battery_mv))
+
+    def moves(self) -> list[codec.ServoMove]:
+        return [f.message for f in self.frames if isinstance(f.message, codec.ServoMove)]
+
+    def wait_for(self, count: int, timeout: float = 2.0) -> list[codec.ServoMove]:
+        deadline = time.monotonic() + timeout
+        while len(self.moves()) < count and time.monotonic() < deadline:
+            time.sleep(0.005)
+        return self.moves()
+
+    def vanish(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        os.close(self.master)
+
+    def close(self) -> None:
+        if not self._stop.is_set():
+            self._stop.set()
+            self._thread.join()
+            os.close(self.master)
+        os.close(self._slave)
+
+
+@pytest.fixture
+def boards():
+    made: list[PtyBoard] = []
+
+    def make(n: int, **kwargs) -> list[PtyBoard]:
+        made.extend(PtyBoard(**kwargs) for _ in range(n))
+        return made[-n:]
+
+    yield make
+    for board in made:
+        board.close()
+
+
+def _url(boards: list[PtyBoard]) -> str:
+    return "serial://" + ",".join(b.path for b in boards)
+
+
+FAST = dict(pace=False, refresh_s=0.0)  # tests that count frames: no pacing, no refreshes
+
+
+# ---------------------------------------------------------------------------------------------
+# URL and options
+
+
+def test_url_syntax_one_port_per_controller(layout2d):
+    assert parse_serial_url("serial:///dev/ttyUSB0,/dev/ttyUSB1") == ["/dev/ttyUSB0",
+                                                                      "/dev/ttyUSB1"]
+    assert parse_serial_url("serial://spy:///dev/ttyUSB0?file=x.txt,loop://") == [
+        "spy:///dev/ttyUSB0?file=x.txt", "loop://"]
+    with pytest.raises(DeviceError, match=r"expected 2 port\(s\), one per controller \(A, B\)"):
+        SerialDevice.from_url("serial:///dev/ttyUSB0", layout2d)
+    with pytest.raises(DeviceError, match="got an empty port"):
+        parse_serial_url("serial:///dev/ttyUSB0,")
+    with pytest.raises(DeviceError, match=r"unknown serial option\(s\) 'refresh'; known:"):
+        SerialDevice.from_url("serial://loop://,loop://", layout2d, refresh=2)
+    with pytest.raises(DeviceError, match=r"serial option deadband_us: expected .* got -1"):
+        SerialOptions(deadband_us=-1)
+    with pytest.raises(DeviceError, match=r"move_ms: .* got 40000"):
+        SerialOptions(move_ms=40000)
+
+
+def test_open_device_dispatches_serial_urls(layout1d):
+    device = open_device("serial://loop://", layout1d, check_battery=False)
+    assert isinstance(device, SerialDevice) and device.options.check_battery is False
+
+
+def test_missing_port_is_a_one_line_device_error(layout1d):
+    device = SerialDevice.from_url("serial:///dev/does-not-exist-crs", layout1d)
+    with pytest.raises(DeviceError, match=r"controller A on /dev/does-not-exist-crs: cannot open"):
+        device.open()
+
+
+# ---------------------------------------------------------------------------------------------
+# battery
+
+
+def test_battery_is_read_on_open_even_after_garbage(layout2d, boards):
+    pair = boards(2, battery_mv=7400, garbage=bytes.fromhex("00 55 55 09 FF 13"))
+    with SerialDevice.from_url(_url(pair), layout2d) as device:
+        assert device.battery_mv() == [7400.0, 7400.0]
+
+
+def test_silent_board_gives_none_and_a_warning(layout1d):
+    # loop:// echoes our own request, which is not a battery reply
+    device = SerialDevice.from_url("serial://loop://", layout1d, battery_timeout_s=0.05)
+    with pytest.warns(DeviceWarning, match=r"controller A on loop://: no answer to "
+                      r"GET_BATTERY_VOLTAGE within 0\.05 s"):
+        device.open()
+    try:
+        assert device.battery_mv() == [None]
+    finally:
+        device.close()
+
+
+def test_low_battery_refuses_to_open_and_releases_ports(layout2d, boards):
+    pair = boards(2, battery_mv=5400)
+    device = SerialDevice.from_url(_url(pair), layout2d)
+    with pytest.raises(DeviceError, match=r"controller A on .*: battery 5400 mV is below the "
+                       r"6000 mV minimum"):
+        device.open()
+    assert all(p.serial is None or not p.serial.is_open for p in device.ports)
+
+
+# ---------------------------------------------------------------------------------------------
+# frames on the wire
+
+
+def test_frames_arrive_complete_changed_only_and_in_order(layout2d, boards):
+    pair = boards(2)
+    with SerialDevice.from_url(_url(pair), layout2d, **FAST) as device:
+        setpoints = np.zeros(layout2d.n_actuators)
+        first = device.send(setpoints, move_ms=50)
+        assert first.bytes_sent == (64, 61) and first.channels_sent == 37
+        for board in pair:
+            board.wait_for(1)
+        expected = []
+        for k in range(1, 30):
+            setpoints = setpoints.copy()
+            setpoints[2] = 0.09 * k  # pixel 2 is A:3; 10 us a frame
+            report = device.send(setpoints, move_ms=50)
+            assert report.bytes_sent == (10, 0) and report.channels_sent == 1
+            expected.append(((3, 1000 + 10 * k),))
+            pair[0].wait_for(k + 1)
+    a_moves, b_moves = pair[0].moves(), pair[1].moves()
+    assert a_moves[0] == codec.ServoMove(tuple((ch, 1000) for ch in range(1, 20)), 50)
+    assert [m.positions for m in a_moves[1:30]] == expected
+    assert len(b_moves) >= 1 and b_moves[0].positions == tuple((ch, 1000) for ch in range(1, 19))
+    # close: every channel to neutral with the slow neutral move time
+    assert a_moves[-1] == codec.ServoMove(tuple((ch, 1000) for ch in range(1, 20)), 500)
+    assert b_moves[-1].time_ms == 500 and len(b_moves[-1].positions) == 18
+    for board in pair:
+        assert board.decoder.skipped == [] and board.decoder.pending == b""
+
+
+def test_deadband_holds_tiny_changes_back(layout1d, boards):
+    (board,) = boards(1)
+    with SerialDevice.from_url(_url([board]), layout1d, deadband_us=2, **FAST) as device:
+        device.send(np.zeros(7))
+        board.wait_for(1)
+        step = np.zeros(7)
+        step[0] = 0.018  # 2 us: within the dead-band
+        assert device.send(step).bytes_sent == (0,)
+        step[0] = 0.027  # 3 us: sent
+        assert device.send(step).bytes_sent == (10,)
+        assert board.wait_for(2)[1].positions == ((1, 1003),)
+
+
+def test_out_of_range_setpoint_never_reaches_the_wire(layout2d, boards):
+    pair = boards(2)
+    with SerialDevice.from_url(_url(pair), layout2d, **FAST) as device:
+        device.send(np.zeros(37))
+        for board in pair:
+            board.wait_for(1)
+        bad = np.zeros(37)
+        bad[30] = 9.5
+        with pytest.raises(DeviceError, match=r"channel B:12 beam 5 end: setpoint 9\.5 mm is "
+                           r"outside its calibrated range 0\.\.9 mm"):
+            device.send(bad)
+        time.sleep(0.05)
+        assert len(pair[0].moves()) == 1 and len(pair[1].moves()) == 1
+    for board in pair:
+        for move in board.moves():
+            assert all(1000 <= p <= 2000 for _, p in move.positions)
+
+
+def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout2d, boards):
+    pair = boards(2)
+    with SerialDevice.from_url(_url(pair), layout2d, refresh_s=0.0) as device:  # paced
+        reports = []
+        for k in range(12):  # every channel changes, 4 ms apart: far beyond the wire
+            reports.append(device.send(np.full(37, 0.1 * (k + 1))))
+            time.sleep(0.004)
+        assert any(r.merged for r in reports)
+        assert max(r.latency_s for r in reports) <= 2 * FRAME_S + 0.01
+        last_wanted = device.pulse_map.to_pulses(np.full(37, 1.2))
+        assert device.wait_sent(1.0)
+    moves = pair[0].moves()
+    assert len(moves) < 12  # merged, not queued
+    wanted_a = last_wanted[device.split.members[0]].tolist()
+    assert [p for _, p in moves[-2].positions] == wanted_a  # the newest frame went out
+    assert len(moves[-1].positions) == 19 and moves[-1].time_ms == 500  # then neutral
+
+
+def test_full_refresh_resends_every_channel(layout1d, boards):
+    (board,) = boards(1)
+    with SerialDevice.from_url(_url([board]), layout1d, pace=False, refresh_s=0.05) as device:
+        device.send(np.zeros(7))
+        moves = board.wait_for(3, timeout=1.0)
+        assert len(moves) >= 3 and all(len(m.positions) == 7 for m in moves)
+
+
+def test_controllers_are_written_concurrently(layout2d):
+    intervals: dict[str, list[tuple[float, float]]] = {"A": [], "B": []}
+
+    class PacedPort:
+        """A port that takes the wire's time to write: 10 bits a byte at 9600 baud."""
+
+        def __init__(self, name: str) -> None:
+            self.name, self.is_open, self.in_waiting = name, True, 0
+
+        def write(self, data: bytes) -> int:
+            start = time.monotonic()
+            time.sleep(len(data) * BYTE_TIME_S)
+            intervals[self.name].append((start, time.monotonic()))
+            return len(data)
+
+        def read(self, n: int) -> bytes:
+            time.sleep(0.01)
+            return b""
+
+        def reset_input_buffer(self) -> None:
+            pass
+
+        def close(self) -> None:
+            self.is_open = False
+
+    device = SerialDevice(layout2d, [PacedPort("A"), PacedPort("B")], RealClock(),
+                          SerialOptions(check_battery=False, refresh_s=0.0))
+    with device:
+        device.send(np.full(37, 1.0))
+        assert device.wait_sent(1.0)
+    (a_start, a_end), (b_start, b_end) = intervals["A"][0], intervals["B"][0]
+    assert a_start < b_end and b_start < a_end  # the two writes overlap in time
+
+
+# ---------------------------------------------------------------------------------------------
+# faults
+
+
+def test_vanished_port_raises_within_one_frame_period_and_close_releases(layout2d, boards):
+    pair = boards(2)
+    device = SerialDevice.from_url(_url(pair), layout2d)
+    device.open()
+    try:
+        for k in range(5):
+            device.send(np.full(37, 0.5 * k))
+            time.sleep(0.02)
+        pair[1].vanish()
+        gone = time.monotonic()
+        with pytest.raises(DeviceError, match=r"controller B on .*: port failed"):
+            while time.monotonic() - gone < 1.0:
+                device.send(np.full(37, 3.0))
+                time.sleep(0.005)
+        assert time.monotonic() - gone <= FRAME_S
+    finally:
+        device.close()
+    assert any("controller B" in f and "neutral pose not sent" in f for f in device.faults)
+    assert not device.ports[1].serial.is_open and not device.ports[0].serial.is_open
+    # the healthy controller still got its neutral pose
+    assert pair[0].wait_for(1)[-1].time_ms == 500
+
+
+def test_stalled_writer_is_reported_not_waited_for(layout1d):
+    release = threading.Event()
+
+    class StuckPort:
+        is_open, in_waiting, name = True, 0, "stuck"
+
+        def write(self, data: bytes) -> int:
+            release.wait(3.0)  # ignores its write timeout, like a wedged driver
+            return len(data)
+
+        def read(self, n: int) -> bytes:
+            time.sleep(0.01)
+            return b""
+
+        def reset_input_buffer(self) -> None:
+            pass
+
+        def close(self) -> None:
+            self.is_open = False
+
+    device = SerialDevice(layout1d, [StuckPort()], RealClock(),
+                          SerialOptions(check_battery=False, write_timeout_s=0.05, refresh_s=0))
+    device.open()
+    try:
+        device.send(np.zeros(7))
+        time.sleep(0.6)
+        start = time.monotonic()
+        with pytest.raises(DeviceError, match=r"controller A on stuck: a write has not finished"):
+            device.send(np.ones(7))
+        assert time.monotonic() - start < 0.05  # send() itself never blocks
+    finally:
+        release.set()
+        device.close()
+
+
+def test_ctrl_c_inside_a_session_still_sends_neutral_and_releases(layout1d, boards):
+    (board,) = boards(1)
+    device = SerialDevice.from_url(_url([board]), layout1d, **FAST)
+    with pytest.raises(KeyboardInterrupt), device:
+        device.send(np.full(7, 4.0))
+        raise KeyboardInterrupt
+    deadline = time.monotonic() + 2.0
+    while not any(m.time_ms == 500 for m in board.moves()) and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert board.moves()[-1] == codec.ServoMove(tuple((ch, 1000) for ch in range(1, 8)), 500)
+    assert not device.ports[0].serial.is_open
+    with pytest.raises(DeviceError, match="send\\(\\) on a device that is closed"):
+        device.send(np.zeros(7))
+    device.close()  # idempotent
