@@ -1,0 +1,118 @@
+"""Accuracy per condition, participant and digit, with Wilson intervals and tests against chance.
+
+Tables returned here have the columns ``<group keys>, n_trials, n_correct, accuracy, ci_low,
+ci_high, p_vs_chance``: ``accuracy = n_correct / n_trials``; ``ci_low, ci_high`` the Wilson
+score interval (Wilson 1927; recommended by Brown, Cai & DasGupta 2001, Statist. Sci. 16:101)
+at level ``1 - alpha``; ``p_vs_chance`` the exact two-sided binomial test of ``accuracy ==
+chance`` (``scipy.stats.binomtest``), never reported as 0 (see :func:`floor_p`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+from statsmodels.stats.proportion import proportion_confint
+
+from crs_study.errors import AnalysisError
+
+#: The smallest p-value reported: below it, a p is shown as this bound with a warning.
+P_FLOOR = 1e-300
+TABLE_COLUMNS = ("n_trials", "n_correct", "accuracy", "ci_low", "ci_high", "p_vs_chance")
+
+
+def floor_p(p: float) -> float:
+    """Return ``p`` or :data:`P_FLOOR` when it underflows below it (a p is never 0)."""
+    return float(max(p, P_FLOOR))
+
+
+def wilson_interval(n_correct: int | np.ndarray, n_trials: int | np.ndarray,
+                    alpha: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Wilson score interval, ``statsmodels proportion_confint(method="wilson")``.
+
+    Notes
+    -----
+    ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z = Phi^-1(1-alpha/2)``.
+    """
+    low, high = proportion_confint(n_correct, n_trials, alpha=alpha, method="wilson")
+    return np.asarray(low, dtype=float), np.asarray(high, dtype=float)
+
+
+def chance_level(trials: pd.DataFrame, chance: float = 0.0) -> float:
+    """Chance accuracy: ``chance`` when given, else 1 / number of distinct digits shown."""
+    if chance > 0:
+        return chance
+    n_digits = trials["digit"].nunique()
+    if n_digits < 2:
+        raise AnalysisError(f"chance level undefined: the trials show {n_digits} digit(s); "
+                            "set plan.chance")
+    return 1.0 / n_digits
+
+
+def accuracy_table(trials: pd.DataFrame, by: list[str], chance: float,
+                   alpha: float = 0.05) -> pd.DataFrame:
+    """Accuracy of the answered trials grouped ``by`` the given columns (see module doc)."""
+    answered = trials.loc[trials["correct"].notna()]
+    if answered.empty:
+        return pd.DataFrame(columns=[*by, *TABLE_COLUMNS])
+    grouped = answered.groupby(by, sort=False, observed=True)["correct"]
+    table = pd.DataFrame({"n_trials": grouped.size(), "n_correct": grouped.sum()}).reset_index()
+    table["n_correct"] = table["n_correct"].round().astype(int)
+    table["n_trials"] = table["n_trials"].astype(int)
+    table["accuracy"] = table["n_correct"] / table["n_trials"]
+    table["ci_low"], table["ci_high"] = wilson_interval(table["n_correct"].to_numpy(),
+                                                        table["n_trials"].to_numpy(), alpha)
+    table["p_vs_chance"] = [
+        floor_p(stats.binomtest(int(k), int(n), chance).pvalue)
+        for k, n in zip(table["n_correct"], table["n_trials"], strict=True)
+    ]
+    return table
+
+
+@dataclass(frozen=True)
+class AccuracyResult:
+    """Accuracy tables and the inputs that made them.
+
+    ``by_condition``: one row per condition (in ``conditions`` order); ``by_participant``:
+    participant_id x condition; ``by_digit``: digit x condition; ``chance``: the chance level;
+    ``alpha``: 1 - interval level; ``warnings``: what was noted along the way.
+    """
+
+    by_condition: pd.DataFrame
+    by_participant: pd.DataFrame
+    by_digit: pd.DataFrame
+    conditions: tuple[str, ...]
+    chance: float
+    alpha: float
+    warnings: tuple[str, ...] = field(default=())
+
+    def to_frame(self) -> pd.DataFrame:
+        return self.by_condition.copy()
+
+    def condition_row(self, condition: str) -> pd.Series:
+        rows = self.by_condition.loc[self.by_condition["condition"] == condition]
+        if rows.empty:
+            raise AnalysisError(f"no accuracy for condition {condition!r}; "
+                                f"have {list(self.by_condition['condition'])}")
+        return rows.iloc[0]
+
+
+def analyse_accuracy(trials: pd.DataFrame, conditions: tuple[str, ...], chance: float,
+                     alpha: float = 0.05) -> AccuracyResult:
+    """Accuracy per condition, per participant and condition, per digit and condition."""
+    warnings = []
+    order = {c: i for i, c in enumerate(conditions)}
+    by_condition = accuracy_table(trials, ["condition"], chance, alpha)
+    by_condition = by_condition.sort_values("condition", key=lambda s: s.map(order))
+    by_participant = accuracy_table(trials, ["participant_id", "condition"], chance, alpha)
+    by_digit = accuracy_table(trials, ["digit", "condition"], chance, alpha)
+    by_participant = by_participant.sort_values(
+        ["participant_id", "condition"], key=lambda s: s.map(order) if s.name == "condition"
+        else s).reset_index(drop=True)
+    by_digit = by_digit.sort_values(
+        ["digit", "condition"], key=lambda s: s.map(order) if s.name == "condition"
+        else s).reset_index(drop=True)
+    return AccuracyResult(by_condition.reset_index(drop=True), by_participant, by_digit,
+                          conditions, chance, alpha, tuple(warnings))

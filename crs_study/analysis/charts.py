@@ -1,0 +1,157 @@
+"""Charts: pure functions of result objects, ``plot_x(result, ax=None) -> Axes``.
+
+No pyplot state: without ``ax`` a new :class:`matplotlib.figure.Figure` is made (reach it as
+``ax.figure``), so charts render the same under any backend and in threads.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+from crs_study.analysis.accuracy import AccuracyResult
+from crs_study.analysis.confusion import ConfusionResult
+from crs_study.analysis.psychometric import PsychometricResult
+from crs_study.analysis.speed_accuracy import SpeedAccuracyResult
+
+COLOURS = ("#4477aa", "#ee6677", "#228833", "#ccbb44", "#66ccee", "#aa3377")
+
+
+def _axes(ax: Axes | None, size: tuple[float, float] = (5.0, 4.0)) -> Axes:
+    if ax is not None:
+        return ax
+    return Figure(figsize=size, layout="constrained").add_subplot()
+
+
+def save(ax: Axes, path: str | Path, dpi: int = 110) -> Path:
+    """Write the axes' figure as PNG (metadata without dates, for identical reruns)."""
+    path = Path(path)
+    ax.figure.savefig(path, dpi=dpi, format="png", metadata={"Software": None})
+    return path
+
+
+def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
+    """Accuracy per condition (Wilson interval) over per-participant lines joining conditions."""
+    ax = _axes(ax)
+    conditions = list(result.by_condition["condition"])
+    x = {c: i for i, c in enumerate(conditions)}
+    wide = result.by_participant.pivot(index="participant_id", columns="condition",
+                                       values="accuracy").reindex(columns=conditions)
+    for _, row in wide.iterrows():
+        ax.plot(range(len(conditions)), 100 * row.to_numpy(float), color="0.6", lw=0.8,
+                alpha=0.6, marker="o", ms=3, zorder=1)
+    table = result.by_condition
+    for i, row in table.iterrows():
+        colour = COLOURS[i % len(COLOURS)]
+        acc = 100 * row["accuracy"]
+        ax.errorbar(x[row["condition"]], acc,
+                    yerr=[[acc - 100 * row["ci_low"]], [100 * row["ci_high"] - acc]],
+                    fmt="s", color=colour, ms=8, capsize=6, lw=2, zorder=3)
+        ax.annotate(f"{acc:.1f} %", (x[row["condition"]], acc), xytext=(10, 0),
+                    textcoords="offset points", va="center", fontsize=9)
+    ax.axhline(100 * result.chance, color="k", ls=":", lw=1)
+    ax.text(len(conditions) - 0.5, 100 * result.chance, " chance", va="bottom", ha="right",
+            fontsize=8)
+    ax.set_xticks(range(len(conditions)), conditions)
+    ax.set_xlim(-0.5, len(conditions) - 0.5)
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("correct (%)")
+    ax.set_title(f"Accuracy by condition ({100 * (1 - result.alpha):.0f} % Wilson intervals; "
+                 "grey: participants)", fontsize=9)
+    return ax
+
+
+def plot_confusion(result: ConfusionResult, ax: Axes | None = None) -> Axes:
+    """Heatmap of row proportions (digit shown x digit reported), counts in the cells."""
+    ax = _axes(ax, (4.6, 4.0))
+    proportions = result.proportions.to_numpy(float)
+    image = ax.imshow(proportions, cmap="Blues", vmin=0, vmax=1)
+    labels = [str(v) for v in result.counts.index]
+    ax.set_xticks(range(len(labels)), labels)
+    ax.set_yticks(range(len(labels)), labels)
+    counts = result.counts.to_numpy()
+    for (i, j), value in np.ndenumerate(counts):
+        if value:
+            ax.text(j, i, str(value), ha="center", va="center", fontsize=7,
+                    color="white" if proportions[i, j] > 0.5 else "black")
+    ax.set_xlabel("response")
+    ax.set_ylabel("digit shown")
+    ci = "" if result.ci95 is None else f" [{result.ci95[0]:.2f}, {result.ci95[1]:.2f}]"
+    ax.set_title(f"{result.condition}: {result.bits:.2f} bits{ci} transmitted", fontsize=9)
+    ax.figure.colorbar(image, ax=ax, shrink=0.8, label="proportion of row")
+    return ax
+
+
+def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> Axes:
+    """Mean correct RT against accuracy: participants (small) and condition means with CIs."""
+    ax = _axes(ax)
+    for i, condition in enumerate(result.conditions):
+        colour = COLOURS[i % len(COLOURS)]
+        cells = result.efficiency.loc[result.efficiency["condition"] == condition]
+        ax.scatter(cells["mean_correct_rt"].astype(float), 100 * cells["accuracy"].astype(float),
+                   s=14, color=colour, alpha=0.45, lw=0)
+        row = result.efficiency_summary.loc[result.efficiency_summary["condition"] == condition]
+        if row.empty or row.iloc[0]["mean_correct_rt"] is None \
+                or np.isnan(float(row.iloc[0]["mean_correct_rt"])):
+            continue
+        row = row.iloc[0]
+        rt, acc = float(row["mean_correct_rt"]), 100 * float(row["accuracy"])
+        ax.errorbar(rt, acc, xerr=[[rt - float(row["mean_correct_rt_ci_low"])],
+                                   [float(row["mean_correct_rt_ci_high"]) - rt]],
+                    yerr=[[acc - 100 * float(row["accuracy_ci_low"])],
+                          [100 * float(row["accuracy_ci_high"]) - acc]],
+                    fmt="D", color=colour, ms=8, capsize=4, lw=2, label=condition)
+    ax.set_xlabel(f"mean correct {result.rt_column.replace('_', ' ')} (s)")
+    ax.set_ylabel("correct (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=8, title="condition (mean, 95 % CI)", title_fontsize=8)
+    ax.set_title("Speed against accuracy (dots: participants)", fontsize=9)
+    return ax
+
+
+def plot_caf(result: SpeedAccuracyResult, ax: Axes | None = None) -> Axes:
+    """Conditional accuracy functions: accuracy by response-time quantile bin, per condition."""
+    ax = _axes(ax)
+    for i, condition in enumerate(result.conditions):
+        rows = result.caf.loc[result.caf["condition"] == condition]
+        if rows.empty:
+            continue
+        acc = 100 * rows["accuracy"].to_numpy(float)
+        ax.errorbar(rows["mean_rt"].to_numpy(float), acc,
+                    yerr=[acc - 100 * rows["ci_low"].to_numpy(float),
+                          100 * rows["ci_high"].to_numpy(float) - acc],
+                    marker="o", capsize=3, color=COLOURS[i % len(COLOURS)], label=condition)
+    ax.set_xlabel(f"mean {result.rt_column.replace('_', ' ')} in bin (s)")
+    ax.set_ylabel("correct (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=8)
+    ax.set_title("Conditional accuracy functions (RT quantile bins)", fontsize=9)
+    return ax
+
+
+def plot_psychometric(result: PsychometricResult, ax: Axes | None = None) -> Axes:
+    """Accuracy against level per condition with the fitted functions and thresholds."""
+    ax = _axes(ax)
+    for i, (condition, fit) in enumerate(result.fits.items()):
+        colour = COLOURS[i % len(COLOURS)]
+        data = fit.data
+        acc = 100 * data["accuracy"].to_numpy(float)
+        ax.errorbar(data["level"], acc, yerr=[acc - 100 * data["ci_low"].to_numpy(float),
+                                              100 * data["ci_high"].to_numpy(float) - acc],
+                    fmt="o", color=colour, capsize=3)
+        grid = np.linspace(data["level"].min(), data["level"].max(), 200)
+        ax.plot(grid, 100 * fit.predict(grid), color=colour,
+                label=f"{condition}: threshold {fit.threshold:.3g}")
+        if fit.threshold_ci95 is not None:
+            ax.axvspan(*fit.threshold_ci95, color=colour, alpha=0.12, lw=0)
+    if result.fits:
+        ax.axhline(100 * next(iter(result.fits.values())).guess, color="k", ls=":", lw=1)
+    ax.set_xlabel(str(result.level_column))
+    ax.set_ylabel("correct (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=8)
+    ax.set_title("Psychometric functions (shaded: threshold 95 % CI)", fontsize=9)
+    return ax

@@ -1,0 +1,340 @@
+"""Load one or several stored datasets into one tidy trial table, checked and with exclusions.
+
+The trial table (:attr:`LoadedData.trials`) has one row per trial and these columns:
+
+=============================  =========  ==================================================
+column                         dtype      meaning
+=============================  =========  ==================================================
+dataset                        str        the dataset's ``Name`` (directory name if absent)
+participant                    str        BIDS label without ``sub-``
+participant_id                 str        unique across datasets: ``participant``, or
+                                          ``dataset/participant`` when several datasets load
+session                        str        BIDS label without ``ses-``
+trial_index, block,            Int64      as in ``crs_study.schema.TRIAL_COLUMNS``
+repetition, frames,                       (nullable integers; ``n/a`` -> ``<NA>``)
+late_frames
+digit                          int64      the digit shown (never missing)
+response                       Int64      the digit reported, ``<NA>`` when timed out
+correct                        float64    1.0 / 0.0, NaN when timed out (or 0.0 under the
+                                          plan's ``timeouts = "count_as_error"``)
+response_time, ... (seconds)   float64    NaN for ``n/a``
+timed_out, device_fault        bool
+trial_type, condition,         str
+responder
+<level columns>                float64    extra numeric columns (``digit_height``, ...) kept
+excluded                       bool       True when an exclusion of the plan applies
+exclusion                      str        the first reason that applies ("" when kept):
+                                          practice, device_fault, timeout, anticipation, slow
+=============================  =========  ==================================================
+
+Checks on every session: the sidecar exists and names the same participant, session and task;
+``TrialsSha256`` equals the sha256 of the ``_beh.tsv`` bytes, ``ProtocolSha256`` and
+``DeviceFileSha256`` those of the recorded texts; ``TrialsCompleted`` equals the number of
+rows; ``correct`` agrees with ``response == digit``. A failed check means the data were edited
+after the session (or a bug): a warning by default, a :class:`DatasetError` with ``strict``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from crs_study.analysis.plan import Exclusions
+from crs_study.errors import DatasetError
+from crs_study.schema import MISSING, SESSION_STATUSES, TASK, TRIAL_COLUMNS
+
+INT_COLUMNS = ("trial_index", "block", "repetition", "frames", "late_frames", "response")
+FLOAT_COLUMNS = ("correct", "response_time", "response_time_from_offset", "onset",
+                 "stimulus_duration", "median_wire_latency", "trial_end")
+BOOL_COLUMNS = ("timed_out", "device_fault")
+TEXT_COLUMNS = ("trial_type", "condition", "responder")
+REQUIRED_COLUMNS = ("trial_type", "condition", "digit", "correct", "response")
+EXCLUSION_REASONS = ("practice", "device_fault", "timeout", "anticipation", "slow")
+
+
+@dataclass(frozen=True)
+class LoadedData:
+    """Every trial of the datasets, the sessions' metadata, the warnings and exclusions."""
+
+    trials: pd.DataFrame
+    sessions: pd.DataFrame
+    warnings: tuple[str, ...] = ()
+    exclusion_counts: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    @property
+    def analysed(self) -> pd.DataFrame:
+        """The trials kept after the plan's exclusions."""
+        return self.trials.loc[~self.trials["excluded"]].reset_index(drop=True)
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions | None = None,
+                  strict: bool = False) -> LoadedData:
+    """Load the datasets under ``paths``, check them, and apply ``exclusions`` (none if None).
+
+    Raises :class:`DatasetError` for a missing or unreadable dataset, and with ``strict`` for
+    any failed integrity check (otherwise each failure is a warning).
+    """
+    if isinstance(paths, str | Path):
+        paths = [paths]
+    if not paths:
+        raise DatasetError("no dataset given: expected at least one dataset directory")
+    warnings: list[str] = []
+    frames, sessions, files = [], [], []
+    names = [_dataset_name(Path(p)) for p in paths]
+    if len(set(names)) < len(names):
+        names = [str(Path(p)) for p in paths]
+    for path, name in zip(paths, names, strict=True):
+        for tsv in _session_files(Path(path)):
+            table, meta, problems = _read_session(tsv, name, len(files))
+            files.append(tsv)
+            warnings += _raise_if_strict(problems, strict)
+            frames.append(table)
+            sessions.append(meta)
+    trials, problems = _typed(pd.concat(frames, ignore_index=True), files)
+    warnings += _raise_if_strict(problems, strict)
+    several = len(paths) > 1
+    trials["participant_id"] = (trials["dataset"] + "/" + trials["participant"]) if several \
+        else trials["participant"]
+    trials = _order_columns(trials)
+    if exclusions is None:
+        trials["exclusion"], trials["excluded"] = "", False
+        counts: dict[str, dict[str, int]] = {}
+    else:
+        trials, counts = apply_exclusions(trials, exclusions)
+    return LoadedData(trials, pd.DataFrame(sessions), tuple(warnings), counts)
+
+
+def _raise_if_strict(problems: list[str], strict: bool) -> list[str]:
+    if strict and problems:
+        raise DatasetError(problems[0])
+    return problems
+
+
+def with_exclusions(data: LoadedData, exclusions: Exclusions) -> LoadedData:
+    """The same data with ``exclusions`` applied afresh (loaded with ``exclusions=None``)."""
+    trials, counts = apply_exclusions(data.trials, exclusions)
+    return LoadedData(trials, data.sessions, data.warnings, counts)
+
+
+def apply_exclusions(trials: pd.DataFrame, rules: Exclusions
+                     ) -> tuple[pd.DataFrame, dict[str, dict[str, int]]]:
+    """Mark excluded trials (first reason wins) and count them per reason and condition.
+
+    Returns the table with ``excluded`` and ``exclusion`` set, and ``{reason: {condition: n}}``
+    for every reason the plan enables (zeros included, so a report shows each rule applied).
+    """
+    trials = trials.copy()
+    rt = trials[rules.rt_column]
+    test_rt = trials["response_time"]
+    rules_in_order = [
+        ("practice", rules.practice, trials["trial_type"] == "practice"),
+        ("device_fault", rules.device_faults, trials["device_fault"]),
+        ("timeout", rules.timeouts == "exclude", trials["timed_out"] | trials["correct"].isna()),
+        ("anticipation", rules.anticipation_s > 0, test_rt < rules.anticipation_s),
+        ("slow", rules.max_response_time_s > 0, rt > rules.max_response_time_s),
+    ]
+    if rules.timeouts == "count_as_error":
+        timed_out = trials["timed_out"] | trials["correct"].isna()
+        trials.loc[timed_out, "correct"] = 0.0
+    reason = pd.Series("", index=trials.index, dtype=object)
+    counts: dict[str, dict[str, int]] = {}
+    conditions = sorted(trials["condition"].unique())
+    for name, enabled, mask in rules_in_order:
+        if not enabled:
+            continue
+        new = mask.fillna(False).astype(bool) & (reason == "")
+        reason[new] = name
+        per_condition = trials.loc[new, "condition"].value_counts()
+        counts[name] = {c: int(per_condition.get(c, 0)) for c in conditions}
+    trials["exclusion"] = reason.astype(str)
+    trials["excluded"] = reason != ""
+    return trials, counts
+
+
+def _dataset_name(path: Path) -> str:
+    description = path / "dataset_description.json"
+    try:
+        name = json.loads(description.read_text(encoding="utf-8")).get("Name")
+    except (OSError, ValueError, AttributeError):
+        name = None
+    return str(name) if name else path.resolve().name
+
+
+def _session_files(root: Path) -> list[Path]:
+    if not root.is_dir():
+        raise DatasetError(f"{root}: no such dataset directory")
+    files = sorted(root.glob(f"sub-*/ses-*/beh/sub-*_ses-*_task-{TASK}_beh.tsv"))
+    files += sorted(root.glob(f"sub-*/beh/sub-*_task-{TASK}_beh.tsv"))
+    if not files:
+        raise DatasetError(f"{root}: no sessions found (expected "
+                           f"sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-{TASK}_beh.tsv)")
+    return files
+
+
+def _labels(tsv: Path) -> tuple[str, str]:
+    parts = dict(p.split("-", 1) for p in tsv.name.split("_") if "-" in p)
+    return parts.get("sub", ""), parts.get("ses", "")
+
+
+def _read_session(tsv: Path, dataset: str, file_number: int
+                  ) -> tuple[pd.DataFrame, dict, list[str]]:
+    """One session's rows as read (typed later, all files at once) and its metadata."""
+    problems: list[str] = []
+    participant, session = _labels(tsv)
+    data = tsv.read_bytes()
+    sidecar_path = tsv.with_suffix(".json")
+    try:
+        meta = json.loads(sidecar_path.read_text(encoding="utf-8"))
+        if not isinstance(meta, dict):
+            raise ValueError("not an object")
+    except FileNotFoundError:
+        meta = {}
+        problems.append(f"{sidecar_path}: session metadata missing; its trials are unchecked")
+    except (OSError, ValueError) as exc:
+        meta = {}
+        problems.append(f"{sidecar_path}: session metadata unreadable ({exc}); "
+                        "its trials are unchecked")
+    if meta:
+        problems += _check_metadata(meta, tsv, data, participant, session)
+    try:
+        raw = pd.read_csv(io.BytesIO(data), sep="\t", keep_default_na=False,
+                          na_values=[MISSING], dtype={c: str for c in TEXT_COLUMNS})
+    except (ValueError, pd.errors.ParserError) as exc:
+        raise DatasetError(f"{tsv}: not a readable TSV: {str(exc).splitlines()[0]}") from None
+    missing = [c for c in REQUIRED_COLUMNS if c not in raw.columns]
+    if missing:
+        raise DatasetError(f"{tsv}: missing column {missing[0]!r} "
+                           f"(expected the columns of crs_study.schema.TRIAL_COLUMNS)")
+    if meta and "TrialsCompleted" in meta and meta["TrialsCompleted"] != len(raw):
+        problems.append(f"{tsv}: TrialsCompleted is {meta['TrialsCompleted']!r} but the file "
+                        f"holds {len(raw)} trials (possible tampering)")
+    raw.insert(0, "_row", np.arange(2, len(raw) + 2))
+    raw.insert(0, "_file", file_number)
+    raw.insert(0, "session", session)
+    raw.insert(0, "participant", participant)
+    raw.insert(0, "dataset", dataset)
+    summary = {"dataset": dataset, "participant": participant, "session": session,
+               "file": str(tsv), "n_rows": len(raw),
+               **{k: meta.get(k) for k in ("Status", "Seed", "SoftwareVersion", "StartTime",
+                                           "EndTime", "ConsentFormVersion", "DeviceURL",
+                                           "Clock", "ProtocolPath", "TrialsSha256")}}
+    summary["Protocol"] = meta.get("Protocol")
+    return raw, summary, problems
+
+
+def _check_metadata(meta: dict, tsv: Path, data: bytes, participant: str,
+                    session: str) -> list[str]:
+    problems = []
+    sidecar = tsv.with_suffix(".json")
+    recorded = meta.get("TrialsSha256")
+    actual = hashlib.sha256(data).hexdigest()
+    if recorded is None:
+        problems.append(f"{sidecar}: TrialsSha256 missing; the trials cannot be verified")
+    elif recorded != actual:
+        problems.append(f"{tsv}: TAMPERED? sha256 is {actual[:16]}... but the session recorded "
+                        f"TrialsSha256 {str(recorded)[:16]}...; the file changed after the "
+                        "session was written")
+    for text_key, sha_key in (("Protocol", "ProtocolSha256"), ("DeviceFile", "DeviceFileSha256")):
+        text, sha = meta.get(text_key), meta.get(sha_key)
+        if isinstance(text, str) and isinstance(sha, str) and \
+                hashlib.sha256(text.encode("utf-8")).hexdigest() != sha:
+            problems.append(f"{sidecar}: {sha_key} does not match the recorded {text_key} "
+                            "text (possible tampering)")
+    for key, expected in (("Participant", participant), ("Session", session),
+                          ("TaskName", TASK)):
+        value = meta.get(key)
+        if value is not None and str(value).removeprefix("sub-").removeprefix("ses-") \
+                != expected:
+            problems.append(f"{sidecar}: {key} is {value!r} but the file name says "
+                            f"{expected!r} (possible tampering)")
+    status = meta.get("Status")
+    if status is not None and status not in SESSION_STATUSES:
+        problems.append(f"{sidecar}: Status {status!r} is not one of {list(SESSION_STATUSES)}")
+    elif status in ("running", "interrupted"):
+        problems.append(f"{sidecar}: session status is {status!r}: its "
+                        f"{meta.get('TrialsCompleted', '?')} of {meta.get('TrialsPlanned', '?')} "
+                        "trials are analysed as they stand")
+    return problems
+
+
+def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str]]:
+    """Type every column (see the module table); check ``correct`` against the response."""
+    def where(mask: pd.Series) -> str:
+        first = int(np.flatnonzero(mask.to_numpy())[0])
+        return f"{files[int(raw['_file'].iloc[first])]}: row {int(raw['_row'].iloc[first])}"
+
+    out = pd.DataFrame(index=raw.index)
+    for column in raw.columns:
+        values = raw[column]
+        if column in ("dataset", "participant", "session", "_file", "_row"):
+            out[column] = values
+        elif column in BOOL_COLUMNS:
+            out[column] = _numbers(values, column, where).fillna(0).astype(bool)
+        elif column in INT_COLUMNS or column == "digit":
+            numbers = _numbers(values, column, where)
+            fraction = numbers.notna() & (numbers % 1 != 0)
+            if fraction.any():
+                raise DatasetError(f"{where(fraction)}: column {column!r}: expected a whole "
+                                   f"number, got {values[fraction].iloc[0]!r}")
+            out[column] = numbers.astype("Int64")
+        elif column in FLOAT_COLUMNS:
+            out[column] = _numbers(values, column, where)
+        elif column in TEXT_COLUMNS:
+            out[column] = values.fillna("").astype(str)
+        else:  # protocol-specific columns: as pandas reads them (numbers when all parse)
+            out[column] = values
+    if out["digit"].isna().any():
+        raise DatasetError(f"{where(out['digit'].isna())}: column 'digit' is {MISSING!r}; "
+                           "every trial must name the digit shown")
+    out["digit"] = out["digit"].astype("int64")
+    for column in TRIAL_COLUMNS:
+        if column in out:
+            continue
+        if column in BOOL_COLUMNS:
+            out[column] = False
+        elif column in TEXT_COLUMNS:
+            out[column] = ""
+        elif column in INT_COLUMNS:
+            out[column] = pd.Series(pd.NA, index=out.index, dtype="Int64")
+        else:
+            out[column] = np.nan
+    problems = []
+    answered = out["response"].notna() & out["correct"].notna()
+    recomputed = (out["response"] == out["digit"]).astype("Float64").astype(float)
+    disagree = answered & (recomputed != out["correct"])
+    for number in pd.unique(out.loc[disagree, "_file"]):
+        mask = disagree & (out["_file"] == number)
+        first = out.loc[mask].iloc[0]
+        problems.append(f"{where(mask)}: correct={first['correct']:g} disagrees with "
+                        f"digit={first['digit']} response={first['response']} "
+                        f"({int(mask.sum())} such row(s) in the file; possible tampering); "
+                        "'correct' recomputed from response and digit")
+    out.loc[disagree, "correct"] = recomputed[disagree]
+    return out.drop(columns=["_file", "_row"]), problems
+
+
+def _numbers(values: pd.Series, column: str, where) -> pd.Series:
+    if pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values):
+        return values.astype(float)
+    numbers = pd.to_numeric(values, errors="coerce")
+    bad = numbers.isna() & values.notna()
+    if bad.any():
+        raise DatasetError(f"{where(bad)}: column {column!r}: expected a number or "
+                           f"{MISSING!r}, got {values[bad].iloc[0]!r}")
+    return numbers.astype(float)
+
+
+def _order_columns(trials: pd.DataFrame) -> pd.DataFrame:
+    first = ["dataset", "participant", "participant_id", "session"] + list(TRIAL_COLUMNS)
+    rest = [c for c in trials.columns if c not in first]
+    return trials[first + rest]

@@ -1,0 +1,247 @@
+"""Analysis plans: what is tested and how, declared before the data exist.
+
+A plan is a TOML file under ``analysis/`` read strictly through :class:`crs_study._toml.Section`:
+an unknown key, a wrong type or a value outside its range is a one-line
+:class:`~crs_study.errors.PlanError` naming the file, the key path and the value received.
+Every table and every key is optional except ``[plan].name``; the defaults are those of
+``analysis/digit_identification.toml``, documented in ``analysis/README.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from crs_study._toml import Section, read_toml
+from crs_study.errors import PlanError
+
+TIMEOUT_POLICIES = ("exclude", "count_as_error")
+GLMM_METHODS = ("laplace", "agq")
+RANDOM_EFFECTS = ("participant", "digit")
+SECONDARY_TESTS = ("paired_t", "wilcoxon", "mcnemar", "per_digit")
+CORRECTIONS = ("holm", "bonferroni", "holm-sidak", "hommel", "fdr_bh", "none")
+BIAS_CORRECTIONS = ("miller-madow", "none")
+BOOTSTRAP_UNITS = ("participant", "trial")
+PSYCHOMETRIC_FUNCTIONS = ("logistic", "weibull")
+REPORT_FORMATS = ("markdown", "html")
+CHARTS = ("accuracy", "confusion", "speed_accuracy", "caf", "psychometric")
+#: Columns a protocol may vary; the first present with more than one value is the level.
+KNOWN_LEVEL_COLUMNS = ("digit_height", "stroke_speed", "digit_size", "stimulus_level")
+
+
+@dataclass(frozen=True)
+class Exclusions:
+    """Which trials are left out before any analysis (counts are reported per reason)."""
+
+    practice: bool = True
+    device_faults: bool = True
+    timeouts: str = "exclude"          # or "count_as_error"
+    anticipation_s: float = 0.15       # response_time below this is an anticipation; 0 = off
+    max_response_time_s: float = 0.0   # response_time above this is excluded; 0 = off
+    rt_column: str = "response_time"
+
+
+@dataclass(frozen=True)
+class PrimaryTest:
+    """The confirmatory test: correct ~ condition + (1 | participant) [+ (1 | digit)]."""
+
+    outcome: str = "correct"
+    test: str = "glmm"
+    method: str = "laplace"
+    n_quadrature: int = 25
+    random_effects: tuple[str, ...] = ("participant",)
+    reference: str = ""                # the reference condition; "" = first of plan.conditions
+
+
+@dataclass(frozen=True)
+class SecondaryTests:
+    tests: tuple[str, ...] = SECONDARY_TESTS
+    correction: str = "holm"
+
+
+@dataclass(frozen=True)
+class ConfusionPlan:
+    bias_correction: str = "miller-madow"
+    bootstrap: int = 2000
+    bootstrap_unit: str = "participant"
+
+
+@dataclass(frozen=True)
+class SpeedAccuracyPlan:
+    caf_bins: int = 5
+
+
+@dataclass(frozen=True)
+class PsychometricPlan:
+    level_column: str = "auto"         # "auto" looks for KNOWN_LEVEL_COLUMNS
+    function: str = "logistic"
+    lapse_max: float = 0.1
+    threshold: float = 0.5             # F(level) = threshold, between guess and 1 - lapse
+    bootstrap: int = 200
+
+
+@dataclass(frozen=True)
+class ReportPlan:
+    format: str = "markdown"
+    charts: tuple[str, ...] = CHARTS
+
+
+@dataclass(frozen=True)
+class AnalysisPlan:
+    """A parsed analysis plan (see ``analysis/README.md`` for every key)."""
+
+    name: str
+    description: str = ""
+    alpha: float = 0.05
+    conditions: tuple[str, ...] = ()   # order of conditions; empty = as found in the data
+    chance: float = 0.0                # 0 = 1 / number of digits in the data
+    seed: int = 20260101
+    primary: PrimaryTest = field(default_factory=PrimaryTest)
+    exclusions: Exclusions = field(default_factory=Exclusions)
+    secondary: SecondaryTests = field(default_factory=SecondaryTests)
+    confusion: ConfusionPlan = field(default_factory=ConfusionPlan)
+    speed_accuracy: SpeedAccuracyPlan = field(default_factory=SpeedAccuracyPlan)
+    psychometric: PsychometricPlan = field(default_factory=PsychometricPlan)
+    report: ReportPlan = field(default_factory=ReportPlan)
+    source: str = ""
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], source: str | Path = "<plan>") -> AnalysisPlan:
+        """Build a plan from parsed TOML, rejecting unknown keys and out-of-range values."""
+        root = Section(data, source, error=PlanError)
+        head = root.table("plan")
+        name = head.string("name")
+        description = head.string("description", "")
+        alpha = head.number("alpha", 0.05, minimum=0.0, exclusive_minimum=True, maximum=0.5)
+        conditions = _strings(head, "conditions", (), unique=True)
+        chance = head.number("chance", 0.0, minimum=0.0, maximum=1.0)
+        if chance == 1.0:
+            raise head.fail("chance", "expected a probability below 1, got 1.0")
+        seed = head.integer("seed", 20260101, minimum=0)
+        head.done()
+
+        primary = _primary(root.table("primary", {}), conditions)
+        exclusions = _exclusions(root.table("exclusions", {}))
+        secondary = _secondary(root.table("secondary", {}))
+        confusion = _confusion(root.table("confusion", {}))
+        speed = root.table("speed_accuracy", {})
+        speed_plan = SpeedAccuracyPlan(caf_bins=speed.integer("caf_bins", 5, minimum=2,
+                                                             maximum=20))
+        speed.done()
+        psychometric = _psychometric(root.table("psychometric", {}))
+        report = root.table("report", {})
+        report_plan = ReportPlan(
+            format=report.string("format", "markdown", choices=REPORT_FORMATS),
+            charts=_strings(report, "charts", CHARTS, choices=CHARTS, unique=True),
+        )
+        report.done()
+        root.done()
+        return cls(name=name, description=description, alpha=alpha, conditions=conditions,
+                   chance=chance, seed=seed, primary=primary, exclusions=exclusions,
+                   secondary=secondary, confusion=confusion, speed_accuracy=speed_plan,
+                   psychometric=psychometric, report=report_plan, source=str(source))
+
+    def reference_condition(self, present: list[str]) -> str:
+        """The reference condition: the plan's, else the first planned, else the first present."""
+        if self.primary.reference:
+            return self.primary.reference
+        if self.conditions:
+            return self.conditions[0]
+        return present[0]
+
+
+def load_plan(path: str | Path) -> AnalysisPlan:
+    """Read and validate an analysis plan file (``analysis/*.toml``)."""
+    return AnalysisPlan.from_dict(read_toml(path, PlanError), Path(path).name)
+
+
+def default_plan_path() -> Path:
+    """The shipped plan that goes with the default protocol."""
+    from crs_study.paths import shipped_file
+
+    return shipped_file("analysis/digit_identification.toml")
+
+
+def _strings(section: Section, key: str, default: tuple[str, ...], *,
+             choices: tuple[str, ...] | None = None, unique: bool = False) -> tuple[str, ...]:
+    if not section.has(key):
+        section.raw(key, None)
+        return default
+    values = section.array(key)
+    for value in values:
+        if not isinstance(value, str) or not value:
+            raise section.fail(key, f"expected an array of non-empty strings, got {values!r}")
+        if choices is not None and value not in choices:
+            raise section.fail(key, f"expected values among {list(choices)}, got {value!r}")
+    if unique and len(set(values)) != len(values):
+        raise section.fail(key, f"expected no repeated values, got {values!r}")
+    return tuple(values)
+
+
+def _primary(section: Section, conditions: tuple[str, ...]) -> PrimaryTest:
+    outcome = section.string("outcome", "correct", choices=("correct",))
+    test = section.string("test", "glmm", choices=("glmm",))
+    method = section.string("method", "laplace", choices=GLMM_METHODS)
+    n_quadrature = section.integer("n_quadrature", 25, minimum=1, maximum=100)
+    effects = _strings(section, "random_effects", ("participant",), choices=RANDOM_EFFECTS,
+                       unique=True)
+    if "participant" not in effects:
+        raise section.fail("random_effects",
+                           f"expected 'participant' among the random effects, got {list(effects)}")
+    if method == "agq" and len(effects) > 1:
+        raise section.fail("method", "adaptive quadrature needs a single random intercept; "
+                                     f"got 'agq' with random_effects {list(effects)}")
+    reference = section.string("reference", "")
+    if reference and conditions and reference not in conditions:
+        raise section.fail("reference",
+                           f"expected one of plan.conditions {list(conditions)}, got {reference!r}")
+    section.done()
+    return PrimaryTest(outcome, test, method, n_quadrature, effects, reference)
+
+
+def _exclusions(section: Section) -> Exclusions:
+    practice = section.boolean("practice", True)
+    faults = section.boolean("device_faults", True)
+    timeouts = section.string("timeouts", "exclude", choices=TIMEOUT_POLICIES)
+    anticipation = section.number("anticipation_s", 0.15, minimum=0.0, maximum=10.0)
+    slow = section.number("max_response_time_s", 0.0, minimum=0.0)
+    if slow and slow <= anticipation:
+        raise section.fail("max_response_time_s",
+                           f"expected a limit above anticipation_s ({anticipation:g}), "
+                           f"got {slow!r}")
+    rt_column = section.string("rt_column", "response_time",
+                               choices=("response_time", "response_time_from_offset"))
+    section.done()
+    return Exclusions(practice, faults, timeouts, anticipation, slow, rt_column)
+
+
+def _secondary(section: Section) -> SecondaryTests:
+    tests = _strings(section, "tests", SECONDARY_TESTS, choices=SECONDARY_TESTS, unique=True)
+    correction = section.string("correction", "holm", choices=CORRECTIONS)
+    section.done()
+    return SecondaryTests(tests, correction)
+
+
+def _confusion(section: Section) -> ConfusionPlan:
+    plan = ConfusionPlan(
+        bias_correction=section.string("bias_correction", "miller-madow",
+                                       choices=BIAS_CORRECTIONS),
+        bootstrap=section.integer("bootstrap", 2000, minimum=0, maximum=100_000),
+        bootstrap_unit=section.string("bootstrap_unit", "participant", choices=BOOTSTRAP_UNITS),
+    )
+    section.done()
+    return plan
+
+
+def _psychometric(section: Section) -> PsychometricPlan:
+    plan = PsychometricPlan(
+        level_column=section.string("level_column", "auto"),
+        function=section.string("function", "logistic", choices=PSYCHOMETRIC_FUNCTIONS),
+        lapse_max=section.number("lapse_max", 0.1, minimum=0.0, maximum=0.5),
+        threshold=section.number("threshold", 0.5, minimum=0.0, exclusive_minimum=True,
+                                 maximum=0.99),
+        bootstrap=section.integer("bootstrap", 200, minimum=0, maximum=10_000),
+    )
+    section.done()
+    return plan

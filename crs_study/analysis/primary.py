@@ -1,0 +1,187 @@
+"""The primary test: a mixed-effects logistic regression of correctness on condition.
+
+``correct ~ condition + (1 | participant) [+ (1 | digit)]`` (lme4 notation), fitted by
+maximum likelihood with :func:`crs_study.analysis.glmm.fit_glmm` (Laplace, or adaptive
+Gauss-Hermite quadrature for a single random intercept). Conditions use treatment coding
+against the plan's reference condition, so each coefficient is the log odds ratio of a
+condition against the reference, at the typical participant (and digit).
+
+Each comparison reports the odds ratio ``exp(b)`` with its Wald interval ``exp(b -/+ z se)``,
+the Wald p-value ``2 Phi(-|b/se|)`` and the likelihood-ratio p-value of dropping that
+coefficient (chi2 with 1 df); ``p_value`` is the likelihood-ratio one, which is the more
+accurate for logistic models (Agresti 2013, Categorical Data Analysis, 3rd ed., sec. 1.3.3).
+With more than two conditions an omnibus likelihood-ratio test of condition (k - 1 df) is
+reported too. When the model cannot be fitted at all, Fisher's exact test on the pooled 2 x 2
+table is reported instead, with a warning saying so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from crs_study.analysis.accuracy import floor_p
+from crs_study.errors import AnalysisError
+
+GROUP_COLUMNS = {"participant": "participant_id", "digit": "digit"}
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """One condition against the reference: ``estimate`` is an odds ratio (condition/reference).
+
+    ``ci95`` is the interval at the plan's level (95 % unless alpha differs); ``p_value`` the
+    method's p; ``p_wald`` and ``p_lr`` both when the GLMM gave them (else None).
+    """
+
+    condition: str
+    reference: str
+    method: str
+    estimate: float
+    ci95: tuple[float, float]
+    p_value: float
+    p_wald: float | None = None
+    p_lr: float | None = None
+    log_odds: float | None = None
+    std_error: float | None = None
+
+    def to_dict(self) -> dict:
+        return {"condition": self.condition, "reference": self.reference,
+                "method": self.method, "estimate": self.estimate, "ci95": list(self.ci95),
+                "p_value": self.p_value, "p_wald": self.p_wald, "p_lr": self.p_lr,
+                "log_odds": self.log_odds, "std_error": self.std_error}
+
+
+@dataclass(frozen=True)
+class PrimaryResult:
+    """Comparisons against the reference, the omnibus test, the model summary, warnings."""
+
+    comparisons: tuple[Comparison, ...]
+    omnibus: dict | None
+    model: dict | None
+    warnings: tuple[str, ...] = field(default=())
+
+    def to_frame(self) -> pd.DataFrame:
+        return pd.DataFrame([c.to_dict() for c in self.comparisons])
+
+
+def design(trials: pd.DataFrame, conditions: list[str], reference: str) -> pd.DataFrame:
+    """Treatment-coded design: ``Intercept`` and one ``condition[c]`` column per other one."""
+    columns = {"Intercept": np.ones(len(trials))}
+    for condition in conditions:
+        if condition != reference:
+            columns[f"condition[{condition}]"] = (trials["condition"] == condition).to_numpy(
+                dtype=float)
+    return pd.DataFrame(columns, index=trials.index)
+
+
+def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
+                 random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
+                 n_quadrature: int = 25, alpha: float = 0.05) -> PrimaryResult:
+    """Fit the GLMM on the answered ``trials`` and compare each condition with ``reference``.
+
+    ``conditions`` are those present in the data, ``reference`` among them.
+    """
+    data = trials.loc[trials["correct"].notna(), ["correct", "condition", "participant_id",
+                                                  "digit"]].reset_index(drop=True)
+    data = data.loc[data["condition"].isin(conditions)].reset_index(drop=True)
+    warnings: list[str] = []
+    if len(conditions) < 2 or reference not in conditions:
+        warnings.append(f"primary test not run: it needs the reference and at least one other "
+                        f"condition with trials, found {conditions!r}")
+        return PrimaryResult((), None, None, tuple(warnings))
+    groups = [GROUP_COLUMNS[g] for g in random_effects]
+    if method == "agq" and len(groups) > 1:
+        warnings.append("adaptive quadrature needs a single random intercept: fitted with the "
+                        "Laplace approximation instead")
+        method = "laplace"
+    full_design = design(data, conditions, reference)
+    try:
+        full = _fit(data, full_design, groups, method, n_quadrature)
+    except (AnalysisError, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        warnings.append(f"the mixed model could not be fitted ({exc}); reported Fisher's exact "
+                        "test on the pooled 2 x 2 table of each condition against the reference "
+                        "instead, which ignores the repeated measures")
+        return PrimaryResult(_fisher_comparisons(data, conditions, reference, alpha), None,
+                             None, tuple(warnings))
+    warnings += [f"GLMM: {w}" for w in full.warnings]
+    level = 1.0 - alpha
+    odds = full.odds_ratios(level)
+    wald = full.pvalues
+    label = _method_label(full)
+    comparisons = []
+    for column in full_design.columns[1:]:
+        condition = column[len("condition["):-1]
+        if column not in full.params.index:
+            warnings.append(f"GLMM dropped the coefficient of {condition!r} (no trials or "
+                            "aliased): no comparison for it")
+            continue
+        reduced = _fit(data, full_design.drop(columns=column), groups, method, n_quadrature)
+        test = _lrt(full, reduced)
+        warnings += [f"GLMM likelihood-ratio test of {condition!r}: {w}"
+                     for w in getattr(test, "warnings", ())]
+        comparisons.append(Comparison(
+            condition=condition, reference=reference, method=label,
+            estimate=float(odds.loc[column, "odds_ratio"]),
+            ci95=(float(odds.loc[column, "ci_low"]), float(odds.loc[column, "ci_high"])),
+            p_value=floor_p(test.pvalue), p_wald=floor_p(wald[column]),
+            p_lr=floor_p(test.pvalue), log_odds=float(full.params[column]),
+            std_error=float(full.bse[column])))
+    omnibus = None
+    if len(comparisons) > 1:
+        null = _fit(data, full_design[["Intercept"]], groups, method, n_quadrature)
+        test = _lrt(full, null)
+        omnibus = {"method": "likelihood-ratio test of condition", "statistic":
+                   float(test.statistic), "df": int(test.df), "p_value": floor_p(test.pvalue)}
+    model = full.to_dict(level) if hasattr(full, "to_dict") else None
+    return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings))
+
+
+def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, groups: list[str], method: str,
+         n_quadrature: int):
+    from crs_study.analysis.glmm import fit_glmm
+
+    return fit_glmm(data, "correct", design_matrix, groups, method=method,
+                    n_quadrature=n_quadrature)
+
+
+def _lrt(full, reduced):
+    from crs_study.analysis import glmm
+
+    return glmm.lrt(full, reduced)
+
+
+def _method_label(model) -> str:
+    how = {"laplace": "Laplace", "agq": f"AGQ {model.n_quadrature} points",
+           "glm": "no random effect estimable: logistic regression"}.get(model.method,
+                                                                        model.method)
+    effects = "".join(f" + (1 | {g.removesuffix('_id')})"
+                      for g in model.variance_components.index)
+    penalty = ", penalised against separation" if model.penalty else ""
+    return f"GLMM correct ~ condition{effects} ({how}{penalty}); odds ratio, LR test"
+
+
+def _fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: str,
+                        alpha: float) -> tuple[Comparison, ...]:
+    """Pooled 2 x 2 tables: Haldane-Anscombe odds ratio (+0.5 when a cell is 0), Fisher p."""
+    out = []
+    z = stats.norm.ppf(1 - alpha / 2)
+    ref = data.loc[data["condition"] == reference, "correct"]
+    for condition in conditions:
+        if condition == reference:
+            continue
+        other = data.loc[data["condition"] == condition, "correct"]
+        table = np.array([[other.sum(), len(other) - other.sum()],
+                          [ref.sum(), len(ref) - ref.sum()]], dtype=float)
+        p = stats.fisher_exact(table.round().astype(int)).pvalue
+        cells = table + 0.5 if (table == 0).any() else table
+        log_or = np.log(cells[0, 0] * cells[1, 1] / (cells[0, 1] * cells[1, 0]))
+        se = float(np.sqrt((1.0 / cells).sum()))
+        out.append(Comparison(condition, reference, "Fisher's exact test, pooled 2 x 2 table "
+                              "(odds ratio with Woolf interval)", float(np.exp(log_or)),
+                              (float(np.exp(log_or - z * se)), float(np.exp(log_or + z * se))),
+                              floor_p(p), log_odds=float(log_or), std_error=se))
+    return tuple(out)

@@ -1,0 +1,189 @@
+"""Psychometric functions: accuracy against a varied stimulus level, per condition.
+
+``psi(x) = gamma + (1 - gamma - lambda) F(x; alpha, beta)`` (Wichmann & Hill 2001, Percept.
+Psychophys. 63:1293, Eq. 1) with the guess rate ``gamma = 1 / number of digits`` fixed and
+the lapse rate ``lambda`` free in ``[0, lapse_max]``; ``F`` is the logistic ``1 / (1 +
+exp(-beta (x - alpha)))`` (``beta`` may be negative: accuracy falling with the level, as for
+stroke speed) or the Weibull ``1 - exp(-(x / alpha)^beta)`` (``x > 0``, rising). Parameters
+maximise the binomial likelihood of the counts per level (``scipy.optimize.minimize``,
+L-BFGS-B, several starts). The threshold is the level where ``F = threshold`` (0.5: half-way
+between guessing and ``1 - lambda``); its interval is a seeded percentile bootstrap that
+redraws the count at each level from its observed proportion (resampling the trials there).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy import optimize, special
+
+from crs_study.analysis.accuracy import wilson_interval
+from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
+
+
+@dataclass(frozen=True)
+class PsychometricFit:
+    """One condition's fit: parameters, threshold with interval, and the data it used
+    (``data``: ``level, n_trials, n_correct, accuracy, ci_low, ci_high``)."""
+
+    condition: str
+    function: str
+    alpha: float
+    beta: float
+    lapse: float
+    guess: float
+    threshold: float
+    threshold_ci95: tuple[float, float] | None
+    loglike: float
+    data: pd.DataFrame
+    n_bootstrap: int = 0
+    note: str = ""
+
+    def predict(self, levels: np.ndarray) -> np.ndarray:
+        return psi(np.asarray(levels, float), self.function, self.alpha, self.beta,
+                   self.guess, self.lapse)
+
+    def to_dict(self) -> dict:
+        return {"condition": self.condition, "function": self.function, "alpha": self.alpha,
+                "beta": self.beta, "lapse": self.lapse, "guess": self.guess,
+                "threshold": self.threshold,
+                "threshold_ci95": None if self.threshold_ci95 is None
+                else list(self.threshold_ci95),
+                "loglike": self.loglike, "n_bootstrap": self.n_bootstrap, "note": self.note,
+                "levels": self.data["level"].tolist(),
+                "n_trials": self.data["n_trials"].tolist(),
+                "n_correct": self.data["n_correct"].tolist()}
+
+
+@dataclass(frozen=True)
+class PsychometricResult:
+    level_column: str | None
+    fits: dict[str, PsychometricFit]
+    skipped: bool
+    note: str = ""
+    warnings: tuple[str, ...] = field(default=())
+
+    def to_frame(self) -> pd.DataFrame:
+        return pd.DataFrame([f.to_dict() for f in self.fits.values()])
+
+
+def sigmoid(x: np.ndarray, function: str, alpha: float, beta: float) -> np.ndarray:
+    if function == "logistic":
+        return special.expit(beta * (x - alpha))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return -np.expm1(-np.power(np.clip(x, 0.0, None) / alpha, beta))
+
+
+def psi(x: np.ndarray, function: str, alpha: float, beta: float, guess: float,
+        lapse: float) -> np.ndarray:
+    """``gamma + (1 - gamma - lambda) F(x)``."""
+    return guess + (1.0 - guess - lapse) * sigmoid(x, function, alpha, beta)
+
+
+def threshold_level(function: str, alpha: float, beta: float, at: float = 0.5) -> float:
+    """Level where ``F = at``: logistic ``alpha + logit(at) / beta``; Weibull
+    ``alpha (-ln(1 - at))^(1/beta)``."""
+    if function == "logistic":
+        return float(alpha + special.logit(at) / beta)
+    return float(alpha * (-np.log1p(-at)) ** (1.0 / beta))
+
+
+def find_level_column(trials: pd.DataFrame, wanted: str = "auto") -> str | None:
+    """The level column: ``wanted``, or the first of KNOWN_LEVEL_COLUMNS that varies."""
+    candidates = KNOWN_LEVEL_COLUMNS if wanted == "auto" else (wanted,)
+    for column in candidates:
+        if column in trials and pd.api.types.is_numeric_dtype(trials[column]) \
+                and trials[column].nunique() > 1:
+            return column
+    return None
+
+
+def fit_counts(levels: np.ndarray, n: np.ndarray, k: np.ndarray, function: str, guess: float,
+               lapse_max: float, start: tuple[float, float, float] | None = None
+               ) -> tuple[float, float, float, float]:
+    """Maximum-likelihood ``(alpha, beta, lapse, loglike)`` for counts ``k`` of ``n``."""
+    low, high = float(levels.min()), float(levels.max())
+    span = max(high - low, 1e-9)
+
+    def nll(theta: np.ndarray) -> float:
+        p = psi(levels, function, theta[0], theta[1], guess, theta[2])
+        p = np.clip(p, 1e-12, 1 - 1e-12)
+        return -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+
+    if function == "logistic":
+        bounds = [(low - span, high + span), (-100.0 / span, 100.0 / span), (0.0, lapse_max)]
+        starts = [(a, s * b / span, 0.02 * (lapse_max > 0))
+                  for a in (low + span / 4, (low + high) / 2, high - span / 4)
+                  for s in (1, -1) for b in (2.0, 8.0)]
+    else:
+        positive = max(low, 1e-6)
+        bounds = [(positive / 10, high * 10), (0.1, 50.0), (0.0, lapse_max)]
+        starts = [(a, b, 0.02 * (lapse_max > 0)) for a in (positive, (low + high) / 2, high)
+                  for b in (1.5, 4.0)]
+    if start is not None:
+        starts = [start]
+    best = None
+    for x0 in starts:
+        x0 = np.clip(np.asarray(x0, float), [b[0] for b in bounds], [b[1] for b in bounds])
+        result = optimize.minimize(nll, x0, method="L-BFGS-B", bounds=bounds)
+        if best is None or result.fun < best.fun:
+            best = result
+    a, b, lam = best.x
+    return float(a), float(b), float(lam), -float(best.fun)
+
+
+def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: float,
+                         level_column: str = "auto", function: str = "logistic",
+                         lapse_max: float = 0.1, threshold: float = 0.5,
+                         n_bootstrap: int = 200, seed: int = 0, alpha: float = 0.05
+                         ) -> PsychometricResult:
+    """Fit each condition's psychometric function (see module docstring); skip with a note
+    when no level varies."""
+    column = find_level_column(trials, level_column)
+    if column is None:
+        wanted = list(KNOWN_LEVEL_COLUMNS) if level_column == "auto" else [level_column]
+        return PsychometricResult(None, {}, True, f"no stimulus level varies in the data "
+                                  f"(looked for {wanted}): psychometric functions skipped")
+    if function == "weibull" and (trials[column].dropna() <= 0).any():
+        return PsychometricResult(column, {}, True, f"the Weibull function needs levels > 0 and "
+                                  f"{column!r} has levels <= 0: psychometric functions skipped; "
+                                  "use function = \"logistic\"")
+    fits, warnings = {}, []
+    for index, condition in enumerate(conditions):
+        data = trials.loc[(trials["condition"] == condition) & trials["correct"].notna()
+                          & trials[column].notna()]
+        table = data.groupby(column)["correct"].agg(["size", "sum"]).reset_index()
+        table.columns = ["level", "n_trials", "n_correct"]
+        table["n_correct"] = table["n_correct"].round().astype(int)
+        if len(table) < 3:
+            warnings.append(f"psychometric function of {condition!r}: {len(table)} level(s) "
+                            f"of {column!r}, a fit needs 3 or more; skipped")
+            continue
+        table["accuracy"] = table["n_correct"] / table["n_trials"]
+        table["ci_low"], table["ci_high"] = wilson_interval(table["n_correct"].to_numpy(),
+                                                            table["n_trials"].to_numpy(),
+                                                            alpha)
+        levels = table["level"].to_numpy(float)
+        n, k = table["n_trials"].to_numpy(), table["n_correct"].to_numpy()
+        a, b, lam, ll = fit_counts(levels, n, k, function, guess, lapse_max)
+        point = threshold_level(function, a, b, threshold)
+        ci, note = None, ""
+        if n_bootstrap:
+            rng = np.random.default_rng([seed, 8, index])
+            draws = rng.binomial(n, k / n, size=(n_bootstrap, len(n)))
+            boot = np.array([threshold_level(function, *fit_counts(
+                levels, n, kk, function, guess, lapse_max, start=(a, b, lam))[:2], threshold)
+                for kk in draws])
+            outside = np.mean((boot < levels.min()) | (boot > levels.max()))
+            ci = tuple(float(v) for v in np.quantile(boot, [alpha / 2, 1 - alpha / 2]))
+            if outside > alpha:
+                note = (f"{outside:.0%} of bootstrap thresholds fall outside the levels "
+                        "tested: the interval is an extrapolation")
+                warnings.append(f"psychometric threshold of {condition!r}: {note}")
+        if not levels.min() <= point <= levels.max():
+            note = (note + "; " if note else "") + "the threshold lies outside the levels tested"
+        fits[condition] = PsychometricFit(condition, function, a, b, lam, guess, point, ci, ll,
+                                          table, n_bootstrap, note)
+    return PsychometricResult(column, fits, False, "", tuple(warnings))

@@ -1,0 +1,189 @@
+"""The human-readable report: a list of blocks rendered as Markdown or as one HTML page."""
+
+from __future__ import annotations
+
+import html
+import os
+from pathlib import Path
+
+import pandas as pd
+
+from crs_study.analysis.plan import AnalysisPlan
+
+REFERENCES = (
+    "Wilson EB (1927) Probable inference, the law of succession, and statistical inference. "
+    "JASA 22:209. Brown LD, Cai TT, DasGupta A (2001) Interval estimation for a binomial "
+    "proportion. Statist Sci 16:101.",
+    "Bates D, Maechler M, Bolker B, Walker S (2015) Fitting linear mixed-effects models "
+    "using lme4. J Stat Softw 67(1).",
+    "Fagerland MW, Lydersen S, Laake P (2013) The McNemar test for binary matched-pairs data: "
+    "mid-p and asymptotic are better than exact conditional. BMC Med Res Methodol 13:91.",
+    "Holm S (1979) A simple sequentially rejective multiple test procedure. Scand J Stat 6:65.",
+    "Lakens D (2013) Calculating and reporting effect sizes. Front Psychol 4:863. Kerby DS "
+    "(2014) The simple difference formula. Compr Psychol 3:11.",
+    "Miller GA, Nicely PE (1955) An analysis of perceptual confusions among some English "
+    "consonants. JASA 27:338. Miller GA (1955) Note on the bias of information estimates. "
+    "Panzeri S, Treves A (1996) Analytical estimates of limited sampling biases in different "
+    "information measures. Network 7:87.",
+    "Woltz DJ, Was CA (2006) Availability of related long-term memory during and after "
+    "attention focus in working memory. Mem Cognit 34:668. Liesefeld HR, Janczyk M (2019) "
+    "Combining speed and accuracy to control for speed-accuracy trade-offs(?). Behav Res "
+    "Methods 51:40.",
+    "Wichmann FA, Hill NJ (2001) The psychometric function I. Percept Psychophys 63:1293.",
+)
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        if value != value:
+            return "n/a"
+        if value != 0 and (abs(value) < 1e-3 or abs(value) >= 1e5):
+            return f"{value:.3g}"
+        return f"{value:.4g}"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return str(value)
+
+
+def _table(frame: pd.DataFrame) -> list[list[str]]:
+    return [[str(c) for c in frame.columns]] + [[_fmt(v) for v in row]
+                                                for row in frame.astype(object).values.tolist()]
+
+
+def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Path],
+                 out: Path) -> list[tuple[str, object]]:
+    """The report as ``(kind, content)`` blocks: h1, h2, p, list, table, image."""
+    images = {p.stem: os.path.relpath(p, out) for p in charts}
+    blocks: list[tuple[str, object]] = [("h1", f"Analysis: {plan.name}"),
+                                        ("p", f"**{results['headline']}**")]
+    if results["warnings"]:
+        blocks += [("h2", f"Warnings ({len(results['warnings'])})"),
+                   ("list", results["warnings"])]
+    blocks += [("h2", "Data"), ("p", (
+        f"{results['n_participants']} participant(s), {len(results['sessions'])} session(s); "
+        f"{results['n_trials_analysed']} of {results['n_trials_total']} trials analysed. "
+        f"Plan `{results['plan']['path']}` (sha256 {results['plan']['sha256'][:12]}...). "
+        f"Chance level {100 * results['chance']:.1f} %, alpha {results['alpha']:g}."))]
+    exclusions = pd.DataFrame(results["exclusions"]).T
+    if not exclusions.empty:
+        exclusions.index.name = "excluded because"
+        blocks += [("p", "Exclusions declared in the plan (trials per condition):"),
+                   ("table", _table(exclusions.reset_index()))]
+    accuracy = parts["accuracy"]
+    blocks += [("h2", "Accuracy"), ("table", _table(accuracy.by_condition))]
+    if "accuracy" in images:
+        blocks.append(("image", images["accuracy"]))
+    blocks += [("h2", "Primary test"), ("p", "Mixed-effects logistic regression "
+               f"(random effects: {', '.join(plan.primary.random_effects)}; "
+               f"{plan.primary.method}); odds ratio against `{results['reference']}`.")]
+    primary = parts["primary"].to_frame()
+    if not primary.empty:
+        blocks.append(("table", _table(primary[["condition", "reference", "estimate", "ci95",
+                                                "p_value", "p_wald", "p_lr"]])))
+    if results["primary"]["omnibus"]:
+        omnibus = results["primary"]["omnibus"]
+        blocks.append(("p", f"Omnibus likelihood-ratio test of condition: chi2({omnibus['df']})"
+                            f" = {omnibus['statistic']:.3f}, p = {_fmt(omnibus['p_value'])}."))
+    secondary = parts["secondary"].to_frame()
+    if not secondary.empty:
+        blocks += [("h2", "Secondary tests"), ("table", _table(secondary[[
+            "condition", "method", "estimate", "ci95", "p_value", "effect_size",
+            "effect_size_name", "n"]]))]
+    for condition, table in parts["secondary"].per_digit.items():
+        blocks += [("p", f"Per digit, `{condition}` against `{results['reference']}` "
+                         f"(McNemar mid-p, {plan.secondary.correction} correction):"),
+                   ("table", _table(table))]
+    blocks.append(("h2", "Confusions and information transfer"))
+    rows = pd.DataFrame([{k: v for k, v in r.to_dict().items()
+                          if k in ("condition", "bits", "ci95", "bits_plugin", "stimulus_bits",
+                                   "relative", "n_trials", "n_no_response")}
+                         for r in parts["confusions"].values()])
+    blocks.append(("table", _table(rows)))
+    for stem, path in images.items():
+        if stem.startswith("confusion_"):
+            blocks.append(("image", path))
+    speed = parts["speed"]
+    blocks += [("h2", "Speed against accuracy"), ("table", _table(speed.rt_summary)),
+               ("table", _table(speed.efficiency_summary))]
+    for stem in ("speed_accuracy", "caf"):
+        if stem in images:
+            blocks.append(("image", images[stem]))
+    psychometric = parts["psychometric"]
+    blocks.append(("h2", "Psychometric functions"))
+    if psychometric.skipped:
+        blocks.append(("p", psychometric.note))
+    else:
+        blocks.append(("table", _table(psychometric.to_frame()[[
+            "condition", "function", "threshold", "threshold_ci95", "alpha", "beta", "lapse",
+            "guess"]])))
+        if "psychometric" in images:
+            blocks.append(("image", images["psychometric"]))
+    blocks += [("h2", "Methods and references"), ("list", list(REFERENCES)),
+               ("p", f"crs-study {results['software']['version']}, generated "
+                     f"{results['generated_at']}.")]
+    return blocks
+
+
+def render_markdown(blocks: list[tuple[str, object]]) -> str:
+    lines: list[str] = []
+    for kind, content in blocks:
+        if kind == "h1":
+            lines += [f"# {content}", ""]
+        elif kind == "h2":
+            lines += [f"## {content}", ""]
+        elif kind == "p":
+            lines += [str(content), ""]
+        elif kind == "list":
+            lines += [f"- {item}" for item in content] + [""]
+        elif kind == "table":
+            header, *rows = content
+            lines.append("| " + " | ".join(header) + " |")
+            lines.append("|" + "---|" * len(header))
+            lines += ["| " + " | ".join(row) + " |" for row in rows]
+            lines.append("")
+        elif kind == "image":
+            lines += [f"![{Path(str(content)).stem}]({content})", ""]
+    return "\n".join(lines)
+
+
+def render_html(blocks: list[tuple[str, object]]) -> str:
+    body: list[str] = []
+    for kind, content in blocks:
+        if kind in ("h1", "h2"):
+            body.append(f"<{kind}>{html.escape(str(content))}</{kind}>")
+        elif kind == "p":
+            text = html.escape(str(content)).replace("**", "")
+            body.append(f"<p>{text}</p>")
+        elif kind == "list":
+            body.append("<ul>" + "".join(f"<li>{html.escape(i)}</li>" for i in content)
+                        + "</ul>")
+        elif kind == "table":
+            header, *rows = content
+            body.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header)
+                        + "</tr>" + "".join("<tr>" + "".join(
+                            f"<td>{html.escape(c)}</td>" for c in row) + "</tr>"
+                            for row in rows) + "</table>")
+        elif kind == "image":
+            body.append(f'<p><img src="{html.escape(str(content))}" alt=""></p>')
+    style = ("body{font-family:sans-serif;max-width:60em;margin:auto}table{border-collapse:"
+             "collapse}td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%}")
+    return (f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>crs-study report"
+            f"</title><style>{style}</style></head><body>\n" + "\n".join(body)
+            + "\n</body></html>\n")
+
+
+def write_report(out: Path, results: dict, parts: dict, plan: AnalysisPlan,
+                 charts: list[Path]) -> Path:
+    """Write ``report.md`` or ``report.html`` (the plan's ``report.format``)."""
+    blocks = build_blocks(results, parts, plan, charts, out)
+    if plan.report.format == "html":
+        path = out / "report.html"
+        path.write_text(render_html(blocks), encoding="utf-8")
+    else:
+        path = out / "report.md"
+        path.write_text(render_markdown(blocks), encoding="utf-8")
+    return path

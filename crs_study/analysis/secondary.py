@@ -1,0 +1,269 @@
+"""Secondary tests of a condition against the reference, with effect sizes.
+
+* **Paired t-test** on participant accuracies (``scipy.stats.ttest_rel``), effect size Cohen's
+  ``d_z = mean(diff) / sd(diff)`` (Cohen 1988; Lakens 2013, Front. Psychol. 4:863, Eq. 6).
+* **Wilcoxon signed-rank test** on the same differences (``scipy.stats.wilcoxon``, zero
+  differences dropped, exact null distribution when small), effect size the matched-pairs
+  rank-biserial correlation ``r = (T+ - T-) / (T+ + T-)`` (Kerby 2014, Compr. Psychol. 3:11).
+* **Exact McNemar test** on trials paired by participant, session, digit and repetition, with
+  the mid-p value ``2 [P(X <= min(b, c)) - P(X = min(b, c)) / 2]``, ``X ~ Bin(b + c, 1/2)``
+  (Fagerland, Lydersen & Laake 2013, BMC Med. Res. Methodol. 13:91); the conditional odds
+  ratio ``c / b`` with the interval from the exact (Clopper-Pearson) interval of ``c / (b +
+  c)`` mapped by ``p / (1 - p)`` (Breslow & Day 1980, sec. 7.2).
+* **Per-digit comparisons**: the McNemar mid-p test within each digit, corrected for the
+  number of digits with ``statsmodels.stats.multitest.multipletests`` (Holm 1979 by default).
+
+Every test returns a :class:`TestResult`; where a method cannot give an answer the result
+says what was done instead in ``note`` and never carries a silent NaN or a p of 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+from statsmodels.stats.contingency_tables import mcnemar
+from statsmodels.stats.multitest import multipletests
+
+from crs_study.analysis.accuracy import floor_p
+
+PAIR_KEYS = ("participant_id", "session", "digit", "repetition")
+
+
+@dataclass(frozen=True)
+class TestResult:
+    """A comparison of ``condition`` with ``reference`` (estimate: condition - reference,
+    or an odds ratio condition/reference for McNemar)."""
+
+    condition: str
+    reference: str
+    method: str
+    estimate: float | None
+    ci95: tuple[float, float] | None
+    p_value: float | None
+    statistic: float | None = None
+    n: int = 0
+    effect_size: float | None = None
+    effect_size_name: str = ""
+    extra: dict = field(default_factory=dict)
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return {"condition": self.condition, "reference": self.reference,
+                "method": self.method, "estimate": self.estimate,
+                "ci95": None if self.ci95 is None else list(self.ci95),
+                "p_value": self.p_value, "statistic": self.statistic, "n": self.n,
+                "effect_size": self.effect_size, "effect_size_name": self.effect_size_name,
+                **self.extra, "note": self.note}
+
+
+def participant_differences(by_participant: pd.DataFrame, condition: str,
+                            reference: str) -> pd.Series:
+    """Accuracy(condition) - accuracy(reference) per participant having both conditions."""
+    wide = by_participant.pivot(index="participant_id", columns="condition", values="accuracy")
+    if condition not in wide or reference not in wide:
+        return pd.Series(dtype=float)
+    return (wide[condition] - wide[reference]).dropna()
+
+
+def paired_t(diffs: pd.Series, condition: str, reference: str, alpha: float = 0.05) -> TestResult:
+    """Paired t-test of the participant differences, Cohen's d_z."""
+    name = "paired t-test on participant accuracies"
+    n = len(diffs)
+    if n < 2:
+        return TestResult(condition, reference, name, float(diffs.mean()) if n else None, None,
+                          None, n=n, note=f"not computed: needs 2 or more participants with "
+                          f"both conditions, found {n}; see the GLMM and McNemar results")
+    spread = float(diffs.std(ddof=1))
+    if spread == 0.0:
+        return TestResult(condition, reference, name, float(diffs.mean()), None, None, n=n,
+                          note=f"not computed: every participant's difference equals "
+                          f"{diffs.iloc[0]:+.4g} (no spread, t undefined); see the Wilcoxon "
+                          "and McNemar results")
+    result = stats.ttest_1samp(diffs.to_numpy(), 0.0)
+    ci = result.confidence_interval(1 - alpha)
+    return TestResult(condition, reference, name, float(diffs.mean()),
+                      (float(ci.low), float(ci.high)), floor_p(result.pvalue),
+                      float(result.statistic), n, float(diffs.mean()) / spread, "cohen_dz",
+                      {"df": n - 1})
+
+
+def wilcoxon_signed_rank(diffs: pd.Series, condition: str, reference: str,
+                         alpha: float = 0.05) -> TestResult:
+    """Wilcoxon signed-rank test of the participant differences, rank-biserial r."""
+    name = "Wilcoxon signed-rank test on participant accuracies"
+    values = diffs.to_numpy()
+    nonzero = values[values != 0]
+    n = len(nonzero)
+    median = float(np.median(values)) if len(values) else None
+    if n == 0:
+        return TestResult(condition, reference, name, median, None, 1.0 if len(values) else
+                          None, n=len(values), note="no non-zero participant difference: the "
+                          "test has no information; reported p = 1" if len(values) else
+                          "not computed: no participant has both conditions")
+    ranks = stats.rankdata(np.abs(nonzero))
+    t_plus, t_minus = float(ranks[nonzero > 0].sum()), float(ranks[nonzero < 0].sum())
+    r = (t_plus - t_minus) / (t_plus + t_minus)
+    result = stats.wilcoxon(nonzero, zero_method="wilcox", alternative="two-sided")
+    smallest = 2.0 / 2**n
+    note = ""
+    if len(values) - n:
+        note = f"{len(values) - n} zero difference(s) dropped (Wilcoxon's zero method). "
+    if smallest >= alpha:
+        note += (f"with {n} non-zero difference(s) the smallest attainable two-sided p is "
+                 f"{smallest:.4g} >= alpha {alpha:g}: this test cannot reject; rely on the "
+                 "GLMM, which uses every trial")
+    return TestResult(condition, reference, name, median, None, floor_p(result.pvalue),
+                      float(result.statistic), n, r, "rank_biserial",
+                      {"t_plus": t_plus, "t_minus": t_minus,
+                       "smallest_attainable_p": smallest}, note.strip())
+
+
+def mcnemar_midp(b: int, c: int) -> tuple[float, float]:
+    """Exact (conditional binomial) and mid-p McNemar p-values for discordant counts b, c.
+
+    Notes
+    -----
+    ``p_exact = min(1, 2 P(X <= min(b, c)))`` and ``p_mid = p_exact - P(X = min(b, c))``
+    with ``X ~ Bin(b + c, 1/2)`` (Fagerland, Lydersen & Laake 2013, Eqs. 2 and 3). The exact
+    p is taken from ``statsmodels.stats.contingency_tables.mcnemar(exact=True)``.
+    """
+    n = b + c
+    if n == 0:
+        return 1.0, 1.0
+    exact = float(mcnemar(np.array([[0, b], [c, 0]]), exact=True).pvalue)
+    k = min(b, c)
+    mid = 2.0 * stats.binom.cdf(k, n, 0.5) - stats.binom.pmf(k, n, 0.5)
+    return min(1.0, exact), float(min(1.0, mid))
+
+
+def paired_table(trials: pd.DataFrame, condition: str, reference: str) -> pd.DataFrame:
+    """Trials of the two conditions matched on :data:`PAIR_KEYS` (columns ``ref``, ``cond``)."""
+    answered = trials.loc[trials["correct"].notna()]
+    keys = list(PAIR_KEYS)
+    left = answered.loc[answered["condition"] == reference, [*keys, "correct"]]
+    right = answered.loc[answered["condition"] == condition, [*keys, "correct"]]
+    left = left.drop_duplicates(keys)
+    right = right.drop_duplicates(keys)
+    return left.merge(right, on=keys, suffixes=("_ref", "_cond")).rename(
+        columns={"correct_ref": "ref", "correct_cond": "cond"})
+
+
+def mcnemar_test(pairs: pd.DataFrame, condition: str, reference: str,
+                 alpha: float = 0.05) -> TestResult:
+    """Exact McNemar with mid-p on matched trials; conditional odds ratio c / b."""
+    name = "exact McNemar test (mid-p) on trials paired by participant, digit and repetition"
+    ref, cond = pairs["ref"].to_numpy(), pairs["cond"].to_numpy()
+    a = int(((ref == 1) & (cond == 1)).sum())
+    b = int(((ref == 1) & (cond == 0)).sum())   # reference right, condition wrong
+    c = int(((ref == 0) & (cond == 1)).sum())   # reference wrong, condition right
+    d = int(((ref == 0) & (cond == 0)).sum())
+    table = {"both_correct": a, "reference_only": b, "condition_only": c, "both_wrong": d}
+    if len(pairs) == 0:
+        return TestResult(condition, reference, name, None, None, None, n=0,
+                          extra={"table": table}, note="not computed: no trial of one condition "
+                          "matches a trial of the other on participant, digit and repetition")
+    p_exact, p_mid = mcnemar_midp(b, c)
+    extra = {"table": table, "p_exact": floor_p(p_exact), "p_mid": floor_p(p_mid)}
+    if b + c == 0:
+        return TestResult(condition, reference, name, None, None, 1.0, float(b), len(pairs),
+                          extra=extra, note="no discordant pairs: McNemar's test has no "
+                          "information; reported p = 1 and no odds ratio")
+    note = ""
+    lo_p, hi_p = _clopper_pearson(c, b + c, alpha)
+    if b == 0 or c == 0:
+        odds = (c + 0.5) / (b + 0.5)
+        note = (f"{'b' if b == 0 else 'c'} = 0 discordant pairs: the odds ratio c/b is "
+                f"{'infinite' if b == 0 else 'zero'}; reported (c + 0.5)/(b + 0.5) = "
+                f"{odds:.4g} with the exact interval")
+    else:
+        odds = c / b
+    ci = (_odds(lo_p), _odds(hi_p))
+    return TestResult(condition, reference, name, float(odds), ci, floor_p(p_mid), float(b),
+                      len(pairs), float(odds), "conditional_odds_ratio", extra, note)
+
+
+def _clopper_pearson(k: int, n: int, alpha: float) -> tuple[float, float]:
+    interval = stats.binomtest(k, n).proportion_ci(1 - alpha, method="exact")
+    return float(interval.low), float(interval.high)
+
+
+def _odds(p: float) -> float:
+    return float(p / (1.0 - p)) if p < 1.0 else float("inf")
+
+
+def per_digit(trials: pd.DataFrame, condition: str, reference: str, correction: str = "holm",
+              alpha: float = 0.05) -> tuple[pd.DataFrame, list[str]]:
+    """McNemar mid-p per digit, adjusted across digits; columns documented in the return.
+
+    Returns a table ``digit, n_pairs, accuracy_reference, accuracy_condition, difference,
+    discordant_b, discordant_c, p_value, p_adjusted, reject`` and notes.
+    """
+    rows, notes = [], []
+    pairs = paired_table(trials, condition, reference)
+    for digit, group in pairs.groupby("digit", sort=True):
+        b = int(((group["ref"] == 1) & (group["cond"] == 0)).sum())
+        c = int(((group["ref"] == 0) & (group["cond"] == 1)).sum())
+        rows.append({"digit": int(digit), "n_pairs": len(group),
+                     "accuracy_reference": float(group["ref"].mean()),
+                     "accuracy_condition": float(group["cond"].mean()),
+                     "difference": float(group["cond"].mean() - group["ref"].mean()),
+                     "discordant_b": b, "discordant_c": c,
+                     "p_value": floor_p(mcnemar_midp(b, c)[1])})
+    table = pd.DataFrame(rows, columns=["digit", "n_pairs", "accuracy_reference",
+                                        "accuracy_condition", "difference", "discordant_b",
+                                        "discordant_c", "p_value"])
+    if table.empty:
+        notes.append(f"per-digit comparisons of {condition!r}: no matched trials")
+        table["p_adjusted"], table["reject"] = [], []
+        return table, notes
+    if correction == "none":
+        table["p_adjusted"] = table["p_value"]
+    else:
+        table["p_adjusted"] = multipletests(table["p_value"], alpha=alpha, method=correction)[1]
+    table["p_adjusted"] = table["p_adjusted"].map(floor_p)
+    table["reject"] = table["p_adjusted"] < alpha
+    no_info = table.loc[table["discordant_b"] + table["discordant_c"] == 0, "digit"].tolist()
+    if no_info:
+        notes.append(f"per-digit comparisons of {condition!r}: digit(s) {no_info} have no "
+                     "discordant pairs; their p = 1")
+    return table, notes
+
+
+@dataclass(frozen=True)
+class SecondaryResult:
+    tests: tuple[TestResult, ...]
+    per_digit: dict[str, pd.DataFrame]
+    warnings: tuple[str, ...] = ()
+
+    def to_frame(self) -> pd.DataFrame:
+        return pd.DataFrame([t.to_dict() for t in self.tests])
+
+
+def secondary_tests(trials: pd.DataFrame, by_participant: pd.DataFrame, conditions: list[str],
+                    reference: str, tests: tuple[str, ...], correction: str = "holm",
+                    alpha: float = 0.05) -> SecondaryResult:
+    """Run the plan's secondary tests for every condition against ``reference``."""
+    results, digit_tables, warnings = [], {}, []
+    for condition in conditions:
+        if condition == reference:
+            continue
+        diffs = participant_differences(by_participant, condition, reference)
+        if "paired_t" in tests:
+            results.append(paired_t(diffs, condition, reference, alpha))
+        if "wilcoxon" in tests:
+            results.append(wilcoxon_signed_rank(diffs, condition, reference, alpha))
+        if "mcnemar" in tests:
+            results.append(mcnemar_test(paired_table(trials, condition, reference), condition,
+                                        reference, alpha))
+        if "per_digit" in tests:
+            table, notes = per_digit(trials, condition, reference, correction, alpha)
+            digit_tables[condition] = table
+            warnings += notes
+    for result in results:
+        if result.note:
+            warnings.append(f"{result.method} ({result.condition} vs {result.reference}): "
+                            f"{result.note}")
+    return SecondaryResult(tuple(results), digit_tables, tuple(warnings))

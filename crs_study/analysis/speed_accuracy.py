@@ -1,0 +1,177 @@
+"""Speed against accuracy: response times, conditional accuracy and combined scores.
+
+* ``rt_summary``: per condition and outcome (``all``, ``correct``, ``error``): ``n``,
+  ``median``, ``q1``, ``q3`` (IQR = q3 - q1), ``mean`` of the response time (s).
+* ``caf`` (conditional accuracy function): each participant's trials of a condition are cut
+  into ``bins`` response-time quantile bins (by rank, equal counts), then pooled per
+  condition and bin: ``n_trials``, ``n_correct``, ``accuracy`` with Wilson ``ci_low``,
+  ``ci_high``, and ``mean_rt`` (s).
+* ``efficiency`` per participant and condition, then ``efficiency_summary`` per condition
+  (mean and t interval across participants) of
+
+  - inverse efficiency ``IES = mean correct RT / PC`` (Townsend & Ashby 1983; s),
+  - rate-correct score ``RCS = n correct / sum of all RTs`` (Woltz & Was 2006, Eq. 1;
+    correct responses per second),
+  - balanced integration score ``BIS = z(PC) - z(mean correct RT)`` with both z-scores taken
+    across every participant x condition cell (Liesefeld & Janczyk 2019, Behav. Res.
+    Methods 51:40, Eq. 1; unitless, higher is better).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from crs_study.analysis.accuracy import wilson_interval
+
+MEASURES = ("accuracy", "mean_correct_rt", "ies", "rcs", "bis")
+
+
+@dataclass(frozen=True)
+class SpeedAccuracyResult:
+    """Tables described in the module docstring, the response-time column used, warnings."""
+
+    rt_summary: pd.DataFrame
+    caf: pd.DataFrame
+    efficiency: pd.DataFrame
+    efficiency_summary: pd.DataFrame
+    conditions: tuple[str, ...]
+    rt_column: str
+    alpha: float = 0.05
+    warnings: tuple[str, ...] = field(default=())
+
+    def to_frame(self) -> pd.DataFrame:
+        return self.efficiency_summary.copy()
+
+
+def rt_summary(trials: pd.DataFrame, rt: str, conditions: list[str]) -> pd.DataFrame:
+    rows = []
+    for condition in conditions:
+        subset = trials.loc[trials["condition"] == condition]
+        for outcome, mask in (("all", subset["correct"].notna()),
+                              ("correct", subset["correct"] == 1),
+                              ("error", subset["correct"] == 0)):
+            values = subset.loc[mask, rt].dropna().to_numpy()
+            q1, median, q3 = (np.quantile(values, [0.25, 0.5, 0.75]) if len(values)
+                              else (None, None, None))
+            rows.append({"condition": condition, "outcome": outcome, "n": len(values),
+                         "median": _num(median), "q1": _num(q1), "q3": _num(q3),
+                         "mean": _num(values.mean()) if len(values) else None})
+    return pd.DataFrame(rows)
+
+
+def conditional_accuracy(trials: pd.DataFrame, rt: str, conditions: list[str], bins: int = 5,
+                         alpha: float = 0.05) -> pd.DataFrame:
+    """Conditional accuracy function (see module docstring)."""
+    data = trials.loc[trials["correct"].notna() & trials[rt].notna(),
+                      ["participant_id", "condition", "correct", rt]].copy()
+    data = data.loc[data["condition"].isin(conditions)]
+    columns = ["condition", "bin", "n_trials", "n_correct", "accuracy", "ci_low", "ci_high",
+               "mean_rt"]
+    if data.empty:
+        return pd.DataFrame(columns=columns)
+    grouped = data.groupby(["participant_id", "condition"], sort=False)[rt]
+    rank = grouped.rank(method="first")
+    count = grouped.transform("size")
+    data["bin"] = ((rank - 1) * bins // count).astype(int)
+    table = data.groupby(["condition", "bin"], sort=False).agg(
+        n_trials=("correct", "size"), n_correct=("correct", "sum"),
+        mean_rt=(rt, "mean")).reset_index()
+    table["n_correct"] = table["n_correct"].round().astype(int)
+    table["accuracy"] = table["n_correct"] / table["n_trials"]
+    table["ci_low"], table["ci_high"] = wilson_interval(table["n_correct"].to_numpy(),
+                                                        table["n_trials"].to_numpy(), alpha)
+    order = {c: i for i, c in enumerate(conditions)}
+    table = table.sort_values(["condition", "bin"], key=lambda s: s.map(order)
+                              if s.name == "condition" else s)
+    return table[columns].reset_index(drop=True)
+
+
+def efficiency_scores(trials: pd.DataFrame, rt: str, conditions: list[str]
+                      ) -> tuple[pd.DataFrame, list[str]]:
+    """IES, RCS and BIS per participant and condition (see module docstring)."""
+    data = trials.loc[trials["correct"].notna() & trials[rt].notna()
+                      & trials["condition"].isin(conditions)]
+    warnings = []
+    rows = []
+    for (participant, condition), group in data.groupby(["participant_id", "condition"],
+                                                        sort=True):
+        correct = group["correct"].to_numpy()
+        times = group[rt].to_numpy()
+        n_correct = int(correct.sum())
+        pc = n_correct / len(correct)
+        mean_correct_rt = float(times[correct == 1].mean()) if n_correct else None
+        rows.append({"participant_id": participant, "condition": condition,
+                     "n_trials": len(correct), "accuracy": pc,
+                     "mean_correct_rt": mean_correct_rt,
+                     "ies": mean_correct_rt / pc if n_correct else None,
+                     "rcs": n_correct / float(times.sum()) if times.sum() > 0 else None})
+    table = pd.DataFrame(rows, columns=["participant_id", "condition", "n_trials", "accuracy",
+                                        "mean_correct_rt", "ies", "rcs"])
+    none_correct = table.loc[table["ies"].isna(), ["participant_id", "condition"]]
+    if len(none_correct):
+        warnings.append(f"{len(none_correct)} participant x condition cell(s) have no correct "
+                        "response: their inverse efficiency and BIS are undefined and left out "
+                        "of the condition means")
+    rt_values = table["mean_correct_rt"].astype(float)
+    table["bis"] = _z(table["accuracy"].astype(float)) - _z(rt_values)
+    table.loc[rt_values.isna(), "bis"] = None
+    return table, warnings
+
+
+def _z(values: pd.Series) -> pd.Series:
+    """Standard scores across all cells (population sd, as Liesefeld & Janczyk 2019)."""
+    spread = values.std(ddof=0)
+    if not np.isfinite(spread) or spread == 0:
+        return values * 0.0
+    return (values - values.mean()) / spread
+
+
+def summarise_efficiency(table: pd.DataFrame, conditions: list[str],
+                         alpha: float = 0.05) -> pd.DataFrame:
+    """Mean and t interval across participants of each measure, per condition."""
+    rows = []
+    for condition in conditions:
+        subset = table.loc[table["condition"] == condition]
+        row: dict[str, object] = {"condition": condition, "n_participants": len(subset)}
+        for measure in MEASURES:
+            values = subset[measure].dropna().astype(float).to_numpy()
+            mean = float(values.mean()) if len(values) else None
+            low = high = None
+            if len(values) >= 2 and values.std(ddof=1) > 0:
+                half = stats.t.ppf(1 - alpha / 2, len(values) - 1) * values.std(ddof=1) \
+                    / np.sqrt(len(values))
+                low, high = mean - half, mean + half
+            elif len(values):
+                low = high = mean
+            row[measure] = mean
+            row[f"{measure}_ci_low"], row[f"{measure}_ci_high"] = low, high
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def analyse_speed_accuracy(trials: pd.DataFrame, conditions: list[str],
+                           rt: str = "response_time", bins: int = 5,
+                           alpha: float = 0.05) -> SpeedAccuracyResult:
+    """Response-time summaries, conditional accuracy functions and efficiency scores."""
+    warnings = []
+    if trials[rt].notna().sum() == 0:
+        warnings.append(f"no response times in column {rt!r}: speed-accuracy analysis empty")
+    efficiency, notes = efficiency_scores(trials, rt, conditions)
+    warnings += notes
+    single = efficiency.groupby("condition")["participant_id"].nunique()
+    if len(single) and single.max() < 2:
+        warnings.append("one participant only: condition means of the speed-accuracy scores "
+                        "have no interval (shown as a point)")
+    return SpeedAccuracyResult(
+        rt_summary(trials, rt, conditions), conditional_accuracy(trials, rt, conditions, bins,
+                                                                 alpha),
+        efficiency, summarise_efficiency(efficiency, conditions, alpha), tuple(conditions), rt,
+        alpha, tuple(warnings))
+
+
+def _num(value) -> float | None:
+    return None if value is None else float(value)

@@ -1,0 +1,161 @@
+"""Synthetic BIDS datasets drawn from a known model, to check and time the analysis.
+
+The generating model is the analysis' own: ``logit P(correct) = b_condition + u_participant +
+v_digit`` with ``u ~ N(0, participant_sd^2)`` and ``v ~ N(0, digit_sd^2)``; an error names
+another digit, more often a neighbour; response times are log-normal, errors slower. Files
+follow ``crs_study.schema`` and the layout in DESIGN.md ("The stored dataset"), with each
+session's ``TrialsSha256`` the sha256 of its ``_beh.tsv`` bytes, so the loader's checks pass.
+This is a test and benchmark aid; real datasets come from ``crs-study run`` / ``dry-run``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from crs_study import __version__
+from crs_study.schema import MISSING, TASK, TRIAL_COLUMNS
+
+
+@dataclass(frozen=True)
+class SyntheticSpec:
+    """What to simulate. ``accuracy`` maps condition -> mean probability correct."""
+
+    n_participants: int = 8
+    repetitions: int = 4                      # per digit and condition
+    digits: tuple[int, ...] = tuple(range(10))
+    accuracy: dict[str, float] = field(
+        default_factory=lambda: {"pixel-only": 0.503, "crs": 0.678})
+    participant_sd: float = 0.5
+    digit_sd: float = 0.3
+    practice_trials: int = 2
+    p_timeout: float = 0.01
+    p_fault: float = 0.005
+    p_anticipation: float = 0.005
+    level_column: str = ""                    # e.g. "digit_height": adds a varied level
+    levels: tuple[float, ...] = ()
+    level_threshold: float = 0.0              # logistic midpoint of the level effect
+    level_slope: float = 4.0
+    seed: int = 1
+
+
+def _logit(p: float) -> float:
+    return float(np.log(p / (1 - p)))
+
+
+def simulate_trials(spec: SyntheticSpec, participant: int, rng: np.random.Generator,
+                    digit_effects: np.ndarray) -> list[dict[str, object]]:
+    """One participant's session rows (practice first, then test trials in random order)."""
+    u = rng.normal(0.0, spec.participant_sd)
+    plan = [(c, d, r) for c in spec.accuracy for d in range(len(spec.digits))
+            for r in range(spec.repetitions)]
+    order = rng.permutation(len(plan))
+    rows: list[dict[str, object]] = []
+    onset = 1.0
+    conditions = list(spec.accuracy)
+    items = [("practice", conditions[i % len(conditions)], i % len(spec.digits), i)
+             for i in range(spec.practice_trials)]
+    items += [("test", *plan[k]) for k in order]
+    n_digits = len(spec.digits)
+    for index, (kind, condition, digit_pos, repetition) in enumerate(items):
+        eta = _logit(spec.accuracy[condition]) + u + digit_effects[digit_pos]
+        level = None
+        if spec.level_column and spec.levels:
+            level = float(spec.levels[rng.integers(len(spec.levels))])
+            guess, lapse = 1.0 / n_digits, 0.02
+            x = spec.level_slope * (level - spec.level_threshold) + eta
+            p = guess + (1 - guess - lapse) / (1.0 + np.exp(-x))
+        else:
+            p = 1.0 / (1.0 + np.exp(-eta))
+        digit = spec.digits[digit_pos]
+        correct = rng.random() < p
+        if correct:
+            response = digit
+        else:
+            step = rng.choice([-1, 1, 2, 3], p=[0.35, 0.35, 0.15, 0.15])
+            response = spec.digits[(digit_pos + step) % n_digits]
+        duration = float(rng.uniform(2.0, 3.0))
+        rt = float(np.exp(rng.normal(np.log(2.2 if correct else 2.8), 0.3)))
+        timed_out = rng.random() < spec.p_timeout
+        fault = rng.random() < spec.p_fault
+        if rng.random() < spec.p_anticipation:
+            rt = float(rng.uniform(0.02, 0.12))
+        row: dict[str, object] = {
+            "trial_index": index, "trial_type": kind, "block": 0 if kind == "practice" else 1,
+            "condition": condition, "repetition": repetition, "digit": digit,
+            "response": MISSING if timed_out else response,
+            "correct": MISSING if timed_out else int(response == digit),
+            "response_time": MISSING if timed_out else round(rt, 4),
+            "response_time_from_offset": MISSING if timed_out else round(rt - duration, 4),
+            "onset": round(onset, 4), "stimulus_duration": round(duration, 4),
+            "timed_out": int(timed_out), "device_fault": int(fault),
+            "frames": int(duration * 50), "late_frames": int(rng.poisson(0.2)),
+            "median_wire_latency": round(float(rng.uniform(0.01, 0.02)), 5),
+            "responder": "observer",
+        }
+        onset += duration + (rt if not timed_out else 10.0) + 1.0
+        row["trial_end"] = round(onset, 4)
+        if spec.level_column:
+            row[spec.level_column] = MISSING if level is None else level
+        rows.append(row)
+    return rows
+
+
+def write_tsv(path: Path, columns: list[str], rows: list[dict[str, object]]) -> bytes:
+    """Write rows as a BIDS TSV (``n/a`` for missing) and return the bytes written."""
+    lines = ["\t".join(columns)]
+    for row in rows:
+        lines.append("\t".join(str(row[c]) for c in columns))
+    data = ("\n".join(lines) + "\n").encode("utf-8")
+    path.write_bytes(data)
+    return data
+
+
+def write_dataset(root: str | Path, spec: SyntheticSpec = SyntheticSpec()) -> Path:
+    """Write a complete synthetic dataset under ``root`` and return its path."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(spec.seed)
+    digit_effects = rng.normal(0.0, spec.digit_sd, size=len(spec.digits))
+    (root / "dataset_description.json").write_text(json.dumps({
+        "Name": "synthetic digit identification", "BIDSVersion": "1.9.0",
+        "DatasetType": "raw",
+        "GeneratedBy": [{"Name": "crs-study", "Version": __version__,
+                         "Description": "crs_study.analysis.synthetic"}],
+    }, indent=2) + "\n")
+    columns = list(TRIAL_COLUMNS) + ([spec.level_column] if spec.level_column else [])
+    (root / f"task-{TASK}_beh.json").write_text(json.dumps(
+        {name: {"Description": d, "Units" if u in ("s",) else "Levels": u}
+         for name, (d, u) in TRIAL_COLUMNS.items()}, indent=2) + "\n")
+    labels = [f"{i + 1:02d}" for i in range(spec.n_participants)]
+    (root / "participants.tsv").write_text(
+        "participant_id\n" + "".join(f"sub-{label}\n" for label in labels))
+    (root / "participants.json").write_text(json.dumps(
+        {"participant_id": {"Description": "pseudonymous label"}}, indent=2) + "\n")
+    protocol_text = ('[study]\nid = "synthetic"\n'
+                     'analysis_plan = "analysis/digit_identification.toml"\n')
+    device_text = "# synthetic\n"
+    for i, label in enumerate(labels):
+        beh = root / f"sub-{label}" / "ses-1" / "beh"
+        beh.mkdir(parents=True, exist_ok=True)
+        stem = f"sub-{label}_ses-1_task-{TASK}_beh"
+        rows = simulate_trials(spec, i, rng, digit_effects)
+        data = write_tsv(beh / f"{stem}.tsv", columns, rows)
+        sidecar = {
+            "TaskName": TASK, "Protocol": protocol_text,
+            "ProtocolSha256": hashlib.sha256(protocol_text.encode()).hexdigest(),
+            "ProtocolPath": "protocols/synthetic.toml", "DeviceFile": device_text,
+            "DeviceFileSha256": hashlib.sha256(device_text.encode()).hexdigest(),
+            "DeviceURL": "sim://", "SoftwareVersion": __version__, "Seed": spec.seed * 1000 + i,
+            "Participant": label, "Session": "1", "ConsentFormVersion": "synthetic",
+            "Responder": "observer", "Clock": "virtual",
+            "StartTime": "2026-01-01T09:00:00Z", "EndTime": "2026-01-01T10:00:00Z",
+            "Status": "complete", "TrialsPlanned": len(rows), "TrialsCompleted": len(rows),
+            "TrialsSha256": hashlib.sha256(data).hexdigest(),
+        }
+        (beh / f"{stem}.json").write_text(json.dumps(sidecar, indent=2) + "\n")
+    return root

@@ -1,0 +1,46 @@
+"""Analyse stored datasets: accuracy with Wilson intervals, the GLMM of correct ~ condition,
+secondary tests, confusions and information transfer, speed against accuracy, psychometric
+functions when a level varies. Writes results.json, a report and PNG charts; prints the
+headline. The analysis plan is --plan, else the one the protocol declares, else
+analysis/digit_identification.toml. See analysis/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+NAME = "analyze"
+HELP = "analyse datasets: accuracy, GLMM, secondary tests, confusions, speed-accuracy, report"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("datasets", nargs="+", metavar="DATASET",
+                        help="dataset directory (BIDS); several are analysed together")
+    parser.add_argument("--plan", metavar="FILE", default=None,
+                        help="analysis plan (default: the protocol's analysis_plan, else "
+                             "analysis/digit_identification.toml)")
+    parser.add_argument("--out", metavar="DIR", default=None,
+                        help="output directory (default: DATASET/derivatives/crs-study)")
+    parser.add_argument("--json", action="store_true",
+                        help="print results.json on stdout instead of the headline")
+    parser.add_argument("--strict", action="store_true",
+                        help="a failed checksum or metadata check is an error, not a warning")
+
+
+def run(args: argparse.Namespace) -> int:
+    from crs_study.analysis.report import analyze
+
+    result = analyze(args.datasets, args.plan, args.out, strict=args.strict)
+    for warning in result.warnings:
+        loud = "TAMPERED" in warning or "tampering" in warning
+        print(f"crs-study analyze: {'WARNING' if loud else 'warning'}: {warning}",
+              file=sys.stderr)
+    if args.json:
+        print(json.dumps(result.results, indent=2))
+        return 0
+    print(result.headline)
+    print(f"report:  {result.report_path}")
+    print(f"results: {result.results_path}")
+    return 0
