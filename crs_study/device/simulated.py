@@ -13,18 +13,21 @@ No threads, no sleeping: the wire and the servos are computed, so the device run
 
 The wire (per controller port)
     A frame of ``b`` bytes occupies the wire for ``b * 10 / baud`` s from when the wire is
-    free. A frame sent while the wire is busy is *merged*, never queued: it replaces whatever
-    frame was waiting, and when the wire frees the waiting setpoints go out as one frame of
-    the channels that differ from what was last sent. Latency therefore never exceeds two
-    frame times. ``FrameReport.wire_done_at`` of a merged frame is the predicted end of the
-    waiting frame.
+    free. A frame sent while the wire is busy waits; a newer one replaces it (*merged*,
+    ``FrameReport.merged``), never queued; when the wire frees, the channels whose latest
+    wanted pulse differs from the last sent by more than the dead-band go out as one frame
+    (the serial device's writer does the same, :mod:`~crs_study.device.schedule`). Latency
+    therefore never exceeds two frame times. ``FrameReport.wire_done_at`` of a waiting frame
+    is its predicted end.
 
 URL syntax (options may also be given as keyword arguments; keywords win)::
 
     sim://[?key=value[&key=value...]]
 
     baud=9600            bits per second on every port (10 bits a byte, 8N1)
-    move_ms=0            SERVO_MOVE time when send() is given none (0: as fast as servos go)
+    move_ms=67           SERVO_MOVE time when send() is given none (default: one full frame
+                         of the busiest controller on the wire, as the serial device)
+    neutral_move_ms=500  move time of the neutral pose sent on close()
     refresh_s=1.0        send every channel at least this often (0: never force a refresh)
     deadband_us=1        resend a channel when its pulse moved by more than this (schedule.py)
     battery_mv=7400      what each board reports while healthy
@@ -64,7 +67,13 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from crs_study.clock import Clock
-from crs_study.device.base import BAUD_RATE, BITS_PER_BYTE, Device, FrameReport
+from crs_study.device.base import (
+    BAUD_RATE,
+    BITS_PER_BYTE,
+    Device,
+    FrameReport,
+    servo_move_bytes,
+)
 from crs_study.device.calibration import PulseMap
 from crs_study.device.codec import FrameDecoder, get_battery_voltage
 from crs_study.device.schedule import DEFAULT_DEADBAND_US, ChannelSplit
@@ -88,7 +97,8 @@ class SimOptions:
     """Options of a ``sim://`` URL (module docstring)."""
 
     baud: int = BAUD_RATE
-    move_ms: int = 0
+    move_ms: int | None = None  # None: one full frame's wire time (SerialDevice's default)
+    neutral_move_ms: int = 500
     refresh_s: float = 1.0
     deadband_us: int = DEFAULT_DEADBAND_US
     battery_mv: int = NORMAL_BATTERY_MV
@@ -179,7 +189,8 @@ def _stalls(url: str, key: str, raw: object, layout: Layout) -> tuple[tuple[str,
 _PARSERS = {
     "baud": lambda u, k, r, lay: _number(u, k, r, int, 300, 10_000_000),
     "move_ms": lambda u, k, r, lay: _number(u, k, r, int, 0, 30000),
-    "deadband_us": lambda u, k, r, lay: _number(u, k, r, int, 0, 2000),
+    "neutral_move_ms": lambda u, k, r, lay: _number(u, k, r, int, 0, 30000),
+    "deadband_us": lambda u, k, r, lay: _number(u, k, r, int, 0, 100),
     "refresh_s": lambda u, k, r, lay: _number(u, k, r, float, 0.0, 3600.0),
     "battery_mv": lambda u, k, r, lay: _number(u, k, r, int, 0, 0xFFFF),
     "seed": lambda u, k, r, lay: _number(u, k, r, int, 0, 2**63 - 1),
@@ -248,6 +259,7 @@ class _Wire:
         self.last_full_at = -math.inf  # when every channel was last sent
         self.waiting: np.ndarray | None = None  # merged pulses waiting for the wire (all)
         self.waiting_move_ms = 0
+        self.force_full = False  # the next frame carries every channel (neutral on close)
         self.vanish_at = math.inf
         self.cut = False  # the port vanished
 
@@ -262,6 +274,10 @@ class SimulatedDevice(Device):
         self.url = "sim://"
         self.record = record
         self.builder = _FrameBuilder(layout, self.options.deadband_us)
+        busiest = max(len(m) for m in self.builder.members)
+        self.default_move_ms = (self.options.move_ms if self.options.move_ms is not None else
+                                math.ceil(servo_move_bytes(busiest) * BITS_PER_BYTE
+                                          / self.options.baud * 1000))
         self.byte_s = BITS_PER_BYTE / self.options.baud
         self.boards: list[VirtualController] = []
         self._wires: list[_Wire] = []
@@ -347,7 +363,8 @@ class SimulatedDevice(Device):
             return
         try:
             self.neutral_attempted = True
-            self._send(self.layout.neutral_setpoints(), None, check_faults=False)
+            self._send(self.layout.neutral_setpoints(), self.options.neutral_move_ms,
+                       check_faults=False, full=True)
         except DeviceError as exc:
             self.faults.append(f"close: neutral pose not reached: {exc}")
         finally:
@@ -368,8 +385,8 @@ class SimulatedDevice(Device):
     def send(self, setpoints_mm: np.ndarray, move_ms: int | None = None) -> FrameReport:
         return self._send(setpoints_mm, move_ms, check_faults=True)
 
-    def _send(self, setpoints_mm: np.ndarray, move_ms: int | None, check_faults: bool
-              ) -> FrameReport:
+    def _send(self, setpoints_mm: np.ndarray, move_ms: int | None, check_faults: bool,
+              full: bool = False) -> FrameReport:
         if self.opened_at is None or self.closed:
             state = "closed" if self.closed else "not open"
             raise DeviceError(f"{self.url}: cannot send: the device is {state}")
@@ -381,7 +398,7 @@ class SimulatedDevice(Device):
             self._advance(t)
         pulses = self.builder.pulses(setpoints_mm)
         if move_ms is None:
-            move_ms = self.options.move_ms
+            move_ms = self.default_move_ms
         elif isinstance(move_ms, bool) or not isinstance(move_ms, int | np.integer) \
                 or not 0 <= move_ms <= 30000:
             raise DeviceError(f"{self.url}: move_ms: expected a whole number 0..30000, "
@@ -391,11 +408,13 @@ class SimulatedDevice(Device):
         channels = 0
         merged = False
         for k, wire in enumerate(self._wires):
+            if full:
+                wire.force_full = True
             if wire.free_at > t:  # busy: replace whatever waits, never queue
-                merged = True
+                merged |= wire.waiting is not None
                 wire.waiting, wire.waiting_move_ms = pulses, move_ms
                 last = None if wire.free_at - wire.last_full_at >= self._refresh_s() \
-                    else wire.last_sent
+                    or wire.force_full else wire.last_sent
                 n = len(self.builder.changed(k, pulses, last))
                 size = 3 * n + 7 if n else 0
                 done = wire.free_at + size * self.byte_s
@@ -413,7 +432,8 @@ class SimulatedDevice(Device):
     def _start(self, k: int, wire: _Wire, pulses: np.ndarray, move_ms: int, t: float
                ) -> tuple[int, int]:
         """Put the frame for ``pulses`` on free wire ``k`` at ``t``; (bytes, channels)."""
-        full = t - wire.last_full_at >= self._refresh_s()
+        full = t - wire.last_full_at >= self._refresh_s() or wire.force_full
+        wire.force_full = False
         local = self.builder.changed(k, pulses, None if full else wire.last_sent)
         data = self.builder.frame(k, pulses, local, move_ms)
         if full:
