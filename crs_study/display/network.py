@@ -84,7 +84,7 @@ def check_setpoints(layout: Layout, setpoints_mm: np.ndarray, model: str) -> np.
     if not np.all(np.isfinite(values)):
         bad = int(np.flatnonzero(~np.isfinite(values))[0])
         raise DisplayModelError(
-            f"{model}: setpoint of {layout.actuators[bad].name} is {values[bad]!r}, "
+            f"{model}: setpoint of {layout.actuators[bad].name} is {float(values[bad])!r}, "
             f"expected a finite number (mm)")
     return values
 
