@@ -17,7 +17,8 @@ with the random effects integrated out; the binomial constants are added by the 
   curvature depend on ``(beta, sigma)`` and are differentiated implicitly.
 * :class:`CrossedFactors` -- two or more crossed random intercepts, Laplace only (as lme4):
   penalised IRLS with a sparse ``Z``, ``scipy.sparse.linalg.splu`` for the Newton steps and the
-  log-determinant of ``Lambda' Z' W Z Lambda + I``; the outer gradient by central differences.
+  log-determinant of ``Lambda' Z' W Z Lambda + I``; the exact gradient from the inverse of
+  that matrix (central differences beyond a few thousand random effects).
 * :class:`NoRandom` -- plain logistic regression (used for the penalised fallback).
 """
 
@@ -54,6 +55,7 @@ class NoRandom:
     """Logistic regression without random effects: ``l(beta) = sum y eta - m log(1 + e^eta)``."""
 
     n_variance = 0
+    analytic_gradient = True
 
     def __init__(self, data: BinomialData):
         self.X, self.y, self.m = data.X, data.successes, data.trials
@@ -74,6 +76,7 @@ class SingleFactor:
     """
 
     n_variance = 1
+    analytic_gradient = True
 
     def __init__(self, data: BinomialData, n_quadrature: int = 1):
         order = np.argsort(data.group_codes[0], kind="stable")
@@ -206,30 +209,54 @@ class SingleFactor:
 class CrossedFactors:
     """Two or more crossed random intercepts, Laplace approximation on sparse matrices.
 
-    ``l(beta, sigma) = sum kernel(X beta + Z Lambda u*) - |u*|^2/2 - log det(L)``, with
-    ``L L' = Lambda' Z' W Z Lambda + I`` (Bates et al. 2015, eq. 35 with the GLMM weights).
+    ``l(beta, sigma) = sum kernel(X beta + A u*) - |u*|^2/2 - log det(H)/2`` with
+    ``A = Z Lambda`` and ``H = A' W A + I`` (Bates et al. 2015, eq. 35 with the GLMM weights),
+    ``H`` factorised by ``splu``. The gradient is exact (implicit differentiation of ``u*`` and
+    ``tr(H^-1 dH)`` from the dense inverse of ``H``) up to ``MAX_DENSE`` random effects, by
+    central differences beyond.
     """
+
+    MAX_DENSE = 3000
 
     def __init__(self, data: BinomialData):
         self.X, self.y, self.m = data.X, data.successes, data.trials
         n = len(self.y)
         self.n_variance = len(data.group_codes)
         offsets = np.cumsum((0,) + data.n_levels)
-        cols = np.concatenate([c + o for c, o in zip(data.group_codes, offsets[:-1], strict=True)])
-        rows = np.tile(np.arange(n), self.n_variance)
-        self.Z = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, offsets[-1]))
+        self.cols = np.column_stack([c + o for c, o in
+                                     zip(data.group_codes, offsets[:-1], strict=True)])
+        rows = np.repeat(np.arange(n), self.n_variance)
+        self.Z = sp.csr_matrix((np.ones(rows.size), (rows, self.cols.ravel())),
+                               shape=(n, offsets[-1]))
         self.factor_of_column = np.repeat(np.arange(self.n_variance), data.n_levels)
         self.q = int(offsets[-1])
         self.u = np.zeros(self.q)
+        self.analytic_gradient = self.q <= self.MAX_DENSE
 
-    def _laplace(self, theta: np.ndarray, u0: np.ndarray) -> tuple[float, np.ndarray]:
+    def _factor(self, lam: np.ndarray, w: np.ndarray):
+        """``H = Lambda Z'WZ Lambda + I``: (solve, log det H, dense H^-1 or None).
+
+        Dense (numpy) up to ``MAX_DENSE`` random effects, where it is fastest and the gradient
+        needs ``H^-1`` anyway; ``splu`` beyond.
+        """
+        ZtWZ = self.Z.T @ sp.diags(w) @ self.Z
+        if self.analytic_gradient:
+            H = lam[:, None] * ZtWZ.toarray() * lam[None, :] + np.eye(self.q)
+            sign, logdet = np.linalg.slogdet(H)
+            return (lambda b: np.linalg.solve(H, b)), float(logdet), H
+        H = (sp.diags(lam) @ ZtWZ @ sp.diags(lam) + sp.identity(self.q)).tocsc()
+        lu = splu(H)
+        return lu.solve, float(np.log(np.abs(lu.U.diagonal())).sum()), None
+
+    def _mode(self, theta: np.ndarray, u0: np.ndarray):
+        """Penalised IRLS for ``u*``; returns what the value and the gradient need."""
         p_fixed = self.X.shape[1]
         beta, sigmas = theta[:p_fixed], theta[p_fixed:]
         offset = self.X @ beta
-        A = (self.Z @ sp.diags(sigmas[self.factor_of_column])).tocsr()
+        lam = sigmas[self.factor_of_column]
+        A = (self.Z @ sp.diags(lam)).tocsr()
         At = A.T.tocsr()
         y, m = self.y, self.m
-        eye = sp.identity(self.q, format="csc")
 
         def h(u_: np.ndarray) -> float:
             return float(_kernel(y, m, offset + A @ u_).sum() - 0.5 * (u_ @ u_))
@@ -238,8 +265,8 @@ class CrossedFactors:
         current = h(u)
         for _ in range(_INNER_MAXITER):
             p = expit(offset + A @ u)
-            H = (At @ sp.diags(m * p * (1.0 - p)) @ A + eye).tocsc()
-            step = splu(H).solve(At @ (y - m * p) - u)
+            solve, _, _ = self._factor(lam, m * p * (1.0 - p))
+            step = solve(At @ (y - m * p) - u)
             t = 1.0
             for _ in range(30):
                 candidate = u + t * step
@@ -251,20 +278,54 @@ class CrossedFactors:
             if np.max(np.abs(t * step)) < _INNER_TOL:
                 break
         p = expit(offset + A @ u)
-        H = (At @ sp.diags(m * p * (1.0 - p)) @ A + eye).tocsc()
-        logdet = float(np.log(np.abs(splu(H).U.diagonal())).sum())
-        return current - 0.5 * logdet, u
+        w = m * p * (1.0 - p)
+        _, logdet, H = self._factor(lam, w)
+        return current - 0.5 * logdet, u, (lam, A, At, p, w, H)
 
     def loglik(self, theta: np.ndarray, grad: bool = True):
-        value, u = self._laplace(theta, self.u)
+        value, u, state = self._mode(theta, self.u)
         self.u = u
         if not grad:
             return value
-        g = np.empty_like(theta)
-        for k in range(len(theta)):
-            h = 1e-5 * max(1.0, abs(theta[k]))
-            up, down = theta.copy(), theta.copy()
-            up[k] += h
-            down[k] -= h
-            g[k] = (self._laplace(up, u)[0] - self._laplace(down, u)[0]) / (2.0 * h)
-        return value, g
+        if not self.analytic_gradient:
+            g = np.empty_like(theta)
+            for k in range(len(theta)):
+                h = 1e-5 * max(1.0, abs(theta[k]))
+                up, down = theta.copy(), theta.copy()
+                up[k] += h
+                down[k] -= h
+                g[k] = (self._mode(up, u)[0] - self._mode(down, u)[0]) / (2.0 * h)
+            return value, g
+        return value, self._gradient(u, state)
+
+    def _gradient(self, u: np.ndarray, state) -> np.ndarray:
+        """``dl/dt = explicit(t) - tr(H^-1 dH/dt) / 2`` with ``du*/dt = H^-1 dg/dt``."""
+        lam, A, At, p, w, H = state
+        X, Z, cols, y, m = self.X, self.Z, self.cols, self.y, self.m
+        resid = y - m * p
+        dw = w * (1.0 - 2.0 * p)
+        G = np.linalg.inv(H)
+        G = 0.5 * (G + G.T)
+        # d_i = a_i' H^-1 a_i, a_i = Lambda z_i (one column per grouping factor)
+        lam_cols = lam[cols]
+        d = np.zeros(len(y))
+        for a in range(cols.shape[1]):
+            for b in range(cols.shape[1]):
+                d += lam_cols[:, a] * lam_cols[:, b] * G[cols[:, a], cols[:, b]]
+        # beta
+        du_dbeta = G @ -(At @ (w[:, None] * X))  # (q, p)
+        deta_dbeta = X + A @ du_dbeta
+        g_beta = X.T @ resid - 0.5 * (dw * d) @ deta_dbeta
+        # sigma_k
+        Zr = Z.T @ resid
+        M = (Z.T @ sp.diags(w) @ Z).toarray()
+        diag_GLM = (G * (M * lam[None, :])).sum(axis=1)  # diag(H^-1 Lambda Z'WZ)
+        g_sigma = np.empty(self.n_variance)
+        for k in range(self.n_variance):
+            Ek = (self.factor_of_column == k).astype(float)
+            Zu_k = Z @ (Ek * u)
+            du = G @ (Ek * Zr - At @ (w * Zu_k))
+            deta = Zu_k + A @ du
+            g_sigma[k] = (float((Ek * u) @ Zr) - float(diag_GLM @ Ek)
+                          - 0.5 * float((dw * d) @ deta))
+        return np.r_[g_beta, g_sigma]
