@@ -38,6 +38,7 @@ import json
 import math
 import os
 import re
+import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -102,17 +103,24 @@ def make_dirs(directory: Path) -> None:
         fsync_dir(path.parent)
 
 
-def write_atomically(path: Path, data: bytes | str) -> None:
-    """Replace ``path`` whole or not at all: temporary file, fsync, ``os.replace``, dir fsync."""
+def write_atomically(path: Path, data: bytes | str, *, durable: bool = True,
+                     sync_dir: bool = True) -> None:
+    """Replace ``path`` whole or not at all: temporary file, fsync, ``os.replace``, dir fsync.
+
+    ``durable=False`` skips the fsyncs: the replacement is still atomic for readers and
+    survives the process being killed, but not a power cut.
+    """
     if isinstance(data, str):
         data = data.encode("utf-8")
     temp = path.with_name(f".{path.name}.tmp")
     with open(temp, "wb") as handle:
         handle.write(data)
         handle.flush()
-        os.fsync(handle.fileno())
+        if durable:
+            os.fsync(handle.fileno())
     os.replace(temp, path)
-    fsync_dir(path.parent)
+    if durable and sync_dir:
+        fsync_dir(path.parent)
 
 
 def json_text(data: Any) -> str:
@@ -179,8 +187,9 @@ class SessionPaths:
         return (self.root / "sourcedata" / f"sub-{self.participant}"
                 / f"ses-{self.session}")
 
-    def frame_log(self, trial_index: int) -> Path:
-        return self.source_dir / f"{self.stem}_trial-{trial_index:04d}_frames.tsv.gz"
+    @property
+    def frame_log(self) -> Path:
+        return self.source_dir / f"{self.stem}_frames.tsv.gz"
 
 
 class Dataset:
@@ -307,15 +316,20 @@ def column_dictionary() -> dict[str, dict[str, str]]:
 class SessionStore:
     """A session's files, held under the session lock by one runner.
 
-    Use as a context manager (or :meth:`acquire` / :meth:`release`).
+    Use as a context manager (or :meth:`acquire` / :meth:`release`). ``durable=False`` (for
+    dry-runs, which a seed regenerates) keeps every write atomic and ordered, so a killed
+    process loses nothing, but fsyncs only when the session stops, not after every trial.
     """
 
-    def __init__(self, paths: SessionPaths, columns: Sequence[str] | None = None) -> None:
+    def __init__(self, paths: SessionPaths, columns: Sequence[str] | None = None,
+                 durable: bool = True) -> None:
         self.paths = paths
         self.columns = tuple(columns or schema.TRIAL_COLUMNS)
+        self.durable = durable
         self._lock_handle: Any = None
         self._hash = hashlib.sha256()
         self._created = False
+        self._frames_created = False
 
     # --- lock ---
     def acquire(self) -> None:
@@ -362,8 +376,14 @@ class SessionStore:
     def recover_rows(self) -> list[dict[str, str]]:
         """The rows stored so far; a torn last line is cut off (backed up) first.
 
-        Also positions the running sha256 so :attr:`trials_sha256` covers the whole file.
+        Also cuts frame-log members of trials without a row (a kill between the two appends)
+        and positions the running sha256 so :attr:`trials_sha256` covers the whole file.
         """
+        rows = self._recover_tsv()
+        self._recover_frames(len(rows))
+        return rows
+
+    def _recover_tsv(self) -> list[dict[str, str]]:
         path = self.paths.tsv
         if not path.exists():
             return []
@@ -371,7 +391,7 @@ class SessionStore:
         header = "\t".join(self.columns).encode() + b"\n"
         if not data.startswith(header):
             if header.startswith(data):  # killed while writing the header
-                self._cut(data, 0)
+                self._cut(path, data, 0, "beh")
                 return []
             first = data.split(b"\n", 1)[0].decode("utf-8", "replace")
             raise DatasetError(f"{path}: unexpected header {first!r}; expected the columns of "
@@ -381,7 +401,7 @@ class SessionStore:
         rows: list[dict[str, str]] = []
         for number, line in enumerate(lines, start=2):
             fields = line.decode("utf-8", "replace").split("\t")
-            if len(fields) != len(self.columns) or "\x00" in line.decode("latin-1"):
+            if len(fields) != len(self.columns) or b"\x00" in line:
                 if number == len(lines) + 1:  # a malformed last line: torn as well
                     keep -= len(line) + 1
                     break
@@ -389,56 +409,89 @@ class SessionStore:
                                    f"got {len(fields)}; the file was edited or damaged")
             rows.append(dict(zip(self.columns, fields, strict=True)))
         if keep < len(data):
-            self._cut(data, keep)
+            self._cut(path, data, keep, "beh")
         self._hash = hashlib.sha256(data[:keep])
         self._created = keep > 0
         return rows
 
-    def _cut(self, data: bytes, keep: int) -> None:
-        """Truncate the TSV to ``keep`` bytes, saving the rest under ``sourcedata``."""
+    def _recover_frames(self, n_rows: int) -> None:
+        """Keep the header member and the members of trials 0..n_rows-1 of the frame log."""
+        path = self.paths.frame_log
+        if not path.exists():
+            return
+        data = path.read_bytes()
+        keep = 0
+        position = 0
+        expected = -1  # the header member first, then trial 0, 1, ...
+        while position < len(data) and expected < n_rows:
+            member = zlib.decompressobj(wbits=31)
+            try:
+                text = member.decompress(data[position:])
+            except zlib.error:
+                break
+            if not member.eof:
+                break
+            first = text.split(b"\t", 1)[0]
+            if (expected == -1 and first != b"trial") or (
+                    expected >= 0 and first != str(expected).encode()):
+                break
+            position = len(data) - len(member.unused_data)
+            keep = position
+            expected += 1
+        if expected < n_rows and n_rows > 0:
+            raise DatasetError(f"{path}: frame log holds trials up to {expected - 1}, the "
+                               f"trial file has {n_rows} rows; the files were edited or damaged")
+        if keep < len(data):
+            self._cut(path, data, keep, "frames")
+        self._frames_created = keep > 0
+
+    def _cut(self, path: Path, data: bytes, keep: int, what: str) -> None:
+        """Truncate ``path`` to ``keep`` bytes, saving the rest under ``sourcedata``."""
         make_dirs(self.paths.source_dir)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
-        backup = self.paths.source_dir / f"{self.paths.stem}_beh-torn-{stamp}.bin"
+        backup = self.paths.source_dir / f"{self.paths.stem}_{what}-torn-{stamp}.bin"
         write_atomically(backup, data[keep:])
-        with open(self.paths.tsv, "r+b") as handle:
+        with open(path, "r+b") as handle:
             handle.truncate(keep)
             handle.flush()
             os.fsync(handle.fileno())
 
     # --- writing ---
+    def _append(self, path: Path, data: bytes, create: bool = False) -> None:
+        """One ``write`` (all or, after a kill, a torn tail that recovery cuts), then fsync."""
+        flags = os.O_WRONLY | (os.O_CREAT | os.O_TRUNC if create else os.O_APPEND)
+        fd = os.open(path, flags, 0o644)
+        try:
+            written = os.write(fd, data)
+            if written != len(data):
+                raise DatasetError(f"{path}: short write ({written} of {len(data)} bytes); "
+                                   "disk full?")
+            if self.durable or create:
+                os.fsync(fd)
+        finally:
+            os.close(fd)
+        if create:
+            fsync_dir(path.parent)
+
     def create(self) -> None:
         """Start the TSV with its header (durably) if it has none."""
         if self._created:
             return
         make_dirs(self.paths.beh_dir)
         header = ("\t".join(self.columns) + "\n").encode()
-        fd = os.open(self.paths.tsv, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            os.write(fd, header)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        fsync_dir(self.paths.beh_dir)
+        self._append(self.paths.tsv, header, create=True)
         self._hash = hashlib.sha256(header)
         self._created = True
 
     def append_row(self, row: dict[str, Any]) -> None:
-        """Append one trial, durably (single write, fsync) before returning."""
+        """Append one trial (one write; fsync when durable) before returning."""
         if not self._created:
             self.create()
         missing = [c for c in self.columns if c not in row]
         if missing:
             raise DatasetError(f"trial row lacks columns {missing}")
         line = tsv_line([row[c] for c in self.columns]).encode("utf-8")
-        fd = os.open(self.paths.tsv, os.O_WRONLY | os.O_APPEND)
-        try:
-            written = os.write(fd, line)
-            if written != len(line):
-                raise DatasetError(f"{self.paths.tsv}: short write ({written} of {len(line)} "
-                                   "bytes); disk full?")
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        self._append(self.paths.tsv, line)
         self._hash.update(line)
 
     @property
@@ -446,22 +499,47 @@ class SessionStore:
         """sha256 of the TSV bytes as written so far."""
         return self._hash.hexdigest()
 
-    def write_sidecar(self, metadata: dict[str, Any]) -> None:
+    def write_sidecar(self, metadata: dict[str, Any], final: bool = False) -> None:
+        """Rewrite the sidecar atomically (fsynced when durable or ``final``)."""
         make_dirs(self.paths.beh_dir)
-        write_atomically(self.paths.sidecar, json_text(metadata))
+        write_atomically(self.paths.sidecar, json_text(metadata),
+                         durable=self.durable or final, sync_dir=final)
 
-    def write_frame_log(self, trial_index: int, columns: Sequence[str],
-                        rows: Sequence[Sequence[Any]]) -> Path:
-        """The per-frame device log of one trial, gzip TSV, atomically and durably."""
+    def append_frames(self, trial_index: int, columns: Sequence[str],
+                      rows: Sequence[Sequence[Any] | str]) -> None:
+        """Append one trial's frames to the session's frame log (one gzip member).
+
+        The log is a gzip TSV of concatenated members (``zcat`` or ``gzip.open`` read it as
+        one table): the first holds the header (``trial`` then ``columns``), then one member
+        per trial, in trial order. Appended before the trial's row, so a row always has its
+        frames; members without a row are cut on resume. A row given as a string is taken as
+        already formatted (tab-separated, without the trial column).
+        """
         make_dirs(self.paths.source_dir)
-        text = "\t".join(columns) + "\n" + "".join(tsv_line(r) for r in rows)
-        data = gzip.compress(text.encode("utf-8"), compresslevel=6, mtime=0)
-        path = self.paths.frame_log(trial_index)
-        write_atomically(path, data)
-        return path
+        if not self._frames_created:
+            header = "\t".join(("trial", *columns)) + "\n"
+            self._append(self.paths.frame_log, _gzip(header), create=True)
+            self._frames_created = True
+        text = "".join(f"{trial_index}\t{r}\n" if isinstance(r, str)
+                       else tsv_line((trial_index, *r)) for r in rows)
+        self._append(self.paths.frame_log, _gzip(text))
+
+    def sync(self) -> None:
+        """fsync every session file (the end of a session written with ``durable=False``)."""
+        for path in (self.paths.tsv, self.paths.frame_log):
+            if path.exists():
+                fd = os.open(path, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+
+
+def _gzip(text: str) -> bytes:
+    return gzip.compress(text.encode("utf-8"), compresslevel=6, mtime=0)
 
 
 def read_frame_log(path: str | Path) -> list[dict[str, str]]:
-    """Rows of a per-trial frame log (for inspection and tests)."""
-    text = gzip.decompress(Path(path).read_bytes()).decode("utf-8")
-    return list(csv.DictReader(io.StringIO(text), delimiter="\t"))
+    """Rows of a session's frame log (every member), for inspection and tests."""
+    with gzip.open(path, "rt", encoding="utf-8", newline="") as handle:
+        return list(csv.DictReader(handle, delimiter="\t"))

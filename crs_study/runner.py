@@ -17,8 +17,11 @@ One trial (all times on the session's :class:`~crs_study.clock.Clock`):
 
 Session time: ``onset`` and ``trial_end`` are seconds since the session started, not counting
 the time a session spent interrupted: a resumed session continues from the last stored
-``trial_end``. Each trial ends on a whole millisecond of session time, so a resumed session on
-a virtual clock reproduces an uninterrupted one bit for bit (every column of every row).
+``trial_end``. Each trial ends on a whole millisecond of session time (so the stored value is
+exact). On a virtual clock a resumed session first replays the stored trials' frames on the
+fresh simulated device, without responder or writing, so the device's history (wire timing,
+refresh phase, servo positions) is the uninterrupted run's; the rest of the session is then
+bit for bit what an uninterrupted run writes: every column of every row and every frame log.
 
 Failures: Ctrl-C (or the keypad's quit key, or SIGTERM) is a safe pause: the display goes
 neutral, the session is marked ``interrupted`` and the run returns status ``interrupted``
@@ -46,9 +49,11 @@ from crs_study.clock import RealClock, VirtualClock
 from crs_study.dataset import Dataset, SessionStore, sha256_bytes, utc_now
 from crs_study.errors import DeviceError, SessionError
 
-#: Session time spent before the first trial (and before a resumed one) with the display
-#: neutral, so every trial starts from a settled, flat display.
+#: Session time spent before the first trial with the display neutral (settled and flat).
 SETTLE_S = 1.0
+#: Without per-trial durability (dry-runs) the sidecar is rewritten every this many trials
+#: (and when the session stops); the trial file is the authority on what is done.
+DRY_RUN_SIDECAR_EVERY = 10
 FRAME_LOG_COLUMNS = ("kind", "frame", "due", "commanded_at", "wire_done_at", "bytes",
                      "channels", "merged")
 
@@ -68,6 +73,8 @@ class SessionSpec:
     clock: str = "auto"  # "real", "virtual" or "auto" (virtual for sim:// with a simulation)
     counterbalance: int | None = None
     consent_register: Path | None = None
+    #: fsync every trial (True) or only when the session stops (dry-runs: see SessionStore)
+    durable: bool = True
 
 
 @dataclass(frozen=True)
@@ -112,6 +119,7 @@ class StimulusCache:
         self._renderers: dict[str, Any] = {}
         self._stimuli: dict[int, Any] = {}
         self._frames: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
+        self._text: dict[tuple[int, str], list[str]] = {}
 
     def get(self, digit: int, condition: str) -> tuple[np.ndarray, np.ndarray]:
         """``(frame_times (n,), setpoints (n, n_actuators))``."""
@@ -132,6 +140,14 @@ class StimulusCache:
                                    f"frame times but frames of shape {frames.shape}")
             self._frames[key] = (times, frames)
         return self._frames[key]
+
+    def setpoint_text(self, digit: int, condition: str) -> list[str]:
+        """The frames' setpoints as tab-separated text (mm, 4 decimals), for the frame log."""
+        key = (int(digit), condition)
+        if key not in self._text:
+            _, frames = self.get(digit, condition)
+            self._text[key] = ["\t".join(f"{v:.4f}" for v in row) for row in frames.tolist()]
+        return self._text[key]
 
 
 _caches: dict[tuple[str, str], StimulusCache] = {}
@@ -305,7 +321,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
         "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
     }
-    store = SessionStore(paths)
+    store = SessionStore(paths, durable=spec.durable)
     with store:
         stored = store.read_sidecar()
         rows = store.recover_rows()
@@ -334,13 +350,10 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         faults = {int(f["trial"]) for f in metadata["Faults"]}
         state = _Session(spec, protocol, layout, plan, store, metadata, rows, faults)
         resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
-        if clock_kind == "virtual":
-            clock: Any = VirtualClock(start=resume_at - SETTLE_S)
-        else:
-            clock = RealClock()
+        clock: Any = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
         cache = stimulus_cache(protocol, layout)
         store.create()
-        _save(state, "running")
+        _save(state, "running", final=True)
         first = len(rows)
         status = "interrupted"
         origin = 0.0
@@ -349,7 +362,12 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                     spec.device_url, layout, clock, **(device_options or {})) as device:
                 device.neutral()
                 if clock_kind == "virtual":
-                    clock.sleep_until(resume_at)
+                    clock.sleep_until(0.0)
+                    if rows:
+                        if progress:
+                            progress(f"sub-{spec.participant} ses-{spec.session}: replaying "
+                                     f"{len(rows)} stored trials on the simulated device")
+                        _replay(state, device, clock, cache)
                 else:
                     clock.sleep(SETTLE_S)
                     origin = clock.now() - resume_at
@@ -365,15 +383,15 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             k = len(state.rows)
             state.metadata["Faults"].append({"trial": k, "time": utc_now(), "message": str(error)})
             with _IgnoreInterrupts():
-                _save(state, "interrupted")
+                _save(state, "interrupted", final=True)
             raise DeviceError(f"device fault at trial {k + 1}/{n_trials}: {error}; the session "
                               "is marked interrupted: run the same command to resume") from None
         finally:
             if status != "complete":
                 with _IgnoreInterrupts():
-                    _save(state, "interrupted")
+                    _save(state, "interrupted", final=True)
         if status == "complete":
-            _save(state, "complete")
+            _save(state, "complete", final=True)
         done = len(state.rows)
         return SessionResult(
             status, spec.participant, spec.session, n_trials, done, done - first,
@@ -422,13 +440,16 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
     }
 
 
-def _save(state: _Session, status: str) -> None:
+def _save(state: _Session, status: str, final: bool = False) -> None:
+    """Rewrite the sidecar; ``final`` (start, stop) also fsyncs the session's files."""
+    if final:
+        state.store.sync()
     meta = state.metadata
     meta["Status"] = status
     meta["TrialsCompleted"] = len(state.rows)
     meta["TrialsSha256"] = state.store.trials_sha256
     meta["EndTime"] = utc_now() if status != "running" else None
-    state.store.write_sidecar(meta)
+    state.store.write_sidecar(meta, final=final)
 
 
 def _digit_choices(protocol: Any) -> tuple[int, ...]:
@@ -436,21 +457,27 @@ def _digit_choices(protocol: Any) -> tuple[int, ...]:
     return tuple(int(d) for d in digits) if digits is not None else tuple(range(10))
 
 
-def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin: float,
-               cache: StimulusCache, trial: Any) -> None:
-    from crs_study.responders.base import StimulusRecord
+@dataclass
+class _Shown:
+    """What one stimulus presentation did on the device."""
 
-    protocol = state.protocol
-    if trial.prompt_before or trial.break_before:
-        responder.prompt(trial.prompt_before or "Break: rest, then continue", clock)
-    frame_times, frames = cache.get(trial.digit, trial.condition)
-    period = 1.0 / float(protocol.frame_rate_hz)
+    onset: float
+    offset: float
+    reports: list
+    displayed: np.ndarray
+    late: int
+    neutral_due: float
+    neutral: Any
+
+
+def _present(device: Any, clock: Any, frame_times: np.ndarray, frames: np.ndarray,
+             period: float) -> _Shown:
+    """Command the frames at ``onset + frame_times[k]``, then neutral at the offset."""
     n = len(frame_times)
     displayed = np.empty_like(frames)
     reports = []
     late = 0
     onset = clock.now()
-    responder.begin_trial(trial, onset, clock)
     for i in range(n):
         due = onset + frame_times[i]
         clock.sleep_until(due)
@@ -465,7 +492,44 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
     displayed[n - 1] = device.displayed_setpoints(clock.now())
     neutral_due = clock.now()
     neutral = device.neutral()  # the display goes flat at the stimulus offset
-    record = StimulusRecord(state.layout, trial.condition, frame_times + period, displayed,
+    return _Shown(onset, offset, reports, displayed, late, neutral_due, neutral)
+
+
+def _replay(state: _Session, device: Any, clock: Any, cache: StimulusCache) -> None:
+    """Bring a fresh simulated device to where an uninterrupted run had it (virtual clock).
+
+    The stored trials' frames are commanded again at their original session times (no
+    responder, nothing written), so the device's history (wire timing, refresh phase, servo
+    positions) and therefore every later trial are exactly those of an uninterrupted run.
+    """
+    period = 1.0 / float(state.protocol.frame_rate_hz)
+    for row, trial in zip(state.rows, state.plan.trials, strict=False):
+        frame_times, frames = cache.get(trial.digit, trial.condition)
+        _present(device, clock, frame_times, frames, period)
+        clock.sleep_until(float(row["trial_end"]))
+
+
+def _frame_line(kind: str, frame: int, due: float, report: Any, origin: float,
+                setpoints: str) -> str:
+    """One frame-log line (without the trial column): times in session seconds."""
+    return (f"{kind}\t{frame}\t{due - origin:.6f}\t{report.commanded_at - origin:.6f}\t"
+            f"{report.wire_done_at - origin:.6f}\t{','.join(map(str, report.bytes_sent))}\t"
+            f"{report.channels_sent}\t{int(report.merged)}\t{setpoints}")
+
+
+def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin: float,
+               cache: StimulusCache, trial: Any) -> None:
+    from crs_study.responders.base import StimulusRecord
+
+    protocol = state.protocol
+    if trial.prompt_before or trial.break_before:
+        responder.prompt(trial.prompt_before or "Break: rest, then continue", clock)
+    frame_times, frames = cache.get(trial.digit, trial.condition)
+    period = 1.0 / float(protocol.frame_rate_hz)
+    responder.begin_trial(trial, clock.now(), clock)
+    shown = _present(device, clock, frame_times, frames, period)
+    onset, offset, reports = shown.onset, shown.offset, shown.reports
+    record = StimulusRecord(state.layout, trial.condition, frame_times + period, shown.displayed,
                             _digit_choices(protocol), onset, offset)
     response = responder.respond(trial, record, clock, protocol.time_limit_s)
     duration = offset - onset
@@ -473,29 +537,29 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
     correct = None if response.digit is None else int(response.digit == trial.digit)
     trial_end = ceil_ms(clock.now() - origin + float(protocol.inter_trial_interval_s))
     latencies = [r.wire_done_at - (onset + frame_times[i]) for i, r in enumerate(reports)]
+    n = len(frame_times)
     row = {
         "trial_index": trial.index, "trial_type": trial.trial_type, "block": trial.block,
         "condition": trial.condition, "repetition": trial.repetition, "digit": trial.digit,
         "response": response.digit, "correct": correct, "response_time": rt,
         "response_time_from_offset": rt - duration, "onset": onset - origin,
         "stimulus_duration": duration, "timed_out": int(response.digit is None),
-        "device_fault": int(trial.index in state.faults), "frames": n, "late_frames": late,
-        "median_wire_latency": float(np.median(latencies)), "responder": responder.name,
-        "trial_end": trial_end,
+        "device_fault": int(trial.index in state.faults), "frames": n,
+        "late_frames": shown.late, "median_wire_latency": float(np.median(latencies)),
+        "responder": responder.name, "trial_end": trial_end,
     }
-    log = [("stimulus", i, onset + frame_times[i] - origin, r.commanded_at - origin,
-            r.wire_done_at - origin, ",".join(map(str, r.bytes_sent)), r.channels_sent,
-            int(r.merged), *np.round(frames[i], 4).tolist()) for i, r in enumerate(reports)]
-    log.append(("neutral", n, neutral_due - origin, neutral.commanded_at - origin,
-                neutral.wire_done_at - origin, ",".join(map(str, neutral.bytes_sent)),
-                neutral.channels_sent, int(neutral.merged),
-                *state.layout.neutral_setpoints().tolist()))
+    text = cache.setpoint_text(trial.digit, trial.condition)
+    log = [_frame_line("stimulus", i, onset + frame_times[i], r, origin, text[i])
+           for i, r in enumerate(reports)]
+    flat = "\t".join(f"{v:.4f}" for v in state.layout.neutral_setpoints().tolist())
+    log.append(_frame_line("neutral", n, shown.neutral_due, shown.neutral, origin, flat))
     columns = FRAME_LOG_COLUMNS + tuple(f"a{j:02d}" for j in range(frames.shape[1]))
-    state.store.write_frame_log(trial.index, columns, log)
+    state.store.append_frames(trial.index, columns, log)
     state.store.append_row(row)
     state.rows.append({k: str(v) for k, v in row.items()})
-    state.late_frames += late
-    _save(state, "running")
+    state.late_frames += shown.late
+    if state.spec.durable or len(state.rows) % DRY_RUN_SIDECAR_EVERY == 0:
+        _save(state, "running")
     if trial.feedback:
         responder.feedback(trial, response, bool(correct))
     responder.end_trial()
@@ -518,13 +582,16 @@ def _dry_run_one(spec: SessionSpec) -> SessionResult:
 
 def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, jobs: int = 1,
             responder: str = "observer", device_url: str = "sim://", prefix: str = "sim",
-            progress: Progress | None = None) -> list[SessionResult]:
+            progress: Progress | None = None, durable: bool = False) -> list[SessionResult]:
     """Session 1 of ``participants`` simulated participants on a virtual clock.
 
     Participant i (from 0) gets counterbalance index i, so the protocol's block orders are
     balanced across the N. With ``jobs > 1`` sessions run in that many worker processes (each
     session is written by one process; the dataset lock serialises ``participants.tsv``).
     Completed sessions already in the dataset are left as they are (a rerun resumes).
+    ``durable=False`` fsyncs each session when it stops rather than after every trial: a
+    killed dry-run still loses nothing, and a power cut costs at most the unfinished
+    sessions, which the same command regenerates exactly from their seeds.
     """
     if not device_url.startswith("sim://"):
         raise SessionError(f"a dry-run uses the simulated device (sim://...), got "
@@ -534,7 +601,7 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
     labels = simulated_labels(participants, prefix)
     Dataset(dataset).ensure()
     specs = [SessionSpec(Path(protocol), label, Path(dataset), device_url, 1, responder,
-                         "virtual", i) for i, label in enumerate(labels)]
+                         "virtual", i, durable=durable) for i, label in enumerate(labels)]
     results: list[SessionResult] = []
 
     def note(result: SessionResult) -> None:

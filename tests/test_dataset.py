@@ -179,15 +179,51 @@ def test_lock_file_is_hidden_and_named_for_withdrawal(store):
     assert store.paths.lock.parent.parent.name == "sub-p01"
 
 
-def test_sidecar_atomic_and_frame_log(store):
+def test_sidecar_atomic(store):
     store.write_sidecar({"Status": "running"})
     assert json.loads(store.paths.sidecar.read_text()) == {"Status": "running"}
     assert not list(store.paths.beh_dir.glob(".*.tmp"))
-    path = store.write_frame_log(4, ("frame", "due"), [(0, 0.0), (1, 1 / 15)])
-    assert path.name.endswith("_trial-0004_frames.tsv.gz")
+
+
+def test_frame_log_is_one_gzip_table(store):
+    store.append_frames(0, ("frame", "due"), [(0, 0.0), (1, 1 / 15)])
+    store.append_frames(1, ("frame", "due"), [(0, 2.0)])
+    path = store.paths.frame_log
     assert path.is_relative_to(store.paths.root / "sourcedata")
-    assert read_frame_log(path) == [{"frame": "0", "due": "0.000000"},
-                                    {"frame": "1", "due": "0.066667"}]
+    assert path.name == "sub-p01_ses-1_task-digitid_frames.tsv.gz"
+    assert read_frame_log(path) == [{"trial": "0", "frame": "0", "due": "0.000000"},
+                                    {"trial": "0", "frame": "1", "due": "0.066667"},
+                                    {"trial": "1", "frame": "0", "due": "2.000000"}]
+
+
+@pytest.mark.parametrize("damage", ["member-without-row", "torn-member"])
+def test_frame_log_recovery(store, damage):
+    store.create()
+    for k in range(2):
+        store.append_frames(k, ("frame",), [(0,), (1,)])
+        store.append_row(_row(k))
+    good = store.paths.frame_log.read_bytes()
+    store.append_frames(2, ("frame",), [(0,)])  # killed before the row of trial 2
+    if damage == "torn-member":
+        data = store.paths.frame_log.read_bytes()
+        store.paths.frame_log.write_bytes(data[:-5])
+    fresh = SessionStore(store.paths)
+    assert len(fresh.recover_rows()) == 2
+    assert store.paths.frame_log.read_bytes() == good
+    assert list(store.paths.source_dir.glob("*_frames-torn-*.bin"))
+    fresh.append_frames(2, ("frame",), [(0,)])
+    assert [r["trial"] for r in read_frame_log(store.paths.frame_log)] == ["0", "0", "1", "1",
+                                                                           "2"]
+
+
+def test_frame_log_missing_trials_is_an_error(store):
+    store.create()
+    store.append_frames(0, ("frame",), [(0,)])
+    for k in range(2):
+        store.append_row(_row(k))
+    with pytest.raises(DatasetError, match="frame log holds trials up to 0, the trial file "
+                                           "has 2 rows"):
+        SessionStore(store.paths).recover_rows()
 
 
 def test_write_atomically_replaces_whole(tmp_path):

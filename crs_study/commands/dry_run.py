@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated participant")
     parser.add_argument("--device", default="sim://", metavar="URL",
                         help="simulated device URL, e.g. sim:// or sim://?options")
+    parser.add_argument("--fsync", action="store_true",
+                        help="fsync after every trial as a real session does (default: when "
+                        "each session stops; a rerun regenerates anything a power cut loses)")
     parser.add_argument("--json", action="store_true",
                         help="print a JSON summary on stdout and no progress")
 
@@ -39,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
 
     results = dry_run(args.protocol, args.participants, args.out, jobs=args.jobs,
                       responder=args.responder, device_url=args.device,
-                      progress=stderr_progress(not args.json))
+                      progress=stderr_progress(not args.json), durable=args.fsync)
     trials = sum(r.trials_completed for r in results)
     session_s = sum(r.session_seconds for r in results)
     if args.json:
