@@ -36,7 +36,7 @@ nodes. On equilateral triangles the FE Laplacian is the 6-neighbour stencil
 per layout, so the membrane matrix is factorised once (sparse LU); a frame costs one sparse
 solve plus a barycentric lookup per query point. On the beam lines the surface
 equals the beam profile exactly (a correction term confined to the triangles touching the beam
-replaces the piecewise-linear sampling there).
+replaces the piecewise-linear sampling there, see ``Fabric._beam_correction``).
 """
 
 from __future__ import annotations
@@ -314,19 +314,30 @@ class Fabric:
     def _beam_correction(self, profiles: BeamProfiles, xy: np.ndarray) -> np.ndarray:
         """Beam shape minus its linear sampling, faded out over one fine spacing off the beam.
 
-        Zero at every beam node and at distance >= h sqrt(3)/2 (the next lattice line), so the
-        surface stays continuous; on the beam line the surface equals the beam profile.
+        Beam b's correction carries the weight c_b prod_{b' != b} (1 - c_b'), with closeness
+        c_b = 1 - distance / (h sqrt(3)/2) (0 beyond the next lattice line): zero at every node,
+        on other beams' lines and one lattice line away, so the surface stays continuous; on a
+        beam line the surface equals the beam profile (except within h of a crossing, where
+        the crossing beams share the linear sampling).
         """
         rel = xy[None, :, :] - self.beam_starts[:, None, :]
         s = np.einsum("bnk,bk->bn", rel, self.beam_units)
         off = np.abs(rel[..., 0] * self.beam_units[:, None, 1]
                      - rel[..., 1] * self.beam_units[:, None, 0])
         band = self.h * _SQRT3_2
-        near = (off < band) & (s > 0.0) & (s < self.beam_spans[:, None])
+        close = np.where((s > 0.0) & (s < self.beam_spans[:, None]),
+                         np.clip(1.0 - off / band, 0.0, 1.0), 0.0)
         out = np.zeros(len(xy))
-        if not np.any(near):
+        points = np.flatnonzero(close.max(axis=0) > 0.0)
+        if points.size == 0:
             return out
-        beam_idx, point = np.nonzero(near)
+        close = close[:, points]
+        others = 1.0 - close
+        n_beams = len(close)
+        weight = close * np.stack([np.prod(np.delete(others, b, axis=0), axis=0)
+                                   for b in range(n_beams)])
+        beam_idx, k = np.nonzero(weight > 0.0)
+        point = points[k]
         s_near = s[beam_idx, point]
         left = np.floor(s_near / self.h) * self.h
         right = np.minimum(left + self.h, self.beam_spans[beam_idx])
@@ -334,6 +345,5 @@ class Fabric:
         n = len(s_near)
         values = profiles.heights(np.tile(beam_idx, 3), np.concatenate([s_near, left, right]))
         exact, linear = values[:n], (1 - frac) * values[n:2 * n] + frac * values[2 * n:]
-        fade = 1.0 - off[beam_idx, point] / band
-        np.add.at(out, point, fade * (exact - linear))
+        np.add.at(out, point, weight[beam_idx, k] * (exact - linear))
         return out

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline
-from scipy.linalg import LinAlgError, cholesky_banded, cho_solve_banded
+from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 from scipy.optimize import brentq
 
 from crs_study.display.base import register
