@@ -311,3 +311,26 @@ def test_brownout_is_a_device_error_servos_sink_and_battery_reads_low(layout2d):
     assert device.battery_mv() == [BROWNOUT_BATTERY_MV] * 2
     device.close()
     assert device.neutral_attempted and len(device.faults) >= 1
+
+
+def test_remembered_frames_change_nothing(layout2d, rng):
+    # the encode/decode caches are pure speed: the boards see and do exactly the same
+    frames = rng.uniform(0, 9.0, (30, layout2d.n_actuators))
+    frames[10:20] = frames[:10]  # recurring frames hit the caches
+
+    def run(clear):
+        device = sim(layout2d, record=True)
+        shown = []
+        for f in frames:
+            if clear:
+                device.clear_caches()
+            device.send(f)
+            device.clock.advance(0.05)
+            shown.append(device.displayed_setpoints())
+        return device, np.array(shown)
+
+    cached, shown_cached = run(False)
+    fresh, shown_fresh = run(True)
+    assert np.array_equal(shown_cached, shown_fresh)
+    for a, b in zip(cached.boards, fresh.boards, strict=True):
+        assert [r.message for r in a.received] == [r.message for r in b.received]

@@ -81,6 +81,7 @@ from crs_study.device.virtual_controller import (
     NORMAL_BATTERY_MV,
     ServoSpec,
     VirtualController,
+    clear_decode_cache,
     speed_us_per_s,
 )
 from crs_study.errors import DeviceError
@@ -512,6 +513,11 @@ class SimulatedDevice(Device):
         if message not in self.faults:
             self.faults.append(message)
         raise DeviceError(message)
+
+    def clear_caches(self) -> None:
+        """Forget remembered encodings and decodings (benchmarks of a first presentation)."""
+        self.builder._encoded.clear()
+        clear_decode_cache()
 
     # -- what the skin meets ------------------------------------------------------------------
 

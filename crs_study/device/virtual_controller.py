@@ -169,6 +169,11 @@ _DECODED: dict[tuple[int, int, bytes], list[_Action]] = {}
 DECODE_CACHE_SIZE = 1 << 15
 
 
+def clear_decode_cache() -> None:
+    """Forget every remembered decoding (for benchmarks of first presentations)."""
+    _DECODED.clear()
+
+
 class VirtualController:
     """A virtual LSC-24: feed it bytes with their arrival time, read servo positions back.
 
