@@ -501,6 +501,11 @@ class FrameDecoder:
         """Bytes held back: the start of a frame that may still complete."""
         return bytes(self._buffer)
 
+    @property
+    def position(self) -> int:
+        """Stream offset of the first byte not yet framed or skipped."""
+        return self._offset
+
     def feed(self, data: bytes) -> list[Frame]:
         self._buffer += data
         frames: list[Frame] = []

@@ -55,6 +55,8 @@ from crs_study.device.base import BITS_PER_BYTE, Device, FrameReport, servo_move
 from crs_study.device.calibration import PulseMap
 from crs_study.device.codec import (
     MOVE_TIME_MAX_MS,
+    PULSE_MAX_US,
+    PULSE_MIN_US,
     BatteryVoltage,
     Direction,
     FrameDecoder,
@@ -398,10 +400,34 @@ class SerialDevice(Device):
 
     def send(self, setpoints_mm: np.ndarray, move_ms: int | None = None) -> FrameReport:
         commanded_at = self.clock.now()
+        self._check_open()
+        pulses = self.pulse_map.to_pulses(setpoints_mm)
+        report = self._hand_over(pulses, move_ms, commanded_at)
+        self._last_setpoints = np.asarray(setpoints_mm, dtype=float).copy()
+        return report
+
+    def send_pulses(self, pulses_us: np.ndarray, move_ms: int | None = None) -> FrameReport:
+        """Command raw pulse widths (us, actuator order), for calibration only.
+
+        Checked against the board's 500..2500 us, not the calibration being established.
+        """
+        commanded_at = self.clock.now()
+        self._check_open()
+        pulses = np.asarray(pulses_us)
+        if pulses.shape != (self.layout.n_actuators,) or not np.all(
+                (pulses >= PULSE_MIN_US) & (pulses <= PULSE_MAX_US) & (pulses == np.rint(pulses))):
+            raise DeviceError(f"pulse widths: expected {self.layout.n_actuators} whole numbers "
+                              f"{PULSE_MIN_US}..{PULSE_MAX_US} us, got {pulses_us!r}")
+        return self._hand_over(pulses.astype(np.int64), move_ms, commanded_at)
+
+    def _check_open(self) -> None:
         if self._state != "open":
             raise DeviceError(f"serial device: send() on a device that is {self._state}; "
                               f"open it first (use it as a context manager)")
-        pulses = self.pulse_map.to_pulses(setpoints_mm)
+
+    def _hand_over(self, pulses: np.ndarray, move_ms: int | None, commanded_at: float
+                   ) -> FrameReport:
+        """Make ``pulses`` every port's latest wanted frame; predict when it leaves the wire."""
         move = self.default_move_ms if move_ms is None else move_ms
         if not _whole(move, 0, MOVE_TIME_MAX_MS):
             raise DeviceError(f"move time: expected a whole number of ms 0..{MOVE_TIME_MAX_MS}, "
@@ -426,7 +452,6 @@ class SerialDevice(Device):
                 port.cond.notify_all()
             sent.append(n_bytes)
             channels += len(local)
-        self._last_setpoints = np.asarray(setpoints_mm, dtype=float).copy()
         return FrameReport(commanded_at, done, tuple(sent), channels, merged)
 
     def close(self) -> None:

@@ -1,0 +1,384 @@
+"""Work with the display's controllers: check, neutral pose, sweep, calibrate, monitor a port.
+
+Device URLs: ``serial://PORT[,PORT...]`` (one port per controller, in device-file order; a
+PORT is a path like /dev/ttyUSB0 or any pyserial URL such as spy:///dev/ttyUSB0 or loop://)
+or ``sim://[?options]`` (the simulated device). Serial options (--deadband-us, --refresh-s,
+--min-battery-mv, --battery-timeout-s, --no-battery-check) apply to serial:// URLs only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+
+NAME = "device"
+HELP = "check the controllers, neutral pose, sweep, calibrate endpoints, monitor a port"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    def add(name: str, help_text: str, device: bool = True) -> argparse.ArgumentParser:
+        sub = actions.add_parser(name, help=help_text, description=help_text,
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        if device:
+            sub.add_argument("--device", required=True, metavar="URL",
+                             help="serial:///dev/ttyUSB0,/dev/ttyUSB1 or sim://")
+            sub.add_argument("--layout", default="crs2d", metavar="NAME|FILE",
+                             help="device file: crs2d, crs1d or a path")
+            group = sub.add_argument_group("serial options")
+            group.add_argument("--deadband-us", type=int, default=None,
+                               help="resend a channel when it moved more than this (us)")
+            group.add_argument("--refresh-s", type=float, default=None,
+                               help="send every channel at least this often (0: never)")
+            group.add_argument("--min-battery-mv", type=int, default=None,
+                               help="refuse a board reporting less (mV; 0: no check)")
+            group.add_argument("--battery-timeout-s", type=float, default=None,
+                               help="wait this long for each board's battery reply")
+            group.add_argument("--no-battery-check", action="store_true",
+                               help="do not ask the boards for their battery voltage")
+        return sub
+
+    check = add("check", "open the ports, read batteries, show the channel map and wire budget")
+    check.add_argument("--protocol", default=None, metavar="FILE",
+                       help="also plan this protocol's digit stimuli on the wire")
+    check.add_argument("--json", action="store_true", help="print one JSON object")
+
+    add("neutral", "move every actuator to the neutral (safe) pose")
+
+    sweep = add("sweep", "move each channel slowly through its range and back")
+    sweep.add_argument("--channel", action="append", default=[], metavar="C:N",
+                       help="only this channel, e.g. A:3 (repeatable; default all)")
+    sweep.add_argument("--seconds", type=float, default=2.0, help="time per channel")
+    sweep.add_argument("--frame-rate", type=float, default=10.0, help="frames per second")
+
+    calibrate = add("calibrate", "find each channel's endpoints by hand; write a new device file")
+    calibrate.add_argument("--output", required=True, metavar="FILE",
+                           help="the calibrated copy of the device file (never the original)")
+    calibrate.add_argument("--overwrite", action="store_true",
+                           help="replace --output if it exists")
+    calibrate.add_argument("--channel", action="append", default=[], metavar="C:N",
+                           help="only this channel (repeatable; default all)")
+
+    monitor = add("monitor", "decode and print the LSC frames a port carries", device=False)
+    monitor.add_argument("--port", required=True, metavar="PORT",
+                         help="a path or pyserial URL (a serial:// URL with one port works too)")
+    monitor.add_argument("--direction", choices=("host", "board"), default="host",
+                         help="host: commands to a board (tap the line to the board); "
+                              "board: replies from a board")
+    monitor.add_argument("--seconds", type=float, default=None,
+                         help="stop after this long (default: until Ctrl-C)")
+    monitor.add_argument("--max-frames", type=int, default=None, help="stop after this many")
+    monitor.add_argument("--baud", type=int, default=9600)
+
+
+def run(args: argparse.Namespace) -> int:
+    from crs_study.device.serial_device import DeviceWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DeviceWarning)
+        try:
+            return _ACTIONS[args.action](args)
+        finally:
+            for warning in caught:
+                if issubclass(warning.category, DeviceWarning):
+                    print(f"crs-study device: warning: {warning.message}", file=sys.stderr)
+                else:
+                    warnings.warn_explicit(warning.message, warning.category,
+                                           warning.filename, warning.lineno)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _open(args: argparse.Namespace, layout=None):
+    from crs_study.device.base import open_device
+    from crs_study.layout import load_layout
+
+    layout = layout or load_layout(args.layout)
+    options = {}
+    if args.device.startswith("serial://"):
+        names = {"deadband_us": args.deadband_us, "refresh_s": args.refresh_s,
+                 "min_battery_mv": args.min_battery_mv,
+                 "battery_timeout_s": args.battery_timeout_s}
+        options = {k: v for k, v in names.items() if v is not None}
+        if args.no_battery_check:
+            options["check_battery"] = False
+    return open_device(args.device, layout, **options)
+
+
+def _check(args: argparse.Namespace) -> int:
+    import json
+
+    from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
+    from crs_study.device.schedule import channel_balance
+
+    device = _open(args)
+    layout = device.layout
+    with device:
+        battery = device.battery_mv()
+    balance = channel_balance(layout)
+    report = {
+        "device": args.device, "layout": layout.name,
+        "battery_mv": dict(zip([c.name for c in layout.controllers], battery, strict=True)),
+        "channels": {c.name: [f"{a.channel} {a.name}" for a in layout.actuators
+                              if a.controller == c.name] for c in layout.controllers},
+        "balance": balance.describe(),
+        "full_frame_ms": full_frame_wire_time_s(layout) * 1e3,
+        "full_frame_rate_hz": full_frame_rate_hz(layout),
+    }
+    if args.protocol:
+        report["protocol"] = _protocol_budget(args.protocol, layout)
+    if args.json:
+        print(json.dumps(report, indent=1))
+        return 0
+    print(f"device {args.device}: {layout.name}, opened and returned to neutral")
+    for name, mv in report["battery_mv"].items():
+        print(f"  controller {name}: battery " + ("unknown (no answer)" if mv is None
+                                                   else f"{mv / 1000:.2f} V"))
+    print(f"  {balance.describe()}")
+    for name, channels in report["channels"].items():
+        print(f"  {name}: " + ", ".join(channels))
+    print(f"wire: a full frame takes {report['full_frame_ms']:.1f} ms on the busiest controller; "
+          f"at most {report['full_frame_rate_hz']:.1f} frames/s with every channel changing")
+    for condition, p in report.get("protocol", {}).items():
+        print(f"  {condition}: {p['frames']} frames at {p['frame_rate_hz']:g}/s, changed-only "
+              f"bound {p['changed_only_rate_hz']:.1f}/s, latency median "
+              f"{p['latency_ms_median']:.1f} ms (max {p['latency_ms_max']:.1f}), sending "
+              f"everything {p['latency_full_ms_median']:.1f} ms")
+    return 0
+
+
+def _protocol_budget(path: str, layout) -> dict:
+    import numpy as np
+
+    from crs_study.device.schedule import wire_plan
+    from crs_study.protocol import load_protocol
+    from crs_study.render import Renderer
+    from crs_study.stimulus import make_stimulus, render_frames
+
+    protocol = load_protocol(path)
+    out = {}
+    for condition in protocol.conditions:
+        renderer = Renderer(layout, condition)
+        plans = [wire_plan(layout, render_frames(make_stimulus(protocol, layout, d), renderer),
+                           protocol.frame_rate_hz) for d in protocol.stimulus.digits]
+        latency = np.concatenate([p.latency_changed_s for p in plans])
+        full = np.concatenate([p.latency_full_s for p in plans])
+        out[condition] = {
+            "frame_rate_hz": protocol.frame_rate_hz, "frames": int(latency.size),
+            "changed_only_rate_hz": min(p.changed_only_rate_hz for p in plans),
+            "latency_ms_median": float(np.median(latency)) * 1e3,
+            "latency_ms_max": float(np.max(latency)) * 1e3,
+            "latency_full_ms_median": float(np.median(full)) * 1e3,
+        }
+    return out
+
+
+def _neutral(args: argparse.Namespace) -> int:
+    with _open(args) as device:
+        report = device.neutral()
+        if hasattr(device, "wait_sent"):
+            device.wait_sent(2.0)
+    print(f"neutral pose sent: {sum(report.bytes_sent)} bytes, {report.channels_sent} channels")
+    return 0
+
+
+def _selected(layout, channels: list[str]) -> list[int]:
+    from crs_study.errors import DeviceError
+
+    refs = {f"{a.controller}:{a.channel}": a.index for a in layout.actuators}
+    if not channels:
+        return list(range(layout.n_actuators))
+    missing = [c for c in channels if c not in refs]
+    if missing:
+        raise DeviceError(f"--channel: unknown channel(s) {', '.join(map(repr, missing))}; "
+                          f"this device has {', '.join(refs)}")
+    return [refs[c] for c in channels]
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from crs_study.errors import DeviceError
+
+    if not (args.frame_rate > 0 and args.seconds > 0):
+        raise DeviceError(f"--frame-rate and --seconds: expected > 0, got {args.frame_rate!r} "
+                          f"and {args.seconds!r}")
+    device = _open(args)
+    layout = device.layout
+    chosen = _selected(layout, args.channel)
+    n = max(2, int(round(args.seconds * args.frame_rate)))
+    shape = 0.5 * (1 - np.cos(2 * np.pi * np.arange(n + 1) / n))  # 0 -> 1 -> 0, smooth
+    period_ms = int(round(1000 / args.frame_rate))
+    with device:
+        for index in chosen:
+            actuator = layout.actuators[index]
+            print(f"sweeping {actuator.controller}:{actuator.channel} {actuator.name} "
+                  f"0 -> {actuator.calibration.travel_mm:g} -> 0 mm", flush=True)
+            start = device.clock.now()
+            for k, fraction in enumerate(shape):
+                setpoints = layout.neutral_setpoints()
+                setpoints[index] = fraction * actuator.calibration.travel_mm
+                device.send(setpoints, move_ms=period_ms)
+                device.clock.sleep_until(start + (k + 1) / args.frame_rate)
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from crs_study.device.calibration import write_calibrated_copy
+    from crs_study.errors import DeviceError
+    from crs_study.layout import device_file_path
+
+    out = Path(args.output)
+    if out.exists() and not args.overwrite:
+        raise DeviceError(f"--output {out}: already exists; choose another file or --overwrite")
+    if args.deadband_us is None:
+        args.deadband_us = 0  # every 1 us step the experimenter asks for must reach the servo
+    device = _open(args)
+    if not hasattr(device, "send_pulses"):
+        raise DeviceError(f"--device {args.device}: calibration needs a serial:// device")
+    layout = device.layout
+    chosen = _selected(layout, args.channel)
+    print("For each channel: type + or - (10 us), ++ or -- (50 us), > or < (1 us), a pulse in "
+          "us, 'ok' to keep the position, 'skip' to leave the channel as it is, 'quit' to stop "
+          "(nothing is written).")
+    endpoints: dict[str, tuple[float, float]] = {}
+    with device:  # on the way out, every channel goes to its (old) calibrated neutral
+        neutral = device.pulse_map.neutral_pulses(layout)
+        device.send_pulses(neutral, move_ms=300)
+        for index in chosen:
+            actuator = layout.actuators[index]
+            key = f"{actuator.controller}:{actuator.channel}"
+            found = []
+            for label, mm_value in (("base (0 mm, fully retracted)", 0.0),
+                                    (f"full travel ({actuator.calibration.travel_mm:g} mm)",
+                                     actuator.calibration.travel_mm)):
+                pulse = int(round(actuator.calibration.pulse_us(mm_value)))
+                pulse = _adjust(device, neutral, index, pulse, f"{key} {actuator.name}: {label}")
+                if pulse is None:
+                    break
+                found.append(pulse)
+            if len(found) == 2:
+                if abs(found[1] - found[0]) < 10:
+                    print(f"  {key}: endpoints {found[0]} and {found[1]} us are less than 10 us "
+                          f"apart; not recorded")
+                else:
+                    endpoints[key] = (found[0], found[1])
+                    print(f"  {key}: zero_us = {found[0]}, full_us = {found[1]}")
+            device.send_pulses(neutral, move_ms=300)
+    new = write_calibrated_copy(device_file_path(args.layout), out, endpoints,
+                                overwrite=args.overwrite)
+    print(f"wrote {out}: {len(endpoints)} channel(s) calibrated, device {new.name!r}")
+    return 0
+
+
+def _adjust(device, neutral, index: int, pulse: int, label: str) -> int | None:
+    """Let the experimenter move one channel until it sits where ``label`` says."""
+    from crs_study.errors import DeviceError
+
+    steps = {"+": 10, "-": -10, "++": 50, "--": -50, ">": 1, "<": -1}
+    while True:
+        pulse = min(max(pulse, 500), 2500)
+        pulses = neutral.copy()
+        pulses[index] = pulse
+        device.send_pulses(pulses, move_ms=200)
+        device.wait_sent(1.0)
+        try:
+            answer = input(f"{label}: {pulse} us > ").strip().lower()
+        except EOFError:
+            raise DeviceError("calibration: input ended before every channel was done; "
+                              "nothing was written") from None
+        if answer == "ok":
+            return pulse
+        if answer == "skip":
+            return None
+        if answer == "quit":
+            raise DeviceError("calibration stopped by the experimenter; nothing was written")
+        if answer in steps:
+            pulse += steps[answer]
+        elif answer.isdigit():
+            pulse = int(answer)
+        else:
+            print("  expected + - ++ -- > < a pulse in us, ok, skip or quit")
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    import time
+
+    import serial
+
+    from crs_study.device.codec import FrameDecoder
+    from crs_study.device.serial_device import parse_serial_url
+    from crs_study.errors import DeviceError
+
+    spec = args.port
+    if spec.startswith("serial://"):
+        specs = parse_serial_url(spec)
+        if len(specs) != 1:
+            raise DeviceError(f"--port {spec!r}: expected one port, got {len(specs)}")
+        spec = specs[0]
+    try:
+        port = serial.serial_for_url(spec, baudrate=args.baud, timeout=0.05, write_timeout=0.5)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise DeviceError(f"--port {spec}: cannot open: {exc}") from None
+    decoder = FrameDecoder(args.direction)
+    held: list = []
+    frames = 0
+    start = time.monotonic()
+    try:
+        while args.seconds is None or time.monotonic() - start < args.seconds:
+            try:
+                data = port.read(max(1, port.in_waiting))
+            except (serial.SerialException, OSError) as exc:
+                raise DeviceError(f"--port {spec}: read failed: {exc}") from None
+            events = [(f.offset, _describe(f.message)) for f in decoder.feed(data)]
+            runs = _join([*held, *decoder.take_skipped()])
+            # a run that reaches the end of what was read may go on in the next read
+            held = [runs.pop()] if runs and runs[-1].offset + len(runs[-1].data) == \
+                decoder.position else []
+            events += [(s.offset, f"skipped {len(s.data)} byte(s) ({s.reason}): "
+                        f"{s.data.hex(' ')}") for s in runs]
+            for offset, text in sorted(events):
+                print(f"{time.monotonic() - start:9.3f} s  @{offset:<7d} {text}", flush=True)
+            frames += sum(1 for e in events if not e[1].startswith("skipped"))
+            if args.max_frames is not None and frames >= args.max_frames:
+                break
+    finally:
+        port.close()
+        decoder.flush()
+        for s in _join([*held, *decoder.take_skipped()]):
+            print(f"end of stream: skipped {len(s.data)} byte(s) ({s.reason}): "
+                  f"{s.data.hex(' ')}")
+    print(f"{frames} frame(s), {decoder.skipped_bytes} byte(s) skipped")
+    return 0
+
+
+def _join(runs: list) -> list:
+    """Merge skipped runs that touch (a run cut in two by the read boundary)."""
+    from crs_study.device.codec import Skipped
+
+    out: list = []
+    for run in runs:
+        if out and out[-1].offset + len(out[-1].data) == run.offset:
+            out[-1] = Skipped(out[-1].offset, out[-1].data + run.data, out[-1].reason)
+        else:
+            out.append(run)
+    return out
+
+
+def _describe(message) -> str:
+    name = type(message).__name__
+    if hasattr(message, "positions"):
+        servos = " ".join(f"{i}:{p}" for i, p in message.positions)
+        extra = f" in {message.time_ms} ms" if hasattr(message, "time_ms") else ""
+        return f"{name} [{len(message.positions)}]{extra}: {servos}"
+    fields = {k: v for k, v in vars(message).items()}
+    return name + (" " + " ".join(f"{k}={v}" for k, v in fields.items()) if fields else "")
+
+
+_ACTIONS = {"check": _check, "neutral": _neutral, "sweep": _sweep, "calibrate": _calibrate,
+            "monitor": _monitor}
