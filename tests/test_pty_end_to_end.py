@@ -101,7 +101,6 @@ def test_free_running_frames_merge_but_stay_in_order_and_end_on_the_last(layout2
         assert moves(a.board)[-1].positions == tuple((i, 1000) for i in range(1, 20))
 
 
-@pytest.mark.slow
 def test_port_vanishing_mid_stream_raises_within_a_frame_and_neutral_is_attempted(layout2d,
                                                                                    two_ptys):
     a, b = two_ptys
