@@ -1,0 +1,29 @@
+"""Analysis of stored datasets: load, accuracy, the GLMM, secondary tests, confusions,
+speed against accuracy, psychometric functions, charts and the report.
+
+The public entry points are :func:`analyze` / :func:`analyze_dataset` (the whole report),
+:func:`load_datasets` (the tidy trial table) and :func:`load_plan`; they are imported lazily so
+that ``import crs_study.analysis.glmm`` does not pull in matplotlib.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+
+_EXPORTS = {
+    "analyze": "crs_study.analysis.report",
+    "analyze_dataset": "crs_study.analysis.report",
+    "AnalysisResult": "crs_study.analysis.report",
+    "load_datasets": "crs_study.analysis.load",
+    "LoadedData": "crs_study.analysis.load",
+    "load_plan": "crs_study.analysis.plan",
+    "AnalysisPlan": "crs_study.analysis.plan",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'crs_study.analysis' has no attribute {name!r}")

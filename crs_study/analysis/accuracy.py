@@ -35,9 +35,14 @@ def wilson_interval(n_correct: int | np.ndarray, n_trials: int | np.ndarray,
     Notes
     -----
     ``(p + z^2/2n +- z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z = Phi^-1(1-alpha/2)``.
+    The bounds are exactly 0 at ``k = 0`` and 1 at ``k = n``, as the formula gives (rounding
+    otherwise leaves 1 - 1e-16).
     """
     low, high = proportion_confint(n_correct, n_trials, alpha=alpha, method="wilson")
-    return np.asarray(low, dtype=float), np.asarray(high, dtype=float)
+    k, n = np.asarray(n_correct), np.asarray(n_trials)
+    low = np.where(k == 0, 0.0, np.asarray(low, dtype=float))
+    high = np.where(k == n, 1.0, np.asarray(high, dtype=float))
+    return low, high
 
 
 def chance_level(trials: pd.DataFrame, chance: float = 0.0) -> float:

@@ -76,8 +76,8 @@ def paired_t(diffs: pd.Series, condition: str, reference: str, alpha: float = 0.
         return TestResult(condition, reference, name, float(diffs.mean()) if n else None, None,
                           None, n=n, note=f"not computed: needs 2 or more participants with "
                           f"both conditions, found {n}; see the GLMM and McNemar results")
-    spread = float(diffs.std(ddof=1))
-    if spread == 0.0:
+    spread = float(np.std(diffs.to_numpy(), ddof=1))
+    if spread <= 1e-12 * max(1.0, abs(float(diffs.mean()))):  # equal up to rounding
         return TestResult(condition, reference, name, float(diffs.mean()), None, None, n=n,
                           note=f"not computed: every participant's difference equals "
                           f"{diffs.iloc[0]:+.4g} (no spread, t undefined); see the Wilcoxon "
@@ -126,16 +126,20 @@ def mcnemar_midp(b: int, c: int) -> tuple[float, float]:
 
     Notes
     -----
-    ``p_exact = min(1, 2 P(X <= min(b, c)))`` and ``p_mid = p_exact - P(X = min(b, c))``
-    with ``X ~ Bin(b + c, 1/2)`` (Fagerland, Lydersen & Laake 2013, Eqs. 2 and 3). The exact
-    p is taken from ``statsmodels.stats.contingency_tables.mcnemar(exact=True)``.
+    ``p_exact = min(1, 2 P(X <= min(b, c)))`` and ``p_mid = 2 P(X <= min(b, c)) - P(X =
+    min(b, c))`` with ``X ~ Bin(b + c, 1/2)``; when ``b == c``, ``p_mid = 1 - P(X = b) / 2``
+    (Fagerland, Lydersen & Laake 2013 and their supplement "How to calculate the McNemar
+    mid-p test", Eqs. 1-2). The exact p is ``statsmodels``' ``mcnemar(exact=True)``.
     """
     n = b + c
     if n == 0:
         return 1.0, 1.0
     exact = float(mcnemar(np.array([[0, b], [c, 0]]), exact=True).pvalue)
     k = min(b, c)
-    mid = 2.0 * stats.binom.cdf(k, n, 0.5) - stats.binom.pmf(k, n, 0.5)
+    if b == c:
+        mid = 1.0 - 0.5 * stats.binom.pmf(k, n, 0.5)
+    else:
+        mid = 2.0 * stats.binom.cdf(k, n, 0.5) - stats.binom.pmf(k, n, 0.5)
     return min(1.0, exact), float(min(1.0, mid))
 
 

@@ -44,6 +44,9 @@ class SyntheticSpec:
 
 
 def _logit(p: float) -> float:
+    """log(p / (1 - p)), infinite at 0 and 1 (a condition always right or always wrong)."""
+    if p <= 0.0 or p >= 1.0:
+        return float("-inf") if p <= 0.0 else float("inf")
     return float(np.log(p / (1 - p)))
 
 
@@ -117,21 +120,34 @@ def write_tsv(path: Path, columns: list[str], rows: list[dict[str, object]]) -> 
 
 def write_dataset(root: str | Path, spec: SyntheticSpec = SyntheticSpec()) -> Path:
     """Write a complete synthetic dataset under ``root`` and return its path."""
-    root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(spec.seed)
     digit_effects = rng.normal(0.0, spec.digit_sd, size=len(spec.digits))
+    sessions = {f"{i + 1:02d}": simulate_trials(spec, i, rng, digit_effects)
+                for i in range(spec.n_participants)}
+    extra = [spec.level_column] if spec.level_column else []
+    return write_sessions(root, sessions, extra, seed=spec.seed)
+
+
+def write_sessions(root: str | Path, sessions: dict[str, list[dict[str, object]]],
+                   extra_columns: list[str] | None = None, seed: int = 1) -> Path:
+    """Write a dataset holding one session (``ses-1``) per participant label, rows as given.
+
+    Every row must hold every column of ``TRIAL_COLUMNS`` plus ``extra_columns``; the sidecar
+    records the checksums the loader verifies.
+    """
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
     (root / "dataset_description.json").write_text(json.dumps({
         "Name": "synthetic digit identification", "BIDSVersion": "1.9.0",
         "DatasetType": "raw",
         "GeneratedBy": [{"Name": "crs-study", "Version": __version__,
                          "Description": "crs_study.analysis.synthetic"}],
     }, indent=2) + "\n")
-    columns = list(TRIAL_COLUMNS) + ([spec.level_column] if spec.level_column else [])
+    columns = list(TRIAL_COLUMNS) + list(extra_columns or [])
     (root / f"task-{TASK}_beh.json").write_text(json.dumps(
         {name: {"Description": d, "Units" if u in ("s",) else "Levels": u}
          for name, (d, u) in TRIAL_COLUMNS.items()}, indent=2) + "\n")
-    labels = [f"{i + 1:02d}" for i in range(spec.n_participants)]
+    labels = list(sessions)
     (root / "participants.tsv").write_text(
         "participant_id\n" + "".join(f"sub-{label}\n" for label in labels))
     (root / "participants.json").write_text(json.dumps(
@@ -139,18 +155,17 @@ def write_dataset(root: str | Path, spec: SyntheticSpec = SyntheticSpec()) -> Pa
     protocol_text = ('[study]\nid = "synthetic"\n'
                      'analysis_plan = "analysis/digit_identification.toml"\n')
     device_text = "# synthetic\n"
-    for i, label in enumerate(labels):
+    for i, (label, rows) in enumerate(sessions.items()):
         beh = root / f"sub-{label}" / "ses-1" / "beh"
         beh.mkdir(parents=True, exist_ok=True)
         stem = f"sub-{label}_ses-1_task-{TASK}_beh"
-        rows = simulate_trials(spec, i, rng, digit_effects)
         data = write_tsv(beh / f"{stem}.tsv", columns, rows)
         sidecar = {
             "TaskName": TASK, "Protocol": protocol_text,
             "ProtocolSha256": hashlib.sha256(protocol_text.encode()).hexdigest(),
             "ProtocolPath": "protocols/synthetic.toml", "DeviceFile": device_text,
             "DeviceFileSha256": hashlib.sha256(device_text.encode()).hexdigest(),
-            "DeviceURL": "sim://", "SoftwareVersion": __version__, "Seed": spec.seed * 1000 + i,
+            "DeviceURL": "sim://", "SoftwareVersion": __version__, "Seed": seed * 1000 + i,
             "Participant": label, "Session": "1", "ConsentFormVersion": "synthetic",
             "Responder": "observer", "Clock": "virtual",
             "StartTime": "2026-01-01T09:00:00Z", "EndTime": "2026-01-01T10:00:00Z",
