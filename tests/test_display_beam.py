@@ -147,7 +147,8 @@ def test_eq3_with_foundation_coupled_and_diagonal():
     x = np.linspace(0.0, l, 91)
     coupled = (1 - np.cos(np.outer(x, q))) @ amplitude
     h = float((1 - np.cos(q * d)) @ amplitude)
-    shape = CompressedBeams(layout).solve_with_load(np.array([h, h, 0, 0]), axial).profile(0)(x)
+    solver = CompressedBeams(layout, foundation=True)
+    shape = solver.solve_with_load(np.array([h, h, 0, 0]), axial).profile(0)(x)
     np.testing.assert_allclose(shape, coupled, atol=1e-5 * coupled.max())
     diagonal = eq3_deflection(x, load, axial, ei, beta, l, d)
     assert 0.02 < np.abs(diagonal - coupled).max() / coupled.max() < 0.15
@@ -163,7 +164,7 @@ def test_delta_below_one_collapses_under_compression():
         layout = line_layout(pixels=2, beta_kpa=beta_kpa)
         assert no_collapse_number(ei, layout.foundation_stiffness, d) == pytest.approx(delta)
         setpoints = Renderer(layout, "pixel-only").render(Bump((15.0, 0.0), 90.0, 1.0)).setpoints
-        model = get_model("beam", layout)
+        model = get_model("beam", layout, foundation=True)
         rest = model.beam_profiles(setpoints).length_mm[0]  # N = 0 shape: no compression yet
         setpoints[2:] = 0.5 * (rest - 90.0) + 0.01  # press 0.02 mm more length in
         if collapses:

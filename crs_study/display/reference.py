@@ -162,7 +162,7 @@ class ReferenceModel(NetworkModel):
     name = "reference"
     description = "high-fidelity FE energy minimisation with the exact arc-length constraint"
 
-    def __init__(self, layout: Layout, elements: int = 32, foundation: bool = True,
+    def __init__(self, layout: Layout, elements: int = 32, foundation: bool = False,
                  critical_margin: float = 0.98, check_yield_curvature: bool = True,
                  **options) -> None:
         super().__init__(layout, **options)

@@ -1,0 +1,207 @@
+"""Bench area ``display``: speed against accuracy of the display models.
+
+For a set of 1D (crs1d) and 2D (crs2d) scenes, each a bump of Eq. 7 (l = 90 mm, z_f = 4 mm)
+rendered in the CRS condition, every model's surface is timed (median per surface; 1D on 721
+points along the line, 2D on a 41 x 41 grid over the display) and compared with the
+``reference`` model (Hermite FE energy minimisation with the exact arc-length constraint),
+max and RMS error in mm. Times are also given as ratios to the ``nearest`` model's time per
+surface measured in the same run (the baseline). ``speed_accuracy_rows(quick)`` returns the
+rows (reused by a ``quality`` option), ``format_table(rows)`` prints them and
+``plot_speed_accuracy(rows)`` draws the chart.
+
+Which model to use (measured; see the table of ``crs-study bench display``)
+    * Runner / simulated observer, CRS condition: ``beam``. It is the cheapest model of the
+      compressed skeleton within 0.5 % of the bump height of the reference (measured
+      <= 0.25 % at z_f = 6 mm); ``spline``, ``linear`` and ``nearest`` miss the CRS peak by
+      ~10 % of the height or more, so they are not accurate enough for the CRS condition at
+      any speed. Pixel-only condition: ``nearest`` (it *is* the pixel display).
+    * Quality criteria (D_P, D_S over many peak positions): ``beam`` too; ``reference`` agrees
+      with it to 0.25 % of the height but costs ~100x more, so use it only to validate.
+    * When a frame only needs the beams (peak along a beam, contact on a beam line), call
+      ``BeamModel.beam_profiles`` and skip the fabric.
+"""
+
+from __future__ import annotations
+
+import math
+
+from crs_study.benchmarks import Figure, median_seconds
+
+AREA = "display"
+DESCRIPTION = "display models: median time per surface vs error against the FE reference"
+
+MODELS = ("nearest", "linear", "spline", "beam", "reference")
+SCENES_1D = ((35.0, 0.0), (45.0, 0.0), (52.0, 0.0), (80.0, 0.0))
+SCENES_2D = ((15.0, 8.0), (0.0, 0.0), (-10.0, 20.0), (22.0, -13.0))
+HEIGHT_MM = 4.0
+#: a simulated session at 15 frames/s must run >= 100x real time: <= 1/1500 s a frame
+SESSION_FPS, SESSION_SPEEDUP = 15.0, 100.0
+
+
+def _points(dim: str):
+    import numpy as np
+
+    if dim == "1d":
+        x = np.linspace(-30.0, 150.0, 721)
+        return np.column_stack([x, np.zeros_like(x)])
+    g = np.linspace(-90.0, 90.0, 41)
+    xx, yy = np.meshgrid(g, g)
+    return np.column_stack([xx.ravel(), yy.ravel()])
+
+
+def _time_per_surface(model, setpoint_list, xy, repeat: int) -> float:
+    """Median time of one surface, cycling through the scenes (no frame is solved twice in a
+    row, so per-frame caches do not flatter the figure)."""
+    count = len(setpoint_list)
+    state = {"i": 0}
+
+    def once():
+        model.surface(setpoint_list[state["i"] % count], xy)
+        state["i"] += 1
+
+    once()
+    return median_seconds(once, repeat=repeat, number=count)
+
+
+def speed_accuracy_rows(quick: bool = True) -> list[dict]:
+    """One row per (device, model): time per surface (median, s), ratio to ``nearest``, and
+    the max and RMS error (mm) against ``reference`` over the scenes."""
+    import numpy as np
+
+    from crs_study.display import get_model
+    from crs_study.errors import DisplayModelError
+    from crs_study.layout import load_layout
+    from crs_study.render import Renderer
+    from crs_study.targets import Bump
+
+    repeat = 3 if quick else 9
+    rows = []
+    for dim, device, scenes in (("1d", "crs1d", SCENES_1D), ("2d", "crs2d", SCENES_2D)):
+        layout = load_layout(device)
+        renderer = Renderer(layout, "crs")
+        setpoints = [renderer.render(Bump(c, 90.0, HEIGHT_MM)).setpoints for c in scenes]
+        xy = _points(dim)
+        reference = get_model("reference", layout)
+        truth = [reference.surface(s, xy) for s in setpoints]
+        base = None
+        for name in MODELS:
+            model = get_model(name, layout)
+            try:
+                errors = np.concatenate([model.surface(s, xy) - t
+                                         for s, t in zip(setpoints, truth, strict=True)])
+                reps = 1 if name == "reference" else repeat
+                seconds = _time_per_surface(model, setpoints, xy, reps)
+            except DisplayModelError as exc:  # pragma: no cover - reported, not hidden
+                rows.append({"layout": dim, "model": name, "error": str(exc)})
+                continue
+            base = seconds if name == "nearest" else base
+            rows.append({
+                "layout": dim, "model": name, "points": len(xy),
+                "seconds_per_surface": seconds,
+                "ratio_to_nearest": seconds / base if base else math.nan,
+                "max_error_mm": float(np.abs(errors).max()),
+                "rms_error_mm": float(np.sqrt(np.mean(errors**2))),
+                "height_mm": HEIGHT_MM,
+            })
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    lines = [f"{'layout':6s} {'model':10s} {'ms/surface':>11s} {'x nearest':>10s} "
+             f"{'max err mm':>11s} {'rms err mm':>11s}"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"{r['layout']:6s} {r['model']:10s} failed: {r['error']}")
+            continue
+        lines.append(f"{r['layout']:6s} {r['model']:10s} {1e3 * r['seconds_per_surface']:11.3f} "
+                     f"{r['ratio_to_nearest']:10.1f} {r['max_error_mm']:11.4f} "
+                     f"{r['rms_error_mm']:11.4f}")
+    return "\n".join(lines)
+
+
+def plot_speed_accuracy(rows: list[dict], ax=None):
+    """Time per surface (x, log) against RMS error vs the reference (y, log), per model."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 4))
+    markers = {"1d": "o", "2d": "s"}
+    for r in rows:
+        if "error" in r:
+            continue
+        err = max(r["rms_error_mm"], 1e-7)  # the reference against itself: plotted at the floor
+        ax.scatter(1e3 * r["seconds_per_surface"], err, marker=markers[r["layout"]])
+        ax.annotate(f"{r['model']} {r['layout']}", (1e3 * r["seconds_per_surface"], err),
+                    textcoords="offset points", xytext=(4, 2), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("median time per surface (ms)")
+    ax.set_ylabel(f"RMS error vs reference (mm), bump {HEIGHT_MM:g} mm")
+    ax.set_title("Display models: speed against accuracy")
+    return ax
+
+
+def _session_frame_seconds(quick: bool) -> tuple[float, float]:
+    """Median time of one 2D beam frame: beam profiles alone, and a 64 x 64 surface."""
+    import numpy as np
+
+    from crs_study.display import get_model
+    from crs_study.layout import load_layout
+    from crs_study.render import Renderer
+    from crs_study.targets import Bump
+
+    layout = load_layout("crs2d")
+    renderer = Renderer(layout, "crs")
+    rng = np.random.default_rng(0)
+    centres = rng.uniform(-30.0, 30.0, size=(32, 2))
+    setpoints = []
+    for x, y in centres:
+        setpoints.append(renderer.render(Bump((float(x), float(y)), 90.0, HEIGHT_MM)).setpoints)
+    model = get_model("beam", layout)
+    usable = []
+    for s in setpoints:  # a scene the beams cannot show (collapse) is not a frame
+        try:
+            model.beam_profiles(s)
+            usable.append(s)
+        except Exception:  # noqa: BLE001
+            continue
+    g = np.linspace(-90.0, 90.0, 64)
+    xx, yy = np.meshgrid(g, g)
+    grid = np.column_stack([xx.ravel(), yy.ravel()])
+    repeat = 3 if quick else 9
+    solver = model.solver
+    state = {"i": 0}
+
+    def profiles():
+        solver.solve(usable[state["i"] % len(usable)])
+        state["i"] += 1
+
+    def surface():
+        model.surface(usable[state["i"] % len(usable)], grid)
+        state["i"] += 1
+
+    return (median_seconds(profiles, repeat, len(usable)),
+            median_seconds(surface, repeat, len(usable)))
+
+
+def run(quick: bool) -> list[Figure]:
+    rows = speed_accuracy_rows(quick)
+    figures = []
+    for r in rows:
+        if "error" in r:
+            continue
+        base = next(x for x in rows if x["layout"] == r["layout"] and x["model"] == "nearest")
+        figures.append(Figure(
+            AREA, f"{r['layout']} {r['model']} s/surface (rms {r['rms_error_mm']:.2g} mm)",
+            r["seconds_per_surface"], "s", f"{r['layout']} nearest s/surface",
+            base["seconds_per_surface"]))
+    profile_s, surface_s = _session_frame_seconds(quick)
+    budget = 1.0 / (SESSION_FPS * SESSION_SPEEDUP)
+    figures.append(Figure(AREA, "2d beam profiles/frame vs 100x-at-15fps budget", profile_s,
+                          "s", "budget 1/1500 s", budget, "ratio <= 1", profile_s <= budget))
+    figures.append(Figure(AREA, "2d beam 64x64 surface/frame vs 5 ms", surface_s, "s",
+                          "5 ms", 5e-3, "ratio <= 1", surface_s <= 5e-3))
+    return figures
