@@ -207,45 +207,58 @@ class SingleFactor:
 
 
 class CrossedFactors:
-    """Two or more crossed random intercepts, Laplace approximation on sparse matrices.
+    """Two or more crossed random intercepts, Laplace approximation.
 
-    ``l(beta, sigma) = sum kernel(X beta + A u*) - |u*|^2/2 - log det(H)/2`` with
-    ``A = Z Lambda`` and ``H = A' W A + I`` (Bates et al. 2015, eq. 35 with the GLMM weights),
-    ``H`` factorised by ``splu``. The gradient is exact (implicit differentiation of ``u*`` and
-    ``tr(H^-1 dH)`` from the dense inverse of ``H``) up to ``MAX_DENSE`` random effects, by
-    central differences beyond.
+    ``l(beta, sigma) = sum kernel(X beta + Z Lambda u*) - |u*|^2/2 - log det(H)/2`` with
+    ``H = Lambda Z'WZ Lambda + I`` (Bates et al. 2015, eq. 35 with the GLMM weights). ``Z`` has
+    one 1 per factor in each row, so ``Z v``, ``Z' r`` and ``Z'WZ`` are gathers and
+    ``np.bincount`` sums. Up to ``MAX_DENSE`` random effects ``H`` is dense (numpy) and the
+    gradient exact (implicit differentiation of ``u*``, ``tr(H^-1 dH)`` from ``H^-1``); beyond,
+    ``H`` is a sparse matrix factorised by ``scipy.sparse.linalg.splu`` and the gradient is
+    taken by central differences.
     """
 
     MAX_DENSE = 3000
 
     def __init__(self, data: BinomialData):
         self.X, self.y, self.m = data.X, data.successes, data.trials
-        n = len(self.y)
         self.n_variance = len(data.group_codes)
         offsets = np.cumsum((0,) + data.n_levels)
         self.cols = np.column_stack([c + o for c, o in
                                      zip(data.group_codes, offsets[:-1], strict=True)])
-        rows = np.repeat(np.arange(n), self.n_variance)
-        self.Z = sp.csr_matrix((np.ones(rows.size), (rows, self.cols.ravel())),
-                               shape=(n, offsets[-1]))
         self.factor_of_column = np.repeat(np.arange(self.n_variance), data.n_levels)
         self.q = int(offsets[-1])
         self.u = np.zeros(self.q)
         self.analytic_gradient = self.q <= self.MAX_DENSE
+        K = self.n_variance
+        self._pairs = [self.cols[:, a] * self.q + self.cols[:, b]
+                       for a in range(K) for b in range(K)]
+
+    def _Z(self, v: np.ndarray) -> np.ndarray:
+        """``Z v`` for ``v`` of shape (q,) or (q, k)."""
+        return sum(v[self.cols[:, k]] for k in range(self.n_variance))
+
+    def _Zt(self, r: np.ndarray) -> np.ndarray:
+        """``Z' r`` for ``r`` of shape (n,) or (n, k)."""
+        if r.ndim == 2:
+            return np.column_stack([self._Zt(r[:, j]) for j in range(r.shape[1])])
+        return sum(np.bincount(self.cols[:, k], r, minlength=self.q)
+                   for k in range(self.n_variance))
 
     def _factor(self, lam: np.ndarray, w: np.ndarray):
-        """``H = Lambda Z'WZ Lambda + I``: (solve, log det H, dense H^-1 or None).
-
-        Dense (numpy) up to ``MAX_DENSE`` random effects, where it is fastest and the gradient
-        needs ``H^-1`` anyway; ``splu`` beyond.
-        """
-        ZtWZ = self.Z.T @ sp.diags(w) @ self.Z
+        """``H = Lambda Z'WZ Lambda + I``: (solve, log det H, dense H or None)."""
+        q = self.q
         if self.analytic_gradient:
-            H = lam[:, None] * ZtWZ.toarray() * lam[None, :] + np.eye(self.q)
-            sign, logdet = np.linalg.slogdet(H)
+            ZtWZ = sum(np.bincount(pair, w, minlength=q * q) for pair in self._pairs)
+            H = lam[:, None] * ZtWZ.reshape(q, q) * lam[None, :] + np.eye(q)
+            _, logdet = np.linalg.slogdet(H)
             return (lambda b: np.linalg.solve(H, b)), float(logdet), H
-        H = (sp.diags(lam) @ ZtWZ @ sp.diags(lam) + sp.identity(self.q)).tocsc()
-        lu = splu(H)
+        if not hasattr(self, "_sparse_Z"):
+            rows = np.repeat(np.arange(len(w)), self.n_variance)
+            self._sparse_Z = sp.csr_matrix((np.ones(rows.size), (rows, self.cols.ravel())),
+                                           shape=(len(w), q))
+        A = self._sparse_Z @ sp.diags(lam)
+        lu = splu((A.T @ sp.diags(w) @ A + sp.identity(q)).tocsc())
         return lu.solve, float(np.log(np.abs(lu.U.diagonal())).sum()), None
 
     def _mode(self, theta: np.ndarray, u0: np.ndarray):
@@ -254,19 +267,17 @@ class CrossedFactors:
         beta, sigmas = theta[:p_fixed], theta[p_fixed:]
         offset = self.X @ beta
         lam = sigmas[self.factor_of_column]
-        A = (self.Z @ sp.diags(lam)).tocsr()
-        At = A.T.tocsr()
         y, m = self.y, self.m
 
         def h(u_: np.ndarray) -> float:
-            return float(_kernel(y, m, offset + A @ u_).sum() - 0.5 * (u_ @ u_))
+            return float(_kernel(y, m, offset + self._Z(lam * u_)).sum() - 0.5 * (u_ @ u_))
 
         u = u0.copy()
         current = h(u)
         for _ in range(_INNER_MAXITER):
-            p = expit(offset + A @ u)
+            p = expit(offset + self._Z(lam * u))
             solve, _, _ = self._factor(lam, m * p * (1.0 - p))
-            step = solve(At @ (y - m * p) - u)
+            step = solve(lam * self._Zt(y - m * p) - u)
             t = 1.0
             for _ in range(30):
                 candidate = u + t * step
@@ -277,10 +288,10 @@ class CrossedFactors:
             u, current = candidate, value
             if np.max(np.abs(t * step)) < _INNER_TOL:
                 break
-        p = expit(offset + A @ u)
+        p = expit(offset + self._Z(lam * u))
         w = m * p * (1.0 - p)
         _, logdet, H = self._factor(lam, w)
-        return current - 0.5 * logdet, u, (lam, A, At, p, w, H)
+        return current - 0.5 * logdet, u, (lam, p, w, H)
 
     def loglik(self, theta: np.ndarray, grad: bool = True):
         value, u, state = self._mode(theta, self.u)
@@ -299,33 +310,34 @@ class CrossedFactors:
         return value, self._gradient(u, state)
 
     def _gradient(self, u: np.ndarray, state) -> np.ndarray:
-        """``dl/dt = explicit(t) - tr(H^-1 dH/dt) / 2`` with ``du*/dt = H^-1 dg/dt``."""
-        lam, A, At, p, w, H = state
-        X, Z, cols, y, m = self.X, self.Z, self.cols, self.y, self.m
+        """``dl/dt = explicit(t) - tr(H^-1 dH/dt) / 2`` with ``du*/dt = H^-1 dg/dt``.
+
+        ``g(u) = Lambda Z'(y - mu) - u`` is the score in ``u``; ``dH/dt`` has the terms of
+        ``dLambda`` and ``A' diag(w' deta/dt) A`` whose trace is ``sum_i w'_i d_i deta_i/dt``
+        with ``d_i = a_i' H^-1 a_i``.
+        """
+        lam, p, w, H = state
+        X, cols, y, m = self.X, self.cols, self.y, self.m
         resid = y - m * p
         dw = w * (1.0 - 2.0 * p)
         G = np.linalg.inv(H)
         G = 0.5 * (G + G.T)
-        # d_i = a_i' H^-1 a_i, a_i = Lambda z_i (one column per grouping factor)
         lam_cols = lam[cols]
-        d = np.zeros(len(y))
-        for a in range(cols.shape[1]):
-            for b in range(cols.shape[1]):
-                d += lam_cols[:, a] * lam_cols[:, b] * G[cols[:, a], cols[:, b]]
-        # beta
-        du_dbeta = G @ -(At @ (w[:, None] * X))  # (q, p)
-        deta_dbeta = X + A @ du_dbeta
-        g_beta = X.T @ resid - 0.5 * (dw * d) @ deta_dbeta
-        # sigma_k
-        Zr = Z.T @ resid
-        M = (Z.T @ sp.diags(w) @ Z).toarray()
-        diag_GLM = (G * (M * lam[None, :])).sum(axis=1)  # diag(H^-1 Lambda Z'WZ)
-        g_sigma = np.empty(self.n_variance)
-        for k in range(self.n_variance):
+        K = self.n_variance
+        d = sum(lam_cols[:, a] * lam_cols[:, b] * G[cols[:, a], cols[:, b]]
+                for a in range(K) for b in range(K))
+        du_dbeta = G @ -(lam[:, None] * self._Zt(w[:, None] * X))  # (q, p)
+        g_beta = X.T @ resid - 0.5 * (dw * d) @ (X + self._Z(lam[:, None] * du_dbeta))
+        Zr = self._Zt(resid)
+        ZtWZ = sum(np.bincount(pair, w, minlength=self.q**2) for pair in self._pairs)
+        ZtWZ = ZtWZ.reshape(self.q, self.q)
+        diag_G_lam_M = (G * (ZtWZ * lam[None, :])).sum(axis=1)  # diag(H^-1 Lambda Z'WZ)
+        g_sigma = np.empty(K)
+        for k in range(K):
             Ek = (self.factor_of_column == k).astype(float)
-            Zu_k = Z @ (Ek * u)
-            du = G @ (Ek * Zr - At @ (w * Zu_k))
-            deta = Zu_k + A @ du
-            g_sigma[k] = (float((Ek * u) @ Zr) - float(diag_GLM @ Ek)
+            Zu_k = self._Z(Ek * u)
+            du = G @ (Ek * Zr - lam * self._Zt(w * Zu_k))
+            deta = Zu_k + self._Z(lam * du)
+            g_sigma[k] = (float((Ek * u) @ Zr) - float(diag_G_lam_M @ Ek)
                           - 0.5 * float((dw * d) @ deta))
         return np.r_[g_beta, g_sigma]
