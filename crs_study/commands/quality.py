@@ -1,0 +1,112 @@
+"""Display quality: D_P and D_S against d/l for every display model and lattice.
+
+Computes the paper's peak position distortion D_P and shape distortion D_S (crs-paper.md,
+Eqs. 1, 2, 5, 6) on periodic 1D, square and hexagonal patches at the shipped devices' pitch,
+writes a chart (quality.png) with the paper's theory lines overlaid and a table
+(quality.csv, quality.md) to --out, and prints a summary; with --json it prints one row per
+line: {"layout", "model", "d_over_l", "D_P", "D_S"}. Points are cached on disk (keyed by the
+source of the models), so a repeated run is quick; points that cannot be computed (a model
+without that lattice, a collapsing beam) are listed with the reason.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+NAME = "quality"
+HELP = "display quality D_P and D_S against d/l per model and lattice (chart, table, --json)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from crs_study.quality.sweep import DEFAULT_D_OVER_L, DEFAULT_MODELS
+
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON row per point instead of the summary")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="folder for quality.png, quality.csv, quality.md "
+                             "(default ./quality; with --json none unless given)")
+    parser.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS), metavar="MODEL",
+                        help="display models to evaluate")
+    parser.add_argument("--layouts", nargs="+", default=["1d", "square", "hex"],
+                        choices=["1d", "square", "hex"], help="lattices")
+    parser.add_argument("--d-over-l", nargs="+", type=float, default=list(DEFAULT_D_OVER_L),
+                        metavar="X", help="pixel pitch over bump diameter")
+    group = parser.add_argument_group("numerics")
+    group.add_argument("--order", type=int, default=4,
+                       help="Gauss order per panel of the peak-position cell")
+    group.add_argument("--resolution", type=int, default=12,
+                       help="quadrature nodes per pitch for the shape integral")
+    group.add_argument("--jobs", type=int, default=None,
+                       help="worker processes (default: the CPUs, at most 4)")
+    group.add_argument("--cache-dir", type=Path, default=None,
+                       help="cache folder (default $XDG_CACHE_HOME/crs-study/quality)")
+    group.add_argument("--no-cache", action="store_true", help="recompute every point")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import os
+
+    import crs_study.display  # noqa: F401  (registers every model)
+    from crs_study.display.base import MODELS, get_model  # noqa: F401
+    from crs_study.errors import DisplayModelError
+    from crs_study.quality.criteria import MAX_D_OVER_L, MIN_D_OVER_L
+    from crs_study.quality.sweep import Settings, default_cache_dir, sweep
+
+    unknown = [m for m in args.models if m not in MODELS]
+    if unknown:
+        raise DisplayModelError(f"--models: unknown display model {unknown[0]!r}; "
+                                f"known: {', '.join(sorted(MODELS))}")
+    upper = max(MAX_D_OVER_L[lat] for lat in args.layouts)
+    bad = [x for x in args.d_over_l if not MIN_D_OVER_L <= x <= upper]
+    if bad:
+        raise DisplayModelError(f"--d-over-l: expected values in [{MIN_D_OVER_L}, {upper:.4f}], "
+                                f"got {bad[0]!r}")
+    if args.order < 2 or args.resolution < 4:
+        raise DisplayModelError(f"--order must be >= 2 and --resolution >= 4, got "
+                                f"{args.order!r} and {args.resolution!r}")
+    cache = None if args.no_cache else (args.cache_dir or default_cache_dir())
+    jobs = args.jobs or min(4, os.cpu_count() or 1)
+    # points beyond a lattice's own covering limit are reported, not computed
+    points = sweep(args.models, args.layouts, args.d_over_l,
+                   Settings(order=args.order, resolution=args.resolution),
+                   cache_dir=cache, jobs=jobs)
+
+    out = args.out if args.out is not None else (None if args.json else Path("quality"))
+    written = _write(points, out) if out is not None else []
+    if args.json:
+        for p in points:
+            if p.D_P is not None:
+                print(json.dumps(p.row()))
+        for p in points:
+            if p.note:
+                print(f"quality: {p.layout} {p.model} d/l={p.d_over_l:.4g}: {p.note}",
+                      file=sys.stderr)
+        return 0
+    from crs_study.quality.report import summary_lines
+
+    print("\n".join(summary_lines(points)))
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+def _write(points: list, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from crs_study.quality.report import plot_quality, to_csv, to_markdown
+
+    out.mkdir(parents=True, exist_ok=True)
+    chart = out / "quality.png"
+    axes = plot_quality(points)
+    axes.flat[0].figure.savefig(chart, dpi=120)
+    plt.close(axes.flat[0].figure)
+    csv_path, md_path = out / "quality.csv", out / "quality.md"
+    csv_path.write_text(to_csv(points), encoding="utf-8")
+    md_path.write_text(to_markdown(points), encoding="utf-8")
+    return [chart, csv_path, md_path]
