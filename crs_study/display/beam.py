@@ -7,11 +7,12 @@ Between consecutive constraint points it obeys (crs-paper.md, Mechanical model; 
 
 N the compressive axial load, beta the Winkler foundation of a skin pressed onto the skeleton
 (``foundation=True``: ``layout.foundation_stiffness``; the default ``False`` is the issue's
-"optionally": beta = 0, the display as shown, and the trigonometric closed form). Conditions: y = y' = 0 at both clamps; at a pixel
-y equals the commanded height on both sides and y, y', y'' (slope, moment) are continuous, the
-shear jumping by the pixel's reaction (the beam is pressed through a point support). N is found
-so that the beam's arc length between the clamps equals the commanded length, less the elastic
-shortening of the steel under N (paper: Delta l = N L / EA)::
+"optionally": beta = 0, the display as shown, and the trigonometric closed form).
+Conditions: y = y' = 0 at both clamps; at a pixel y equals the commanded height on both
+sides and y, y', y'' (slope, moment) are continuous, the shear jumping by the pixel's
+reaction (the beam is pressed through a point support). N is found so that the beam's
+arc length between the clamps equals the commanded length, less the elastic shortening of
+the steel under N (paper: Delta l = N L / EA)::
 
     L(N) = integral_0^S sqrt(1 + y'^2) ds = L_c (1 - N / EA),   L_c = S + feed_start + feed_end.
 
