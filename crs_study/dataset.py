@@ -229,6 +229,7 @@ class Dataset:
                 "participants.json": json_text(PARTICIPANTS_SIDECAR),
                 f"task-{schema.TASK}_beh.json": json_text(column_dictionary()),
                 "participants.tsv": "\t".join(PARTICIPANT_COLUMNS) + "\n",
+                "README.md": DATASET_README,
             }
             for name, text in files.items():
                 if not (self.root / name).exists():
@@ -298,17 +299,40 @@ class Dataset:
         return sorted(found)
 
 
-def column_dictionary() -> dict[str, dict[str, str]]:
-    """The BIDS column dictionary (``task-digitid_beh.json``) from :mod:`crs_study.schema`."""
-    columns = {}
+_LEVEL_TEXT = {
+    "0|1": {"0": "no", "1": "yes"},
+    "practice|test": {"practice": "practice trial, with feedback, not analysed",
+                      "test": "test trial"},
+    "0-9": {str(d): f"the digit {d}" for d in range(10)},
+}
+
+
+def column_dictionary() -> dict[str, Any]:
+    """The BIDS column dictionary (``task-digitid_beh.json``) from :mod:`crs_study.schema`.
+
+    Closed sets become ``Levels`` (an object level -> meaning, as BIDS requires); numeric
+    columns get ``Units``; free labels (condition, responder) only a description.
+    """
+    columns: dict[str, Any] = {}
     for name, (description, units) in schema.TRIAL_COLUMNS.items():
-        entry = {"LongName": name.replace("_", " "), "Description": description}
-        if "|" in units or units == "0-9":
-            entry["Levels"] = units
-        else:
+        entry: dict[str, Any] = {"LongName": name.replace("_", " "), "Description": description}
+        if units in _LEVEL_TEXT:
+            entry["Levels"] = _LEVEL_TEXT[units]
+        elif units != "label":
             entry["Units"] = units
         columns[name] = entry
     return {"TaskName": schema.TASK, **columns}
+
+
+DATASET_README = """\
+# crs-study dataset
+
+Digit-identification sessions on the continuity reinforcement skeleton (CRS) haptic display,
+written by crs-study (BIDS, datatype beh). One row per trial in
+sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.tsv; the session's protocol, device
+file, seed and status are in the .json beside it; per-frame device logs are under sourcedata/.
+Participant labels are pseudonyms; names are never stored here.
+"""
 
 
 # --- one session -------------------------------------------------------------------------------

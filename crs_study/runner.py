@@ -411,6 +411,8 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
     return {
         "TaskName": schema.TASK,
         "TaskDescription": "Identify the digit drawn by a moving bump on the CRS display",
+        "Instructions": "Rest your fingertips on the display. A bump will draw a digit from "
+                        "0 to 9; press that digit's key as soon as you know it.",
         "Protocol": protocol.text,
         "ProtocolSha256": protocol.sha256,
         "ProtocolPath": str(protocol.path),

@@ -49,6 +49,11 @@ def test_top_level_files_are_bids(tmp_path):
     columns = json.loads((tmp_path / f"ds/task-{schema.TASK}_beh.json").read_text())
     assert set(schema.TRIAL_COLUMNS) <= set(columns)
     assert (tmp_path / "ds/participants.tsv").read_text() == "participant_id\tcounterbalance\n"
+    assert (tmp_path / "ds/README.md").read_text().startswith("# crs-study dataset")
+    # BIDS: Levels is an object (level -> meaning); labels carry no Units (numeric only)
+    assert columns["trial_type"]["Levels"].keys() == {"practice", "test"}
+    assert columns["correct"]["Levels"] == {"0": "no", "1": "yes"}
+    assert "Units" not in columns["condition"] and columns["onset"]["Units"] == "s"
 
 
 def test_ensure_never_rewrites(tmp_path):
