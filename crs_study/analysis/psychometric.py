@@ -100,38 +100,62 @@ def find_level_column(trials: pd.DataFrame, wanted: str = "auto") -> str | None:
     return None
 
 
+def _sigmoid_and_derivatives(x: np.ndarray, function: str, alpha: float, beta: float):
+    """``F`` and its derivatives with respect to ``alpha`` and ``beta``."""
+    if function == "logistic":
+        f = special.expit(beta * (x - alpha))
+        slope = f * (1.0 - f)
+        return f, -beta * slope, (x - alpha) * slope
+    ratio = np.clip(x, 1e-300, None) / alpha
+    u = np.power(ratio, beta)
+    decay = np.exp(-u)
+    return -np.expm1(-u), decay * (-beta * u / alpha), decay * u * np.log(ratio)
+
+
 def fit_counts(levels: np.ndarray, n: np.ndarray, k: np.ndarray, function: str, guess: float,
                lapse_max: float, start: tuple[float, float, float] | None = None
                ) -> tuple[float, float, float, float]:
-    """Maximum-likelihood ``(alpha, beta, lapse, loglike)`` for counts ``k`` of ``n``."""
+    """Maximum-likelihood ``(alpha, beta, lapse, loglike)`` for counts ``k`` of ``n``.
+
+    A coarse grid over ``(alpha, beta)`` picks the start (unless ``start`` is given), then
+    L-BFGS-B with the analytic gradient refines it within the bounds.
+    """
+    levels, n, k = (np.asarray(v, dtype=float) for v in (levels, n, k))
     low, high = float(levels.min()), float(levels.max())
     span = max(high - low, 1e-9)
 
-    def nll(theta: np.ndarray) -> float:
-        p = psi(levels, function, theta[0], theta[1], guess, theta[2])
-        p = np.clip(p, 1e-12, 1 - 1e-12)
-        return -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+    def nll(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        a, b, lam = theta
+        f, df_da, df_db = _sigmoid_and_derivatives(levels, function, a, b)
+        p = np.clip(guess + (1.0 - guess - lam) * f, 1e-12, 1 - 1e-12)
+        value = -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+        dp = -(k / p - (n - k) / (1.0 - p))
+        scale = 1.0 - guess - lam
+        grad = np.array([np.sum(dp * scale * df_da), np.sum(dp * scale * df_db),
+                         np.sum(dp * -f)])
+        return value, grad
 
     if function == "logistic":
         bounds = [(low - span, high + span), (-100.0 / span, 100.0 / span), (0.0, lapse_max)]
-        starts = [(a, s * b / span, 0.02 * (lapse_max > 0))
-                  for a in (low + span / 4, (low + high) / 2, high - span / 4)
-                  for s in (1, -1) for b in (2.0, 8.0)]
+        alphas = np.linspace(low, high, 25)
+        betas = np.concatenate([-np.geomspace(0.5, 60, 12), np.geomspace(0.5, 60, 12)]) / span
     else:
-        positive = max(low, 1e-6)
-        bounds = [(positive / 10, high * 10), (0.1, 50.0), (0.0, lapse_max)]
-        starts = [(a, b, 0.02 * (lapse_max > 0)) for a in (positive, (low + high) / 2, high)
-                  for b in (1.5, 4.0)]
-    if start is not None:
-        starts = [start]
-    best = None
-    for x0 in starts:
-        x0 = np.clip(np.asarray(x0, float), [b[0] for b in bounds], [b[1] for b in bounds])
-        result = optimize.minimize(nll, x0, method="L-BFGS-B", bounds=bounds)
-        if best is None or result.fun < best.fun:
-            best = result
-    a, b, lam = best.x
-    return float(a), float(b), float(lam), -float(best.fun)
+        bounds = [(max(low, 1e-6) / 10, high * 10), (0.1, 50.0), (0.0, lapse_max)]
+        alphas = np.geomspace(max(low, 1e-6), high, 25)
+        betas = np.geomspace(0.3, 30, 20)
+    lapse0 = min(0.02, lapse_max)
+    if start is None:
+        grid_a, grid_b = np.meshgrid(alphas, betas, indexing="ij")
+        f = sigmoid(levels[None, None, :], function, grid_a[..., None], grid_b[..., None])
+        p = np.clip(guess + (1 - guess - lapse0) * f, 1e-12, 1 - 1e-12)
+        ll = np.sum(k * np.log(p) + (n - k) * np.log1p(-p), axis=-1)
+        i, j = np.unravel_index(np.argmax(ll), ll.shape)
+        start = (grid_a[i, j], grid_b[i, j], lapse0)
+    x0 = np.clip(np.asarray(start, float), [b[0] for b in bounds], [b[1] for b in bounds])
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        result = optimize.minimize(nll, x0, jac=True, method="L-BFGS-B", bounds=bounds)
+    a, b, lam = result.x
+    return float(a), float(b), float(lam), -float(result.fun)
 
 
 def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: float,

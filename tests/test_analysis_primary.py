@@ -1,0 +1,85 @@
+"""The primary test: GLMM odds ratios with Wald and likelihood-ratio p-values, fallbacks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from crs_study.analysis import primary
+from crs_study.analysis.primary import design, primary_test
+from crs_study.errors import AnalysisError
+
+
+def _trials(n_participants=12, n_per_cell=40, accuracy=None, seed=0, sd=0.5):
+    accuracy = accuracy or {"pixel-only": 0.5, "crs": 0.68}
+    rng = np.random.default_rng(seed)
+    rows = []
+    for p in range(n_participants):
+        u = rng.normal(0, sd)
+        for condition, acc in accuracy.items():
+            eta = np.log(acc / (1 - acc)) + u
+            for i in range(n_per_cell):
+                rows.append({"participant_id": f"p{p:02d}", "condition": condition,
+                             "digit": i % 10,
+                             "correct": float(rng.random() < 1 / (1 + np.exp(-eta)))})
+    return pd.DataFrame(rows)
+
+
+def test_design_is_treatment_coded_against_the_reference():
+    trials = pd.DataFrame({"condition": ["crs", "pixel-only", "x"]})
+    matrix = design(trials, ["pixel-only", "crs", "x"], "pixel-only")
+    assert list(matrix.columns) == ["Intercept", "condition[crs]", "condition[x]"]
+    assert matrix.to_numpy().tolist() == [[1, 1, 0], [1, 0, 0], [1, 0, 1]]
+
+
+def test_odds_ratio_interval_and_both_p_values():
+    trials = _trials(n_participants=20, n_per_cell=60, seed=1)
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    (comparison,) = result.comparisons
+    true_or = (0.68 / 0.32) / (0.5 / 0.5)                       # 2.125, conditional on u
+    assert comparison.ci95[0] < true_or < comparison.ci95[1]
+    assert comparison.estimate == pytest.approx(np.exp(comparison.log_odds))
+    assert comparison.p_value == comparison.p_lr and comparison.p_wald < 1e-6
+    assert comparison.method.startswith("GLMM correct ~ condition + (1 | participant)")
+    assert result.model["variance_components"]["participant_id"] > 0
+    assert result.omnibus is None and not result.warnings
+
+
+def test_three_conditions_get_an_omnibus_test():
+    trials = _trials(n_participants=10, n_per_cell=30, seed=2,
+                     accuracy={"pixel-only": 0.5, "crs": 0.7, "crs-opt": 0.75})
+    result = primary_test(trials, ["pixel-only", "crs", "crs-opt"], "pixel-only")
+    assert [c.condition for c in result.comparisons] == ["crs", "crs-opt"]
+    assert result.omnibus["df"] == 2 and 0 < result.omnibus["p_value"] < 0.05
+
+
+def test_a_single_condition_gives_no_comparison_but_a_warning():
+    trials = _trials()
+    result = primary_test(trials.loc[trials["condition"] == "crs"], ["crs"], "crs")
+    assert result.comparisons == () and "primary test not run" in result.warnings[0]
+
+
+def test_a_failing_model_falls_back_to_fisher_with_a_warning(monkeypatch):
+    def broken(*args, **kwargs):
+        raise AnalysisError("singular design")
+
+    monkeypatch.setattr(primary, "_fit", broken)
+    trials = _trials(seed=3)
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    (comparison,) = result.comparisons
+    assert comparison.method.startswith("Fisher's exact test")
+    assert "could not be fitted (singular design)" in result.warnings[0]
+    counts = trials.groupby("condition")["correct"].agg(["sum", "size"])
+    a, n1 = counts.loc["crs"]
+    c, n0 = counts.loc["pixel-only"]
+    assert comparison.estimate == pytest.approx(a * (n0 - c) / ((n1 - a) * c))
+    assert 0 < comparison.p_value < 1
+
+
+def test_crossed_digit_effect_is_fitted_when_planned():
+    trials = _trials(n_participants=8, n_per_cell=30, seed=4)
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only",
+                          random_effects=("participant", "digit"))
+    assert set(result.model["variance_components"]) == {"participant_id", "digit"}
+    assert "(1 | digit)" in result.comparisons[0].method
