@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -21,16 +22,22 @@ from crs_study.analysis.glmm import (
     profile_conf_int,
 )
 from crs_study.analysis.glmm_core import BinomialData, CrossedFactors, SingleFactor
+from crs_study.analysis.glmm_reference import load_cbpp
 from crs_study.analysis.glmm_simulate import simulate_trials
 from crs_study.errors import AnalysisError
 
-CBPP = "/work/shared/reference/data/cbpp.csv"
+SHARED_CBPP = Path(__file__).resolve().parents[2] / "shared/reference/data/cbpp.csv"
 PERIOD = ["Intercept", "C(period)[T.2]", "C(period)[T.3]", "C(period)[T.4]"]
 
 
 @pytest.fixture(scope="module")
 def cbpp() -> pd.DataFrame:
-    return pd.read_csv(CBPP)
+    return load_cbpp()
+
+
+@pytest.mark.skipif(not SHARED_CBPP.exists(), reason="shared reference data not checked out")
+def test_embedded_cbpp_is_the_reference_file():
+    assert load_cbpp().equals(pd.read_csv(SHARED_CBPP)[["herd", "incidence", "size", "period"]])
 
 
 @pytest.fixture(scope="module")
