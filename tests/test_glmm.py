@@ -241,6 +241,23 @@ def test_pooling_rows_changes_nothing(two_conditions):
     assert pooled.loglike == pytest.approx(raw.loglike, abs=1e-6)
 
 
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_row_order_and_design_form_do_not_matter(two_conditions, seed):
+    """Shuffled rows, or the design given as a matrix instead of a formula: the same fit."""
+    reference = fit_glmm(two_conditions, "correct", "condition", "participant")
+    shuffled = two_conditions.sample(frac=1.0, random_state=seed % 2**31)
+    design = pd.DataFrame({"Intercept": 1.0,
+                           "condition[T.c1]": (shuffled["condition"] == "c1").astype(float)},
+                          index=shuffled.index)
+    r = fit_glmm(shuffled, "correct", design, "participant")
+    np.testing.assert_allclose(r.params, reference.params, atol=1e-6)
+    np.testing.assert_allclose(r.bse, reference.bse, rtol=1e-4)
+    assert r.loglike == pytest.approx(reference.loglike, abs=1e-7)
+    with pytest.raises(AnalysisError, match="same index"):
+        fit_glmm(shuffled, "correct", design.reset_index(drop=True), "participant")
+
+
 def test_three_conditions_and_reference_level(rng):
     df = simulate_trials(rng, 15, 80, [0.0, 0.5, 1.2], 0.4)
     r = fit_glmm(df, "correct", "condition", "participant")
@@ -351,6 +368,17 @@ def test_single_participant_falls_back_to_glm(two_conditions):
     np.testing.assert_allclose(r.params, reference.params, atol=1e-6)
     np.testing.assert_allclose(r.bse, reference.bse, rtol=1e-6)
     assert r.loglike == pytest.approx(reference.llf, abs=1e-8)
+
+
+def test_single_participant_with_separation(two_conditions):
+    one = two_conditions[two_conditions["participant"] == "p001"].copy()
+    one.loc[one["condition"] == "c1", "correct"] = 1
+    r = fit_glmm(one, "correct", "condition", "participant")
+    assert r.method == "glm" and r.penalty is not None
+    assert any("single level" in w for w in r.warnings)
+    assert any("separation" in w for w in r.warnings)
+    assert np.all(np.isfinite(r.params)) and np.all(np.isfinite(r.bse))
+    assert profile_conf_int(r, terms=["Intercept"]).notna().all().all()
 
 
 def test_missing_condition_level_is_dropped(rng):

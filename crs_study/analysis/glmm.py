@@ -185,8 +185,9 @@ def _drop_unused_levels(data: pd.DataFrame, fixed, notes: list[str]) -> pd.DataF
 
 def _design(data: pd.DataFrame, fixed) -> tuple[np.ndarray, list[str]]:
     if isinstance(fixed, pd.DataFrame):
-        if len(fixed) != len(data):
-            raise AnalysisError(f"design matrix has {len(fixed)} rows, the data {len(data)}")
+        if not fixed.index.equals(data.index):
+            raise AnalysisError(f"the design matrix's rows must be the data's (same index): "
+                                f"{len(fixed)} rows against {len(data)}, or another order")
         X = fixed.to_numpy(dtype=float)
         names = [str(c) for c in fixed.columns]
     elif isinstance(fixed, str):
