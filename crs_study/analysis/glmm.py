@@ -102,9 +102,10 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     Notes
     -----
     Maximises the Laplace or AGQ marginal log-likelihood jointly over ``(beta, sigma)``
-    (lme4's second optimisation stage) with L-BFGS-B and ``sigma >= 0``; standard errors from
-    the inverse of the observed information of that objective, fixed-effects block (lme4's
-    ``calc.vcov.hess``), the Hessian by central differences of the gradient.
+    (lme4's second optimisation stage) with scipy (TNC, then L-BFGS-B if needed), subject to
+    ``sigma >= 0``, from ``beta = 0, sigma = 1``. Standard errors: the inverse of the observed
+    information of that objective, fixed-effects block (lme4's ``calc.vcov.hess``), the
+    Hessian by central differences of the exact gradient.
     """
     notes: list[str] = []
     group_list = [groups] if isinstance(groups, str) else list(groups)
