@@ -234,6 +234,9 @@ def prepare(spec: SessionSpec) -> tuple[Any, Any, Any, Dataset]:
     from crs_study.plan import make_plan
     from crs_study.protocol import load_protocol
 
+    if not spec.device_url.startswith(("sim://", "serial://")):
+        raise DeviceError(f"unknown device URL {spec.device_url!r}; expected "
+                          "serial:///dev/ttyUSB0[,/dev/ttyUSB1] or sim://")
     dataset = Dataset(spec.dataset)
     dataset.session_paths(spec.participant, spec.session)  # checks label and session
     protocol = load_protocol(spec.protocol)

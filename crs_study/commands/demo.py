@@ -29,6 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated participants")
     parser.add_argument("--protocol", default=DEFAULT_PROTOCOL, metavar="PROTOCOL",
                         help="protocol file")
+    parser.add_argument("--responder", default="observer", metavar="observer|random",
+                        help="simulated participant")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="J",
                         help="worker processes")
     parser.add_argument("--json", action="store_true",
@@ -59,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
                            "overwrites: choose a new directory")
     protocol = shipped_file(args.protocol)
     show = stderr_progress(not args.json)
-    results = dry_run(protocol, args.participants, out, jobs=args.jobs, progress=show)
+    results = dry_run(protocol, args.participants, out, jobs=args.jobs,
+                      responder=args.responder, progress=show)
     summary: dict = {"dataset": os.fspath(out), "participants": len(results),
                      "trials": sum(r.trials_completed for r in results)}
     try:

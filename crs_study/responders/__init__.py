@@ -40,7 +40,11 @@ def make_responder(spec: str, *, seed: int, layout: Any = None, protocol: Any = 
 
         return RandomResponder(seed, **options)
     if spec == "observer":
-        from crs_study.responders.observer import PerceptualObserver
+        try:
+            from crs_study.responders.observer import PerceptualObserver
+        except ImportError as exc:
+            raise ConfigError(f"the observer responder is not available ({exc}); use "
+                              "--responder random") from None
 
         return PerceptualObserver(layout, protocol, seed, **options)
     raise ConfigError(f"unknown responder {spec!r}; expected one of: {', '.join(SPECS)}")

@@ -1,0 +1,195 @@
+"""The commands run, dry-run and demo; Ctrl-C and SIGTERM as safe pauses; a session through
+pseudo-terminals with virtual LSC-24 boards on the other side (the real serial path)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from _session_helpers import tiny_protocol
+
+from crs_study.cli import main
+from crs_study.commands.demo import fresh_directory
+
+TSV = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
+SIDECAR = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json"
+
+
+def run_args(protocol, dataset, *extra):
+    return ["run", str(protocol), "--participant", "p01", "--device", "sim://", "--out",
+            str(dataset), "--responder", "random", *extra]
+
+
+def test_run_then_rerun_a_complete_session(tmp_path, capsys):
+    protocol = tiny_protocol(tmp_path)
+    assert main(run_args(protocol, tmp_path / "ds")) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("session 1 of participant p01: 8/8 trials in ")
+    assert "trial 8/8" in err  # progress on stderr
+    before = (tmp_path / "ds" / TSV).read_bytes()
+    assert main(run_args(protocol, tmp_path / "ds")) == 0
+    out, _ = capsys.readouterr()
+    assert "is complete (8 trials)" in out and "nothing to do" in out
+    assert (tmp_path / "ds" / TSV).read_bytes() == before
+
+
+def test_run_json_is_quiet(tmp_path, capsys):
+    assert main(run_args(tiny_protocol(tmp_path), tmp_path / "ds", "--json")) == 0
+    out, err = capsys.readouterr()
+    summary = json.loads(out)
+    assert summary["status"] == "complete" and summary["trials_completed"] == 8
+    assert summary["session_seconds"] > 8 and err == ""
+
+
+def test_seed_check_writes_nothing(tmp_path, capsys):
+    protocol = tiny_protocol(tmp_path)
+    assert main(run_args(protocol, tmp_path / "ds", "--seed-check", "--json")) == 0
+    report = json.loads(capsys.readouterr().out)
+    from crs_study.plan import plan_seed
+
+    assert report["seed"] == plan_seed("tiny", "1.0.0", "p01", 1)
+    assert report["stored"] == "none" and report["trials"] == 8
+    assert not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("change, message", [
+    (["--participant", "p_01"], "participant label 'p_01' is not valid"),
+    (["--responder", "psychic"], "unknown responder 'psychic'"),
+    (["--device", "usb://x"], "unknown device URL 'usb://x'"),
+    (["--session", "0"], "session must be a whole number >= 1, got 0"),
+    (["--counterbalance", "-1"], "counterbalance index must be >= 0, got -1"),
+])
+def test_bad_input_is_one_line(tmp_path, capsys, change, message):
+    assert main(run_args(tiny_protocol(tmp_path), tmp_path / "ds", *change)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+
+
+def test_missing_protocol(tmp_path, capsys):
+    assert main(run_args(tmp_path / "none.toml", tmp_path / "ds")) == 2
+    assert "no such protocol file" in capsys.readouterr().err
+
+
+def _start(args, tmp_path):
+    return subprocess.Popen([sys.executable, "-m", "crs_study", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+
+
+def _wait_for(process, needle: str, timeout: float = 60.0) -> str:
+    seen = ""
+    deadline = time.monotonic() + timeout
+    while needle not in seen:
+        assert time.monotonic() < deadline, seen
+        ready, _, _ = select.select([process.stderr], [], [], 0.5)
+        if ready:
+            line = process.stderr.readline()
+            assert line, seen
+            seen += line
+    return seen
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_is_a_safe_pause(tmp_path, signum):
+    """A real-clock session paused by Ctrl-C (or SIGTERM): exit 130, neutral, resumable."""
+    protocol = tiny_protocol(tmp_path)
+    dataset = tmp_path / "ds"
+    process = _start(run_args(protocol, dataset, "--clock", "real"), tmp_path)
+    try:
+        _wait_for(process, "trial 2/8")
+        process.send_signal(signum)
+        _, err = process.communicate(timeout=30)
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 130, err
+    assert "paused at trial 2/8" in err and "run the same command to resume" in err
+    meta = json.loads((dataset / SIDECAR).read_text())
+    assert meta["Status"] == "interrupted" and meta["TrialsCompleted"] == 1
+    # resume (on the virtual clock to keep the test short): the rest, nothing twice
+    assert main(run_args(protocol, dataset, "--clock", "virtual", "--json")) == 0
+    with open(dataset / TSV, newline="") as handle:
+        rows = list(csv.DictReader(handle, delimiter="\t"))
+    assert [int(r["trial_index"]) for r in rows] == list(range(8))
+
+
+@pytest.mark.slow
+def test_dry_run_and_rerun(tmp_path, capsys):
+    protocol = tiny_protocol(tmp_path)
+    args = ["dry-run", str(protocol), "--participants", "3", "--out", str(tmp_path / "ds"),
+            "--responder", "random", "--jobs", "2"]
+    assert main(args + ["--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["trials"] == 24 and [s["status"] for s in summary["sessions"]] == \
+        ["complete"] * 3
+    participants = (tmp_path / "ds/participants.tsv").read_text().splitlines()
+    assert participants[1:] == ["sub-sim01\t0", "sub-sim02\t1", "sub-sim03\t2"]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert "3 participants, 24 trials" in out and "already-complete" in err
+
+
+@pytest.mark.slow
+def test_demo_writes_a_new_directory_and_reports(tmp_path, capsys):
+    out_dir = tmp_path / "demo"
+    args = ["demo", "--protocol", str(tiny_protocol(tmp_path, repetitions=2)),
+            "--participants", "2", "--out", str(out_dir), "--responder", "random"]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert f"dataset in {out_dir}" in out
+    assert "report:" in out or "analysis unavailable" in err
+    assert (out_dir / "participants.tsv").exists()
+    assert main(args) == 2
+    assert "exists and is not empty; the demo never overwrites" in capsys.readouterr().err
+
+
+def test_fresh_directories_never_collide(tmp_path):
+    first = fresh_directory(tmp_path)
+    first.mkdir(parents=True)
+    second = fresh_directory(tmp_path)
+    assert second != first and second.parent == first.parent == tmp_path
+    assert first.name.startswith("demo-")
+
+
+@pytest.mark.slow
+def test_a_session_through_ptys_with_virtual_boards(tmp_path, capsys):
+    """The real serial path: SerialDevice on two pseudo-terminals, virtual LSC-24 boards on the
+    master side at 9600 baud, a real clock, consent checked, every trial stored."""
+    from crs_study.consent import Register, read_form
+    from crs_study.device.virtual_controller import VirtualController
+    from crs_study.device.virtual_pty import VirtualControllerPty
+    from crs_study.paths import shipped_file
+
+    protocol = tiny_protocol(tmp_path, digits=(1, 7), practice=0, iti=0.2)
+    register = tmp_path / "register"
+    Register(register).record(read_form(shipped_file("consent/consent_form.md")), "AB", "p01")
+    script = tmp_path / "answers.txt"
+    script.write_text("1\t0.1\n" * 4)
+    start = time.monotonic()
+    with VirtualControllerPty(VirtualController("A", record=True, t0=start), baud=9600) as a, \
+            VirtualControllerPty(VirtualController("B", record=True, t0=start), baud=9600) as b:
+        code = main(["run", str(protocol), "--participant", "p01", "--device",
+                     f"serial://{a.port},{b.port}", "--out", str(tmp_path / "ds"),
+                     "--responder", f"scripted:{script}", "--clock", "real",
+                     "--consent-register", str(register), "--json"])
+        assert code == 0, capsys.readouterr().err
+        summary = json.loads(capsys.readouterr().out)
+        assert a.board.bad_frames == 0 and b.board.bad_frames == 0
+        assert a.bytes_received > 0 and b.bytes_received > 0
+    assert summary["trials_completed"] == 4 and summary["status"] == "complete"
+    with open(tmp_path / "ds" / TSV, newline="") as handle:
+        rows = list(csv.DictReader(handle, delimiter="\t"))
+    for row in rows:
+        assert row["response"] == "1" and row["correct"] == str(int(row["digit"] == "1"))
+        # 9600 baud: a changed-only frame's last byte leaves within two full frames (133 ms)
+        assert 0 < float(row["median_wire_latency"]) < 0.14
+        assert int(row["late_frames"]) <= int(row["frames"]) // 4
+    meta = json.loads((tmp_path / "ds" / SIDECAR).read_text())
+    assert meta["Clock"] == "real" and meta["DeviceURL"].startswith("serial://")
+    assert os.path.basename(meta["ProtocolPath"]) == "tiny.toml"
