@@ -1,0 +1,90 @@
+"""Tests for ``crs-study quality``: JSON rows, chart and tables, cache, one-line errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import pytest
+
+from crs_study.cli import main
+from crs_study.quality import sweep as sweep_module
+from crs_study.quality.sweep import DEFAULT_D_OVER_L
+
+FAST = ["--models", "nearest", "linear", "--layouts", "1d", "hex", "--jobs", "1"]
+
+
+def test_json_rows_include_the_required_d_over_l(tmp_path, capsys):
+    code = main(["quality", "--json", *FAST, "--cache-dir", str(tmp_path / "cache"),
+                 "--d-over-l", "0.1", "0.2", "0.3", str(1 / 3)])
+    assert code == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert all(set(r) == {"layout", "model", "d_over_l", "D_P", "D_S"} for r in rows)
+    assert len(rows) == 2 * 2 * 4
+    for layout in ("1d", "hex"):
+        xs = sorted(r["d_over_l"] for r in rows
+                    if r["layout"] == layout and r["model"] == "nearest")
+        assert xs == pytest.approx([0.1, 0.2, 0.3, 1 / 3])
+    one = next(r for r in rows if r["layout"] == "1d" and r["model"] == "nearest"
+               and r["d_over_l"] == 0.2)
+    assert one["D_P"] == pytest.approx(0.05)  # paper: 0.25 d/l
+    assert not (tmp_path / "quality").exists()  # --json writes no files unless --out is given
+
+
+def test_default_sweep_has_the_papers_points():
+    for x in (0.1, 0.2, 0.3, 1 / 3):
+        assert any(math.isclose(x, d) for d in DEFAULT_D_OVER_L)
+
+
+def test_out_writes_chart_and_tables(tmp_path, capsys):
+    out = tmp_path / "report"
+    code = main(["quality", *FAST, "--no-cache", "--out", str(out),
+                 "--d-over-l", "0.2", str(1 / 3)])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "hex    nearest   d/l=1/3  D_P=0.1170" in text
+    assert (out / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = list(csv.DictReader((out / "quality.csv").read_text().splitlines()))
+    assert len(rows) == 8
+    hexagonal = next(r for r in rows if r["layout"] == "hex" and r["model"] == "nearest"
+                     and float(r["d_over_l"]) == 0.2)
+    assert float(hexagonal["D_P_paper"]) == pytest.approx(0.3510 * 0.2)
+    linear = next(r for r in rows if r["layout"] == "hex" and r["model"] == "linear")
+    assert linear["D_S_paper"] == ""  # the paper gives no 2D linear line
+    assert (out / "quality.md").read_text().startswith("| layout | model | d/l |")
+
+
+def test_second_run_reads_the_cache(tmp_path, capsys, monkeypatch):
+    args = ["quality", "--json", *FAST, "--cache-dir", str(tmp_path), "--d-over-l", "0.25"]
+    assert main(args) == 0
+    first = capsys.readouterr().out
+
+    def refuse(*a, **k):
+        raise AssertionError("recomputed a cached point")
+
+    monkeypatch.setattr(sweep_module, "compute_point", refuse)
+    assert main(args) == 0
+    assert capsys.readouterr().out == first
+
+
+def test_points_a_model_cannot_compute_are_reported(tmp_path, capsys):
+    # d/l = 0.8 is within the hexagonal lattice's range but beyond the square one's
+    code = main(["quality", "--json", "--models", "nearest", "--layouts", "square", "hex",
+                 "--d-over-l", "0.8", "--no-cache", "--jobs", "1"])
+    assert code == 0
+    captured = capsys.readouterr()
+    assert [json.loads(line)["layout"] for line in captured.out.splitlines()] == ["hex"]
+    assert "quality: square nearest d/l=0.8: d/l = 0.8 is outside [0.02, 0.7071]" in captured.err
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--models", "nearst"], "--models: unknown display model 'nearst'; known: "),
+    (["--d-over-l", "3"], "--d-over-l: expected values in [0.02, "),
+    (["--order", "1"], "--order must be >= 2"),
+])
+def test_bad_arguments_are_one_line_errors(argv, message, capsys):
+    assert main(["quality", "--json", "--no-cache", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert len(err.strip().splitlines()) == 1
