@@ -108,6 +108,11 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
         return PrimaryResult(_fisher_comparisons(data, conditions, reference, alpha), None,
                              None, tuple(warnings))
     warnings += [f"GLMM: {w}" for w in full.warnings]
+    seen = set(full.warnings)
+    for group in full.boundary:
+        warnings.append(f"GLMM: with the {group.removesuffix('_id')} variance at 0 the odds "
+                        "ratios and intervals are those of the logistic regression without "
+                        "that random intercept (the same model at variance 0)")
     level = 1.0 - alpha
     odds = full.odds_ratios(level)
     wald = full.pvalues
@@ -121,8 +126,12 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
             continue
         reduced = _fit(data, full_design.drop(columns=column), groups, method, n_quadrature)
         test = _lrt(full, reduced)
-        warnings += [f"GLMM likelihood-ratio test of {condition!r}: {w}"
-                     for w in getattr(test, "warnings", ())]
+        for note in test.warnings:   # the fits' own notes are reported once, above
+            core = note.split(": ", 1)[1] if note.startswith(("full model: ",
+                                                              "reduced model: ")) else note
+            if core not in seen:
+                seen.add(core)
+                warnings.append(f"GLMM likelihood-ratio test of {condition!r}: {note}")
         comparisons.append(Comparison(
             condition=condition, reference=reference, method=label,
             estimate=float(odds.loc[column, "odds_ratio"]),

@@ -72,7 +72,8 @@ def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
     plan, plan_file, plan_notes = resolve_plan(loaded, plan_path)
     loaded = with_exclusions(loaded, plan.exclusions)
     results, parts = run_analyses(loaded, plan)
-    results["warnings"] = list(loaded.warnings) + plan_notes + results["warnings"]
+    every = list(loaded.warnings) + plan_notes + results["warnings"]
+    results["warnings"] = list(dict.fromkeys(every))          # each sentence once, in order
     results["plan"] = {"name": plan.name, "path": str(plan_file),
                        "sha256": hashlib.sha256(Path(plan_file).read_bytes()).hexdigest()}
     results["datasets"] = [{"path": str(d.resolve()), "name": name} for d, name in
@@ -212,18 +213,18 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
                 "p_vs_chance": float(row["p_vs_chance"]),
                 "n_participants": int((by_participant["condition"] == row["condition"]).sum()),
             } for _, row in accuracy.by_condition.iterrows()},
-        "accuracy_by_participant": by_participant.to_dict("records"),
-        "accuracy_by_digit": accuracy.by_digit.to_dict("records"),
+        "accuracy_by_participant": records(by_participant),
+        "accuracy_by_digit": records(accuracy.by_digit),
         "comparisons": [c.to_dict() for c in primary.comparisons]
         + [t.to_dict() for t in secondary.tests],
         "primary": {"omnibus": primary.omnibus, "model": primary.model},
-        "per_digit": {c: t.to_dict("records") for c, t in secondary.per_digit.items()},
+        "per_digit": {c: records(t) for c, t in secondary.per_digit.items()},
         "information_transfer": {c: r.to_dict() for c, r in confusions.items()},
         "speed_accuracy": {
             "rt_column": speed.rt_column,
-            "rt_summary": speed.rt_summary.to_dict("records"),
-            "caf": speed.caf.to_dict("records"),
-            "efficiency": speed.efficiency_summary.to_dict("records")},
+            "rt_summary": records(speed.rt_summary),
+            "caf": records(speed.caf),
+            "efficiency": records(speed.efficiency_summary)},
         "psychometric": {"level_column": psychometric.level_column,
                          "skipped": psychometric.skipped, "note": psychometric.note,
                          "fits": {c: f.to_dict() for c, f in psychometric.fits.items()}},
@@ -288,6 +289,12 @@ def draw_charts(parts: dict, plan: AnalysisPlan, folder: Path) -> list[Path]:
         files.append(charts.save(charts.plot_psychometric(parts["psychometric"]),
                                  folder / "psychometric.png"))
     return files
+
+
+def records(table: pd.DataFrame) -> list[dict]:
+    """Rows as dicts; an empty cell (NaN: a median of no trials, say) becomes None, which the
+    table's own counts explain (``n = 0``, ``n_trials = 0``)."""
+    return table.astype(object).where(table.notna(), None).to_dict("records")
 
 
 def to_jsonable(value, path: str = "") -> tuple[object, list[str]]:

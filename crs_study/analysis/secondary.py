@@ -181,7 +181,8 @@ def mcnemar_test(pairs: pd.DataFrame, condition: str, reference: str,
         odds = (c + 0.5) / (b + 0.5)
         note = (f"{'b' if b == 0 else 'c'} = 0 discordant pairs: the odds ratio c/b is "
                 f"{'infinite' if b == 0 else 'zero'}; reported (c + 0.5)/(b + 0.5) = "
-                f"{odds:.4g} with the exact interval")
+                f"{odds:.4g} with the exact interval"
+                + (", whose upper limit is infinite (null in results.json)" if b == 0 else ""))
     else:
         odds = c / b
     ci = (_odds(lo_p), _odds(hi_p))

@@ -1,0 +1,52 @@
+"""Bench area ``analysis``: the whole report on a 40 participants x 400 trials dataset.
+
+The dataset is synthetic (:mod:`crs_study.analysis.synthetic`, 2 conditions x 10 digits x 20
+repetitions a participant, plus practice), analysed with the shipped plan
+``analysis/digit_identification.toml`` (GLMM with crossed participant and digit intercepts,
+2000 bootstrap resamples, every chart). Baseline, measured in the same run: loading and
+checking the dataset alone. Figures: the full report (target <= 10 s, issue 5) and, for
+orientation, the primary GLMM test alone (full and reduced fits), both as ratios to loading.
+"""
+
+from __future__ import annotations
+
+from crs_study.benchmarks import Figure, median_seconds
+
+AREA = "analysis"
+DESCRIPTION = "full analysis report on 40 participants x 400 trials, against loading alone"
+
+#: Budget for the full report on the 40 x 400 dataset (s), issue 5.
+TARGET_REPORT_S = 10.0
+
+
+def run(quick: bool) -> list[Figure]:
+    import tempfile
+    from pathlib import Path
+
+    from crs_study.analysis.load import load_datasets, with_exclusions
+    from crs_study.analysis.plan import default_plan_path, load_plan
+    from crs_study.analysis.primary import primary_test
+    from crs_study.analysis.report import analyze, order_conditions
+    from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
+
+    participants, repetitions, repeat = (10, 5, 1) if quick else (40, 20, 3)
+    label = f"{participants} x {2 * 10 * repetitions} trials"
+    with tempfile.TemporaryDirectory() as folder:
+        root = write_dataset(Path(folder) / "ds", SyntheticSpec(
+            n_participants=participants, repetitions=repetitions, seed=2026))
+        plan_path = default_plan_path()
+        plan = load_plan(plan_path)
+        load = median_seconds(lambda: load_datasets([root]), repeat)
+        counter = iter(range(1000))
+        report = median_seconds(lambda: analyze([root], plan_path,
+                                                Path(folder) / f"out{next(counter)}"), repeat)
+        data = with_exclusions(load_datasets([root]), plan.exclusions)
+        conditions, reference, _ = order_conditions(data.analysed, plan)
+        glmm = median_seconds(lambda: primary_test(
+            data.analysed, conditions, reference, plan.primary.random_effects,
+            plan.primary.method, plan.primary.n_quadrature, plan.alpha), repeat)
+    return [
+        Figure(AREA, f"full report, {label}", report, "s", "loading alone", load,
+               f"value <= {TARGET_REPORT_S:g} s", report <= TARGET_REPORT_S),
+        Figure(AREA, f"primary GLMM test (2 fits), {label}", glmm, "s", "loading alone", load),
+    ]

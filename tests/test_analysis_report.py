@@ -1,0 +1,232 @@
+"""The whole analysis: results.json, report, charts, headline, the command line, and a result
+with a warning (never a crash, a silent NaN or a p of 0) in every degenerate case."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from analysis_fixtures import dataset, explicit_dataset, session_files, write_plan
+
+from crs_study.analysis.report import analyze, analyze_dataset, format_p
+from crs_study.cli import main
+
+CONDITIONS = ("pixel-only", "crs")
+
+
+def _no_bad_numbers(value, where="results"):
+    """No NaN, no infinity and no p-value of exactly 0 anywhere in results.json."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key.startswith("p_") and isinstance(item, float):
+                assert item > 0, f"{where}.{key} is 0"
+            _no_bad_numbers(item, f"{where}.{key}")
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _no_bad_numbers(item, f"{where}[{i}]")
+    elif isinstance(value, float):
+        assert math.isfinite(value), where
+
+
+def _cells(n_participants, accuracy, repetitions=2, seed=0):
+    rng = np.random.default_rng(seed)
+    return {f"{p + 1:02d}": [(c, d, r, int(rng.random() < accuracy[c])) for c in accuracy
+                            for d in range(10) for r in range(repetitions)]
+            for p in range(n_participants)}
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("report")
+    root = dataset(tmp / "ds", n_participants=8, repetitions=4)
+    plan = write_plan(tmp / "plan.toml")
+    return root, plan, analyze([root], plan, tmp / "out")
+
+
+def test_results_json_holds_the_promised_keys(full_run):
+    _, _, result = full_run
+    saved = json.loads(result.results_path.read_text())
+    assert saved == result.results
+    for condition in CONDITIONS:
+        row = saved["conditions"][condition]
+        assert {"n_trials", "n_correct", "accuracy", "ci95", "p_vs_chance"} <= set(row)
+        assert row["ci95"][0] < row["accuracy"] < row["ci95"][1]
+    glmm = saved["comparisons"][0]
+    assert glmm["method"].startswith("GLMM") and glmm["estimate"] > 1
+    assert {"method", "estimate", "ci95", "p_value"} <= set(glmm)
+    methods = [c["method"].split()[0] for c in saved["comparisons"]]
+    assert methods == ["GLMM", "paired", "Wilcoxon", "exact"]
+    assert set(saved["information_transfer"]) == set(CONDITIONS)
+    assert saved["information_transfer"]["crs"]["ci95"] is not None
+    assert isinstance(saved["warnings"], list) and saved["headline"] == result.headline
+    assert saved["psychometric"]["skipped"] and saved["sessions"][0]["TrialsSha256"]
+    _no_bad_numbers(saved)
+
+
+def test_report_and_charts_are_written(full_run):
+    _, _, result = full_run
+    text = result.report_path.read_text()
+    assert result.report_path.name == "report.md" and result.headline in text
+    charts = result.results["charts"]
+    assert {"figures/accuracy.png", "figures/speed_accuracy.png", "figures/caf.png"} <= \
+        set(charts)
+    assert sum(c.startswith("figures/confusion_") for c in charts) == 2
+    for chart in charts:
+        png = (result.results_path.parent / chart).read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and f"]({chart})" in text
+
+
+def test_headline_reads_like_the_paper(full_run):
+    _, _, result = full_run
+    crs = result.results["conditions"]["crs"]
+    assert result.headline.startswith(f"crs {100 * crs['accuracy']:.1f} % [")
+    assert " vs pixel-only " in result.headline and "; GLMM odds ratio " in result.headline
+
+
+def test_reanalysis_gives_identical_results(full_run, tmp_path):
+    root, plan, first = full_run
+    second = analyze([root], plan, tmp_path / "again")
+    a, b = dict(first.results), dict(second.results)
+    a.pop("generated_at"), b.pop("generated_at")
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def test_default_output_is_a_bids_derivative_and_the_protocol_plan_is_used(tmp_path):
+    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    result = analyze_dataset(root)
+    out = root / "derivatives" / "crs-study"
+    assert result.results_path == out / "results.json"
+    description = json.loads((out / "dataset_description.json").read_text())
+    assert description["DatasetType"] == "derivative"
+    assert result.results["plan"]["path"].endswith("analysis/digit_identification.toml")
+
+
+def test_html_report(tmp_path):
+    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    plan = write_plan(tmp_path / "p.toml", '[plan]\nname = "h"\n[report]\nformat = "html"\n'
+                      'charts = ["accuracy"]\n[confusion]\nbootstrap = 50\n')
+    result = analyze([root], plan, tmp_path / "out")
+    assert result.report_path.name == "report.html"
+    assert result.report_path.read_text().startswith("<!DOCTYPE html>")
+    assert result.results["charts"] == ["figures/accuracy.png"]
+
+
+def test_psychometric_functions_when_a_level_varies(tmp_path):
+    root = dataset(tmp_path / "ds", n_participants=4, repetitions=6, level_column="digit_height",
+                   levels=(0.4, 0.6, 0.8, 1.0, 1.2), level_threshold=0.8, level_slope=8.0)
+    result = analyze([root], write_plan(tmp_path / "p.toml"), tmp_path / "out")
+    psychometric = result.results["psychometric"]
+    assert psychometric["level_column"] == "digit_height" and not psychometric["skipped"]
+    assert set(psychometric["fits"]) == set(CONDITIONS)
+    assert "figures/psychometric.png" in result.results["charts"]
+
+
+# --- point 10 of the issue: degenerate data, one test each ------------------------------------
+
+def _run(tmp_path, cells):
+    root = explicit_dataset(tmp_path / "ds", cells)
+    result = analyze([root], write_plan(tmp_path / "plan.toml"), tmp_path / "out")
+    _no_bad_numbers({k: v for k, v in result.results.items()})
+    return result
+
+
+def test_separation_every_answer_right_in_one_condition(tmp_path):
+    result = _run(tmp_path, _cells(8, {"pixel-only": 0.5, "crs": 1.0}))
+    assert result.results["conditions"]["crs"]["accuracy"] == 1.0
+    glmm = result.results["comparisons"][0]
+    assert glmm["estimate"] > 1 and glmm["ci95"][1] < 1e6          # finite, penalised
+    assert any("separation" in w and "fitted instead with normal priors" in w
+               for w in result.warnings)
+
+
+def test_separation_every_answer_wrong_in_one_condition(tmp_path):
+    result = _run(tmp_path, _cells(8, {"pixel-only": 0.0, "crs": 0.6}))
+    assert result.results["conditions"]["pixel-only"]["ci95"][0] == 0.0
+    assert any("is at 0 % correct" in w for w in result.warnings)
+
+
+def test_single_participant(tmp_path):
+    result = _run(tmp_path, _cells(1, {"pixel-only": 0.4, "crs": 0.7}, repetitions=4))
+    assert "GLMM" in result.headline
+    assert any("a single participant" in w for w in result.warnings)
+    assert any("random intercept was dropped" in w for w in result.warnings)
+    t_test = result.results["comparisons"][1]
+    assert t_test["p_value"] is None and "needs 2 or more participants" in t_test["note"]
+
+
+def test_missing_condition(tmp_path):
+    result = _run(tmp_path, _cells(4, {"crs": 0.7}))
+    assert result.results["comparisons"] == []
+    assert "no comparison of conditions" in result.headline
+    assert any("missing condition(s) ['pixel-only']" in w for w in result.warnings)
+
+
+def test_no_discordant_pairs(tmp_path):
+    cells = {f"{p:02d}": [(c, d, r, int((d + r + p) % 2 == 0)) for c in CONDITIONS
+                          for d in range(10) for r in range(2)] for p in range(6)}
+    result = _run(tmp_path, cells)
+    mcnemar = result.results["comparisons"][3]
+    assert mcnemar["p_value"] == 1.0 and mcnemar["estimate"] is None
+    assert any("no discordant pairs" in w and "reported p = 1" in w for w in result.warnings)
+
+
+def test_random_effect_variance_at_zero(tmp_path):
+    # every participant answers exactly alike: no variation between participants at all
+    cells = {f"{p:02d}": [(c, d, r, int((d + r) % 10 < (6 if c == "crs" else 5)))
+                          for c in CONDITIONS for d in range(10) for r in range(2)]
+             for p in range(8)}
+    result = _run(tmp_path, cells)
+    assert result.results["primary"]["model"]["variance_components"]["participant_id"] == 0.0
+    assert any("estimated at 0" in w for w in result.warnings)
+    assert any("logistic regression without that random intercept" in w
+               for w in result.warnings)
+
+
+def test_five_or_fewer_participants_warn_about_wilcoxon(tmp_path):
+    result = _run(tmp_path, _cells(5, {"pixel-only": 0.3, "crs": 0.9}, seed=1))
+    wilcoxon = result.results["comparisons"][2]
+    assert wilcoxon["p_value"] == pytest.approx(0.0625)
+    assert any("smallest attainable two-sided p is 0.0625" in w for w in result.warnings)
+
+
+def test_format_p_never_prints_zero():
+    assert format_p(0.0) == "p < 1e-16" and format_p(0.04567) == "p = 0.0457"
+    assert format_p(3.2e-7) == "p = 3.20e-07" and format_p(None) == "p n/a"
+
+
+# --- the command line -------------------------------------------------------------------------
+
+def test_cli_prints_headline_and_writes_files(tmp_path, capsys):
+    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    plan = write_plan(tmp_path / "p.toml")
+    assert main(["analyze", str(root), "--plan", str(plan), "--out", str(tmp_path / "o")]) == 0
+    out = capsys.readouterr().out
+    assert "GLMM odds ratio" in out and "report:" in out
+    assert main(["analyze", str(root), "--plan", str(plan), "--out", str(tmp_path / "j"),
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["conditions"]
+
+
+def test_cli_tampering_is_loud_and_strict_fails(tmp_path, capsys):
+    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    plan = write_plan(tmp_path / "p.toml")
+    tsv, _ = session_files(root)[0]
+    original = tsv.read_bytes()
+    edited = original.replace(b"\t1.0\t", b"\t1.1\t", 1)      # the first onset, edited
+    assert edited != original
+    tsv.write_bytes(edited)
+    assert main(["analyze", str(root), "--plan", str(plan), "--out", str(tmp_path / "o")]) == 0
+    assert "WARNING: " in capsys.readouterr().err
+    assert main(["analyze", str(root), "--plan", str(plan), "--out", str(tmp_path / "o"),
+                 "--strict"]) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "TAMPERED?" in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_bad_plan_is_one_line(tmp_path, capsys):
+    root = dataset(tmp_path / "ds", n_participants=2, repetitions=1)
+    plan = write_plan(tmp_path / "p.toml", '[plan]\nname = "x"\nalpha = 2\n')
+    assert main(["analyze", str(root), "--plan", str(plan)]) == 2
+    assert "plan.alpha: expected a number <= 0.5, got 2" in capsys.readouterr().err
