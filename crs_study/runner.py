@@ -227,6 +227,7 @@ class _Session:
     rows: list[dict[str, str]]
     faults: set[int] = field(default_factory=set)
     late_frames: int = 0
+    in_trial: bool = False  # a device fault now interrupts a trial (rerun with device_fault)
 
 
 def prepare(spec: SessionSpec) -> tuple[Any, Any, Any, Dataset]:
@@ -378,17 +379,23 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                     if progress:
                         progress(f"sub-{spec.participant} ses-{spec.session}: trial "
                                  f"{k + 1}/{n_trials}")
+                    state.in_trial = True
                     _run_trial(state, device, responder, clock, origin, cache, plan.trials[k])
+                    state.in_trial = False
                 status = "complete"
         except KeyboardInterrupt:
             status = "interrupted"
         except DeviceError as error:
             k = len(state.rows)
-            state.metadata["Faults"].append({"trial": k, "time": utc_now(), "message": str(error)})
+            where = f"at trial {k + 1}/{n_trials}" if state.in_trial else \
+                f"before trial {k + 1}/{n_trials}"
+            if state.in_trial:
+                state.metadata["Faults"].append({"trial": k, "time": utc_now(),
+                                                 "message": str(error)})
             with _IgnoreInterrupts():
                 _save(state, "interrupted", final=True)
-            raise DeviceError(f"device fault at trial {k + 1}/{n_trials}: {error}; the session "
-                              "is marked interrupted: run the same command to resume") from None
+            raise DeviceError(f"device fault {where}: {error}; the session is marked "
+                              "interrupted: run the same command to resume") from None
         finally:
             if status != "complete":
                 with _IgnoreInterrupts():

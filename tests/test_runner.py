@@ -163,6 +163,19 @@ def test_device_fault_interrupts_and_resumes(tmp_path, devices):
     assert [r["device_fault"] for r in rows] == ["1" if i == faulted else "0" for i in range(8)]
 
 
+def test_device_missing_at_open_is_not_a_trial_fault(tmp_path, devices, monkeypatch):
+    def refuse(self):
+        raise DeviceError("no such port /dev/ttyUSB9")
+
+    monkeypatch.setattr(FakeDevice, "open", refuse)
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path))
+    with pytest.raises(DeviceError, match=r"^device fault before trial 1/8: no such port"):
+        run_session(spec)
+    meta = json.loads(spec.dataset.joinpath(
+        "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json").read_text())
+    assert meta["Status"] == "interrupted" and meta["Faults"] == []
+
+
 def test_resume_refuses_a_changed_protocol(tmp_path, devices):
     protocol = tiny_protocol(tmp_path)
     spec = spec_for(tmp_path, protocol)
