@@ -49,6 +49,9 @@ OPTIONAL_KEYS: dict[str, object] = {
     "responses.expected_response_s": 2.0,
 }
 
+#: Slowest stroke speed accepted (mm/s): a 60 mm digit then takes a minute.
+MIN_STROKE_SPEED_MM_S = 1.0
+
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
@@ -321,11 +324,11 @@ def _stimulus(table: Section, path: Path) -> StimulusSpec:
     def positive(key: str, maximum: float) -> float:
         return table.number(key, minimum=0.0, exclusive_minimum=True, maximum=maximum)
 
-    height = positive("digit_height_pitch", 20.0)
-    width = positive("digit_width_pitch", 20.0)
+    height = table.number("digit_height_pitch", minimum=0.01, maximum=20.0)
+    width = table.number("digit_width_pitch", minimum=0.01, maximum=20.0)
     diameter = positive("bump_diameter_mm", 1000.0)
     bump_height = positive("bump_height_mm", 100.0)
-    speed = positive("stroke_speed_mm_s", 1000.0)
+    speed = table.number("stroke_speed_mm_s", minimum=MIN_STROKE_SPEED_MM_S, maximum=1000.0)
     placement = table.string("placement", choices=PLACEMENTS)
     offset = (0.0, 0.0)
     if table.has("offset_mm"):

@@ -37,6 +37,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from crs_study.render import Renderer
 
 
+#: Longest time a digit may take to draw (s); longer is surely a typo in the protocol.
+MAX_DRAWING_S = 120.0
+
+
 @dataclass(frozen=True, eq=False)
 class Stimulus:
     """The bump's path for one digit: frame k is ``target(k)`` shown at ``frame_times[k]``.
@@ -111,6 +115,11 @@ def stimulus_for(spec: StimulusSpec, pitch_mm: float, centre_mm: tuple[float, fl
     width = spec.digit_width_pitch * pitch_mm
     height = spec.digit_height_pitch * pitch_mm
     strokes = digits[digit].scaled(width, height, centre_mm)
+    drawing_s = digits[digit].length_mm(width, height) / spec.stroke_speed_mm_s
+    if drawing_s > MAX_DRAWING_S:
+        raise ProtocolError(f"stimulus.stroke_speed_mm_s: digit {digit} would take "
+                            f"{drawing_s:.0f} s to draw; expected at most {MAX_DRAWING_S:g} s, "
+                            f"got {spec.stroke_speed_mm_s!r} mm/s")
     centres: list[np.ndarray] = []
     heights: list[np.ndarray] = []
     index: list[np.ndarray] = []

@@ -129,8 +129,9 @@ def run(args: argparse.Namespace) -> int:
     summary = summarise(protocol, args.participant, args.session, args.counterbalance)
     plan = summary.pop("_plan")
     if args.list:
-        summary["plan_trials"] = [vars(t) if hasattr(t, "__dict__") else t._asdict()
-                                  for t in plan.trials]
+        from dataclasses import asdict
+
+        summary["plan_trials"] = [asdict(t) for t in plan.trials]
     if args.json:
         print(json.dumps(summary, indent=2, sort_keys=True, default=str))
         return 0

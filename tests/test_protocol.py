@@ -1,0 +1,327 @@
+"""Protocol files: strict reading, line numbers, checks on the device (crs_study/protocol.py)."""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import tomllib
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from crs_study.errors import ProtocolError
+from crs_study.paths import shipped_file
+from crs_study.protocol import OPTIONAL_KEYS, find_line, load_protocol
+
+SHIPPED = shipped_file("protocols/digit_identification.toml")
+PILOT = shipped_file("protocols/pilot.toml")
+
+
+def shipped_data() -> dict:
+    return tomllib.loads(SHIPPED.read_text())
+
+
+def _key(k: str) -> str:
+    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)
+
+
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(v)
+
+
+def dump_toml(data: dict) -> str:
+    """A small TOML writer for the protocol's shape (tables of scalars, arrays, sub-tables)."""
+    lines = [f"{_key(k)} = {_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+
+    def table(name: str, body: dict) -> None:
+        lines.append(f"[{name}]")
+        lines.extend(f"{_key(k)} = {_value(v)}" for k, v in body.items()
+                     if not isinstance(v, dict))
+        for k, v in body.items():
+            if isinstance(v, dict):
+                table(f"{name}.{_key(k)}", v)
+
+    for k, v in data.items():
+        if isinstance(v, dict):
+            table(_key(k), v)
+    return "\n".join(lines) + "\n"
+
+
+def write(tmp_path, data: dict, name: str = "protocol.toml"):
+    path = tmp_path / name
+    path.write_text(dump_toml(data))
+    return path
+
+
+def edited(**changes) -> dict:
+    """The shipped protocol with ``table__key=value`` changes (value ... deletes the key)."""
+    data = copy.deepcopy(shipped_data())
+    for dotted, value in changes.items():
+        table, key = dotted.split("__")
+        if value is ...:
+            del data[table][key]
+        else:
+            data[table][key] = value
+    return data
+
+
+def test_shipped_protocols_load_with_the_contract_fields():
+    for path in (SHIPPED, PILOT):
+        p = load_protocol(path)
+        assert p.text == path.read_text()
+        import hashlib
+
+        assert p.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+        assert p.conditions == ("pixel-only", "crs")
+        assert p.frame_rate_hz == 15.0
+        assert p.time_limit_s == 10.0
+        assert p.feedback_practice and not p.feedback_test
+        assert p.consent_form == "consent/consent_form.md" and p.consent_form_version == "1.0"
+        assert p.layout().name == "crs2d"
+        assert p.device == "crs2d" and p.analysis_plan.endswith(".toml")
+        assert len(p.checks) >= 8
+
+
+def test_shipped_protocol_matches_the_paper():
+    p = load_protocol(SHIPPED)
+    s = p.stimulus
+    # crs-paper.md: digits 0.81 x 0.49 pitch, 90 mm bump (Eq. 7), pixel-only vs CRS.
+    assert (s.digit_height_pitch, s.digit_width_pitch, s.bump_diameter_mm) == (0.81, 0.49, 90)
+    assert s.digits == tuple(range(10))
+    assert p.design.ordering == "blocked" and p.design.counterbalancing != "none"
+    assert p.design.practice_trials > 0 and p.design.break_every > 0
+
+
+def test_key_for_and_digit_for_key():
+    p = load_protocol(PILOT)
+    assert p.key_for(7) == "7" and p.digit_for_key("7") == 7 and p.digit_for_key("x") is None
+    assert p.prompt("crs").startswith("CRS block")
+
+
+@pytest.mark.parametrize("changes, match", [
+    pytest.param({"design__repetitions": 0}, r"design.repetitions: expected a whole number >= 1"
+                 r", got 0", id="range"),
+    pytest.param({"design__repetitions": 2.5}, r"design.repetitions: expected a whole number, "
+                 r"got 2.5", id="type-float"),
+    pytest.param({"stimulus__bump_height_mm": "5"}, r"stimulus.bump_height_mm: expected a "
+                 r"number, got '5'", id="type-string"),
+    pytest.param({"stimulus__placement": "corner"}, r"stimulus.placement: expected one of "
+                 r"\['centre', 'offset'\], got 'corner'", id="choice"),
+    pytest.param({"stimulus__digits": [1, 1, 2]}, r"stimulus.digits: a digit appears twice",
+                 id="duplicate-digit"),
+    pytest.param({"stimulus__digits": [1, 12]}, r"stimulus.digits\[1\]: expected a digit 0 to "
+                 r"9, got 12", id="digit-range"),
+    pytest.param({"stimulus__digits": [3]}, r"at least 2 digits", id="one-digit"),
+    pytest.param({"responses__keys": ["a", "b"]}, r"responses.keys: expected 10 keys",
+                 id="key-count"),
+    pytest.param({"responses__keys": ["0"] * 10}, r"responses.keys: a key appears twice",
+                 id="key-duplicate"),
+    pytest.param({"responses__keys": ["00"] + [str(i) for i in range(1, 10)]},
+                 r"responses.keys\[0\]: expected a single printable character", id="key-long"),
+    pytest.param({"conditions__names": ["pixel-only", "optimised"]},
+                 r"conditions.names\[1\]: expected a registered condition.*'optimised'",
+                 id="condition"),
+    pytest.param({"design__counterbalancing": "abba", "design__repetitions": 1},
+                 r"design.counterbalancing: \"abba\" splits", id="abba-reps"),
+    pytest.param({"design__ordering": "interleaved"}, r"design.counterbalancing: interleaved",
+                 id="interleaved-counterbalanced"),
+    pytest.param({"stimulus__placement": "offset"}, r"stimulus.offset_mm: missing",
+                 id="offset-missing"),
+    pytest.param({"stimulus__offset_mm": [1.0, 2.0]}, r"stimulus.offset_mm: only used with "
+                 r"placement = \"offset\"", id="offset-unused"),
+    pytest.param({"study__id": "my study"}, r"study.id: expected letters", id="id"),
+    pytest.param({"study__version": ""}, r"study.version: expected a non-empty", id="version"),
+    pytest.param({"study__device": "crs9d"}, r"study.device: expected a built-in device",
+                 id="device"),
+    pytest.param({"study__colour": "red"}, r"study: unknown key 'colour' \(valid keys: ",
+                 id="unknown"),
+    pytest.param({"design__repetitions": ...}, r"design: missing required key 'repetitions'",
+                 id="missing"),
+    pytest.param({"responses__feedback": True}, r"responses.feedback: expected a string, got "
+                 r"True", id="bool"),
+    pytest.param({"design__inter_trial_interval_s": float("nan")},
+                 r"inter_trial_interval_s: expected a finite number, got nan", id="nan"),
+])
+def test_malformed_values_are_one_line_errors_naming_file_line_key(tmp_path, changes, match):
+    path = write(tmp_path, edited(**changes))
+    with pytest.raises(ProtocolError, match=match) as info:
+        load_protocol(path)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}:")
+    assert re.match(rf"{re.escape(str(path))}:\d+: ", message), message
+
+
+def test_line_number_points_at_the_key(tmp_path):
+    text = SHIPPED.read_text().replace("repetitions = 5", "repetitions = -5")
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    line = next(i for i, t in enumerate(text.splitlines(), 1) if t.startswith("repetitions"))
+    with pytest.raises(ProtocolError, match=rf"p.toml:{line}: design.repetitions: .* got -5"):
+        load_protocol(path)
+
+
+def test_unknown_key_line_points_at_the_stray_key(tmp_path):
+    text = SHIPPED.read_text().replace("[design]\n", "[design]\nrepetiton = 3\n")
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    line = next(i for i, t in enumerate(text.splitlines(), 1) if t.startswith("repetiton"))
+    with pytest.raises(ProtocolError, match=rf":{line}: design: unknown key 'repetiton'"):
+        load_protocol(path)
+
+
+def test_find_line():
+    text = "a = 1\n[t]\nx = 2\n[t.sub]\n\"y-z\" = 3\n[u]\ninline = {k = 1}\n"
+    assert find_line(text, "a") == 1
+    assert find_line(text, "t") == 2
+    assert find_line(text, "t.x") == 3
+    assert find_line(text, "t.sub.y-z") == 5
+    assert find_line(text, "t.missing") == 2
+    assert find_line(text, "u.inline.k") == 7
+    assert find_line(text, "t.x[3]") == 3
+    assert find_line(text, "nowhere") is None
+
+
+def test_syntax_error_and_missing_file(tmp_path):
+    path = tmp_path / "p.toml"
+    path.write_text("[study\nid = 1\n")
+    with pytest.raises(ProtocolError, match=r"p.toml: not valid TOML: .*line 1"):
+        load_protocol(path)
+    with pytest.raises(ProtocolError, match=r"no such protocol file"):
+        load_protocol(tmp_path / "absent.toml")
+    with pytest.raises(ProtocolError, match=r"expected a protocol file, got a directory"):
+        load_protocol(tmp_path)
+    (tmp_path / "bin.toml").write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(ProtocolError, match=r"cannot read"):
+        load_protocol(tmp_path / "bin.toml")
+
+
+def test_optional_keys_take_their_documented_defaults(tmp_path):
+    data = edited(stimulus__stroke_pause_s=..., stimulus__start_hold_s=...,
+                  stimulus__end_hold_s=..., design__practice_in=...,
+                  design__break_duration_s=..., responses__time_limit_s=...,
+                  responses__expected_response_s=..., study__title=...)
+    del data["conditions"]["prompts"]
+    p = load_protocol(write(tmp_path, data))
+    assert p.stimulus.stroke_pause_s == OPTIONAL_KEYS["stimulus.stroke_pause_s"]
+    assert p.stimulus.start_hold_s == OPTIONAL_KEYS["stimulus.start_hold_s"]
+    assert p.design.practice_in == OPTIONAL_KEYS["design.practice_in"]
+    assert p.time_limit_s is None
+    assert p.prompt("crs") is None and p.title == ""
+
+
+# --- checks against the device -------------------------------------------------------------
+
+@pytest.mark.parametrize("changes, match", [
+    pytest.param({"stimulus__bump_height_mm": 9.5}, r"stimulus.bump_height_mm: expected at "
+                 r"most the pixel travel 9 mm, got 9.5", id="travel"),
+    pytest.param({"stimulus__frame_rate_hz": 20.0}, r"stimulus.frame_rate_hz: expected at most "
+                 r"15.00 frames/s .*66.7 ms.* got 20.0", id="wire"),
+    pytest.param({"stimulus__stroke_speed_mm_s": 1.0, "stimulus__digit_height_pitch": 12.0},
+                 r"stimulus.stroke_speed_mm_s: digit 0 would take \d+ s to draw; expected at "
+                 r"most 120 s", id="too-slow"),
+    pytest.param({"stimulus__digit_height_pitch": 4.5}, r"stimulus.digit_height_pitch: the "
+                 r"bump centre leaves the pixel area", id="outside"),
+    pytest.param({"stimulus__placement": "offset", "stimulus__offset_mm": [50.0, 0.0]},
+                 r"stimulus.offset_mm: the bump centre leaves the pixel area", id="offset"),
+    pytest.param({"stimulus__bump_diameter_mm": 20.0}, r"stimulus.bump_height_mm: the bump's "
+                 r"curvature 0.2467/mm .* exceeds the beam's yield curvature 0.0667", id="yield"),
+    pytest.param({"study__consent_form_version": "2.0"}, r"study.consent_form_version: expected "
+                 r"the form's version '1.0'.* got '2.0'", id="consent-version"),
+    pytest.param({"study__consent_form": "consent/none.md"}, r"study.consent_form: .*no such",
+                 id="consent-missing"),
+])
+def test_device_checks(tmp_path, changes, match):
+    path = write(tmp_path, edited(**changes))
+    with pytest.raises(ProtocolError, match=match) as info:
+        load_protocol(path)
+    assert "\n" not in str(info.value)
+    assert re.match(rf"{re.escape(str(path))}:\d+: ", str(info.value))
+
+
+def test_curvature_check_is_the_paper_formula():
+    # 2 pi^2 z_f / l^2 at z_f = 5, l = 20 (targets.Bump.curvature_max), against
+    # 2 sigma_y / (E t) = 2 * 965 / (193e3 * 0.15) = 0.0667 /mm.
+    assert 2 * 3.141592653589793**2 * 5 / 20**2 == pytest.approx(0.2467, abs=1e-4)
+
+
+def _device_variant(tmp_path, **replacements) -> str:
+    from crs_study.layout import device_file_path
+
+    text = device_file_path("crs2d").read_text()
+    for old, new in replacements.items():
+        assert old in text
+        text = text.replace(old, new)
+    (tmp_path / "device.toml").write_text(text)
+    return "device.toml"
+
+
+def test_collapsing_device_is_refused_for_crs(tmp_path):
+    # beta = 10 kPa: Delta = 3.87 / 10 < 1 (Eq. 4).
+    device = _device_variant(tmp_path, **{"foundation_stiffness_kpa = 1.0":
+                                          "foundation_stiffness_kpa = 10.0"})
+    with pytest.raises(ProtocolError, match=r"conditions.names: the beams collapse .*Delta = "
+                       r"0.39 < 1"):
+        load_protocol(write(tmp_path, edited(study__device=device)))
+    # Pixel-only alone does not use the beams.
+    p = load_protocol(write(tmp_path, edited(study__device=device,
+                                             conditions__names=["pixel-only"],
+                                             conditions__prompts={}), "pixel.toml"))
+    assert p.conditions == ("pixel-only",)
+
+
+def test_boundary_feed_beyond_travel_is_refused(tmp_path):
+    device = _device_variant(tmp_path, **{"boundary_travel_mm = 9.0":
+                                          "boundary_travel_mm = 0.1"})
+    with pytest.raises(ProtocolError, match=r"stimulus.bump_height_mm: digit \d cannot be "
+                       r"shown: crs: setpoint out of range: beam \d+ (start|end)"):
+        load_protocol(write(tmp_path, edited(study__device=device)))
+
+
+def test_a_line_device_is_refused(tmp_path):
+    with pytest.raises(ProtocolError, match=r"study.device: digits need a 2D display, got "
+                       r"'crs1d'"):
+        load_protocol(write(tmp_path, edited(study__device="crs1d")))
+
+
+def test_own_strokes_file_relative_to_the_protocol(tmp_path):
+    (tmp_path / "mine.toml").write_text(
+        "format = 1\n[digits.1]\nstrokes = [[[0.5, 1], [0.5, 0]]]\n"
+        "[digits.7]\nstrokes = [[[0, 1], [1, 1], [0.3, 0]]]\n")
+    data = edited(stimulus__strokes_file="mine.toml", stimulus__digits=[1, 7],
+                  responses__keys=["1", "7"])
+    p = load_protocol(write(tmp_path, data))
+    assert p.stimulus.strokes_file == str(tmp_path / "mine.toml")
+    with pytest.raises(ProtocolError, match=r"digit 0 has no strokes in .*mine.toml"):
+        load_protocol(write(tmp_path, edited(stimulus__strokes_file="mine.toml"), "b.toml"))
+    with pytest.raises(ProtocolError, match=r"stimulus.strokes_file: expected a strokes file"):
+        load_protocol(write(tmp_path, edited(stimulus__strokes_file="none.toml"), "c.toml"))
+
+
+@settings(max_examples=25, deadline=None)
+@given(repetitions=st.integers(-3, 40), speed=st.floats(-5, 2000, allow_nan=False),
+       height=st.floats(-1, 12), rate=st.floats(0, 30), digit_height=st.floats(0, 6))
+def test_numeric_values_either_load_or_fail_in_one_line(tmp_path_factory, repetitions, speed,
+                                                        height, rate, digit_height):
+    data = edited(design__repetitions=repetitions, stimulus__stroke_speed_mm_s=speed,
+                  stimulus__bump_height_mm=height, stimulus__frame_rate_hz=rate,
+                  stimulus__digit_height_pitch=digit_height)
+    path = write(tmp_path_factory.mktemp("num"), data)
+    try:
+        p = load_protocol(path)
+    except ProtocolError as exc:
+        assert "\n" not in str(exc) and str(exc).startswith(str(path))
+    else:
+        assert p.design.repetitions == repetitions and 0 < height <= 9 and 0 < rate <= 15

@@ -1,0 +1,127 @@
+"""Stimuli: the bump's path over time, the render cache, device checks (crs_study/stimulus.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from crs_study.digits import arc_lengths
+from crs_study.paths import shipped_file
+from crs_study.protocol import load_protocol
+from crs_study.render import Renderer
+from crs_study.stimulus import (
+    collapse_delta,
+    display_centre,
+    inside_convex_hull,
+    make_stimulus,
+    render_frames,
+)
+
+
+@pytest.fixture(scope="module")
+def protocol():
+    return load_protocol(shipped_file("protocols/digit_identification.toml"))
+
+
+def test_frames_are_sampled_at_the_frame_rate(protocol, layout2d):
+    stim = make_stimulus(protocol, layout2d, 3)
+    f = protocol.frame_rate_hz
+    assert stim.frame_times == pytest.approx(np.arange(stim.n_frames) / f)
+    assert stim.duration_s == pytest.approx(stim.n_frames / f)
+    assert stim.diameter_mm == 90.0
+
+
+def test_bump_moves_at_the_stroke_speed(protocol, layout2d):
+    spec = protocol.stimulus
+    stim = make_stimulus(protocol, layout2d, 0)
+    moving = arc_lengths(stim.centres_mm)
+    steps = np.diff(moving)
+    step = spec.stroke_speed_mm_s / spec.frame_rate_hz
+    # Holds do not move; each drawing step covers v/f along the arc, and the chord of a step
+    # is at most v/f (equal on straight parts, a little shorter across a corner).
+    assert steps.max() <= step + 1e-9
+    assert np.sum(steps > 0.9 * step) > 0.8 * np.sum(steps > 0)
+    hold = round(spec.start_hold_s * spec.frame_rate_hz)
+    assert np.all(stim.centres_mm[:hold] == stim.centres_mm[0])
+    assert np.all(stim.heights_mm == spec.bump_height_mm)  # one stroke: never lifted
+
+
+def test_one_stroke_digit_duration_matches_its_length(protocol, layout2d):
+    spec = protocol.stimulus
+    pitch = layout2d.pitch_mm
+    from crs_study.digits import load_digits
+
+    length = load_digits()[7].length_mm(spec.digit_width_pitch * pitch,
+                                        spec.digit_height_pitch * pitch)
+    stim = make_stimulus(protocol, layout2d, 7)
+    f = spec.frame_rate_hz
+    expected = (round(spec.start_hold_s * f) + math.ceil(length * f / spec.stroke_speed_mm_s)
+                + 1 + round(spec.end_hold_s * f))
+    assert stim.n_frames == expected
+
+
+@pytest.mark.parametrize("digit", [4, 5])
+def test_two_stroke_digits_lift_the_bump_between_strokes(protocol, layout2d, digit):
+    stim = make_stimulus(protocol, layout2d, digit)
+    lifted = stim.stroke_index == -1
+    f = protocol.frame_rate_hz
+    assert lifted.sum() == max(1, round(protocol.stimulus.stroke_pause_s * f))
+    assert np.all(stim.heights_mm[lifted] == 0.0)
+    assert np.all(stim.heights_mm[~lifted] == protocol.stimulus.bump_height_mm)
+    assert set(stim.stroke_index.tolist()) == {-1, 0, 1}
+    # The lifted frames wait at the second stroke's first point: the bump rises there.
+    first_of_second = np.flatnonzero(stim.stroke_index == 1)[0]
+    assert stim.centres_mm[lifted][-1] == pytest.approx(stim.centres_mm[first_of_second])
+    assert stim.target(int(np.flatnonzero(lifted)[0])).height_mm == 0.0
+
+
+def test_digit_box_is_centred_on_the_display(protocol, layout2d):
+    assert display_centre(layout2d) == pytest.approx((0.0, 0.0), abs=1e-9)
+    everything = np.concatenate([make_stimulus(protocol, layout2d, d).centres_mm
+                                 for d in protocol.digits])
+    half = np.array([protocol.stimulus.digit_width_pitch,
+                     protocol.stimulus.digit_height_pitch]) * layout2d.pitch_mm / 2
+    assert np.all(np.abs(everything) <= half + 1e-9)
+    assert np.abs(everything).max(axis=0) == pytest.approx(half, rel=0.02)
+
+
+def test_stimulus_arrays_are_read_only_and_cached(protocol, layout2d):
+    stim = make_stimulus(protocol, layout2d, 8)
+    assert make_stimulus(protocol, layout2d, 8) is stim
+    with pytest.raises(ValueError):
+        stim.centres_mm[0, 0] = 1.0
+
+
+def test_render_frames_equals_rendering_each_target_and_is_cached(protocol, layout2d):
+    stim = make_stimulus(protocol, layout2d, 2)
+    renderer = Renderer(layout2d, "crs")
+    frames = render_frames(stim, renderer)
+    assert frames.shape == (stim.n_frames, layout2d.n_actuators)
+    k = stim.n_frames // 2
+    assert frames[k] == pytest.approx(renderer.render(stim.target(k)).setpoints)
+    # Pixel heights are Eq. 7 sampled at the pixels.
+    assert frames[k, : layout2d.n_pixels] == pytest.approx(
+        stim.target(k).height(layout2d.pixel_xy))
+    assert render_frames(stim, Renderer(layout2d, "crs")) is frames
+    assert not frames.flags.writeable
+    pixel_only = render_frames(stim, Renderer(layout2d, "pixel-only"))
+    assert np.all(pixel_only[:, layout2d.n_pixels:] == 0)
+    assert frames[:, layout2d.n_pixels:].max() > 0  # the skeleton is fed
+
+
+def test_inside_convex_hull_margin():
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    inside, margin = inside_convex_hull(np.array([[5.0, 5.0], [1.0, 9.0]]), square)
+    assert inside.all() and margin == pytest.approx(1.0)
+    inside, margin = inside_convex_hull(np.array([[5.0, 5.0], [12.0, 5.0]]), square)
+    assert inside.tolist() == [True, False] and margin == pytest.approx(-2.0)
+
+
+def test_collapse_delta_is_eq_4(layout2d):
+    # Eq. 4: Delta = 16 pi^4 E I / (27 beta d^4); E = 193 GPa, I = 1 x 0.15^3 / 12 mm^4,
+    # beta = 1 kPa = 1e-3 N/mm^2, d = 30 mm -> 3.87 (the device file says 3.9).
+    expected = 16 * math.pi**4 * 193e3 * (1.0 * 0.15**3 / 12) / (27 * 1e-3 * 30.0**4)
+    assert collapse_delta(layout2d) == pytest.approx(expected)
+    assert collapse_delta(layout2d) == pytest.approx(3.87, abs=0.01)
