@@ -259,3 +259,74 @@ def test_any_bytes_are_accounted_for_whatever_the_chunking(stream, cuts, directi
     assert b"".join(p for _, p in pieces) == stream  # every byte, in order, exactly once
     for f in frames:
         assert decode_frame(f.raw, direction) == f.message
+
+
+# ---------------------------------------------------------------------------------------------
+# the per-frame fast paths: servo_move_arrays and the SERVO_MOVE decoder
+
+
+def _spec_servo_move(pairs: list[tuple[int, int]], time_ms: int) -> bytes:
+    """SERVO_MOVE written straight from hardware.md's table, independently of the codec:
+    55 55, Length 3n + 5, 0x03, n, time lo hi, n x (id, pos lo, pos hi)."""
+    out = [0x55, 0x55, 3 * len(pairs) + 5, 0x03, len(pairs), time_ms & 0xFF, time_ms >> 8]
+    for servo, pulse in pairs:
+        out += [servo, pulse & 0xFF, pulse >> 8]
+    return bytes(out)
+
+
+def _outcome(make):
+    """Bytes (or message), or the DeviceError message: two paths must agree on either."""
+    try:
+        return make()
+    except DeviceError as exc:
+        return f"DeviceError: {exc}"
+
+
+@settings(max_examples=300, deadline=None)
+@given(pairs=_positions, time_ms=st.integers(0, 30000),
+       dtype=st.sampled_from([np.int64, np.int32, np.uint16, np.intp]))
+def test_array_encoder_gives_the_validated_path_bytes_for_valid_frames(pairs, time_ms, dtype):
+    ids = np.array([i for i, _ in pairs], dtype=dtype)
+    pulses = np.array([p for _, p in pairs], dtype=dtype)
+    fast = codec.servo_move_arrays(ids, pulses, time_ms)
+    assert fast == codec.servo_move(pairs, time_ms) == _spec_servo_move(pairs, time_ms)
+    assert decode_frame(fast) == ServoMove(tuple(pairs), time_ms)
+
+
+@settings(max_examples=300, deadline=None)
+@given(pairs=st.lists(st.tuples(st.integers(-3, 40), st.integers(0, 70000)), max_size=36),
+       time_ms=st.integers(-2, 70000))
+def test_array_encoder_refuses_exactly_what_the_validated_path_refuses(pairs, time_ms):
+    # ids and pulses anywhere (repeats, out of range, none): the same bytes or the same error
+    ids = np.array([i for i, _ in pairs], dtype=np.int64)
+    pulses = np.array([p for _, p in pairs], dtype=np.int64)
+    assert (_outcome(lambda: codec.servo_move_arrays(ids, pulses, time_ms))
+            == _outcome(lambda: codec.servo_move(pairs, time_ms)))
+
+
+@settings(max_examples=300, deadline=None)
+@given(triples=st.lists(st.tuples(_u8, _u16), min_size=1, max_size=33), time_ms=_u16)
+def test_servo_move_decoder_checks_exactly_as_the_message_does(triples, time_ms):
+    # any SERVO_MOVE-shaped bytes: decoded iff ServoMove accepts the values, same error if not
+    data = _spec_servo_move(triples, time_ms)
+    expected = _outcome(lambda: ServoMove(tuple(triples), time_ms))
+    decoded = _outcome(lambda: decode_frame(data))
+    if isinstance(expected, str):
+        assert decoded == f"DeviceError: LSC frame {data.hex(' ')!r}: " + expected.removeprefix(
+            "DeviceError: LSC frame: ")
+    else:
+        assert decoded == expected
+        assert decoded.encode() == data
+
+
+def test_array_encoder_names_bad_input():
+    with pytest.raises(DeviceError, match=r"servo 2 pulse width.*500\.\.2500.*2501"):
+        codec.servo_move_arrays(np.array([1, 2]), np.array([1500, 2501]), 100)
+    with pytest.raises(DeviceError, match=r"whole number.*1500\.0"):
+        codec.servo_move_arrays(np.array([1]), np.array([1500.0]), 100)
+    with pytest.raises(DeviceError, match=r"move time.*True"):
+        codec.servo_move_arrays(np.array([1]), np.array([1500]), True)
+    with pytest.raises(DeviceError, match=r"one pulse width per servo id.*\(2,\).*\(1,\)"):
+        codec.servo_move_arrays(np.array([1, 2]), np.array([1500]), 100)
+    assert codec.servo_move_arrays(np.array([1]), np.array([2000]), np.int64(1000)) \
+        == VECTOR_ONE_SERVO

@@ -43,11 +43,14 @@ however the stream is cut into chunks.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 from numbers import Integral
 from typing import ClassVar
+
+import numpy as np
 
 from crs_study.errors import DeviceError
 
@@ -139,10 +142,63 @@ class ServoMove:
         object.__setattr__(self, "positions", positions)
 
     def encode(self) -> bytes:
-        body = bytes((len(self.positions),)) + _u16(self.time_ms)
-        for servo, pulse in self.positions:
-            body += bytes((servo,)) + _u16(pulse)
-        return _frame(self.code, body)
+        ids = [servo for servo, _ in self.positions]
+        pulses = [pulse for _, pulse in self.positions]
+        return _pack_servo_move(ids, pulses, self.time_ms)
+
+    @classmethod
+    def _checked(cls, positions: tuple[tuple[int, int], ...], time_ms: int) -> ServoMove:
+        """A ServoMove from values the caller has already checked as ``__post_init__`` would
+        (plain ints, ids 0..32 unique, pulses 500..2500, time 0..30000): no second check."""
+        move = object.__new__(cls)
+        object.__setattr__(move, "positions", positions)
+        object.__setattr__(move, "time_ms", time_ms)
+        return move
+
+
+#: struct layouts of a SERVO_MOVE for n servos: header, length, code, n, time, n x (id, pulse).
+_SERVO_MOVE_STRUCTS = [struct.Struct("<5BH" + "BH" * n) for n in range(SERVO_ID_MAX + 2)]
+#: ... and of its n x (id, pulse) part alone (decoding).
+_SERVO_TRIPLES = [struct.Struct("<" + "BH" * n) for n in range(SERVO_ID_MAX + 2)]
+
+
+def _pack_servo_move(ids: list[int], pulses: list[int], time_ms: int) -> bytes:
+    """SERVO_MOVE bytes from checked plain-int values (``55 55 3n+5 03 n time (id pulse)*n``)."""
+    n = len(ids)
+    flat = [0] * (2 * n)
+    flat[0::2] = ids
+    flat[1::2] = pulses
+    return _SERVO_MOVE_STRUCTS[n].pack(0x55, 0x55, 3 * n + 5, Command.SERVO_MOVE, n, time_ms,
+                                       *flat)
+
+
+def _servo_values_ok(ids: list[int], pulses: list[int], time_ms: object) -> bool:
+    """True when plain-int ``ids``/``pulses`` and ``time_ms`` pass every ServoMove check."""
+    return (0 < len(ids) <= SERVO_ID_MAX + 1 and type(time_ms) is int
+            and 0 <= time_ms <= MOVE_TIME_MAX_MS
+            and min(ids) >= 0 and max(ids) <= SERVO_ID_MAX
+            and min(pulses) >= PULSE_MIN_US and max(pulses) <= PULSE_MAX_US
+            and len(set(ids)) == len(ids))
+
+
+def servo_move_arrays(ids: np.ndarray, pulses_us: np.ndarray, time_ms: int) -> bytes:
+    """SERVO_MOVE bytes for integer arrays of servo ids and pulse widths (us).
+
+    The same bytes and the same checks (the same :class:`DeviceError` for the same first bad
+    value) as ``servo_move(zip(ids, pulses_us), time_ms)``, checked over the whole vectors at
+    once: the per-frame path of the serial and the simulated devices.
+    """
+    ids_a, pulses_a = np.asarray(ids), np.asarray(pulses_us)
+    if ids_a.ndim != 1 or pulses_a.shape != ids_a.shape:
+        raise DeviceError(f"LSC frame: expected one pulse width per servo id (two equal 1-D "
+                          f"vectors), got shapes {ids_a.shape!r} and {pulses_a.shape!r}")
+    id_list, pulse_list = ids_a.tolist(), pulses_a.tolist()  # plain Python numbers
+    if ids_a.dtype.kind in "iu" and pulses_a.dtype.kind in "iu":
+        time = int(time_ms) if isinstance(time_ms, np.integer) else time_ms
+        if _servo_values_ok(id_list, pulse_list, time):
+            return _pack_servo_move(id_list, pulse_list, time)
+    # something is wrong (or unusual): the element-wise checks name the first bad value
+    return ServoMove(tuple(zip(id_list, pulse_list, strict=True)), time_ms).encode()
 
 
 @dataclass(frozen=True)
@@ -417,7 +473,13 @@ def _parse(direction: Direction, code: int, params: bytes) -> Message:
                 n = params[0]
                 if 3 * n + 3 != len(params):
                     raise _Invalid(f"servo count {n} does not match length {len(params) + 2}")
-                return ServoMove(_triples(params, 3, n), _u16_at(params, 1))
+                time_ms = _u16_at(params, 1)
+                flat = _SERVO_TRIPLES[n].unpack_from(params, 3) if n <= SERVO_ID_MAX + 1 else ()
+                ids, pulses = list(flat[0::2]), list(flat[1::2])
+                if _servo_values_ok(ids, pulses, time_ms):
+                    return ServoMove._checked(tuple(zip(ids, pulses, strict=True)), time_ms)
+                # a bad value: the element-wise checks name it
+                return ServoMove(_triples(params, 3, n), time_ms)
             if code == Command.ACTION_GROUP_RUN:
                 return ActionGroupRun(params[0], _u16_at(params, 1))
             if code == Command.ACTION_GROUP_STOP:

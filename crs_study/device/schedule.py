@@ -33,7 +33,7 @@ import numpy as np
 
 from crs_study.device.base import BYTE_TIME_S, full_frame_rate_hz, servo_move_bytes
 from crs_study.device.calibration import PulseMap
-from crs_study.device.codec import servo_move
+from crs_study.device.codec import servo_move_arrays
 from crs_study.errors import DeviceError
 from crs_study.layout import Layout
 
@@ -80,9 +80,8 @@ class ChannelSplit:
         """SERVO_MOVE bytes moving channels ``local`` of ``controller`` (b"" when none)."""
         if not len(local):
             return b""
-        ids = self.ids[controller][local].tolist()
-        values = pulses[self.members[controller][local]].tolist()
-        return servo_move(list(zip(ids, values, strict=True)), move_ms)
+        return servo_move_arrays(self.ids[controller][local],
+                                 pulses[self.members[controller][local]], move_ms)
 
 
 @dataclass(frozen=True)
