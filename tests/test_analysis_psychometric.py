@@ -76,3 +76,4 @@ def test_too_few_levels_skip_that_condition_with_a_warning():
     trials = trials.loc[trials["digit_height"].isin([0.5, 1.5])]
     result = analyse_psychometric(trials, ["crs"], 0.1, n_bootstrap=0)
     assert not result.fits and any("a fit needs 3 or more" in w for w in result.warnings)
+    assert result.skipped and "no condition has 3 or more levels" in result.note

@@ -73,6 +73,8 @@ def test_report_and_charts_are_written(full_run):
     assert {"figures/accuracy.png", "figures/speed_accuracy.png", "figures/caf.png"} <= \
         set(charts)
     assert sum(c.startswith("figures/confusion_") for c in charts) == 2
+    assert result.chart("speed_accuracy") == result.results_path.parent / \
+        "figures/speed_accuracy.png"
     for chart in charts:
         png = (result.results_path.parent / chart).read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and f"]({chart})" in text

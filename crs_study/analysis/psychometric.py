@@ -210,4 +210,8 @@ def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: flo
             note = (note + "; " if note else "") + "the threshold lies outside the levels tested"
         fits[condition] = PsychometricFit(condition, function, a, b, lam, guess, point, ci, ll,
                                           table, n_bootstrap, note)
+    if not fits:
+        return PsychometricResult(column, {}, True, f"{column!r} varies but no condition has "
+                                  "3 or more levels: psychometric functions skipped",
+                                  tuple(warnings))
     return PsychometricResult(column, fits, False, "", tuple(warnings))

@@ -55,6 +55,11 @@ class AnalysisResult:
     report_path: Path | None
     results_path: Path | None
     warnings: tuple[str, ...] = ()
+    charts: tuple[Path, ...] = ()
+
+    def chart(self, name: str) -> Path | None:
+        """The PNG named ``name`` (``"accuracy"``, ``"speed_accuracy"``, ``"caf"``, ...)."""
+        return next((p for p in self.charts if p.stem == name), None)
 
 
 def analyze_dataset(dataset_dir: str | Path, plan_path: str | Path | None = None,
@@ -99,7 +104,7 @@ def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
     report_path = write_report(out, results, parts, plan, chart_files)
     _derivative_description(out, datasets)
     return AnalysisResult(results["headline"], results, report_path, results_path,
-                          tuple(results["warnings"]))
+                          tuple(results["warnings"]), tuple(chart_files))
 
 
 def resolve_plan(loaded: LoadedData, plan_path: str | Path | None

@@ -108,17 +108,18 @@ def wilcoxon_signed_rank(diffs: pd.Series, condition: str, reference: str,
     r = (t_plus - t_minus) / (t_plus + t_minus)
     result = stats.wilcoxon(nonzero, zero_method="wilcox", alternative="two-sided")
     smallest = 2.0 / 2**n
-    note = ""
+    notes = []
     if len(values) - n:
-        note = f"{len(values) - n} zero difference(s) dropped (Wilcoxon's zero method). "
+        notes.append(f"{len(values) - n} zero difference(s) dropped (Wilcoxon's zero method)")
     if smallest >= alpha:
-        note += (f"with {n} non-zero difference(s) the smallest attainable two-sided p is "
-                 f"{smallest:.4g} >= alpha {alpha:g}: this test cannot reject; rely on the "
-                 "GLMM, which uses every trial")
+        notes.append(f"with {n} non-zero difference(s) the smallest attainable two-sided p is "
+                     f"{smallest:.4g} >= alpha {alpha:g}: this test cannot reject; rely on the "
+                     "GLMM, which uses every trial")
+    note = "; ".join(notes)
     return TestResult(condition, reference, name, median, None, floor_p(result.pvalue),
                       float(result.statistic), n, r, "rank_biserial",
                       {"t_plus": t_plus, "t_minus": t_minus,
-                       "smallest_attainable_p": smallest}, note.strip())
+                       "smallest_attainable_p": smallest}, note)
 
 
 def mcnemar_midp(b: int, c: int) -> tuple[float, float]:

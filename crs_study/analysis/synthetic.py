@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from crs_study import __version__
+from crs_study.dataset import column_dictionary  # the runner's, so both files agree
 from crs_study.schema import MISSING, TASK, TRIAL_COLUMNS
 
 
@@ -139,14 +140,15 @@ def write_sessions(root: str | Path, sessions: dict[str, list[dict[str, object]]
     root.mkdir(parents=True, exist_ok=True)
     (root / "dataset_description.json").write_text(json.dumps({
         "Name": "synthetic digit identification", "BIDSVersion": "1.9.0",
-        "DatasetType": "raw",
+        "DatasetType": "raw", "Authors": ["crs-study synthetic"],
         "GeneratedBy": [{"Name": "crs-study", "Version": __version__,
                          "Description": "crs_study.analysis.synthetic"}],
     }, indent=2) + "\n")
     columns = list(TRIAL_COLUMNS) + list(extra_columns or [])
-    (root / f"task-{TASK}_beh.json").write_text(json.dumps(
-        {name: {"Description": d, "Units" if u in ("s",) else "Levels": u}
-         for name, (d, u) in TRIAL_COLUMNS.items()}, indent=2) + "\n")
+    (root / f"task-{TASK}_beh.json").write_text(json.dumps(column_dictionary(), indent=2)
+                                               + "\n")
+    (root / "README").write_text("Synthetic digit-identification dataset written by "
+                                 "crs_study.analysis.synthetic for tests and benchmarks.\n")
     labels = list(sessions)
     (root / "participants.tsv").write_text(
         "participant_id\n" + "".join(f"sub-{label}\n" for label in labels))
