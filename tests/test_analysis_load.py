@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import pandas as pd
 import pytest
 from analysis_fixtures import dataset, edit_sidecar, explicit_dataset, session_files
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from crs_study.analysis.load import load_datasets, with_exclusions
 from crs_study.analysis.plan import Exclusions
@@ -103,11 +107,13 @@ def test_correct_is_recomputed_when_it_contradicts_the_response(tmp_path):
 
 
 @pytest.mark.parametrize(("column", "value", "message"), [
-    pytest.param("digit", "seven", r"row 2: column 'digit': expected a number or 'n/a', "
+    pytest.param("digit", "seven", r"row 2: column 'digit': expected a finite number or 'n/a', "
                  r"got 'seven'", id="text-in-number"),
     pytest.param("repetition", "1.5", r"row 2: column 'repetition': expected a whole number",
                  id="fraction"),
     pytest.param("digit", "n/a", r"row 2: column 'digit' is 'n/a'", id="missing-digit"),
+    pytest.param("response_time", "inf", r"row 2: column 'response_time': expected a finite "
+                 r"number or 'n/a', got '?inf'?", id="infinite"),
 ])
 def test_malformed_cells_fail_in_one_line(tmp_path, column, value, message):
     root = explicit_dataset(tmp_path / "ds", {"01": [("crs", 3, 0, 1), ("crs", 4, 0, 0)]})
@@ -145,3 +151,30 @@ def test_several_datasets_keep_participants_apart(tmp_path):
     trials = load_datasets([a, b]).trials
     assert trials["participant_id"].nunique() == 4       # both have sub-01 and sub-02
     assert trials["dataset"].nunique() == 2
+
+
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(column=st.sampled_from(sorted(TRIAL_COLUMNS)), row=st.integers(0, 3),
+       value=st.one_of(st.text(alphabet=st.characters(blacklist_characters="\t\n\r"),
+                               max_size=6), st.sampled_from(["n/a", "1e400", "-0", "2.5"])))
+def test_any_edited_cell_loads_with_a_warning_or_fails_in_one_line(tmp_path, column, row, value):
+    root = tmp_path / f"h{abs(hash((column, row, value)))}"
+    explicit_dataset(root, {"01": [("crs", 3, 0, 1), ("crs", 4, 0, 0), ("pixel-only", 3, 0, 1),
+                                   ("pixel-only", 4, 0, None)]})
+    tsv, _ = session_files(root)[0]
+    lines = tsv.read_text().splitlines()
+    names = lines[0].split("\t")
+    cells = lines[row + 1].split("\t")
+    cells[names.index(column)] = value
+    lines[row + 1] = "\t".join(cells)
+    tsv.write_text("\n".join(lines) + "\n")
+    try:
+        data = load_datasets(root)
+    except DatasetError as error:
+        assert "\n" not in str(error) and tsv.name in str(error)
+    else:
+        edited = data.sessions["TrialsSha256"].iloc[0] != hashlib.sha256(
+            tsv.read_bytes()).hexdigest()
+        assert any("TAMPERED?" in w for w in data.warnings) == edited
+        assert len(data.trials) == 4

@@ -325,13 +325,19 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
 
 def _numbers(values: pd.Series, column: str, where) -> pd.Series:
     if pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values):
-        return values.astype(float)
-    numbers = pd.to_numeric(values, errors="coerce")
-    bad = numbers.isna() & values.notna()
+        numbers = values.astype(float)
+    else:
+        numbers = pd.to_numeric(values, errors="coerce").astype(float)
+    bad = (numbers.isna() & values.notna()) | np.isinf(numbers)
     if bad.any():
-        raise DatasetError(f"{where(bad)}: column {column!r}: expected a number or "
-                           f"{MISSING!r}, got {values[bad].iloc[0]!r}")
-    return numbers.astype(float)
+        raise DatasetError(f"{where(bad)}: column {column!r}: expected a finite number or "
+                           f"{MISSING!r}, got {_plain(values[bad].iloc[0])!r}")
+    return numbers
+
+
+def _plain(value):
+    """A numpy scalar as the Python value it holds (for messages)."""
+    return value.item() if isinstance(value, np.generic) else value
 
 
 def _order_columns(trials: pd.DataFrame) -> pd.DataFrame:
