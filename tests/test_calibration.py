@@ -156,3 +156,34 @@ def test_calibrated_copy_with_an_impossible_endpoint_is_refused_and_not_left_beh
     with pytest.raises(DeviceFileError, match="full_us"):
         write_calibrated_copy(device_file_path("crs1d"), out, {"A:1": (1000, 2600)})
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def _reference_to_pulses(pm: PulseMap, mm: np.ndarray) -> np.ndarray:
+    """to_pulses as first written (np.clip and the formula term by term): the fast version
+    must agree bit for bit, rounding ties included, or a byte on the wire would change."""
+    mm = np.clip(mm, 0.0, pm.travel_mm)
+    pulses = np.rint(pm.zero_us + (pm.full_us - pm.zero_us) * mm / pm.travel_mm)
+    return np.clip(pulses, pm.pulse_low, pm.pulse_high).astype(np.int64)
+
+
+@settings(max_examples=150, deadline=None)
+@given(cals=st.lists(calibrations, min_size=7, max_size=7),
+       shifts=st.lists(st.floats(-0.49, 0.49), min_size=7, max_size=7),
+       fractions=st.lists(st.lists(st.floats(0.0, 1.0) | st.sampled_from([0.0, 0.5, 1.0]),
+                                   min_size=7, max_size=7), min_size=1, max_size=4),
+       halves=st.booleans())
+def test_fast_to_pulses_matches_the_reference_arithmetic(layout1d, cals, shifts, fractions,
+                                                         halves):
+    acts = tuple(
+        replace(a, calibration=Calibration(min(max(zero + dz, 500), 2500),
+                                           min(max(full - dz, 500), 2500), travel))
+        for a, (zero, full, travel), dz in zip(layout1d.actuators, cals, shifts, strict=True)
+    )
+    pm = PulseMap.from_layout(replace(layout1d, actuators=acts))
+    mm = np.array(fractions) * pm.travel_mm
+    if halves:  # aim at rounding ties: setpoints whose exact pulse is k + 0.5 us
+        target = np.floor(pm.zero_us + (pm.full_us - pm.zero_us) * np.array(fractions)) + 0.5
+        mm = (target - pm.zero_us) * pm.travel_mm / (pm.full_us - pm.zero_us)
+        mm = np.clip(mm, -pm.tolerance_mm / 2, pm.travel_mm + pm.tolerance_mm / 2)
+    np.testing.assert_array_equal(pm.to_pulses(mm), _reference_to_pulses(pm, mm))
+    np.testing.assert_array_equal(pm.to_pulses(mm[0]), _reference_to_pulses(pm, mm[0]))

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,23 @@ class PulseMap:
     pulse_low: np.ndarray  # smallest whole-us pulse inside the calibrated range
     pulse_high: np.ndarray  # largest
     tolerance_mm: float = DEFAULT_TOLERANCE_MM
+    # derived once (to_pulses runs every frame): full_us - zero_us, the accepted setpoint
+    # range with its tolerance, and the whole-us pulse range as floats
+    _span_us: np.ndarray = field(init=False, repr=False)
+    _accept_high_mm: np.ndarray = field(init=False, repr=False)
+    _pulse_low_f: np.ndarray = field(init=False, repr=False)
+    _pulse_high_f: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        derived = {
+            "_span_us": self.full_us - self.zero_us,
+            "_accept_high_mm": self.travel_mm + self.tolerance_mm,
+            "_pulse_low_f": np.asarray(self.pulse_low, dtype=float),
+            "_pulse_high_f": np.asarray(self.pulse_high, dtype=float),
+        }
+        for name, value in derived.items():
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
 
     @classmethod
     def from_layout(cls, layout: Layout, tolerance_mm: float = DEFAULT_TOLERANCE_MM
@@ -81,18 +98,27 @@ class PulseMap:
                 f"setpoints: expected {self.n_channels} values per frame (one per actuator), "
                 f"got shape {mm.shape!r}"
             )
-        bad = ~((mm >= -self.tolerance_mm) & (mm <= self.travel_mm + self.tolerance_mm))
-        if bad.any():
-            where = np.argwhere(bad)[0]
+        ok = mm >= -self.tolerance_mm
+        ok &= mm <= self._accept_high_mm  # NaN fails both
+        if not ok.all():
+            where = np.argwhere(~ok)[0]
             channel = int(where[-1])
             frame = f" in frame {int(where[0])}" if mm.ndim == 2 else ""
             raise DeviceError(
                 f"channel {self.labels[channel]}: setpoint {float(mm[tuple(where)])!r} mm{frame} "
                 f"is outside its calibrated range 0..{self.travel_mm[channel]:g} mm"
             )
-        mm = np.clip(mm, 0.0, self.travel_mm)
-        pulses = np.rint(self.zero_us + (self.full_us - self.zero_us) * mm / self.travel_mm)
-        return np.clip(pulses, self.pulse_low, self.pulse_high).astype(np.int64)
+        # np.clip's arithmetic with fewer temporaries: clip onto [0, travel], then
+        # zero + (full - zero) * mm / travel, rounded, inside the whole-us range
+        pulses = np.maximum(mm, 0.0)
+        np.minimum(pulses, self.travel_mm, out=pulses)
+        pulses *= self._span_us
+        pulses /= self.travel_mm
+        pulses += self.zero_us
+        np.rint(pulses, out=pulses)
+        np.maximum(pulses, self._pulse_low_f, out=pulses)
+        np.minimum(pulses, self._pulse_high_f, out=pulses)
+        return pulses.astype(np.int64)
 
     def to_mm(self, pulses_us: np.ndarray) -> np.ndarray:
         """Setpoints (mm) for pulse widths; a pulse outside the calibrated range is an error."""
