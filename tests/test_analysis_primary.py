@@ -83,3 +83,22 @@ def test_crossed_digit_effect_is_fitted_when_planned():
                           random_effects=("participant", "digit"))
     assert set(result.model["variance_components"]) == {"participant_id", "digit"}
     assert "(1 | digit)" in result.comparisons[0].method
+
+
+def test_adaptive_quadrature_when_planned():
+    trials = _trials(n_participants=10, n_per_cell=30, seed=5)
+    laplace = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    agq = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq",
+                       n_quadrature=15)
+    assert "AGQ 15 points" in agq.comparisons[0].method
+    # same data, close estimates (Laplace and AGQ differ by the integral's approximation only)
+    assert agq.comparisons[0].log_odds == pytest.approx(laplace.comparisons[0].log_odds,
+                                                        abs=0.02)
+
+
+def test_agq_with_crossed_effects_falls_back_to_laplace_with_a_warning():
+    trials = _trials(n_participants=6, n_per_cell=20, seed=6)
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only",
+                          random_effects=("participant", "digit"), method="agq")
+    assert "(Laplace" in result.comparisons[0].method
+    assert "fitted with the Laplace approximation instead" in result.warnings[0]

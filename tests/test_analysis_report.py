@@ -232,3 +232,16 @@ def test_cli_bad_plan_is_one_line(tmp_path, capsys):
     plan = write_plan(tmp_path / "p.toml", '[plan]\nname = "x"\nalpha = 2\n')
     assert main(["analyze", str(root), "--plan", str(plan)]) == 2
     assert "plan.alpha: expected a number <= 0.5, got 2" in capsys.readouterr().err
+
+
+def test_conditions_outside_the_plan_are_analysed_after_the_planned_ones():
+    import pandas as pd
+
+    from crs_study.analysis.plan import AnalysisPlan
+    from crs_study.analysis.report import order_conditions
+
+    plan = AnalysisPlan.from_dict({"plan": {"name": "x", "conditions": ["pixel-only", "crs"]}})
+    trials = pd.DataFrame({"condition": ["zeta", "crs", "pixel-only", "alpha"]})
+    ordered, reference, notes = order_conditions(trials, plan)
+    assert ordered == ["pixel-only", "crs", "alpha", "zeta"] and reference == "pixel-only"
+    assert "condition(s) ['alpha', 'zeta'] are not in the plan" in notes[0]

@@ -16,13 +16,15 @@ HELP = "analyse datasets: accuracy, GLMM, secondary tests, confusions, speed-acc
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    # "%(default).0s" prints nothing: it stops argparse appending "(default: None)".
     parser.add_argument("datasets", nargs="+", metavar="DATASET",
                         help="dataset directory (BIDS); several are analysed together")
     parser.add_argument("--plan", metavar="FILE", default=None,
                         help="analysis plan (default: the protocol's analysis_plan, else "
-                             "analysis/digit_identification.toml)")
+                             "analysis/digit_identification.toml)%(default).0s")
     parser.add_argument("--out", metavar="DIR", default=None,
-                        help="output directory (default: DATASET/derivatives/crs-study)")
+                        help="output directory (default: DATASET/derivatives/crs-study)"
+                             "%(default).0s")
     parser.add_argument("--json", action="store_true",
                         help="print results.json on stdout instead of the headline")
     parser.add_argument("--strict", action="store_true",
