@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from crs_study.analysis.glmm import fit_glmm
+from crs_study.analysis.glmm import fit_glmm, lrt
 from crs_study.analysis.glmm_simulate import simulate_trials
 
 INTERCEPT, EFFECT, VARIANCE = 0.3, 0.8, 0.5
@@ -94,8 +94,6 @@ def test_lrt_size_for_a_null_condition_effect():
     pvalues = []
     for seed in range(60):
         df = simulate_trials(np.random.default_rng(500 + seed), 15, 30, [0.4, 0.4], VARIANCE)
-        from crs_study.analysis.glmm import lrt
-
         full = fit_glmm(df, "correct", "condition", "participant")
         reduced = fit_glmm(df, "correct", "1", "participant")
         pvalues.append(lrt(full, reduced).pvalue)
