@@ -147,3 +147,56 @@ def test_stdin_of_a_child_process(terminal):
     assert answer[:2] == ["answer", "2"]
     error = float(answer[2]) - (written - onset)
     assert 0 <= error < STAMP_SLACK_S
+
+
+@pytest.mark.slow
+def test_crs_study_run_with_the_keypad_in_a_terminal(tmp_path, terminal):
+    """`crs-study run --responder keypad` with a pty as its terminal: prompts wait for Space,
+    digits answer without Enter (here during the stimulus), every trial is stored."""
+    import csv
+    import select
+
+    from _session_helpers import tiny_protocol
+
+    master, slave = terminal
+    protocol = tiny_protocol(tmp_path, digits=(1, 7), practice=0, iti=0.2)
+    dataset = tmp_path / "ds"
+    child = subprocess.Popen(
+        [sys.executable, "-m", "crs_study", "run", str(protocol), "--participant", "p01",
+         "--device", "sim://", "--out", str(dataset), "--responder", "keypad"],
+        stdin=slave, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    seen = []
+    buffer = b""
+    try:
+        deadline = time.monotonic() + 120
+        pending = None  # the trial whose answer is due
+        while child.poll() is None and time.monotonic() < deadline:
+            ready, _, _ = select.select([child.stderr], [], [], 0.1)
+            if ready:  # raw reads: a buffered readline would hide lines from select()
+                buffer += os.read(child.stderr.fileno(), 4096)
+            while b"\n" in buffer:
+                raw, buffer = buffer.split(b"\n", 1)
+                line = raw.decode()
+                seen.append(line)
+                if "press Space" in line:
+                    os.write(master, b" ")
+                    pending = time.monotonic()
+                elif "trial " in line and "/4" in line:
+                    trial = int(line.split("trial ")[1].split("/")[0]) - 1
+                    pending = None if trial in (0, 2) else time.monotonic()  # prompts first
+            if pending is not None and time.monotonic() - pending > 0.3:
+                os.write(master, b"7")
+                pending = None
+        child.wait(timeout=30)
+    finally:
+        child.kill()
+        child.wait()
+        child.stdout.close()
+        child.stderr.close()
+    assert child.returncode == 0, "\n".join(seen)
+    tsv = dataset / "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
+    with open(tsv, newline="") as handle:
+        rows = list(csv.DictReader(handle, delimiter="\t"))
+    assert [r["response"] for r in rows] == ["7"] * 4
+    assert all(r["responder"] == "keypad" for r in rows)
+    assert all(float(r["response_time_from_offset"]) < 0 for r in rows)  # during the stimulus

@@ -83,16 +83,17 @@ def _start(args, tmp_path):
 
 
 def _wait_for(process, needle: str, timeout: float = 60.0) -> str:
-    seen = ""
+    """Raw reads of stderr until ``needle`` (a buffered readline would hide data from select)."""
+    seen = b""
     deadline = time.monotonic() + timeout
-    while needle not in seen:
+    while needle.encode() not in seen:
         assert time.monotonic() < deadline, seen
         ready, _, _ = select.select([process.stderr], [], [], 0.5)
         if ready:
-            line = process.stderr.readline()
-            assert line, seen
-            seen += line
-    return seen
+            chunk = os.read(process.stderr.fileno(), 4096)
+            assert chunk, seen
+            seen += chunk
+    return seen.decode()
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
