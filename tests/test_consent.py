@@ -277,3 +277,14 @@ def test_withdraw_cli_one_line_for_missing_dataset(tmp_path, capsys):
                  "--dataset", str(tmp_path / "nope")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "no such dataset" in err[0]
+
+
+def test_analysis_refuses_a_dataset_with_an_unfinished_withdrawal(tmp_path):
+    from crs_study.analysis.load import load_datasets
+    from crs_study.errors import DatasetError
+
+    dataset = make_dataset(tmp_path / "ds")
+    code = _withdraw_in_subprocess(dataset, tmp_path / "reg", crash_at=2)
+    assert code == -9 and consent.pending_withdrawal(dataset) is not None
+    with pytest.raises(DatasetError, match="withdrawal was interrupted.*consent recover"):
+        load_datasets([dataset])

@@ -173,6 +173,12 @@ def _dataset_name(path: Path) -> str:
 def _session_files(root: Path) -> list[Path]:
     if not root.is_dir():
         raise DatasetError(f"{root}: no such dataset directory")
+    from crs_study.consent import JOURNAL_FILE
+
+    if (root / JOURNAL_FILE).exists():
+        # A withdrawal was interrupted: analysing now could include data that must go.
+        raise DatasetError(f"{root}: a participant's withdrawal was interrupted; finish it "
+                           f"first: crs-study consent recover --dataset {root}")
     files = sorted(root.glob(f"sub-*/ses-*/beh/sub-*_ses-*_task-{TASK}_beh.tsv"))
     files += sorted(root.glob(f"sub-*/beh/sub-*_task-{TASK}_beh.tsv"))
     if not files:
