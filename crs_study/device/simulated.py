@@ -75,10 +75,11 @@ from crs_study.device.base import (
     servo_move_bytes,
 )
 from crs_study.device.calibration import PulseMap
-from crs_study.device.codec import FrameDecoder, get_battery_voltage
+from crs_study.device.codec import FrameDecoder, get_battery_voltage, servo_move_arrays
 from crs_study.device.schedule import DEFAULT_DEADBAND_US, ChannelSplit
 from crs_study.device.virtual_controller import (
     NORMAL_BATTERY_MV,
+    ServoBank,
     ServoSpec,
     VirtualController,
     clear_decode_cache,
@@ -221,6 +222,9 @@ class _FrameBuilder:
         self.zero = np.asarray(pm.zero_us)
         self.scale = (pm.full_us - pm.zero_us) / pm.travel_mm  # us per mm
         self.members = self.split.members
+        self.every = tuple(np.arange(len(m)) for m in self.members)  # local: every channel
+        for local in self.every:
+            local.setflags(write=False)
         self._encoded: dict[tuple[int, int, bytes, bytes], bytes] = {}
 
     def pulses(self, setpoints_mm: np.ndarray) -> np.ndarray:
@@ -231,16 +235,40 @@ class _FrameBuilder:
                 ) -> np.ndarray:
         return self.split.changed(controller, pulses, last, self.deadband_us)
 
+    def changed_local(self, controller: int, mine: np.ndarray, last: np.ndarray | None
+                      ) -> np.ndarray:
+        """:meth:`changed` for ``mine`` = this controller's pulses, already gathered."""
+        if last is None:
+            return self.every[controller]
+        diff = mine - last
+        np.abs(diff, out=diff)
+        return (diff > self.deadband_us).nonzero()[0]
+
+    def n_changed(self, controller: int, pulses: np.ndarray, last: np.ndarray | None) -> int:
+        """How many channels :meth:`changed` would send."""
+        if last is None:
+            return len(self.members[controller])
+        diff = pulses[self.members[controller]] - last
+        np.abs(diff, out=diff)
+        return int(np.count_nonzero(diff > self.deadband_us))
+
     def frame(self, controller: int, pulses: np.ndarray, local: np.ndarray, move_ms: int
               ) -> bytes:
         """SERVO_MOVE bytes for channels ``local`` of ``controller`` (b"" when none)."""
         if not len(local):
             return b""
-        key = (controller, move_ms, local.tobytes(),
-               pulses[self.members[controller][local]].tobytes())
+        return self.frame_local(controller, pulses[self.members[controller]], local, move_ms)
+
+    def frame_local(self, controller: int, mine: np.ndarray, local: np.ndarray, move_ms: int
+                    ) -> bytes:
+        """:meth:`frame` for ``mine`` = this controller's pulses, already gathered."""
+        if not len(local):
+            return b""
+        values = mine if local is self.every[controller] else mine[local]
+        key = (controller, move_ms, local.tobytes(), values.tobytes())
         data = self._encoded.get(key)
         if data is None:
-            data = self.split.frame(controller, pulses, local, move_ms)
+            data = servo_move_arrays(self.split.ids[controller][local], values, move_ms)
             if len(self._encoded) >= ENCODE_CACHE_SIZE:
                 self._encoded.clear()
             self._encoded[key] = data
@@ -327,6 +355,8 @@ class SimulatedDevice(Device):
                                       opts.battery_mv, t0, record=self.record)
             self.boards.append(board)
             self._wires.append(_Wire(board, self.byte_s))
+        # every board's servos in one bank (boards hold views): one read per displayed frame
+        self._servos = ServoBank.joined([b.servos for b in self.boards])
         names = _controller_names(self.layout)
         for name, at in opts.disconnect_at:
             for i, wire in enumerate(self._wires):
@@ -416,7 +446,7 @@ class SimulatedDevice(Device):
                 wire.waiting, wire.waiting_move_ms = pulses, move_ms
                 last = None if wire.free_at - wire.last_full_at >= self._refresh_s() \
                     or wire.force_full else wire.last_sent
-                n = len(self.builder.changed(k, pulses, last))
+                n = self.builder.n_changed(k, pulses, last)
                 size = 3 * n + 7 if n else 0
                 done = wire.free_at + size * self.byte_s
             else:
@@ -435,17 +465,17 @@ class SimulatedDevice(Device):
         """Put the frame for ``pulses`` on free wire ``k`` at ``t``; (bytes, channels)."""
         full = t - wire.last_full_at >= self._refresh_s() or wire.force_full
         wire.force_full = False
-        local = self.builder.changed(k, pulses, None if full else wire.last_sent)
-        data = self.builder.frame(k, pulses, local, move_ms)
+        mine = pulses[self.builder.members[k]]  # a fresh array: safe to keep
+        local = self.builder.changed_local(k, mine, None if full else wire.last_sent)
+        data = self.builder.frame_local(k, mine, local, move_ms)
         if full:
             wire.last_full_at = t
         if data:
             wire.flying = data
             wire.start_at = t
             wire.free_at = t + len(data) * self.byte_s
-            mine = pulses[self.builder.members[k]]
             if wire.last_sent is None or full:
-                wire.last_sent = mine.copy()
+                wire.last_sent = mine
             else:
                 wire.last_sent[local] = mine[local]
         return len(data), len(local)
@@ -531,7 +561,9 @@ class SimulatedDevice(Device):
             t = self.clock.now()
         if self.boards:
             self._advance(t)
-            us = np.concatenate([b.positions_us(t) for b in self.boards])[self._flat]
+            for board in self.boards:
+                board.advance(t)
+            us = self._servos.position(t)[self._flat]
         else:
             us = self.builder.zero
         return (us - self.builder.zero) / self.builder.scale

@@ -76,6 +76,24 @@ class ServoBank:
         self.frozen = np.zeros(n, dtype=bool)
         self.any_frozen = False
 
+    @classmethod
+    def joined(cls, banks: Sequence[ServoBank]) -> ServoBank:
+        """One bank holding ``banks``' servos end to end; each of ``banks`` becomes a view into
+        it (same numbers, shared storage), so all positions are read with one computation."""
+        joined = object.__new__(cls)
+        for name in ("rest_us", "max_speed", "target", "slope", "arrive", "s_per_us",
+                     "frozen"):
+            setattr(joined, name, np.concatenate([getattr(b, name) for b in banks]))
+        joined.any_frozen = any(b.any_frozen for b in banks)
+        start = 0
+        for bank in banks:
+            stop = start + len(bank)
+            for name in ("rest_us", "max_speed", "target", "slope", "arrive", "s_per_us",
+                         "frozen"):
+                setattr(bank, name, getattr(joined, name)[start:stop])
+            start = stop
+        return joined
+
     def __len__(self) -> int:
         return len(self.target)
 
@@ -92,18 +110,29 @@ class ServoBank:
 
         Frozen (stalled or limp) servos ignore the command.
         """
-        index = np.asarray(index, dtype=np.intp)
-        target_us = np.asarray(target_us, dtype=float)
+        self.command_arrays(np.asarray(index, dtype=np.intp), np.asarray(target_us, dtype=float),
+                            float(move_s), t)
+
+    def command_arrays(self, index: np.ndarray, target_us: np.ndarray, move_s: float, t: float
+                       ) -> None:
+        """:meth:`command` for an intp ``index`` and a float ``target_us`` (the per-frame path).
+
+        The arithmetic of :meth:`position`, term for term, over fewer numpy calls.
+        """
         if self.any_frozen:
             live = ~self.frozen[index]
             index, target_us = index[live], target_us[live]
-        here = self.target[index] - self.slope[index] * np.maximum(self.arrive[index] - t, 0.0)
+        here = self.position(t)[index]
         delta = target_us - here
-        duration = np.maximum(np.abs(delta) * self.s_per_us[index], move_s)
-        # duration == 0 only when delta == 0: the slope is then 0
-        self.slope[index] = delta / np.where(duration > 0.0, duration, 1.0)
+        duration = np.abs(delta)
+        duration *= self.s_per_us[index]
+        np.maximum(duration, move_s, out=duration)
+        # duration == 0 only when move_s == 0 and delta == 0: the slope is then 0
+        self.slope[index] = delta / (duration if move_s > 0.0
+                                     else np.where(duration > 0.0, duration, 1.0))
         self.target[index] = target_us
-        self.arrive[index] = t + duration
+        duration += t
+        self.arrive[index] = duration
 
     def freeze(self, index: np.ndarray, t: float) -> None:
         """Stop servos ``index`` where they are at ``t``; later commands are ignored (a stall)."""
@@ -269,6 +298,10 @@ class VirtualController:
             )
         return index
 
+    def advance(self, t: float) -> None:
+        """Bring the board to time ``t``: fire the faults due by then."""
+        self._advance(t)
+
     def _advance(self, t: float) -> None:
         if t > self.last_time:
             self.last_time = t
@@ -336,7 +369,7 @@ class VirtualController:
                 return b""
             self.unknown_ids += action.unknown
             if len(action.index):
-                self.servos.command(action.index, action.target, action.move_s, t)
+                self.servos.command_arrays(action.index, action.target, action.move_s, t)
             return b""
         if isinstance(message, GetBatteryVoltage):
             return battery_voltage_reply(self.battery_mv())
