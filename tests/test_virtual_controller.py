@@ -195,3 +195,57 @@ def test_unload_unknown_ids_and_position_read():
     vc.receive(codec.mult_servo_unload([1]), 0.3)
     assert vc.positions_us(1.0)[0] == pytest.approx(1000.0)  # limp, at rest
     assert vc.positions_us(1.0)[1] == pytest.approx(1800.0)
+
+
+class _ReferenceServos:
+    """ServoBank's motion model written per servo with plain floats (the module docstring:
+    start where the servo is, take max(T, |dp| / v)): the vectorised bank must agree bit for
+    bit, or a displayed position would drift from what the model says."""
+
+    def __init__(self, rest: list[float], speed: list[float]) -> None:
+        self.target, self.slope = list(rest), [0.0] * len(rest)
+        self.arrive, self.s_per_us = [0.0] * len(rest), [1.0 / v for v in speed]
+
+    def position(self, i: int, t: float) -> float:
+        return self.target[i] - self.slope[i] * max(self.arrive[i] - t, 0.0)
+
+    def command(self, index: list[int], targets: list[float], move_s: float, t: float) -> None:
+        here = [self.position(i, t) for i in index]
+        for i, goal, p in zip(index, targets, here, strict=True):
+            delta = goal - p
+            duration = max(abs(delta) * self.s_per_us[i], move_s)
+            self.slope[i] = delta / duration if duration > 0.0 else delta / 1.0
+            self.target[i], self.arrive[i] = goal, t + duration
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), sizes=st.lists(st.integers(1, 8), min_size=1, max_size=3))
+def test_joined_banks_and_array_commands_match_the_per_servo_model(data, sizes):
+    n = sum(sizes)
+    speeds = data.draw(st.lists(st.floats(2000.0, 30000.0), min_size=n, max_size=n))
+    rests = data.draw(st.lists(st.floats(500.0, 2500.0), min_size=n, max_size=n))
+    parts, start = [], 0
+    for size in sizes:
+        parts.append(ServoBank(np.array(rests[start:start + size]),
+                               np.array(speeds[start:start + size])))
+        start += size
+    joined = ServoBank.joined(parts)
+    reference = _ReferenceServos(rests, speeds)
+    t = 0.0
+    for _ in range(data.draw(st.integers(1, 15))):
+        t += data.draw(st.sampled_from([0.0, 0.01, 0.0667, 0.2]))
+        which = data.draw(st.integers(0, len(parts) - 1))
+        size = sizes[which]
+        local = data.draw(st.lists(st.integers(0, size - 1), min_size=1, max_size=size,
+                                   unique=True))
+        goals = [float(g) for g in data.draw(st.lists(st.integers(500, 2500),
+                                                      min_size=len(local),
+                                                      max_size=len(local)))]
+        move_s = data.draw(st.sampled_from([0.0, 0.067, 0.5]))
+        parts[which].command_arrays(np.array(local, dtype=np.intp), np.array(goals), move_s, t)
+        offset = sum(sizes[:which])
+        reference.command([offset + i for i in local], goals, move_s, t)
+        for probe in (t, t + 0.03, t + 1.0):
+            expected = [reference.position(i, probe) for i in range(n)]
+            assert joined.position(probe).tolist() == expected  # exact, not approximate
+            assert np.concatenate([p.position(probe) for p in parts]).tolist() == expected
