@@ -4,7 +4,8 @@ Every key is checked (unknown keys, types, ranges: one-line errors naming file, 
 value), then the stimulus against the device: inside the display, within the pixels' travel
 and the CRS limits, the frame rate within the wire. Wire use is reported two ways: full
 frames (every channel of every controller in every frame, the bound the check uses) and
-changed-only frames (channels whose pulse width changes, as measured on the rendered frames).
+changed-only frames (channels whose pulse width changes on the rendered frames, first frame
+from neutral excluded from the busiest; :func:`crs_study.device.schedule.wire_plan`).
 """
 
 from __future__ import annotations
@@ -62,27 +63,25 @@ def summarise(protocol, participant: str = "example", session: int = 1,
     per_controller = channels_per_controller(layout)
     full_bytes = sum(servo_move_bytes(n) for n in per_controller.values() if n)
     full_time = full_frame_wire_time_s(layout)
-    controller_of = np.array([[a.controller == c.name for a in layout.actuators]
-                              for c in layout.controllers])
+    from crs_study.device.schedule import wire_plan
+
     changed = {}
     for condition in protocol.conditions:
         renderer = Renderer(layout, condition)
-        total_bytes, busiest, n_frames = 0, 0.0, 0
+        total_bytes, busiest, n_frames, rate, latencies = 0, 0, 0, float("inf"), []
         for stim in stimuli.values():
-            pulses = np.rint(np.array([layout.pulse_us(f) for f in render_frames(stim,
-                                                                                   renderer)]))
-            before = np.vstack([np.rint(layout.pulse_us(layout.neutral_setpoints())),
-                                pulses[:-1]])
-            moved = pulses != before  # (n_frames, n_actuators)
-            counts = moved.astype(int) @ controller_of.T.astype(int)  # (frames, controllers)
-            frame_bytes = np.where(counts > 0, 3 * counts + 7, 0)
-            total_bytes += int(frame_bytes.sum())
-            busiest = max(busiest, float(frame_bytes.max()) * BYTE_TIME_S)
-            n_frames += len(pulses)
+            wire = wire_plan(layout, render_frames(stim, renderer), protocol.frame_rate_hz)
+            total_bytes += int(wire.changed_bytes.sum())
+            busiest = max(busiest, int(wire.changed_bytes[1:].max(initial=0)))
+            n_frames += wire.n_frames
+            rate = min(rate, wire.changed_only_rate_hz)
+            latencies.append(wire.latency_changed_s)
         changed[condition] = {
             "mean_bytes_per_frame": total_bytes / n_frames,
-            "busiest_frame_wire_ms": busiest * 1e3,
-            "busiest_frame_budget_percent": 100.0 * busiest / period,
+            "busiest_frame_wire_ms": busiest * BYTE_TIME_S * 1e3,
+            "busiest_frame_budget_percent": 100.0 * busiest * BYTE_TIME_S / period,
+            "max_rate_hz": rate,
+            "median_latency_ms": float(np.median(np.concatenate(latencies))) * 1e3,
         }
 
     counts = {c: {"practice": plan.count("practice", c), "test": plan.count("test", c)}
@@ -173,7 +172,9 @@ def _text(s: dict) -> str:
         lines.append(f"wire, changed channels only, {condition}: "
                      f"{c['mean_bytes_per_frame']:.1f} bytes/frame on average, busiest frame "
                      f"{c['busiest_frame_wire_ms']:.1f} ms = "
-                     f"{c['busiest_frame_budget_percent']:.0f} % of the period")
+                     f"{c['busiest_frame_budget_percent']:.0f} % of the period (max "
+                     f"{c['max_rate_hz']:.1f} frames/s), median latency "
+                     f"{c['median_latency_ms']:.0f} ms")
     lines.append("checks passed:")
     lines += [f"  ok  {c}" for c in s["checks"]]
     plan = s["analysis_plan"]
