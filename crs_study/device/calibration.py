@@ -53,8 +53,14 @@ class PulseMap:
     _accept_high_mm: np.ndarray = field(init=False, repr=False)
     _pulse_low_f: np.ndarray = field(init=False, repr=False)
     _pulse_high_f: np.ndarray = field(init=False, repr=False)
+    _whole_endpoints: bool = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        # whole-us endpoints: rint of a value inside [zero, full] (off by float noise only)
+        # already lies in [pulse_low, pulse_high], so the last clip can be skipped
+        object.__setattr__(self, "_whole_endpoints", bool(
+            np.all(self.zero_us == np.round(self.zero_us))
+            and np.all(self.full_us == np.round(self.full_us))))
         derived = {
             "_span_us": self.full_us - self.zero_us,
             "_accept_high_mm": self.travel_mm + self.tolerance_mm,
@@ -116,8 +122,9 @@ class PulseMap:
         pulses /= self.travel_mm
         pulses += self.zero_us
         np.rint(pulses, out=pulses)
-        np.maximum(pulses, self._pulse_low_f, out=pulses)
-        np.minimum(pulses, self._pulse_high_f, out=pulses)
+        if not self._whole_endpoints:
+            np.maximum(pulses, self._pulse_low_f, out=pulses)
+            np.minimum(pulses, self._pulse_high_f, out=pulses)
         return pulses.astype(np.int64)
 
     def to_mm(self, pulses_us: np.ndarray) -> np.ndarray:

@@ -564,6 +564,11 @@ class FrameDecoder:
         return bytes(self._buffer)
 
     @property
+    def has_pending(self) -> bool:
+        """Whether bytes are held back (cheaper than ``bool(pending)``)."""
+        return bool(self._buffer)
+
+    @property
     def position(self) -> int:
         """Stream offset of the first byte not yet framed or skipped."""
         return self._offset

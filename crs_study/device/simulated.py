@@ -308,6 +308,7 @@ class SimulatedDevice(Device):
                                 math.ceil(servo_move_bytes(busiest) * BITS_PER_BYTE
                                           / self.options.baud * 1000))
         self.byte_s = BITS_PER_BYTE / self.options.baud
+        self._refresh = self.options.refresh_s if self.options.refresh_s > 0 else math.inf
         self.boards: list[VirtualController] = []
         self._wires: list[_Wire] = []
         self.faults: list[str] = []
@@ -458,7 +459,7 @@ class SimulatedDevice(Device):
         return FrameReport(t, done_at, tuple(bytes_sent), channels, merged)
 
     def _refresh_s(self) -> float:
-        return self.options.refresh_s if self.options.refresh_s > 0 else math.inf
+        return self._refresh
 
     def _start(self, k: int, wire: _Wire, pulses: np.ndarray, move_ms: int, t: float
                ) -> tuple[int, int]:

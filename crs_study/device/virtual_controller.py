@@ -313,7 +313,7 @@ class VirtualController:
     def receive(self, data: bytes, t: float) -> bytes:
         """Bytes whose last one arrived at ``t``; returns the board's reply bytes (may be b"")."""
         self._advance(t)
-        clean_start = not self.decoder.pending
+        clean_start = not self.decoder.has_pending
         key = (self.channel_base, self.channels, data)
         actions = _DECODED.get(key) if clean_start else None
         if actions is None:
