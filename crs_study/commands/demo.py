@@ -75,6 +75,9 @@ def run(args: argparse.Namespace) -> int:
         result = analyze_dataset(out)
         summary.update(headline=result.headline, report=os.fspath(result.report_path),
                        results=os.fspath(result.results_path))
+        charts = {p.stem: os.fspath(p) for p in getattr(result, "charts", ())}
+        if charts:
+            summary["charts"] = charts
     if args.json:
         print(json.dumps(summary))
         return 0
@@ -84,6 +87,10 @@ def run(args: argparse.Namespace) -> int:
         print(summary["headline"])
         print(f"report: {summary['report']}")
         print(f"results: {summary['results']}")
+        charts = summary.get("charts", {})
+        for name in ("accuracy", "speed_accuracy"):
+            if name in charts:
+                print(f"chart ({name.replace('_', ' ')}): {charts[name]}")
     else:
         print(f"analysis: {summary['analysis']}", file=sys.stderr)
     return 0
