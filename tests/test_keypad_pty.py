@@ -22,9 +22,11 @@ from crs_study.clock import RealClock
 from crs_study.responders.base import StimulusRecord
 from crs_study.responders.keypad import KeypadResponder, PauseRequested
 
-#: Allowed delay between writing a key and its time stamp (s). Typically well under 1 ms;
-#: the margin absorbs scheduling on a loaded two-core CI machine.
-STAMP_SLACK_S = 0.005
+#: Allowed delay between writing a key and its time stamp (s). Typically 0.1 ms (median of
+#: 30 keys here); single keys reached 5 ms on a loaded two-core machine, hence the margin,
+#: while the median over several keys must stay within a millisecond.
+STAMP_SLACK_S = 0.02
+STAMP_MEDIAN_S = 0.001
 
 
 class Trial:
@@ -51,7 +53,7 @@ def test_one_key_no_enter_timed_to_the_ms(terminal):
     errors = []
     with KeypadResponder(fd=slave, output=io.StringIO()) as keypad:
         assert not termios.tcgetattr(slave)[3] & termios.ICANON  # cbreak: no Enter needed
-        for digit in (7, 3, 0):
+        for digit in (7, 3, 0, 5, 9):
             onset = clock.now()
             keypad.begin_trial(Trial, onset, clock)
             time.sleep(0.05)
@@ -63,6 +65,7 @@ def test_one_key_no_enter_timed_to_the_ms(terminal):
             errors.append(answer.response_time_s - (written - onset))
     assert termios.tcgetattr(slave) == before  # the terminal is restored
     assert min(errors) >= 0 and max(errors) < STAMP_SLACK_S, errors
+    assert sorted(errors)[len(errors) // 2] < STAMP_MEDIAN_S, errors  # to the millisecond
 
 
 def test_keys_during_the_stimulus_count(terminal):
