@@ -29,13 +29,23 @@ Solution per segment
     as t^2/2 sinc^2 and a short series so that k -> 0 tends stably to the cubic (the spline).
     With beta > 0 the same matrix comes from its Taylor series (recurrence
     c_{n+4} = -a c_{n+2} - b c_n). Unknowns are the states (y, y', y'', y''') at each segment
-    start; a 4(m+1) linear system per beam, all beams batched, lengths in pitch units.
+    start: a 4(m+1) linear system per beam, all beams batched, lengths in pitch units. With
+    beta = 0 (the default) the same states come from the slopes at the pixels alone
+    (slope-deflection: an m x m tridiagonal system per beam, ``_BeamSet._slope_deflection``).
+    Arc length: 8-point Gauss-Legendre per segment (the integrand is analytic, k l <= 2 pi
+    below the critical load: error ~1e-11 of the length).
 Root finding
-    L(N) is evaluated on a per-layout grid of N (the map from pixel heights to slopes is linear
-    and precomputed for each grid N), the first grid interval reaching the commanded length
-    brackets N, and a vectorised Illinois (regula falsi) iteration on exact solves refines all
-    beams at once (one batched solve per step instead of a scalar brentq per beam).
-    |L - L_c (1 - N/EA)| <= 1e-9 S.
+    For each distinct beam geometry (its segment lengths, shared by most beams of a patch),
+    the critical load and the linear maps from pixel heights to the slopes at the quadrature
+    nodes on a grid of 48 loads in [0, margin N_cr] are computed once and cached on the class.
+    A frame evaluates L on the whole grid with one batched product; the first grid interval
+    reaching the commanded length brackets N. Every beam is then refined at once by
+    safeguarded inverse interpolation: the Lagrange polynomial a(f) through the 8 grid points
+    around the bracket, evaluated at f = 0; each step is an exact batched solve that replaces
+    the point of largest |f| (regula falsi when a step leaves the bracket). The first exact
+    solve almost always meets |L - L_c (1 - N/EA)| <= ``LENGTH_TOLERANCE_MM`` (1 nm, four
+    orders below the servos' step) and its states are the frame's shapes: ~0.3 ms a frame for
+    the 9 beams of the 2D device (``crs-study bench display``).
 
 Failure modes (never returned as a shape)
     * Critical load: the system's determinant vanishes first at N_cr (a buckling mode with zero
@@ -56,6 +66,7 @@ Failure modes (never returned as a shape)
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 
 import numpy as np
 from scipy.optimize import brentq
@@ -67,16 +78,20 @@ from crs_study.display.network import (
     beam_support_positions,
     check_setpoints,
     check_yield,
-    commanded_lengths,
 )
 from crs_study.errors import CollapseError, DisplayModelError
 from crs_study.layout import Layout
 
-_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(12)
+_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
 _SERIES_TERMS = 64
 _SERIES_LIMIT = 12.0  # largest rho * t for which 64 Taylor terms stay accurate (~1e-12)
+#: |L - L_c (1 - N/EA)| at which N is accepted: 1 nm, four orders below the servos' step;
+#: the height error it leaves is a few nm
+LENGTH_TOLERANCE_MM = 1e-6
 _SCAN_POINTS = 400  # grid for the first determinant sign change (critical load)
 _GRID_POINTS = 48  # N grid for bracketing the length root
+_WINDOW = 8  # points of the inverse interpolation
+_DIAGONAL = (np.arange(_WINDOW), np.arange(_WINDOW))
 _FACTORIALS = np.array([math.factorial(n) for n in range(_SERIES_TERMS)], dtype=float)
 
 
@@ -111,11 +126,7 @@ def _theta_minus_sin_over_cube(theta: np.ndarray) -> np.ndarray:
 
 
 def _trig_fundamental(t: np.ndarray, a: np.ndarray) -> np.ndarray:
-    k = np.sqrt(a)
-    theta = k * t
-    sin_over_k = t * np.sinc(theta / np.pi)  # sin(kt)/k
-    one_minus_cos = 0.5 * t * t * np.sinc(theta / (2 * np.pi)) ** 2  # (1 - cos kt)/k^2
-    cos = np.cos(theta)
+    sin_over_k, one_minus_cos, cos = _trig_terms(t, a)
     out = np.zeros(t.shape + (4, 4))
     out[..., 0, 0] = 1.0
     out[..., 0, 1] = t
@@ -124,7 +135,7 @@ def _trig_fundamental(t: np.ndarray, a: np.ndarray) -> np.ndarray:
     out[..., 1, 2] = sin_over_k
     out[..., 2, 2] = cos
     out[..., 3, 2] = -a * sin_over_k
-    out[..., 0, 3] = t**3 * _theta_minus_sin_over_cube(theta)
+    out[..., 0, 3] = t**3 * _theta_minus_sin_over_cube(np.sqrt(a) * t)
     out[..., 1, 3] = one_minus_cos
     out[..., 2, 3] = sin_over_k
     out[..., 3, 3] = cos
@@ -162,52 +173,41 @@ def _series_fundamental(t: np.ndarray, a: np.ndarray, b: float) -> np.ndarray:
     return out
 
 
-class CompressedBeams:
-    """Per-layout solver for every beam at once (see the module docstring). Build once."""
+def _trig_terms(t: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sin(kt)/k, (1 - cos kt)/k^2 and cos kt for k = sqrt(a) >= 0 (exact limits at a = 0).
 
-    _cache: dict[tuple, CompressedBeams] = {}
+    The fast path of :func:`_trig_fundamental` for the rows the solver needs: 2 sin^2(kt/2)/a
+    has no cancellation, so only a = 0 itself needs its limit.
+    """
+    positive = a > 0.0
+    safe_a = np.where(positive, a, 1.0)
+    k = np.sqrt(safe_a)
+    theta = k * t
+    half_sin = np.sin(0.5 * theta)
+    sin_over_k = np.where(positive, np.sin(theta) / k, t)
+    one_minus_cos = np.where(positive, 2.0 * half_sin * half_sin / safe_a, 0.5 * t * t)
+    return sin_over_k, one_minus_cos, 1.0 - safe_a * one_minus_cos * positive
 
-    @classmethod
-    def for_layout(cls, layout: Layout, foundation: bool = False,
-                   critical_margin: float = 0.98) -> CompressedBeams:
-        key = (layout.pitch_mm, layout.pixel_xy.tobytes(), layout.beams, layout.beam_section,
-               layout.foundation_stiffness, bool(foundation), float(critical_margin))
-        if key not in cls._cache:
-            if len(cls._cache) > 32:
-                cls._cache.clear()
-            cls._cache[key] = cls(layout, foundation, critical_margin)
-        return cls._cache[key]
 
-    def __init__(self, layout: Layout, foundation: bool = False,
-                 critical_margin: float = 0.98) -> None:
-        if not 0.0 < critical_margin < 1.0:
-            raise DisplayModelError(
-                f"beam: critical_margin must be in (0, 1), got {critical_margin!r}")
-        self.layout = layout
-        self.margin = critical_margin
-        self.d = d = layout.pitch_mm
-        self.ei = layout.beam_section.bending_stiffness
-        self.beta = layout.foundation_stiffness if foundation else 0.0
-        self.b = self.beta * d**4 / self.ei
-        self.delta = no_collapse_number(self.ei, self.beta, d)
-        section = layout.beam_section
-        # N = a EI / d^2; axial strain N / (E A) = a * axial_compliance
-        self.axial_compliance = self.ei / (d**2 * section.youngs_modulus_mpa * section.area_mm2)
-        supports = [beam_support_positions(layout, beam) / d for beam in layout.beams]
+class _BeamSet:
+    """Padded per-segment arrays and the linear system of a list of beams (pitch units).
+
+    Beam i has supports ``supports[i]`` (clamp, pixels, clamp); all beams are padded to
+    ``n_seg_max`` segments (padding segments have zero length and state c = 0).
+    """
+
+    def __init__(self, supports: list[np.ndarray], n_seg_max: int) -> None:
         self.n_beams = n_beams = len(supports)
         self.n_segments = np.array([len(s) - 1 for s in supports])
-        self.n_seg_max = p = int(self.n_segments.max())
-        self.spans = np.array([beam.straight_length for beam in layout.beams])
+        self.n_seg_max = p = n_seg_max
+        self.n_pixels = max(p - 1, 1)
         self.seg_start = np.zeros((n_beams, p))
         self.lengths = np.zeros((n_beams, p))
-        self.pixel_map = np.full((n_beams, max(p - 1, 1)), -1)
-        for bi, (s, beam) in enumerate(zip(supports, layout.beams, strict=True)):
+        for bi, s in enumerate(supports):
             n = len(s) - 1
             self.seg_start[bi, :n] = s[:-1]
             self.seg_start[bi, n:] = s[-1]
             self.lengths[bi, :n] = np.diff(s)
-            self.pixel_map[bi, : n - 1] = beam.pixels
-        self.supports = supports
         self._build_templates()
         q = len(_GL_NODES)
         self.t_nodes = ((_GL_NODES[None, None, :] + 1.0) / 2.0
@@ -215,16 +215,21 @@ class CompressedBeams:
         self.w_nodes = (_GL_WEIGHTS[None, None, :] / 2.0
                         * self.lengths[:, :, None]).reshape(n_beams, p * q)
         self.node_seg = np.repeat(np.arange(p), q)
-        self.a_critical = self._critical_a()
-        self.critical_load_n = self.a_critical * self.ei / d**2
-        self._build_grid()
+        # slope-deflection masks: padding segments, real pixels, pixel pairs
+        self._padding = self.lengths <= 0.0
+        real = np.arange(self.n_pixels)[None, :] < (self.n_segments - 1)[:, None]
+        self._pixel_valid = real.astype(float)
+        self._pixel_pair = (real[:, :, None] & real[:, None, :]).astype(float)
+        self._pixel_padding = np.eye(self.n_pixels)[None] * (~real)[:, :, None]
+        self._diag = np.arange(self.n_pixels)
+        supports = np.arange(p + 1)[None, :] <= self.n_segments[:, None]
+        self._support_is_pixel_or_clamp = supports.astype(float)
 
-    # --- assembly -------------------------------------------------------------------------
     def _build_templates(self) -> None:
         n_beams, p = self.n_beams, self.n_seg_max
         size = 4 * p
         template = np.zeros((n_beams, size, size))
-        rhs = np.zeros((n_beams, size, self.pixel_map.shape[1]))
+        rhs = np.zeros((n_beams, size, self.n_pixels))
         pb, prow, pcol, pseg, pr, pi = [], [], [], [], [], []
 
         def phi_row(bi: int, row: int, seg: int, r: int) -> None:
@@ -253,165 +258,332 @@ class CompressedBeams:
             phi_row(bi, 4 * n - 1, n - 1, 1)
             for row in range(4 * n, size):  # padding segments: c = 0
                 template[bi, row, row] = 1.0
-        self._template = template
-        self._rhs = rhs
-        self._index = tuple(np.array(v) for v in (pb, prow, pcol, pseg, pr, pi))
+        self.template = template
+        self.rhs = rhs
+        self.index = tuple(np.array(v, dtype=int) for v in (pb, prow, pcol, pseg, pr, pi))
 
-    def _system(self, a: np.ndarray) -> np.ndarray:
+    def system(self, a: np.ndarray, b: float) -> np.ndarray:
         """Matrices (..., B, 4P, 4P) for dimensionless loads a of shape (..., B)."""
-        pb, prow, pcol, pseg, pr, pi = self._index
+        pb, prow, pcol, pseg, pr, pi = self.index
         phi = fundamental_matrix(np.broadcast_to(self.lengths, a.shape + (self.n_seg_max,)),
-                                 a, self.b)
-        system = np.broadcast_to(self._template, a.shape[:-1] + self._template.shape).copy()
+                                 a, b)
+        system = np.broadcast_to(self.template, a.shape[:-1] + self.template.shape).copy()
         system[..., pb, prow, pcol] = phi[..., pb, pseg, pr, pi]
         return system
 
-    def _coefficients(self, a: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    def coefficients(self, a: np.ndarray, b: float, heights: np.ndarray) -> np.ndarray:
         """Segment start states (B, P, 4) for loads a (B,) and pixel heights (B, n_pix)."""
-        rhs = np.einsum("bkp,bp->bk", self._rhs, heights)
-        coef = np.linalg.solve(self._system(a), rhs[..., None])[..., 0]
+        if b == 0.0:
+            return self._slope_deflection(a, heights)
+        rhs = np.matmul(self.rhs, heights[:, :, None])
+        coef = np.linalg.solve(self.system(a, b), rhs)[..., 0]
         return coef.reshape(self.n_beams, self.n_seg_max, 4)
 
-    def _node_derivatives(self, a: np.ndarray, coef: np.ndarray) -> np.ndarray:
-        """(y', y'') at the quadrature nodes, pitch units: shape (2, B, P*Q)."""
-        phi = fundamental_matrix(self.t_nodes, a, self.b)[..., 1:3, :]
+    def _slope_deflection(self, a: np.ndarray, heights: np.ndarray) -> np.ndarray:
+        """The same states for beta = 0 from the slopes at the pixels alone (beam-column
+        slope-deflection method, e.g. Timoshenko & Gere, Theory of Elastic Stability, 1.11).
+
+        On a segment of length l with end heights Y_i, Y_j and end slopes theta_i, theta_j,
+        y = Y_i + theta_i t + c2 (1 - cos kt)/k^2 + c3 (kt - sin kt)/k^3 with
+        [C D; s C] [c2; c3] = [Y_j - Y_i - theta_i l; theta_j - theta_i] (C, D, s: the
+        functions at t = l). Moment continuity y''(l-) = y''(0+) at each pixel gives a
+        tridiagonal system in the pixel slopes (clamps: theta = 0), n_pix unknowns a beam
+        instead of 4(n_pix + 1). det = C^2 - D s vanishes only at a segment's own
+        clamped-clamped buckling load, above the beam's critical load.
+        """
+        ell = self.lengths
+        sin_over_k, one_minus_cos, cos = _trig_terms(ell, a[:, None])
+        cubic = ell**3 * _theta_minus_sin_over_cube(np.sqrt(a)[:, None] * ell)
+        pad = self._padding
+        one_minus_cos = np.where(pad, 1.0, one_minus_cos)
+        cubic = np.where(pad, 0.0, cubic)
+        sin_over_k = np.where(pad, 0.0, sin_over_k)
+        det = one_minus_cos**2 - cubic * sin_over_k
+        # c2 = alpha th_i + beta th_j + gamma dY; c3 = alpha' th_i + beta' th_j + gamma' dY
+        alpha = (cubic - one_minus_cos * ell) / det
+        beta = -cubic / det
+        gamma = one_minus_cos / det
+        alpha2 = (sin_over_k * ell - one_minus_cos) / det
+        beta2 = one_minus_cos / det
+        gamma2 = -sin_over_k / det
+        # curvature at the segment's right end: A th_i + B th_j + G dY
+        right_a = alpha * cos + alpha2 * sin_over_k
+        right_b = beta * cos + beta2 * sin_over_k
+        right_g = gamma * cos + gamma2 * sin_over_k
+        y = np.zeros((self.n_beams, self.n_seg_max + 1))
+        y[:, 1:-1] = heights
+        y *= self._support_is_pixel_or_clamp
+        dy = np.diff(y, axis=1)
+        q = self.n_pixels
+        matrix = np.zeros((self.n_beams, q, q))
+        matrix[:, self._diag, self._diag] = right_b[:, :q] - alpha[:, 1:q + 1]
+        matrix[:, self._diag[1:], self._diag[:-1]] = right_a[:, 1:q]
+        matrix[:, self._diag[:-1], self._diag[1:]] = -beta[:, 1:q]
+        matrix = matrix * self._pixel_pair + self._pixel_padding
+        rhs = (gamma[:, 1:q + 1] * dy[:, 1:q + 1]
+               - right_g[:, :q] * dy[:, :q]) * self._pixel_valid
+        theta = np.linalg.solve(matrix, rhs[:, :, None])[..., 0]
+        slopes = np.zeros((self.n_beams, self.n_seg_max + 1))
+        slopes[:, 1:-1] = theta * self._pixel_valid
+        th_i, th_j = slopes[:, :-1], slopes[:, 1:]
+        coef = np.empty((self.n_beams, self.n_seg_max, 4))
+        coef[..., 0] = y[:, :-1]
+        coef[..., 1] = th_i
+        coef[..., 2] = alpha * th_i + beta * th_j + gamma * dy
+        coef[..., 3] = alpha2 * th_i + beta2 * th_j + gamma2 * dy
+        return coef
+
+    def node_derivatives(self, a: np.ndarray, b: float, coef: np.ndarray,
+                         second: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """(y', y'') at the quadrature nodes, pitch units, each (B, P*Q); y'' only if asked."""
         states = coef[:, self.node_seg, :]
-        return np.einsum("bnrj,bnj->rbn", phi, states)
+        if b == 0.0:
+            sin_over_k, one_minus_cos, cos = _trig_terms(self.t_nodes, a[:, None])
+            slope = (states[..., 1] + states[..., 2] * sin_over_k
+                     + states[..., 3] * one_minus_cos)
+            if not second:
+                return slope, None
+            return slope, states[..., 2] * cos + states[..., 3] * sin_over_k
+        phi = fundamental_matrix(self.t_nodes, a, b)[..., 1:3, :]
+        both = np.einsum("bnrj,bnj->rbn", phi, states)
+        return both[0], both[1]
 
-    def _arc_length(self, slopes: np.ndarray) -> np.ndarray:
-        """Arc length (mm) from slopes dy/ds_hat (mm per pitch) at the nodes, (..., B, P*Q)."""
-        return self.d * np.sum(self.w_nodes * np.sqrt(1.0 + (slopes / self.d) ** 2), axis=-1)
 
-    # --- per-layout precomputation --------------------------------------------------------
-    def _critical_a(self) -> np.ndarray:
+class CompressedBeams:
+    """Per-layout solver for every beam at once (see the module docstring). Build once."""
+
+    _cache: dict[tuple, CompressedBeams] = {}
+    #: (segment lengths in pitch units, b, margin) -> (a_critical, grid slope operator (K,nq,p))
+    _geometry_cache: dict[tuple, tuple[float, np.ndarray]] = {}
+
+    @classmethod
+    def for_layout(cls, layout: Layout, foundation: bool = False,
+                   critical_margin: float = 0.98) -> CompressedBeams:
+        key = (layout.pitch_mm, layout.pixel_xy.tobytes(), layout.beams, layout.beam_section,
+               layout.foundation_stiffness, bool(foundation), float(critical_margin))
+        if key not in cls._cache:
+            if len(cls._cache) > 32:
+                cls._cache.clear()
+            cls._cache[key] = cls(layout, foundation, critical_margin)
+        return cls._cache[key]
+
+    def __init__(self, layout: Layout, foundation: bool = False,
+                 critical_margin: float = 0.98) -> None:
+        if not 0.0 < critical_margin < 1.0:
+            raise DisplayModelError(
+                f"beam: critical_margin must be in (0, 1), got {critical_margin!r}")
+        self.layout = layout
+        self.margin = critical_margin
+        self.d = d = layout.pitch_mm
+        self.ei = layout.beam_section.bending_stiffness
+        self.beta = layout.foundation_stiffness if foundation else 0.0
+        self.b = self.beta * d**4 / self.ei
+        self.delta = no_collapse_number(self.ei, self.beta, d)
+        section = layout.beam_section
+        # N = a EI / d^2; axial strain N / (E A) = a * axial_compliance
+        self.axial_compliance = self.ei / (d**2 * section.youngs_modulus_mpa * section.area_mm2)
+        supports = [beam_support_positions(layout, beam) / d for beam in layout.beams]
+        p = max(len(s) - 1 for s in supports)
+        self.beams = _BeamSet(supports, p)
+        self.n_beams = self.beams.n_beams
+        self.n_segments = self.beams.n_segments
+        self.n_seg_max = p
+        self.seg_start = self.beams.seg_start
+        self.spans = np.array([beam.straight_length for beam in layout.beams])
+        self.pixel_map = np.full((self.n_beams, self.beams.n_pixels), -1)
+        for bi, beam in enumerate(layout.beams):
+            self.pixel_map[bi, : len(beam.pixels)] = beam.pixels
+        self.start_servo = np.array([b.start_servo for b in layout.beams], dtype=int)
+        self.end_servo = np.array([b.end_servo for b in layout.beams], dtype=int)
+        self._precompute_geometries(supports)
+        self.critical_load_n = self.a_critical * self.ei / d**2
+
+    # --- per-geometry precomputation (cached across layouts) -------------------------------
+    def _precompute_geometries(self, supports: list[np.ndarray]) -> None:
+        """Critical load and grid slope operators, once per distinct beam geometry.
+
+        Beams with the same segment lengths (most beams of a periodic patch, and the same
+        beam in the patches of a d/l sweep) share both; they are computed for one beam of each
+        geometry and cached on the class.
+        """
+        keys = [(tuple(np.round(np.diff(s), 12)), self.b, self.margin) for s in supports]
+        missing = sorted({k for k in keys if k not in self._geometry_cache})
+        if missing:
+            if len(self._geometry_cache) > 512:
+                type(self)._geometry_cache.clear()
+            reps = [supports[keys.index(k)] for k in missing]
+            unique = _BeamSet(reps, max(len(s) - 1 for s in reps))
+            a_critical = self._critical_a(unique)
+            grid_slopes = self._grid_operators(unique, a_critical)
+            for i, k in enumerate(missing):
+                n_pix = int(unique.n_segments[i]) - 1
+                q = len(_GL_NODES) * int(unique.n_segments[i])
+                self._geometry_cache[k] = (float(a_critical[i]), grid_slopes[i, :, :q, :n_pix])
+        entries = [self._geometry_cache[k] for k in keys]
+        self.a_critical = np.array([e[0] for e in entries])
+        u = np.linspace(0.0, 1.0, _GRID_POINTS)[:, None]
+        self.a_grid = self.margin * self.a_critical[None, :] * (1.0 - (1.0 - u) ** 2)  # (K, B)
+        nq = self.beams.t_nodes.shape[1]
+        ops = np.zeros((self.n_beams, _GRID_POINTS, nq, self.beams.n_pixels))
+        for bi, (_, op) in enumerate(entries):
+            ops[bi, :, : op.shape[1], : op.shape[2]] = op
+        # slopes dy/ds (dimensionless) at every grid load: (B, K * nq, n_pix) @ heights
+        self._grid_slopes = ops.reshape(self.n_beams, _GRID_POINTS * nq, -1) / self.d
+        self._grid_weights = self.beams.w_nodes * self.d  # mm per node
+
+    def _critical_a(self, beams: _BeamSet) -> np.ndarray:
         """First zero of det(A(a)) per beam: the critical load in units EI/d^2."""
-        longest = self.lengths.max(axis=1)
+        longest = beams.lengths.max(axis=1)
         upper = 1.05 * ((2 * np.pi / longest) ** 2 + 3 * self.b * longest**2 / (4 * np.pi**2))
         grid = np.linspace(0.0, 1.0, _SCAN_POINTS)[:, None] * upper[None, :]
-        sign, _ = np.linalg.slogdet(self._system(grid))
+        sign, _ = np.linalg.slogdet(beams.system(grid, self.b))
         out = upper.copy()
-        for bi in range(self.n_beams):
+        for bi in range(beams.n_beams):
             change = np.flatnonzero(sign[1:, bi] * sign[0, bi] <= 0)
             if change.size == 0:
                 continue  # no sign change below the Rayleigh bound: keep the bound
             k = int(change[0]) + 1
-
-            _, ref = np.linalg.slogdet(self._system(grid[k - 1])[bi])
+            _, ref = np.linalg.slogdet(beams.system(grid[k - 1], self.b)[bi])
 
             def det(x: float, bi: int = bi, ref: float = ref) -> float:
-                a = np.zeros(self.n_beams)
+                a = np.zeros(beams.n_beams)
                 a[bi] = x
-                s, logdet = np.linalg.slogdet(self._system(a)[bi])
+                s, logdet = np.linalg.slogdet(beams.system(a, self.b)[bi])
                 return float(s * np.exp(logdet - ref))
 
             out[bi] = brentq(det, grid[k - 1, bi], grid[k, bi], xtol=1e-13, rtol=1e-13)
         return out
 
-    def _build_grid(self) -> None:
-        """Slope operators (K, B, P*Q, n_pix) on a grid of a in [0, margin a_cr]."""
+    def _grid_operators(self, beams: _BeamSet, a_critical: np.ndarray) -> np.ndarray:
+        """Slope operators (B, K, P*Q, n_pix) (pitch units) on a grid of a in [0, margin a_cr].
+
+        The grid clusters towards the margin (u -> 1 - (1 - u)^2), where L(a) steepens.
+        """
         u = np.linspace(0.0, 1.0, _GRID_POINTS)[:, None]
-        self.a_grid = self.margin * self.a_critical[None, :] * (1.0 - (1.0 - u) ** 2)
-        n_pix = self.pixel_map.shape[1]
-        basis = np.linalg.solve(self._system(self.a_grid), self._rhs[None])  # (K, B, 4P, n_pix)
-        basis = basis.reshape(_GRID_POINTS, self.n_beams, self.n_seg_max, 4, n_pix)
-        phi = fundamental_matrix(np.broadcast_to(self.t_nodes, self.a_grid.shape
-                                                 + self.t_nodes.shape[1:]), self.a_grid, self.b)
-        self._grid_slopes = np.einsum("kbnj,kbnjp->kbnp", phi[..., 1, :],
-                                      basis[:, :, self.node_seg])
+        a_grid = self.margin * a_critical[None, :] * (1.0 - (1.0 - u) ** 2)
+        n_pix = beams.n_pixels
+        basis = np.linalg.solve(beams.system(a_grid, self.b), beams.rhs[None])
+        basis = basis.reshape(_GRID_POINTS, beams.n_beams, beams.n_seg_max, 4, n_pix)
+        phi = fundamental_matrix(np.broadcast_to(beams.t_nodes, a_grid.shape
+                                                 + beams.t_nodes.shape[1:]), a_grid, self.b)
+        slopes = np.einsum("kbnj,kbnjp->kbnp", phi[..., 1, :], basis[:, :, beams.node_seg])
+        return np.ascontiguousarray(slopes.transpose(1, 0, 2, 3))
 
     # --- per frame ------------------------------------------------------------------------
     def heights(self, setpoints: np.ndarray) -> np.ndarray:
         return np.where(self.pixel_map >= 0, setpoints[np.maximum(self.pixel_map, 0)], 0.0)
+
+    def _commanded(self, setpoints: np.ndarray) -> np.ndarray:
+        return self.spans + setpoints[self.start_servo] + setpoints[self.end_servo]
+
+    def _excess(self, a: np.ndarray, heights: np.ndarray, target: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Exact f(a) = L(a) - L_c (1 - N/EA) (mm) and the segment states at a."""
+        coef = self.beams.coefficients(a, self.b, heights)
+        slope, _ = self.beams.node_derivatives(a, self.b, coef, second=False)
+        length = np.sum(self._grid_weights * np.sqrt(1.0 + (slope / self.d) ** 2), axis=-1)
+        return length - target * (1.0 - a * self.axial_compliance), coef
 
     def solve(self, setpoints_mm: np.ndarray, check_yield_curvature: bool = True,
               model: str = "beam") -> BeamProfiles:
         """Shapes with N solved so each beam's arc length equals its commanded length."""
         setpoints = check_setpoints(self.layout, setpoints_mm, model)
         heights = self.heights(setpoints)
-        target = commanded_lengths(self.layout, setpoints)
-        grid_lengths = self._arc_length(np.einsum("kbnp,bp->kbn", self._grid_slopes, heights))
+        target = self._commanded(setpoints)
+        slopes = np.matmul(self._grid_slopes, heights[:, :, None])[..., 0]
+        grid_lengths = np.sum((self._grid_weights[:, None, :] * np.sqrt(
+            1.0 + slopes.reshape(self.n_beams, _GRID_POINTS, -1) ** 2)), axis=-1).T  # (K, B)
         # the steel shortens by N L / (E A) under the load: shape length = L_c (1 - N / EA)
         grid_target = target[None, :] * (1.0 - self.a_grid * self.axial_compliance)
         excess = grid_lengths - grid_target
-        tolerance = 1e-9 * self.spans
+        tolerance = np.full(self.n_beams, LENGTH_TOLERANCE_MM)
         need = excess[0] < -tolerance
-        a = np.zeros(self.n_beams)
-        if np.any(need):
-            if self.delta < 1.0:
-                bi = int(np.flatnonzero(need)[0])
-                raise CollapseError(
-                    f"{model}: beam {bi}: Delta = {self.delta:.3g} < 1 (Eq. 4, beta = "
-                    f"{self.beta:.3g} N/mm^2): the compressed beam collapses into the skin; use "
-                    f"a stiffer beam, a softer skin or a smaller pitch")
-            reached = excess >= 0.0
-            unreachable = need & ~reached.any(axis=0)
-            if np.any(unreachable):
-                bi = int(np.flatnonzero(unreachable)[0])
-                raise CollapseError(
-                    f"{model}: beam {bi}: commanded length {target[bi]:.4f} mm needs N >= "
-                    f"{self.margin:g} N_cr = {self.margin * self.critical_load_n[bi]:.4g} N "
-                    f"(longest stable shape {grid_lengths[-1, bi]:.4f} mm): the beam collapses; "
-                    f"reduce the boundary feed or the stimulus height")
-            a = self._refine(need, np.argmax(reached, axis=0), excess, target, heights,
+        if not np.any(need):
+            return self._profiles(np.zeros(self.n_beams), None, heights, target,
+                                  check_yield_curvature, model)
+        if self.delta < 1.0:
+            bi = int(np.flatnonzero(need)[0])
+            raise CollapseError(
+                f"{model}: beam {bi}: Delta = {self.delta:.3g} < 1 (Eq. 4, beta = "
+                f"{self.beta:.3g} N/mm^2): the compressed beam collapses into the skin; use "
+                f"a stiffer beam, a softer skin or a smaller pitch")
+        reached = excess >= 0.0
+        unreachable = need & ~reached.any(axis=0)
+        if np.any(unreachable):
+            bi = int(np.flatnonzero(unreachable)[0])
+            raise CollapseError(
+                f"{model}: beam {bi}: commanded length {target[bi]:.4f} mm needs N >= "
+                f"{self.margin:g} N_cr = {self.margin * self.critical_load_n[bi]:.4g} N "
+                f"(longest stable shape {grid_lengths[-1, bi]:.4f} mm): the beam collapses; "
+                f"reduce the boundary feed or the stimulus height")
+        a, coef = self._root(need, np.argmax(reached, axis=0), excess, target, heights,
                              tolerance)
-        return self._profiles(a, heights, target, check_yield_curvature, model)
+        return self._profiles(a, coef, heights, target, check_yield_curvature, model)
 
-    def _refine(self, need, first, excess, target, heights, tolerance) -> np.ndarray:
-        """Illinois iteration on f(a) = L(a) - L_c (1 - N/EA) inside each grid bracket."""
+    def _root(self, need, first, excess, target, heights, tolerance):
+        """N per beam: inverse cubic interpolation through four points, safeguarded.
+
+        Starts from the four grid loads around the bracket [a_{k-1}, a_k] (their lengths are
+        exact: the grid operators are exact solves); each step evaluates f exactly at the
+        interpolated root and replaces the point of largest |f|; a step outside the current
+        bracket falls back to regula falsi. Converges superlinearly: two to three exact solves
+        a frame reach |f| <= LENGTH_TOLERANCE_MM (mostly one).
+        """
         cols = np.arange(self.n_beams)
         hi_index = np.maximum(first, 1)
         lo = self.a_grid[hi_index - 1, cols]
         hi = self.a_grid[hi_index, cols]
         f_lo = excess[hi_index - 1, cols]
         f_hi = excess[hi_index, cols]
-        a = np.where(need, lo, 0.0)
+        window = (np.clip(hi_index - _WINDOW // 2, 0, _GRID_POINTS - _WINDOW)[None, :]
+                  + np.arange(_WINDOW)[:, None])
+        pa = self.a_grid[window, cols]  # (4, B)
+        pf = excess[window, cols]
+        a = np.zeros(self.n_beams)
+        coef = None
         active = need.copy()
-        side = np.zeros(self.n_beams, dtype=int)
         for _ in range(60):
-            if not np.any(active):
-                break
-            trial = np.where(active, (lo * f_hi - hi * f_lo) / np.where(
-                f_hi != f_lo, f_hi - f_lo, 1.0), a)
-            coef = self._coefficients(trial, heights)
-            f = (self._arc_length(self._node_derivatives(trial, coef)[0])
-                 - target * (1.0 - trial * self.axial_compliance))
-            a = np.where(active, trial, a)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # Lagrange form of the inverse cubic a(f) at f = 0
+                ratio = pf[None, :, :] / (pf[None, :, :] - pf[:, None, :])  # [i, j]
+                ratio[_DIAGONAL] = 1.0
+                guess = np.sum(pa * np.prod(ratio, axis=1), axis=0)
+                falsi = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
+            inside = np.isfinite(guess) & (guess > lo) & (guess < hi)
+            trial = np.where(inside, guess, falsi)
+            trial = np.where(active, trial, a)
+            f, trial_coef = self._excess(trial, heights, target)
+            coef = trial_coef if coef is None else np.where(active[:, None, None], trial_coef,
+                                                            coef)
+            a = trial
             done = np.abs(f) <= tolerance
             upper = active & (f > 0)
             lower = active & (f <= 0)
-            f_lo = np.where(upper & (side == 1), f_lo / 2.0, f_lo)
-            f_hi = np.where(lower & (side == -1), f_hi / 2.0, f_hi)
             hi, f_hi = np.where(upper, trial, hi), np.where(upper, f, f_hi)
             lo, f_lo = np.where(lower, trial, lo), np.where(lower, f, f_lo)
-            side = np.where(upper, 1, np.where(lower, -1, side))
+            worst = np.argmax(np.abs(pf), axis=0)
+            replace = active & ~done
+            pa[worst[replace], cols[replace]] = trial[replace]
+            pf[worst[replace], cols[replace]] = f[replace]
             active &= ~done & (hi - lo > 1e-14 * self.a_critical)
-        return a
+            if not np.any(active):
+                break
+        return a, coef
 
-    def _profiles(self, a, heights, target, check_yield_curvature, model) -> BeamProfiles:
-        coef = self._coefficients(a, heights)
-        slope, second = self._node_derivatives(a, coef)
-        lengths = self._arc_length(slope)
+    def _profiles(self, a, coef, heights, target, check_yield_curvature, model) -> BeamProfiles:
+        if coef is None:
+            coef = self.beams.coefficients(a, self.b, heights)
+        slope, second = self.beams.node_derivatives(a, self.b, coef)
+        lengths = np.sum(self._grid_weights * np.sqrt(1.0 + (slope / self.d) ** 2), axis=-1)
         if check_yield_curvature:
             curvature = np.abs(second) / self.d**2 / (1.0 + (slope / self.d) ** 2) ** 1.5
             at_supports = np.abs(coef[:, :, 2]) / self.d**2  # y'' at segment starts (y' = 0
             # at clamps; at pixels the slope factor only lowers it, so this bounds from above)
             worst = np.maximum(curvature.max(axis=1), at_supports.max(axis=1))
-            for bi in np.argsort(-worst)[:1]:
-                check_yield(model, int(bi), float(worst[bi]), self.layout)
-        seg_start = self.seg_start
-        n_segments = self.n_segments
-        d, b = self.d, self.b
-
-        def evaluate(beam: np.ndarray, s: np.ndarray) -> np.ndarray:
-            s_hat = s / d
-            seg = np.sum(s_hat[:, None] >= seg_start[beam], axis=1) - 1
-            seg = np.clip(seg, 0, n_segments[beam] - 1)
-            t = s_hat - seg_start[beam, seg]
-            phi = fundamental_matrix(t[:, None], a[beam], b)[:, 0, 0, :]
-            return np.einsum("nj,nj->n", phi, coef[beam, seg])
-
+            bi = int(np.argmax(worst))
+            check_yield(model, bi, float(worst[bi]), self.layout)
         return BeamProfiles(
-            spans_mm=self.spans, evaluate=evaluate,
+            spans_mm=self.spans, evaluate=_ShapeEvaluator(self, a, coef),
             axial_load_n=a * self.ei / self.d**2, critical_load_n=self.critical_load_n,
             commanded_length_mm=target, length_mm=lengths,
         )
@@ -422,8 +594,32 @@ class CompressedBeams:
         setpoints = check_setpoints(self.layout, setpoints_mm, "beam")
         a = np.broadcast_to(np.asarray(axial_load_n, dtype=float) * self.d**2 / self.ei,
                             (self.n_beams,)).copy()
-        return self._profiles(a, self.heights(setpoints),
-                              commanded_lengths(self.layout, setpoints), False, "beam")
+        return self._profiles(a, None, self.heights(setpoints), self._commanded(setpoints),
+                              False, "beam")
+
+
+class _ShapeEvaluator:
+    """y(beam, s) of solved beams: the segment's state times row 0 of its fundamental matrix."""
+
+    def __init__(self, solver: CompressedBeams, a: np.ndarray, coef: np.ndarray) -> None:
+        self.d, self.b = solver.d, solver.b
+        self.seg_start, self.n_segments = solver.seg_start, solver.n_segments
+        self.a, self.coef = a, coef
+
+    def __call__(self, beam: np.ndarray, s: np.ndarray) -> np.ndarray:
+        s_hat = s / self.d
+        seg = np.sum(s_hat[:, None] >= self.seg_start[beam], axis=1) - 1
+        seg = np.clip(seg, 0, self.n_segments[beam] - 1)
+        t = s_hat - self.seg_start[beam, seg]
+        c = self.coef[beam, seg]
+        a = self.a[beam]
+        if self.b == 0.0:
+            _, one_minus_cos, _ = _trig_terms(t, a)
+            k = np.sqrt(a)
+            cubic = t**3 * _theta_minus_sin_over_cube(k * t)  # (kt - sin kt)/k^3
+            return c[:, 0] + c[:, 1] * t + c[:, 2] * one_minus_cos + c[:, 3] * cubic
+        phi = fundamental_matrix(t[:, None], a, self.b)[:, 0, 0, :]
+        return np.einsum("nj,nj->n", phi, c)
 
 
 @register
@@ -432,22 +628,51 @@ class BeamModel(NetworkModel):
 
     Options: ``foundation`` (use the layout's Winkler beta for a skin pressed onto the
     skeleton, Fig. 3; default False: the display as shown, and the closed form is ~3x faster),
-    ``critical_margin`` (0.98), ``check_yield_curvature`` (True), ``fabric_subdivisions``.
+    ``critical_margin`` (0.98), ``check_yield_curvature`` (True), ``fabric_subdivisions``,
+    ``memo_frames`` (256: the last frames' solutions, and failures, are kept in an LRU keyed by
+    the setpoints' bytes, since a session shows the same stimuli again and again) and
+    ``quantum_mm`` (0: off; > 0 rounds the setpoints to this step before solving and keying,
+    so near-repeats hit the memo too; 1e-4 mm is far below the servos' ~0.01 mm step).
     """
 
     name = "beam"
     description = "compressed beam (CRS): EI y'''' + N y'' + beta y = 0, arc length = command"
 
     def __init__(self, layout: Layout, foundation: bool = False, critical_margin: float = 0.98,
-                 check_yield_curvature: bool = True, **options) -> None:
+                 check_yield_curvature: bool = True, memo_frames: int = 256,
+                 quantum_mm: float = 0.0, **options) -> None:
         super().__init__(layout, **options)
+        if not (isinstance(memo_frames, int) and memo_frames >= 0):
+            raise DisplayModelError(f"beam: memo_frames must be a whole number >= 0, "
+                                    f"got {memo_frames!r}")
+        if not (isinstance(quantum_mm, int | float) and math.isfinite(quantum_mm)
+                and quantum_mm >= 0.0):
+            raise DisplayModelError(f"beam: quantum_mm must be >= 0 (mm), got {quantum_mm!r}")
         self.solver = CompressedBeams.for_layout(layout, foundation, critical_margin)
         self.check_yield_curvature = check_yield_curvature
-        self._last: tuple[bytes, BeamProfiles] | None = None
+        self.memo_frames = memo_frames
+        self.quantum_mm = float(quantum_mm)
+        self._memo: OrderedDict[bytes, BeamProfiles | DisplayModelError] = OrderedDict()
 
     def beam_profiles(self, setpoints_mm: np.ndarray) -> BeamProfiles:
-        key = np.asarray(setpoints_mm, dtype=float).tobytes()
-        if self._last is None or self._last[0] != key:  # a held frame is solved once
-            self._last = (key, self.solver.solve(setpoints_mm, self.check_yield_curvature,
-                                                 self.name))
-        return self._last[1]
+        setpoints = np.asarray(setpoints_mm, dtype=float)
+        if self.quantum_mm > 0.0 and setpoints.ndim == 1:
+            setpoints = np.round(setpoints / self.quantum_mm) * self.quantum_mm
+        key = setpoints.tobytes()
+        found = self._memo.get(key)
+        if found is None:
+            try:
+                found = self.solver.solve(setpoints, self.check_yield_curvature, self.name)
+            except DisplayModelError as exc:  # collapse and yield: as repeatable as a shape
+                if setpoints.shape != (self.layout.n_actuators,):
+                    raise  # a malformed call is not a frame
+                found = exc
+            if self.memo_frames:
+                self._memo[key] = found
+                if len(self._memo) > self.memo_frames:
+                    self._memo.popitem(last=False)
+        else:
+            self._memo.move_to_end(key)
+        if isinstance(found, DisplayModelError):
+            raise found.with_traceback(None)
+        return found
