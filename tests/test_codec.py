@@ -330,3 +330,24 @@ def test_array_encoder_names_bad_input():
         codec.servo_move_arrays(np.array([1, 2]), np.array([1500]), 100)
     assert codec.servo_move_arrays(np.array([1]), np.array([2000]), np.int64(1000)) \
         == VECTOR_ONE_SERVO
+
+
+@settings(max_examples=150, deadline=None)
+@given(chunks=st.lists(host_messages.map(lambda m: m.encode())
+                       | st.sampled_from([bytes.fromhex("55 55 02 42"),  # unknown command
+                                          bytes.fromhex("55 55 05 03 00 00 00"),  # no servos
+                                          bytes.fromhex("55 55 08 03 01 E8 03 01 00 00")])
+                       | headerless_noise, max_size=8))
+def test_whole_frame_chunks_decode_as_the_joined_stream_does(chunks):
+    # one chunk = one candidate frame takes the decoder's direct path: same frames, skipped
+    # runs, offsets and counts as feeding everything at once
+    one = FrameDecoder(Direction.HOST)
+    joined = one.feed(b"".join(chunks))
+    one.flush()
+    each = FrameDecoder(Direction.HOST)
+    frames = [f for chunk in chunks for f in each.feed(chunk)]
+    each.flush()
+    assert frames == joined
+    assert each.skipped == one.skipped
+    assert (each.position, each.frames_decoded, each.skipped_bytes) == \
+        (one.position, one.frames_decoded, one.skipped_bytes)

@@ -433,12 +433,18 @@ def _n_servos(length: int, per: int, extra: int, what: str) -> int:
     return n
 
 
+_HOST_FIXED_LENGTH = {Command.ACTION_GROUP_RUN: 5, Command.ACTION_GROUP_STOP: 2,
+                      Command.ACTION_GROUP_SPEED: 5, Command.GET_BATTERY_VOLTAGE: 2}
+_BOARD_FIXED_LENGTH = {Reply.ACTION_GROUP_RUNNING: 5, Reply.ACTION_GROUP_STOPPED: 2,
+                       Reply.ACTION_GROUP_COMPLETE: 5, Reply.BATTERY_VOLTAGE: 4}
+_SERVO_MOVE_CODE = int(Command.SERVO_MOVE)
+
+
 def _check_length(direction: Direction, code: int, length: int) -> None:
     """Check a candidate's Length byte against its command code; raise _Invalid if wrong."""
     if direction is Direction.HOST:
-        fixed = {Command.ACTION_GROUP_RUN: 5, Command.ACTION_GROUP_STOP: 2,
-                 Command.ACTION_GROUP_SPEED: 5, Command.GET_BATTERY_VOLTAGE: 2}
-        if code == Command.SERVO_MOVE:
+        fixed = _HOST_FIXED_LENGTH
+        if code == _SERVO_MOVE_CODE:
             _n_servos(length, 3, 5, "SERVO_MOVE")
         elif code in (Command.MULT_SERVO_UNLOAD, Command.MULT_SERVO_POS_READ):
             _n_servos(length, 1, 3, Command(code).name)
@@ -447,8 +453,7 @@ def _check_length(direction: Direction, code: int, length: int) -> None:
         else:
             raise _Invalid(f"unknown command 0x{code:02X}")
     else:
-        fixed = {Reply.ACTION_GROUP_RUNNING: 5, Reply.ACTION_GROUP_STOPPED: 2,
-                 Reply.ACTION_GROUP_COMPLETE: 5, Reply.BATTERY_VOLTAGE: 4}
+        fixed = _BOARD_FIXED_LENGTH
         if code == Reply.SERVO_POSITIONS:
             _n_servos(length, 3, 3, "SERVO_POSITIONS")
         elif code in fixed:
@@ -469,7 +474,7 @@ def _parse(direction: Direction, code: int, params: bytes) -> Message:
     """Typed message for a complete candidate. Raise _Invalid when a value is impossible."""
     try:
         if direction is Direction.HOST:
-            if code == Command.SERVO_MOVE:
+            if code == _SERVO_MOVE_CODE:
                 n = params[0]
                 if 3 * n + 3 != len(params):
                     raise _Invalid(f"servo count {n} does not match length {len(params) + 2}")
@@ -574,6 +579,20 @@ class FrameDecoder:
         return self._offset
 
     def feed(self, data: bytes) -> list[Frame]:
+        if not self._buffer and len(data) >= 4 and data[2] + 2 == len(data) \
+                and data[:2] == HEADER:
+            # nothing held back and ``data`` is one candidate frame (the usual chunk): decode it
+            # directly; the general loop below gives the same result, only slower
+            try:
+                _check_length(self.direction, data[3], data[2])
+                message = _parse(self.direction, data[3], bytes(data[4:]))
+            except _Invalid:
+                pass  # not a frame after all: the general loop resynchronises and reports
+            else:
+                frame = Frame(self._offset, bytes(data), message)
+                self._offset += len(data)
+                self.frames_decoded += 1
+                return [frame]
         self._buffer += data
         frames: list[Frame] = []
         buf = self._buffer

@@ -350,6 +350,12 @@ class VirtualController:
         """What a message asks of this board, worked out once (SERVO_MOVE: arrays)."""
         if isinstance(message, ServoMove):
             base, n = self.channel_base, self.channels
+            servos, pulses = zip(*message.positions, strict=True)
+            if min(servos) - base >= 0 and max(servos) - base < n:  # all this board's
+                index = np.array(servos, dtype=np.intp)
+                index -= base
+                return _Action(message, index, np.array(pulses, dtype=float),
+                               message.time_ms / 1000.0, 0)
             known = [(servo - base, pulse) for servo, pulse in message.positions
                      if 0 <= servo - base < n]
             index = np.array([i for i, _ in known], dtype=np.intp)
