@@ -317,6 +317,11 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
 
     wall_start = time.perf_counter()
     protocol, layout, plan, dataset = prepare(spec)
+    if not spec.device_url.startswith("sim://"):
+        # The gate comes before anything is written: no consent, no trace in the dataset.
+        from crs_study.consent import require_consent
+
+        require_consent(spec.consent_register, spec.participant, protocol.consent_form_version)
     paths = dataset.session_paths(spec.participant, spec.session)
     n_trials = len(plan.trials)
     device_text = _device_file_text(layout, protocol)
@@ -339,11 +344,6 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                 f"session {spec.session} of participant {spec.participant} is complete "
                 f"({n_trials} trials) in {paths.tsv.parent}; nothing to do (a new session "
                 "needs --session N)")
-        if not spec.device_url.startswith("sim://"):
-            from crs_study.consent import require_consent
-
-            require_consent(spec.consent_register, spec.participant,
-                            protocol.consent_form_version)
         if responder is None:
             responder = make_responder(spec.responder, seed=int(plan.seed), layout=layout,
                                        protocol=protocol)
