@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import brentq
@@ -88,6 +89,8 @@ _SERIES_LIMIT = 12.0  # largest rho * t for which 64 Taylor terms stay accurate 
 #: |L - L_c (1 - N/EA)| at which N is accepted: 1 nm, four orders below the servos' step;
 #: the height error it leaves is a few nm
 LENGTH_TOLERANCE_MM = 1e-6
+#: smallest dimensionless load used in the closed forms (their a -> 0 limits are exact there)
+_TINY_LOAD = 1e-200
 _SCAN_POINTS = 400  # grid for the first determinant sign change (critical load)
 _GRID_POINTS = 48  # N grid for bracketing the length root
 _WINDOW = 8  # points of the inverse interpolation
@@ -176,17 +179,16 @@ def _series_fundamental(t: np.ndarray, a: np.ndarray, b: float) -> np.ndarray:
 def _trig_terms(t: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """sin(kt)/k, (1 - cos kt)/k^2 and cos kt for k = sqrt(a) >= 0 (exact limits at a = 0).
 
-    The fast path of :func:`_trig_fundamental` for the rows the solver needs: 2 sin^2(kt/2)/a
-    has no cancellation, so only a = 0 itself needs its limit.
+    The fast path of :func:`_trig_fundamental` for the rows the solver needs. 2 sin^2(kt/2)/a
+    has no cancellation, so a is merely kept above ``_TINY_LOAD`` (where both forms equal
+    their a = 0 limits t and t^2/2 to the last bit).
     """
-    positive = a > 0.0
-    safe_a = np.where(positive, a, 1.0)
-    k = np.sqrt(safe_a)
+    a = np.maximum(a, _TINY_LOAD)
+    k = np.sqrt(a)
     theta = k * t
     half_sin = np.sin(0.5 * theta)
-    sin_over_k = np.where(positive, np.sin(theta) / k, t)
-    one_minus_cos = np.where(positive, 2.0 * half_sin * half_sin / safe_a, 0.5 * t * t)
-    return sin_over_k, one_minus_cos, 1.0 - safe_a * one_minus_cos * positive
+    one_minus_cos = 2.0 * half_sin * half_sin / a
+    return np.sin(theta) / k, one_minus_cos, 1.0 - a * one_minus_cos
 
 
 class _BeamSet:
@@ -222,6 +224,7 @@ class _BeamSet:
         self._pixel_pair = (real[:, :, None] & real[:, None, :]).astype(float)
         self._pixel_padding = np.eye(self.n_pixels)[None] * (~real)[:, :, None]
         self._diag = np.arange(self.n_pixels)
+        self._has_padding = bool(self._padding.any())
         supports = np.arange(p + 1)[None, :] <= self.n_segments[:, None]
         self._support_is_pixel_or_clamp = supports.astype(float)
 
@@ -292,45 +295,46 @@ class _BeamSet:
         clamped-clamped buckling load, above the beam's critical load.
         """
         ell = self.lengths
-        sin_over_k, one_minus_cos, cos = _trig_terms(ell, a[:, None])
-        cubic = ell**3 * _theta_minus_sin_over_cube(np.sqrt(a)[:, None] * ell)
-        pad = self._padding
-        one_minus_cos = np.where(pad, 1.0, one_minus_cos)
-        cubic = np.where(pad, 0.0, cubic)
-        sin_over_k = np.where(pad, 0.0, sin_over_k)
-        det = one_minus_cos**2 - cubic * sin_over_k
-        # c2 = alpha th_i + beta th_j + gamma dY; c3 = alpha' th_i + beta' th_j + gamma' dY
-        alpha = (cubic - one_minus_cos * ell) / det
-        beta = -cubic / det
-        gamma = one_minus_cos / det
-        alpha2 = (sin_over_k * ell - one_minus_cos) / det
-        beta2 = one_minus_cos / det
-        gamma2 = -sin_over_k / det
-        # curvature at the segment's right end: A th_i + B th_j + G dY
-        right_a = alpha * cos + alpha2 * sin_over_k
-        right_b = beta * cos + beta2 * sin_over_k
-        right_g = gamma * cos + gamma2 * sin_over_k
+        a = np.maximum(a, _TINY_LOAD)[:, None]  # a -> 0 is the spline: no special case needed
+        k = np.sqrt(a)
+        theta = k * ell
+        half_sin = np.sin(0.5 * theta)
+        big_c = 2.0 * half_sin * half_sin / a  # (1 - cos kl)/k^2
+        small_s = np.sin(theta) / k  # sin(kl)/k
+        cos = 1.0 - a * big_c
+        big_d = ell**3 * _theta_minus_sin_over_cube(theta)  # (kl - sin kl)/k^3
+        if self._has_padding:
+            big_c = np.where(self._padding, 1.0, big_c)
+        det = big_c * big_c - big_d * small_s
+        # rows: c2 = [alpha, beta, gamma] . (th_i, th_j, dY), c3 likewise (alpha2 ...)
+        terms = np.stack([big_d - big_c * ell, -big_d, big_c,
+                          small_s * ell - big_c, big_c, -small_s]) / det
+        # curvature at the segment's right end: c2 cos + c3 s
+        right = terms[:3] * cos + terms[3:] * small_s
         y = np.zeros((self.n_beams, self.n_seg_max + 1))
         y[:, 1:-1] = heights
-        y *= self._support_is_pixel_or_clamp
-        dy = np.diff(y, axis=1)
+        if self._has_padding:
+            y *= self._support_is_pixel_or_clamp
+        dy = y[:, 1:] - y[:, :-1]
         q = self.n_pixels
         matrix = np.zeros((self.n_beams, q, q))
-        matrix[:, self._diag, self._diag] = right_b[:, :q] - alpha[:, 1:q + 1]
-        matrix[:, self._diag[1:], self._diag[:-1]] = right_a[:, 1:q]
-        matrix[:, self._diag[:-1], self._diag[1:]] = -beta[:, 1:q]
-        matrix = matrix * self._pixel_pair + self._pixel_padding
-        rhs = (gamma[:, 1:q + 1] * dy[:, 1:q + 1]
-               - right_g[:, :q] * dy[:, :q]) * self._pixel_valid
-        theta = np.linalg.solve(matrix, rhs[:, :, None])[..., 0]
+        d = self._diag
+        matrix[:, d, d] = right[1, :, :q] - terms[0, :, 1:]
+        matrix[:, d[1:], d[:-1]] = right[0, :, 1:q]
+        matrix[:, d[:-1], d[1:]] = -terms[1, :, 1:q]
+        rhs = terms[2, :, 1:] * dy[:, 1:] - right[2, :, :q] * dy[:, :q]
+        if self._has_padding:
+            matrix = matrix * self._pixel_pair + self._pixel_padding
+            rhs = rhs * self._pixel_valid
         slopes = np.zeros((self.n_beams, self.n_seg_max + 1))
-        slopes[:, 1:-1] = theta * self._pixel_valid
-        th_i, th_j = slopes[:, :-1], slopes[:, 1:]
+        slopes[:, 1:-1] = np.linalg.solve(matrix, rhs[:, :, None])[..., 0]
+        if self._has_padding:
+            slopes[:, 1:-1] *= self._pixel_valid
         coef = np.empty((self.n_beams, self.n_seg_max, 4))
         coef[..., 0] = y[:, :-1]
-        coef[..., 1] = th_i
-        coef[..., 2] = alpha * th_i + beta * th_j + gamma * dy
-        coef[..., 3] = alpha2 * th_i + beta2 * th_j + gamma2 * dy
+        coef[..., 1] = slopes[:, :-1]
+        coef[..., 2:] = np.moveaxis(terms[0::3] * slopes[:, :-1] + terms[1::3] * slopes[:, 1:]
+                                    + terms[2::3] * dy, 0, -1)
         return coef
 
     def node_derivatives(self, a: np.ndarray, b: float, coef: np.ndarray,
@@ -423,6 +427,8 @@ class CompressedBeams:
         self.a_critical = np.array([e[0] for e in entries])
         u = np.linspace(0.0, 1.0, _GRID_POINTS)[:, None]
         self.a_grid = self.margin * self.a_critical[None, :] * (1.0 - (1.0 - u) ** 2)  # (K, B)
+        self._shortening = 1.0 - self.a_grid * self.axial_compliance
+        self._windows = np.arange(_GRID_POINTS - _WINDOW + 1)[:, None] + np.arange(_WINDOW)
         nq = self.beams.t_nodes.shape[1]
         ops = np.zeros((self.n_beams, _GRID_POINTS, nq, self.beams.n_pixels))
         for bi, (_, op) in enumerate(entries):
@@ -476,13 +482,12 @@ class CompressedBeams:
     def _commanded(self, setpoints: np.ndarray) -> np.ndarray:
         return self.spans + setpoints[self.start_servo] + setpoints[self.end_servo]
 
-    def _excess(self, a: np.ndarray, heights: np.ndarray, target: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """Exact f(a) = L(a) - L_c (1 - N/EA) (mm) and the segment states at a."""
+    def _state(self, a: np.ndarray, heights: np.ndarray) -> _State:
+        """Exact shapes at loads a: segment states, y' and y'' at the nodes, arc lengths."""
         coef = self.beams.coefficients(a, self.b, heights)
-        slope, _ = self.beams.node_derivatives(a, self.b, coef, second=False)
+        slope, second = self.beams.node_derivatives(a, self.b, coef)
         length = np.sum(self._grid_weights * np.sqrt(1.0 + (slope / self.d) ** 2), axis=-1)
-        return length - target * (1.0 - a * self.axial_compliance), coef
+        return _State(coef, slope, second, length)
 
     def solve(self, setpoints_mm: np.ndarray, check_yield_curvature: bool = True,
               model: str = "beam") -> BeamProfiles:
@@ -494,13 +499,12 @@ class CompressedBeams:
         grid_lengths = np.sum((self._grid_weights[:, None, :] * np.sqrt(
             1.0 + slopes.reshape(self.n_beams, _GRID_POINTS, -1) ** 2)), axis=-1).T  # (K, B)
         # the steel shortens by N L / (E A) under the load: shape length = L_c (1 - N / EA)
-        grid_target = target[None, :] * (1.0 - self.a_grid * self.axial_compliance)
-        excess = grid_lengths - grid_target
-        tolerance = np.full(self.n_beams, LENGTH_TOLERANCE_MM)
-        need = excess[0] < -tolerance
-        if not np.any(need):
-            return self._profiles(np.zeros(self.n_beams), None, heights, target,
-                                  check_yield_curvature, model)
+        excess = grid_lengths - target * self._shortening
+        need = excess[0] < -LENGTH_TOLERANCE_MM
+        if not need.any():
+            a = np.zeros(self.n_beams)
+            return self._profiles(a, self._state(a, heights), target, check_yield_curvature,
+                                  model)
         if self.delta < 1.0:
             bi = int(np.flatnonzero(need)[0])
             raise CollapseError(
@@ -508,26 +512,24 @@ class CompressedBeams:
                 f"{self.beta:.3g} N/mm^2): the compressed beam collapses into the skin; use "
                 f"a stiffer beam, a softer skin or a smaller pitch")
         reached = excess >= 0.0
-        unreachable = need & ~reached.any(axis=0)
-        if np.any(unreachable):
+        unreachable = need & ~reached[-1]
+        if unreachable.any():
             bi = int(np.flatnonzero(unreachable)[0])
             raise CollapseError(
                 f"{model}: beam {bi}: commanded length {target[bi]:.4f} mm needs N >= "
                 f"{self.margin:g} N_cr = {self.margin * self.critical_load_n[bi]:.4g} N "
                 f"(longest stable shape {grid_lengths[-1, bi]:.4f} mm): the beam collapses; "
                 f"reduce the boundary feed or the stimulus height")
-        a, coef = self._root(need, np.argmax(reached, axis=0), excess, target, heights,
-                             tolerance)
-        return self._profiles(a, coef, heights, target, check_yield_curvature, model)
+        a, state = self._root(need, np.argmax(reached, axis=0), excess, target, heights)
+        return self._profiles(a, state, target, check_yield_curvature, model)
 
-    def _root(self, need, first, excess, target, heights, tolerance):
-        """N per beam: inverse cubic interpolation through four points, safeguarded.
+    def _root(self, need, first, excess, target, heights) -> tuple[np.ndarray, _State]:
+        """N per beam by safeguarded inverse interpolation (module docstring, Root finding).
 
-        Starts from the four grid loads around the bracket [a_{k-1}, a_k] (their lengths are
-        exact: the grid operators are exact solves); each step evaluates f exactly at the
-        interpolated root and replaces the point of largest |f|; a step outside the current
-        bracket falls back to regula falsi. Converges superlinearly: two to three exact solves
-        a frame reach |f| <= LENGTH_TOLERANCE_MM (mostly one).
+        Starts from the ``_WINDOW`` grid loads around the bracket [a_{k-1}, a_k] (their
+        lengths are exact: the grid operators are exact solves); each step evaluates f exactly
+        at the interpolated root and replaces the point of largest |f|; a step outside the
+        current bracket falls back to regula falsi. Beams that need no load keep a = 0.
         """
         cols = np.arange(self.n_beams)
         hi_index = np.maximum(first, 1)
@@ -535,28 +537,31 @@ class CompressedBeams:
         hi = self.a_grid[hi_index, cols]
         f_lo = excess[hi_index - 1, cols]
         f_hi = excess[hi_index, cols]
-        window = (np.clip(hi_index - _WINDOW // 2, 0, _GRID_POINTS - _WINDOW)[None, :]
-                  + np.arange(_WINDOW)[:, None])
-        pa = self.a_grid[window, cols]  # (4, B)
+        window = self._windows[np.clip(hi_index - _WINDOW // 2, 0, _GRID_POINTS - _WINDOW)].T
+        pa = self.a_grid[window, cols]  # (W, B)
         pf = excess[window, cols]
         a = np.zeros(self.n_beams)
-        coef = None
-        active = need.copy()
+        state = None
+        active = need
         for _ in range(60):
             with np.errstate(divide="ignore", invalid="ignore"):
-                # Lagrange form of the inverse cubic a(f) at f = 0
+                # Lagrange form of the inverse interpolant a(f) at f = 0
                 ratio = pf[None, :, :] / (pf[None, :, :] - pf[:, None, :])  # [i, j]
                 ratio[_DIAGONAL] = 1.0
                 guess = np.sum(pa * np.prod(ratio, axis=1), axis=0)
-                falsi = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
-            inside = np.isfinite(guess) & (guess > lo) & (guess < hi)
-            trial = np.where(inside, guess, falsi)
-            trial = np.where(active, trial, a)
-            f, trial_coef = self._excess(trial, heights, target)
-            coef = trial_coef if coef is None else np.where(active[:, None, None], trial_coef,
-                                                            coef)
+            inside = (guess > lo) & (guess < hi)  # False for nan
+            if not inside[active].all():
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    falsi = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
+                guess = np.where(inside, guess, falsi)
+            trial = np.where(active, guess, a)
+            trial_state = self._state(trial, heights)
+            f = trial_state.length - target * (1.0 - trial * self.axial_compliance)
+            state = trial_state if state is None else state.where(active, trial_state)
             a = trial
-            done = np.abs(f) <= tolerance
+            done = np.abs(f) <= LENGTH_TOLERANCE_MM
+            if done[active].all():
+                break
             upper = active & (f > 0)
             lower = active & (f <= 0)
             hi, f_hi = np.where(upper, trial, hi), np.where(upper, f, f_hi)
@@ -565,18 +570,16 @@ class CompressedBeams:
             replace = active & ~done
             pa[worst[replace], cols[replace]] = trial[replace]
             pf[worst[replace], cols[replace]] = f[replace]
-            active &= ~done & (hi - lo > 1e-14 * self.a_critical)
-            if not np.any(active):
+            active = active & ~done & (hi - lo > 1e-14 * self.a_critical)
+            if not active.any():
                 break
-        return a, coef
+        return a, state
 
-    def _profiles(self, a, coef, heights, target, check_yield_curvature, model) -> BeamProfiles:
-        if coef is None:
-            coef = self.beams.coefficients(a, self.b, heights)
-        slope, second = self.beams.node_derivatives(a, self.b, coef)
-        lengths = np.sum(self._grid_weights * np.sqrt(1.0 + (slope / self.d) ** 2), axis=-1)
+    def _profiles(self, a, state: _State, target, check_yield_curvature, model
+                  ) -> BeamProfiles:
+        coef, slope = state.coef, state.slope
         if check_yield_curvature:
-            curvature = np.abs(second) / self.d**2 / (1.0 + (slope / self.d) ** 2) ** 1.5
+            curvature = np.abs(state.second) / self.d**2 / (1.0 + (slope / self.d) ** 2) ** 1.5
             at_supports = np.abs(coef[:, :, 2]) / self.d**2  # y'' at segment starts (y' = 0
             # at clamps; at pixels the slope factor only lowers it, so this bounds from above)
             worst = np.maximum(curvature.max(axis=1), at_supports.max(axis=1))
@@ -585,7 +588,7 @@ class CompressedBeams:
         return BeamProfiles(
             spans_mm=self.spans, evaluate=_ShapeEvaluator(self, a, coef),
             axial_load_n=a * self.ei / self.d**2, critical_load_n=self.critical_load_n,
-            commanded_length_mm=target, length_mm=lengths,
+            commanded_length_mm=target, length_mm=state.length,
         )
 
     def solve_with_load(self, setpoints_mm: np.ndarray, axial_load_n: np.ndarray | float
@@ -594,8 +597,26 @@ class CompressedBeams:
         setpoints = check_setpoints(self.layout, setpoints_mm, "beam")
         a = np.broadcast_to(np.asarray(axial_load_n, dtype=float) * self.d**2 / self.ei,
                             (self.n_beams,)).copy()
-        return self._profiles(a, None, self.heights(setpoints), self._commanded(setpoints),
-                              False, "beam")
+        return self._profiles(a, self._state(a, self.heights(setpoints)),
+                              self._commanded(setpoints), False, "beam")
+
+
+@dataclass(frozen=True)
+class _State:
+    """Exact shapes of all beams at some loads (see :meth:`CompressedBeams._state`)."""
+
+    coef: np.ndarray  # (B, P, 4) segment start states
+    slope: np.ndarray  # (B, P*Q) y' at the nodes, pitch units
+    second: np.ndarray  # (B, P*Q) y''
+    length: np.ndarray  # (B,) arc length, mm
+
+    def where(self, mask: np.ndarray, other: _State) -> _State:
+        """``other`` for the beams in ``mask``, self elsewhere."""
+        column = mask[:, None]
+        return _State(np.where(mask[:, None, None], other.coef, self.coef),
+                      np.where(column, other.slope, self.slope),
+                      np.where(column, other.second, self.second),
+                      np.where(mask, other.length, self.length))
 
 
 class _ShapeEvaluator:

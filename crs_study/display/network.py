@@ -43,11 +43,12 @@ from __future__ import annotations
 
 import math
 from abc import abstractmethod
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.linalg import splu
 from scipy.spatial import ConvexHull
 
@@ -57,6 +58,8 @@ from crs_study.layout import Beam, Layout
 
 #: fine-lattice subdivisions of one pitch for the fabric (h = d / 8 = 3.75 mm at d = 30 mm)
 DEFAULT_FABRIC_SUBDIVISIONS = 8
+#: point sets whose surface plan a fabric keeps (LRU)
+_PLANS_KEPT = 16
 
 _SQRT3_2 = math.sqrt(3.0) / 2.0
 
@@ -270,6 +273,7 @@ class Fabric:
         self.beam_starts = np.array([b.start for b in layout.beams], dtype=float)
         self.beam_units = np.array([b.direction for b in layout.beams])
         self.beam_spans = np.array([b.straight_length for b in layout.beams])
+        self._plans: OrderedDict[bytes, _SurfacePlan] = OrderedDict()
 
     def _to_axial(self, xy: np.ndarray) -> np.ndarray:
         r = xy[:, 1] / (self.h * _SQRT3_2)
@@ -282,7 +286,9 @@ class Fabric:
 
     def node_heights(self, profiles: BeamProfiles) -> np.ndarray:
         """Heights of every fabric node (border 0, beams sampled, free nodes by the membrane)."""
-        samples = profiles.heights(self.sample_beam, self.sample_s)
+        return self._node_heights(profiles.heights(self.sample_beam, self.sample_s))
+
+    def _node_heights(self, samples: np.ndarray) -> np.ndarray:
         z = np.zeros(self.n_nodes)
         z[self.sample_node] = samples
         if self._lu is not None:
@@ -290,9 +296,36 @@ class Fabric:
         return z
 
     def surface(self, profiles: BeamProfiles, xy_mm: np.ndarray) -> np.ndarray:
-        """Fabric heights at points (n, 2): linear FE interpolation plus the beam correction."""
-        z_nodes = self.node_heights(profiles)
-        axial = self._to_axial(xy_mm) - self.origin
+        """Fabric heights at points (n, 2): linear FE interpolation plus the beam correction.
+
+        Everything that depends on the points alone (the barycentric weights as a sparse
+        matrix, which beams correct which points, where) is planned once per point set and
+        kept (the observer and the quality criteria ask for the same points frame after
+        frame); a frame then costs one evaluation of the beams at the samples and correction
+        abscissae, one sparse solve and two sparse products.
+        """
+        xy = np.asarray(xy_mm, dtype=float)
+        plan = self._plan(xy)
+        values = profiles.heights(plan.beam, plan.s)
+        n_samples = len(self.sample_node)
+        z_nodes = self._node_heights(values[:n_samples])
+        return plan.interpolate @ z_nodes + plan.correct @ values[n_samples:]
+
+    def _plan(self, xy: np.ndarray) -> _SurfacePlan:
+        key = xy.tobytes()
+        plan = self._plans.get(key)
+        if plan is None:
+            plan = self._make_plan(xy)
+            self._plans[key] = plan
+            if len(self._plans) > _PLANS_KEPT:
+                self._plans.popitem(last=False)
+        else:
+            self._plans.move_to_end(key)
+        return plan
+
+    def _make_plan(self, xy: np.ndarray) -> _SurfacePlan:
+        n = len(xy)
+        axial = self._to_axial(xy) - self.origin
         base = np.floor(axial).astype(int)
         frac = axial - base
         upper = frac.sum(axis=1) > 1.0
@@ -300,25 +333,42 @@ class Fabric:
         w0 = np.where(upper, frac.sum(axis=1) - 1.0, 1.0 - frac.sum(axis=1))
         wq = np.where(upper, 1.0 - frac[:, 1], frac[:, 0])
         wr = np.where(upper, 1.0 - frac[:, 0], frac[:, 1])
-        z = (w0 * self._lookup(z_nodes, corner[:, 0], corner[:, 1])
-             + wq * self._lookup(z_nodes, base[:, 0] + 1, base[:, 1])
-             + wr * self._lookup(z_nodes, base[:, 0], base[:, 1] + 1))
-        return z + self._beam_correction(profiles, np.asarray(xy_mm, dtype=float))
+        rows, cols, vals = [], [], []
+        for weight, (q, r) in ((w0, corner.T), (wq, (base[:, 0] + 1, base[:, 1])),
+                               (wr, (base[:, 0], base[:, 1] + 1))):
+            node = self._node_index(q, r)
+            keep = node >= 0  # off the fabric: height 0
+            rows.append(np.flatnonzero(keep))
+            cols.append(node[keep])
+            vals.append(weight[keep])
+        interpolate = csr_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                  np.concatenate(cols))), shape=(n, self.n_nodes))
+        beam, point, s_near, left, right, frac_s, weight = self._correction_terms(xy)
+        m = len(s_near)
+        # correction = weight * (exact - (1 - frac) left - frac right), as one sparse map
+        correct = csr_matrix((np.concatenate([weight, -weight * (1 - frac_s), -weight * frac_s]),
+                              (np.tile(point, 3), np.arange(3 * m))), shape=(n, 3 * m))
+        return _SurfacePlan(
+            beam=np.concatenate([self.sample_beam, np.tile(beam, 3)]),
+            s=np.concatenate([self.sample_s, s_near, left, right]),
+            interpolate=interpolate, correct=correct)
 
-    def _lookup(self, z_nodes: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    def _node_index(self, q: np.ndarray, r: np.ndarray) -> np.ndarray:
         ok = (q >= 0) & (q < self.shape[0]) & (r >= 0) & (r < self.shape[1])
         node = np.full(q.shape, -1)
         node[ok] = self.index[q[ok], r[ok]]
-        return np.where(node >= 0, z_nodes[np.maximum(node, 0)], 0.0)
+        return node
 
-    def _beam_correction(self, profiles: BeamProfiles, xy: np.ndarray) -> np.ndarray:
+    def _correction_terms(self, xy: np.ndarray) -> tuple[np.ndarray, ...]:
         """Beam shape minus its linear sampling, faded out over one fine spacing off the beam.
 
         Beam b's correction carries the weight c_b prod_{b' != b} (1 - c_b'), with closeness
         c_b = 1 - distance / (h sqrt(3)/2) (0 beyond the next lattice line): zero at every node,
         on other beams' lines and one lattice line away, so the surface stays continuous; on a
         beam line the surface equals the beam profile (except within h of a crossing, where
-        the crossing beams share the linear sampling).
+        the crossing beams share the linear sampling). Returns, per (beam, point) term: beam,
+        point, s, the fine nodes left and right of s along the beam, the fraction between
+        them, and the weight.
         """
         rel = xy[None, :, :] - self.beam_starts[:, None, :]
         s = np.einsum("bnk,bk->bn", rel, self.beam_units)
@@ -327,23 +377,26 @@ class Fabric:
         band = self.h * _SQRT3_2
         close = np.where((s > 0.0) & (s < self.beam_spans[:, None]),
                          np.clip(1.0 - off / band, 0.0, 1.0), 0.0)
-        out = np.zeros(len(xy))
         points = np.flatnonzero(close.max(axis=0) > 0.0)
-        if points.size == 0:
-            return out
         close = close[:, points]
         others = 1.0 - close
         n_beams = len(close)
         weight = close * np.stack([np.prod(np.delete(others, b, axis=0), axis=0)
-                                   for b in range(n_beams)])
+                                   for b in range(n_beams)]) if points.size else close
         beam_idx, k = np.nonzero(weight > 0.0)
         point = points[k]
         s_near = s[beam_idx, point]
         left = np.floor(s_near / self.h) * self.h
         right = np.minimum(left + self.h, self.beam_spans[beam_idx])
         frac = (s_near - left) / self.h
-        n = len(s_near)
-        values = profiles.heights(np.tile(beam_idx, 3), np.concatenate([s_near, left, right]))
-        exact, linear = values[:n], (1 - frac) * values[n:2 * n] + frac * values[2 * n:]
-        np.add.at(out, point, weight[beam_idx, k] * (exact - linear))
-        return out
+        return beam_idx, point, s_near, left, right, frac, weight[beam_idx, k]
+
+
+@dataclass(frozen=True)
+class _SurfacePlan:
+    """What a point set needs from each frame (see :meth:`Fabric.surface`)."""
+
+    beam: np.ndarray  # beams to evaluate: the fabric samples, then 3 per correction term
+    s: np.ndarray
+    interpolate: csr_matrix  # (n_points, n_nodes) barycentric weights
+    correct: csr_matrix  # (n_points, 3 * terms) weight * (exact - linear)

@@ -25,11 +25,10 @@ from crs_study.display.network import (
     beam_support_positions,
     check_setpoints,
     check_yield,
-    commanded_lengths,
 )
 from crs_study.layout import Layout
 
-_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(12)
+_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(12)  # sqrt(1 + y'^2), y' quadratic
 
 
 def spline_arc_length(spline: CubicSpline) -> float:
@@ -42,7 +41,13 @@ def spline_arc_length(spline: CubicSpline) -> float:
 
 @register
 class SplineModel(NetworkModel):
-    """Clamped cubic spline per beam through the pixel heights; fabric between beams in 2D."""
+    """Clamped cubic spline per beam through the pixel heights; fabric between beams in 2D.
+
+    The knot slopes of a clamped spline are linear in the knot heights, so the map from pixel
+    heights to knot slopes is taken from scipy's ``CubicSpline`` once per beam (on unit
+    heights); a frame is then one small product and a vectorised cubic Hermite evaluation
+    (no spline objects per frame).
+    """
 
     name = "spline"
     description = "beam without axial load: clamped cubic spline through the pixels"
@@ -52,35 +57,76 @@ class SplineModel(NetworkModel):
         self.supports = [beam_support_positions(layout, b) for b in layout.beams]
         self.pixels = [list(b.pixels) for b in layout.beams]
         self.check_yield_curvature = check_yield_curvature
+        n_beams = len(self.supports)
+        p = max(len(s) for s in self.supports) - 1  # segments
+        self.n_segments = np.array([len(s) - 1 for s in self.supports])
+        self.knots = np.zeros((n_beams, p + 1))
+        self.pixel_map = np.zeros((n_beams, p + 1), dtype=int)
+        self.pixel_mask = np.zeros((n_beams, p + 1))
+        self.slope_map = np.zeros((n_beams, p + 1, p + 1))  # knot heights -> knot slopes
+        for b, (s, pixels) in enumerate(zip(self.supports, self.pixels, strict=True)):
+            n = len(s)
+            self.knots[b, :n] = s
+            self.knots[b, n:] = s[-1]
+            self.pixel_map[b, 1:n - 1] = pixels
+            self.pixel_mask[b, 1:n - 1] = 1.0
+            unit = CubicSpline(s, np.eye(n), bc_type="clamped", axis=0)
+            self.slope_map[b, :n, :n] = unit(s, 1)
+        self.seg_start = self.knots[:, :-1]
+        self.seg_length = np.diff(self.knots, axis=1)
+        half = 0.5 * self.seg_length
+        self.gl_t = (half[:, :, None] * (_GL_NODES + 1.0)).reshape(n_beams, -1)
+        self.gl_w = (half[:, :, None] * _GL_WEIGHTS).reshape(n_beams, -1)
+        self.gl_seg = np.repeat(np.arange(p), len(_GL_NODES))
+        self.start_servo = np.array([b.start_servo for b in layout.beams], dtype=int)
+        self.end_servo = np.array([b.end_servo for b in layout.beams], dtype=int)
 
     def splines(self, setpoints_mm: np.ndarray) -> list[CubicSpline]:
+        """scipy CubicSpline objects of the beams (for inspection; the model does not use them)."""
         setpoints = check_setpoints(self.layout, setpoints_mm, self.name)
-        out = []
-        for b, (s, pixels) in enumerate(zip(self.supports, self.pixels, strict=True)):
-            heights = np.concatenate([[0.0], setpoints[pixels], [0.0]])
-            spline = CubicSpline(s, heights, bc_type="clamped")
-            if self.check_yield_curvature:
-                y2 = spline(s, 2)
-                y1 = spline(s, 1)
-                check_yield(self.name, b, float(np.max(np.abs(y2) / (1 + y1**2) ** 1.5)),
-                            self.layout)
-            out.append(spline)
-        return out
+        return [CubicSpline(s, np.concatenate([[0.0], setpoints[pixels], [0.0]]),
+                            bc_type="clamped")
+                for s, pixels in zip(self.supports, self.pixels, strict=True)]
 
     def beam_profiles(self, setpoints_mm: np.ndarray) -> BeamProfiles:
-        splines = self.splines(setpoints_mm)
+        setpoints = check_setpoints(self.layout, setpoints_mm, self.name)
+        y = setpoints[self.pixel_map] * self.pixel_mask  # knot heights (B, P + 1)
+        m = np.matmul(self.slope_map, y[:, :, None])[..., 0]  # knot slopes
+        ell = np.where(self.seg_length > 0.0, self.seg_length, 1.0)
+        rise = np.diff(y, axis=1) / ell  # (B, P)
+        # y'' at the left and right end of each segment (cubic Hermite)
+        left = (6.0 * rise - 4.0 * m[:, :-1] - 2.0 * m[:, 1:]) / ell
+        right = (-6.0 * rise + 2.0 * m[:, :-1] + 4.0 * m[:, 1:]) / ell
+        real = self.seg_length > 0.0
+        if self.check_yield_curvature:  # y'' is linear on a segment: largest at a knot
+            kappa = np.maximum(np.abs(left) / (1 + m[:, :-1] ** 2) ** 1.5,
+                               np.abs(right) / (1 + m[:, 1:] ** 2) ** 1.5) * real
+            worst = kappa.max(axis=1)
+            b = int(np.argmax(worst))
+            check_yield(self.name, b, float(worst[b]), self.layout)
+        # slope on a segment: m0 + left t + (right - left) t^2 / (2 l)
+        t = self.gl_t
+        seg = self.gl_seg
+        slope = (m[:, seg] + left[:, seg] * t
+                 + (right - left)[:, seg] * t * t / (2.0 * ell[:, seg]))
+        lengths = np.sum(self.gl_w * np.sqrt(1.0 + slope**2), axis=-1)
+        knots, n_segments = self.knots, self.n_segments
 
         def evaluate(beam: np.ndarray, s: np.ndarray) -> np.ndarray:
-            out = np.empty(s.shape)
-            for b in np.unique(beam):
-                mask = beam == b
-                out[mask] = splines[b](s[mask])
-            return out
+            k = np.sum(s[:, None] >= knots[beam, :-1], axis=1) - 1
+            k = np.clip(k, 0, n_segments[beam] - 1)
+            h = ell[beam, k]
+            x = (s - knots[beam, k]) / h
+            x2 = x * x
+            x3 = x2 * x
+            return ((2 * x3 - 3 * x2 + 1) * y[beam, k] + (x3 - 2 * x2 + x) * h * m[beam, k]
+                    + (3 * x2 - 2 * x3) * y[beam, k + 1] + (x3 - x2) * h * m[beam, k + 1])
 
         return BeamProfiles(
             spans_mm=self.spans, evaluate=evaluate,
-            axial_load_n=np.zeros(len(splines)),
-            critical_load_n=np.full(len(splines), np.inf),
-            commanded_length_mm=commanded_lengths(self.layout, np.asarray(setpoints_mm, float)),
-            length_mm=np.array([spline_arc_length(sp) for sp in splines]),
+            axial_load_n=np.zeros(len(self.supports)),
+            critical_load_n=np.full(len(self.supports), np.inf),
+            commanded_length_mm=self.spans + setpoints[self.start_servo]
+            + setpoints[self.end_servo],
+            length_mm=lengths,
         )
