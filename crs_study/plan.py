@@ -19,8 +19,9 @@ Design
     every condition mixed.
 
     Practice: ``practice_trials`` per condition at the start of the condition's first block
-    (or of every block), digits cycling through a shuffled list of the protocol's digits,
-    with feedback when the protocol says so. Test trials: every digit ``repetitions`` times
+    (or of every block), digits cycling through a shuffled list of the protocol's digits
+    (one cycle per block, dealt to its conditions in turn), with feedback when the protocol
+    says so. Test trials: every digit ``repetitions`` times
     per condition. Within a block the order is random under the run constraint: no digit more
     than ``max_same_digit_run`` times in a row, practice and test trials together.
 
@@ -206,6 +207,7 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
     for block, conditions in enumerate(conditions_of):
         practice_groups: dict[tuple[str, int], list[int]] = {}
         test_groups: dict[tuple[str, int], list[int]] = {}
+        practising: list[str] = []
         for condition in conditions:
             nth = appearances.get(condition, 0)
             appearances[condition] = nth + 1
@@ -214,12 +216,15 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
             for digit in digits:
                 test_groups[(condition, digit)] = list(reps)
             if design.practice_trials and (nth == 0 or design.practice_in == "every-block"):
-                cycle: list[int] = []
-                while len(cycle) < design.practice_trials:
-                    cycle += draw.shuffled(digits)
-                for digit in cycle[: design.practice_trials]:
-                    shown = practice_groups.setdefault((condition, digit), [])
-                    shown.append(len(shown))  # repetition: the digit's nth practice trial
+                practising.append(condition)
+        # One cycle of shuffled digits for the block's practice, dealt to its conditions in
+        # turn: digit counts differ by at most one, so the run constraint can always be met.
+        cycle: list[int] = []
+        while len(cycle) < design.practice_trials * len(practising):
+            cycle += draw.shuffled(digits)
+        for i, digit in enumerate(cycle[: design.practice_trials * len(practising)]):
+            shown = practice_groups.setdefault((practising[i % len(practising)], digit), [])
+            shown.append(len(shown))  # repetition: the digit's nth practice trial
         practice = constrained_order(practice_groups, design.max_same_digit_run, draw)
         test = constrained_order(test_groups, design.max_same_digit_run, draw,
                                  history=[d for _, d, _ in practice])
