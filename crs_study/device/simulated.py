@@ -208,9 +208,9 @@ class _FrameBuilder:
 
     Calibration and limits: :class:`~.calibration.PulseMap`; which channels go out:
     :class:`~.schedule.ChannelSplit` (changed by more than the dead-band since last sent);
-    the bytes: the codec. Encoded frames are remembered by content, because a dry-run replays
-    each digit's stimulus many times and encoding (with the codec's value checks) would
-    otherwise dominate :meth:`SimulatedDevice.send`.
+    the bytes: the codec (:func:`~.codec.servo_move_arrays`, the values checked over whole
+    vectors). Encoded frames are remembered by content: a dry-run replays each digit's
+    stimulus many times, and looking a frame up costs less than checking and packing it again.
     """
 
     def __init__(self, layout: Layout, deadband_us: int) -> None:
@@ -231,13 +231,10 @@ class _FrameBuilder:
         """Whole-us pulse widths per actuator; DeviceError for a value outside its range."""
         return self.pulse_map.to_pulses(setpoints_mm)
 
-    def changed(self, controller: int, pulses: np.ndarray, last: np.ndarray | None
-                ) -> np.ndarray:
-        return self.split.changed(controller, pulses, last, self.deadband_us)
-
     def changed_local(self, controller: int, mine: np.ndarray, last: np.ndarray | None
                       ) -> np.ndarray:
-        """:meth:`changed` for ``mine`` = this controller's pulses, already gathered."""
+        """Local indices of the channels to send, as :meth:`ChannelSplit.changed` gives them,
+        for ``mine`` = this controller's pulses, already gathered (None: send all)."""
         if last is None:
             return self.every[controller]
         diff = mine - last
@@ -245,23 +242,17 @@ class _FrameBuilder:
         return (diff > self.deadband_us).nonzero()[0]
 
     def n_changed(self, controller: int, pulses: np.ndarray, last: np.ndarray | None) -> int:
-        """How many channels :meth:`changed` would send."""
+        """How many channels :meth:`changed_local` would send for the full ``pulses``."""
         if last is None:
             return len(self.members[controller])
         diff = pulses[self.members[controller]] - last
         np.abs(diff, out=diff)
         return int(np.count_nonzero(diff > self.deadband_us))
 
-    def frame(self, controller: int, pulses: np.ndarray, local: np.ndarray, move_ms: int
-              ) -> bytes:
-        """SERVO_MOVE bytes for channels ``local`` of ``controller`` (b"" when none)."""
-        if not len(local):
-            return b""
-        return self.frame_local(controller, pulses[self.members[controller]], local, move_ms)
-
     def frame_local(self, controller: int, mine: np.ndarray, local: np.ndarray, move_ms: int
                     ) -> bytes:
-        """:meth:`frame` for ``mine`` = this controller's pulses, already gathered."""
+        """SERVO_MOVE bytes for channels ``local`` of ``controller`` (b"" when none), as
+        :meth:`ChannelSplit.frame` builds them; ``mine`` = this controller's pulses."""
         if not len(local):
             return b""
         values = mine if local is self.every[controller] else mine[local]

@@ -193,7 +193,7 @@ class _Action:
 
 
 #: Decoded chunks by (channel_base, channels, bytes): a dry-run replays each stimulus many
-#: times, and decoding (with the codec's value checks) is most of a simulated frame's cost.
+#: times, and a look-up costs a fraction of decoding, checking and planning the frame again.
 _DECODED: dict[tuple[int, int, bytes], list[_Action]] = {}
 DECODE_CACHE_SIZE = 1 << 15
 
