@@ -81,7 +81,7 @@ def test_linear_model_as_a_matrix_equals_the_model(protocol, rng):
     from crs_study.display.base import get_model
 
     layout = protocol.layout()
-    observer = PerceptualObserver(layout, protocol, 1, skin_blur_mm=0.0)
+    observer = PerceptualObserver(layout, protocol, 1, skin_blur_mm=0.0, reuse_tolerance_mm=0.0)
     setpoints = np.zeros(layout.n_actuators)
     setpoints[: layout.n_pixels] = rng.uniform(0, 5, layout.n_pixels)
     direct = get_model("linear", layout).surface(setpoints, observer._points)
@@ -116,6 +116,37 @@ def test_same_seed_and_trial_give_the_same_answer(protocol, records):
     answers_b = [b.respond(trial(i), record, VirtualClock(), None) for i in reversed(range(20))]
     assert answers_a == answers_b[::-1]
     assert len({r.digit for r in answers_a}) > 1  # not a constant answer
+
+
+def test_answers_do_not_depend_on_what_the_process_sensed_before(protocol, records):
+    """A resumed session (a fresh process) must answer as an uninterrupted one: the surface
+    cache may not hand one frame the surface of a nearby earlier frame."""
+    from crs_study.responders import observer as module
+
+    layout = protocol.layout()
+    record = records["crs", 3]
+    nudged = StimulusRecord(record.layout, record.condition, record.frame_times,
+                            record.setpoints + 0.013, record.digit_choices)
+    module._CACHES.clear()
+    fresh = [PerceptualObserver(layout, protocol, 5).sensed_surface("crs", s)
+             for s in record.setpoints]
+    module._CACHES.clear()
+    warm = PerceptualObserver(layout, protocol, 5)
+    for s in nudged.setpoints:  # frames within the reuse tolerance, sensed first
+        warm.sensed_surface("crs", s)
+    after = [warm.sensed_surface("crs", s) for s in record.setpoints]
+    for a, b in zip(fresh, after, strict=True):
+        assert (a is None and b is None) or np.array_equal(a, b)
+
+
+def test_simulated_participants_differ_in_ability(protocol):
+    layout = protocol.layout()
+    temperatures = {PerceptualObserver(layout, protocol, seed).temperature_mm
+                    for seed in range(20)}
+    assert len(temperatures) == 20
+    ratio = max(temperatures) / min(temperatures)
+    assert 1.3 < ratio < 10  # ability_sd 0.25: a spread, not a different species
+    assert PerceptualObserver(layout, protocol, 3, ability_sd=0).temperature_mm == 1.6
 
 
 def test_response_time_advances_the_clock_from_onset(protocol, records):
@@ -160,7 +191,8 @@ def test_calibration_pixel_only_clearly_below_crs_near_the_paper(protocol, recor
     # crs-paper.md: 50.3 % pixel-only, 67.8 % CRS. 40 presentations of each digit per
     # condition (400 a condition; binomial SE ~2.5 points) on the rendered frames.
     layout = protocol.layout()
-    observer = PerceptualObserver(layout, protocol, 20261122)
+    # The median participant (ability_sd = 0): one observer's accuracy is that of its draw.
+    observer = PerceptualObserver(layout, protocol, 20261122, ability_sd=0.0)
     correct = {c: [] for c in protocol.conditions}
     decision = {True: [], False: []}
     index = 0

@@ -36,15 +36,9 @@ def command(protocol, dataset, session, responder):
 
 
 def responders() -> list[str]:
-    """The responder of each half of the kills.
-
-    The perceptual observer belongs here too (its answers depend on the displayed surface, so
-    on the device's exact history), but it is left out until its process-wide surface cache
-    stops depending on what the process sensed before (``reuse_tolerance_mm`` reuses the
-    nearest earlier frame): a process that resumes at trial k has sensed other frames than
-    one that ran trials 0..k-1, and answers differ. Then: ``["observer", "random"]``.
-    """
-    return ["random", "random"]
+    """The responder of each half of the kills: the perceptual observer (its answers depend on
+    the displayed surface, so on the device's exact history) and the random responder."""
+    return ["observer", "random"]
 
 
 def wait_for_trials(process, timeout=60.0) -> bool:

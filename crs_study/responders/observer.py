@@ -23,7 +23,8 @@ display could sense, never from the true digit:
    centre path of that digit under the protocol, drawn frames only) are resampled to
    ``path_points`` points at equal fractions of their duration and centred on their means;
    the distance d_k is the root-mean-square gap (mm). The choice is drawn from
-   p_k = (1 - lapse) softmax(-d_k / temperature_mm) + lapse / n (Luce choice with lapses).
+   p_k = (1 - lapse) softmax(-d_k / T) + lapse / n (Luce choice with lapses), with the
+   participant's own T = temperature_mm exp(ability_sd z), z ~ N(0, 1) drawn from the seed.
 5. **Response time** from onset: the stimulus duration plus a lognormal decision time,
    ln t = ln(rt_median_s) + rt_uncertainty * H + rt_sigma * z, with H the entropy of p over
    ln n (0 certain, 1 guessing): uncertain decisions are slower, errors slower on average.
@@ -46,6 +47,7 @@ times: median rt_median_s e^(rt_uncertainty H), about 2 s at the typical H of 0.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -76,6 +78,7 @@ class ObserverOptions:
     reuse_tolerance_mm: float = 0.02
     path_points: int = 16
     temperature_mm: float = 1.6
+    ability_sd: float = 0.25
     lapse: float = 0.05
     rt_median_s: float = 0.5
     rt_uncertainty: float = 2.0
@@ -88,7 +91,7 @@ class ObserverOptions:
                 raise ConfigError(f"observer option {name}: expected a number > 0, "
                                   f"got {getattr(self, name)!r}")
         for name in ("skin_blur_mm", "noise_mm", "detect_mm", "rt_uncertainty", "rt_sigma",
-                     "reuse_tolerance_mm"):
+                     "reuse_tolerance_mm", "ability_sd"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"observer option {name}: expected a number >= 0, "
                                   f"got {getattr(self, name)!r}")
@@ -105,33 +108,35 @@ class ObserverOptions:
 
 class _SurfaceCache:
     """Noise-free sensed surfaces of one (model, device, grid, blur), shared by every observer
-    in the process. A displayed frame within ``tolerance`` mm (max over actuators) of a frame
-    already sensed reuses that frame's surface: the simulated servos land a pulse step (about
-    0.009 mm) apart from one presentation of a digit to the next, far below what the skin
-    resolves, and a beam solve costs milliseconds."""
+    in the process, keyed by the displayed setpoints rounded to ``tolerance`` mm.
 
-    def __init__(self, n_actuators: int, capacity: int = 4096) -> None:
-        self.setpoints = np.empty((capacity, n_actuators))
-        self.surfaces: list[np.ndarray | None] = []
+    The surface is computed from the *rounded* setpoints, so what a frame feels depends on that
+    frame alone, never on which frames were sensed before: a resumed session, or participants
+    spread over processes in any order, answer exactly as one uninterrupted run. Rounding to
+    0.02 mm (about two pulse steps of the simulated servos) is far below what the skin
+    resolves, and a beam solve costs milliseconds. Least recently used entries are dropped."""
+
+    def __init__(self, tolerance: float, capacity: int = 4096) -> None:
+        self.tolerance = tolerance
         self.capacity = capacity
-        self.next = 0
+        self.surfaces: OrderedDict[bytes, np.ndarray | None] = OrderedDict()
 
-    def find(self, setpoints: np.ndarray, tolerance: float) -> tuple[bool, np.ndarray | None]:
-        n = len(self.surfaces)
-        if n == 0:
+    def rounded(self, setpoints: np.ndarray) -> tuple[bytes, np.ndarray]:
+        if self.tolerance == 0:
+            return setpoints.tobytes(), setpoints
+        steps = np.round(setpoints / self.tolerance).astype(np.int64)
+        return steps.tobytes(), steps * self.tolerance
+
+    def get(self, key: bytes) -> tuple[bool, np.ndarray | None]:
+        if key not in self.surfaces:
             return False, None
-        gaps = np.abs(self.setpoints[:n] - setpoints).max(axis=1)
-        j = int(np.argmin(gaps))
-        return (True, self.surfaces[j]) if gaps[j] <= tolerance else (False, None)
+        self.surfaces.move_to_end(key)
+        return True, self.surfaces[key]
 
-    def add(self, setpoints: np.ndarray, surface: np.ndarray | None) -> None:
-        i = self.next
-        self.setpoints[i] = setpoints
-        if i < len(self.surfaces):
-            self.surfaces[i] = surface
-        else:
-            self.surfaces.append(surface)
-        self.next = (i + 1) % self.capacity
+    def add(self, key: bytes, surface: np.ndarray | None) -> None:
+        self.surfaces[key] = surface
+        if len(self.surfaces) > self.capacity:
+            self.surfaces.popitem(last=False)
 
 
 _CACHES: dict[tuple, _SurfaceCache] = {}
@@ -154,6 +159,12 @@ class PerceptualObserver(Responder):
         self.layout = layout if layout is not None else protocol.layout()
         self.protocol = protocol
         self.seed = int(seed)
+        # Participants differ: each simulated person's decision noise is the default times
+        # exp(ability_sd z), z ~ N(0, 1) drawn once from the seed (a stream apart from the
+        # per-trial ones), so a group has a real between-participant variance to estimate.
+        ability = np.random.default_rng([self.seed, 1, 0]).standard_normal()
+        self.temperature_mm = self.options.temperature_mm * float(
+            np.exp(self.options.ability_sd * ability))
         from crs_study.stimulus import layout_key, placement_centre
 
         self._layout_key = layout_key(self.layout)
@@ -199,15 +210,17 @@ class PerceptualObserver(Responder):
 
         model_name = self.model_name(condition)
         setpoints = np.asarray(setpoints, dtype=float)
-        key = (model_name, self._layout_key, self._points.tobytes(), self._sigma_cells)
+        key = (model_name, self._layout_key, self._points.tobytes(), self._sigma_cells,
+               self.options.reuse_tolerance_mm)
         cache = _CACHES.get(key)
         if cache is None:
-            cache = _CACHES[key] = _SurfaceCache(self.layout.n_actuators)
-        found, z = cache.find(setpoints, self.options.reuse_tolerance_mm)
+            cache = _CACHES[key] = _SurfaceCache(self.options.reuse_tolerance_mm)
+        frame_key, rounded = cache.rounded(setpoints)
+        found, z = cache.get(frame_key)
         if found:
             return z
         try:
-            z = self._surface_function(model_name)(setpoints).reshape(self._gx.shape)
+            z = self._surface_function(model_name)(rounded).reshape(self._gx.shape)
         except DisplayModelError:
             # The model has no shape for this frame (a beam collapsing or yielding while the
             # servos are between two frames): nothing reliable to feel, the frame is skipped.
@@ -216,7 +229,7 @@ class PerceptualObserver(Responder):
             z = gaussian_filter(z, self._sigma_cells, mode="nearest")
         if z is not None:
             z.setflags(write=False)
-        cache.add(setpoints, z)
+        cache.add(frame_key, z)
         return z
 
     def peak_path(self, stimulus: StimulusRecord, rng: np.random.Generator) -> np.ndarray:
@@ -269,7 +282,7 @@ class PerceptualObserver(Responder):
         shape = _normalise(path, o.path_points)
         d = np.array([np.sqrt(np.mean(np.sum((shape - self.template(c)) ** 2, axis=1)))
                       for c in choices])
-        logits = -(d - d.min()) / o.temperature_mm
+        logits = -(d - d.min()) / self.temperature_mm
         p = np.exp(logits)
         p /= p.sum()
         return (1.0 - o.lapse) * p + o.lapse / n, d
