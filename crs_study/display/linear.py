@@ -52,7 +52,7 @@ class LinearConnection(DisplayModel):
         xy = np.asarray(xy_mm, dtype=float).reshape(-1, 2)
         if self._line:
             rel = xy - self._origin
-            t = rel @ self._axis
+            t = rel[:, 0] * self._axis[0] + rel[:, 1] * self._axis[1]  # no BLAS gemv
             z = np.interp(t, self._t, heights[self._order], left=0.0, right=0.0)
             if self._check_offset:
                 off = np.abs(rel[:, 0] * self._axis[1] - rel[:, 1] * self._axis[0])

@@ -163,7 +163,8 @@ class NetworkModel(DisplayModel):
                                     f"got {xy.shape!r}")
         profiles = self.beam_profiles(setpoints_mm)
         if self.fabric is None:
-            s = (xy - self.starts[0]) @ self.units[0]
+            rel = xy - self.starts[0]
+            s = rel[:, 0] * self.units[0, 0] + rel[:, 1] * self.units[0, 1]  # no BLAS gemv
             return profiles.heights(np.zeros(len(s), dtype=int), s)
         return self.fabric.surface(profiles, xy)
 
@@ -370,26 +371,34 @@ class Fabric:
         point, s, the fine nodes left and right of s along the beam, the fraction between
         them, and the weight.
         """
-        rel = xy[None, :, :] - self.beam_starts[:, None, :]
-        s = np.einsum("bnk,bk->bn", rel, self.beam_units)
-        off = np.abs(rel[..., 0] * self.beam_units[:, None, 1]
-                     - rel[..., 1] * self.beam_units[:, None, 0])
+        # distance off each beam's line, (B, n); the few close (beam, point) pairs go on
+        normal = np.column_stack([-self.beam_units[:, 1], self.beam_units[:, 0]])
+        offset = np.einsum("bk,bk->b", normal, self.beam_starts)[:, None]
+        off = np.abs(normal[:, :1] * xy[:, 0] + normal[:, 1:] * xy[:, 1] - offset)  # no BLAS
         band = self.h * _SQRT3_2
-        close = np.where((s > 0.0) & (s < self.beam_spans[:, None]),
-                         np.clip(1.0 - off / band, 0.0, 1.0), 0.0)
-        points = np.flatnonzero(close.max(axis=0) > 0.0)
-        close = close[:, points]
-        others = 1.0 - close
-        n_beams = len(close)
-        weight = close * np.stack([np.prod(np.delete(others, b, axis=0), axis=0)
-                                   for b in range(n_beams)]) if points.size else close
-        beam_idx, k = np.nonzero(weight > 0.0)
-        point = points[k]
-        s_near = s[beam_idx, point]
+        beam_idx, point = np.nonzero(off < band)
+        s_all = np.einsum("nk,nk->n", xy[point] - self.beam_starts[beam_idx],
+                          self.beam_units[beam_idx])
+        close = np.where((s_all > 0.0) & (s_all < self.beam_spans[beam_idx]),
+                         1.0 - off[beam_idx, point] / band, 0.0)
+        keep = close > 0.0
+        beam_idx, point, close, s_near = beam_idx[keep], point[keep], close[keep], s_all[keep]
+        # prod_{b' != b} (1 - c_b') over the point's other close beams (at most a few)
+        factor = 1.0 - close
+        zero = factor <= 0.0
+        n = len(xy)
+        zeros = np.bincount(point, weights=zero, minlength=n)
+        product = np.ones(n)
+        np.multiply.at(product, point, np.where(zero, 1.0, factor))
+        others = np.where(zero, product[point], product[point] / np.where(zero, 1.0, factor))
+        others = np.where(zeros[point] - zero > 0, 0.0, others)
+        weight = close * others
+        take = weight > 0.0
+        beam_idx, point, s_near, weight = beam_idx[take], point[take], s_near[take], weight[take]
         left = np.floor(s_near / self.h) * self.h
         right = np.minimum(left + self.h, self.beam_spans[beam_idx])
         frac = (s_near - left) / self.h
-        return beam_idx, point, s_near, left, right, frac, weight[beam_idx, k]
+        return beam_idx, point, s_near, left, right, frac, weight
 
 
 @dataclass(frozen=True)
