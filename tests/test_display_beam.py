@@ -274,3 +274,102 @@ def test_solution_meets_pixels_clamps_and_length(heights, extra, foundation):
     if profiles.axial_load_n[0] > 0:
         assert profiles.length_mm[0] == pytest.approx(expected, abs=1e-6)
     assert profiles.axial_load_n[0] < 0.98 * profiles.critical_load_n[0] + 1e-12
+
+
+# --- the fast paths: slope-deflection, per-geometry cache, root finder, frame memo ---------
+@pytest.mark.parametrize("device", ["crs1d", "crs2d", "patch"])
+def test_slope_deflection_equals_the_full_segment_system(device):
+    """The m x m slope-deflection solve (beta = 0) against the 4(m+1) state system that the
+    foundation path and the critical-load scan use, on beams with padding (the patch mixes
+    beams of 2 to 7 pixels), at loads from 0 to 0.97 N_cr."""
+    from crs_study.quality.lattices import periodic_layout
+
+    layout = periodic_layout("hex", 30.0, 80.0) if device == "patch" else load_layout(device)
+    solver = CompressedBeams(layout)
+    beams = solver.beams
+    rng = np.random.default_rng(7)
+    for fraction in (0.0, 1e-12, 0.4, 0.97):
+        a = fraction * solver.a_critical * rng.uniform(0.5, 1.0, solver.n_beams)
+        heights = rng.normal(size=(solver.n_beams, beams.n_pixels)) * beams._pixel_valid
+        fast = beams.coefficients(a, 0.0, heights)
+        rhs = np.matmul(beams.rhs, heights[:, :, None])
+        full = np.linalg.solve(beams.system(a, 0.0), rhs)[..., 0].reshape(fast.shape)
+        np.testing.assert_allclose(fast, full, atol=1e-11 * np.abs(full).max())
+
+
+def test_geometry_cache_is_shared_and_equal_to_a_fresh_scan():
+    """Beams with equal segment lengths share one critical load; a second layout with the
+    same geometry reuses the cache and gets the same numbers as a scan without it."""
+    layout = load_layout("crs2d")
+    first = CompressedBeams(layout)
+    CompressedBeams._geometry_cache.clear()
+    fresh = CompressedBeams(layout)
+    np.testing.assert_array_equal(first.a_critical, fresh.a_critical)
+    lengths = [tuple(np.round(row, 9)) for row in fresh.beams.lengths]
+    assert len(set(lengths)) < len(lengths)  # the 4-5-4 device repeats geometries
+    for i, j in [(i, j) for i in range(len(lengths)) for j in range(len(lengths))]:
+        if lengths[i] == lengths[j]:
+            assert fresh.a_critical[i] == fresh.a_critical[j]
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.floats(-40.0, 40.0), st.floats(-40.0, 40.0), st.floats(1.0, 6.0))
+def test_root_meets_the_length_tolerance_on_the_2d_device(x, y, height):
+    """Any 2D CRS frame: every compressed beam's length within LENGTH_TOLERANCE_MM of
+    L_c (1 - N/EA), and N below margin N_cr (or a CollapseError)."""
+    from crs_study.display.beam import LENGTH_TOLERANCE_MM
+
+    layout = load_layout("crs2d")
+    setpoints = Renderer(layout, "crs").render(Bump((x, y), 90.0, height)).setpoints
+    solver = CompressedBeams.for_layout(layout)
+    try:
+        profiles = solver.solve(setpoints)
+    except (CollapseError, DisplayModelError):
+        return
+    ea = layout.beam_section.youngs_modulus_mpa * layout.beam_section.area_mm2
+    loaded = profiles.axial_load_n > 0
+    expected = profiles.commanded_length_mm * (1 - profiles.axial_load_n / ea)
+    assert np.all(np.abs(profiles.length_mm - expected)[loaded] <= LENGTH_TOLERANCE_MM)
+    assert np.all(profiles.length_mm[~loaded] >= profiles.commanded_length_mm[~loaded] - 1e-6)
+    assert np.all(profiles.axial_load_n < 0.98 * profiles.critical_load_n)
+
+
+def test_frame_memo_returns_the_solved_frame_and_repeats_failures():
+    layout = load_layout("crs1d")
+    model = get_model("beam", layout, memo_frames=2)
+    base = np.array([0.0, 1.0, 2.0, 1.0, 0.0, 0.05, 0.05])
+    raise_pixels = np.array([0.1, 0.1, 0.1, 0.1, 0.1, 0.0, 0.0])
+    first = model.beam_profiles(base)
+    assert model.beam_profiles(base.copy()) is first  # same bytes: not solved again
+    model.beam_profiles(base + raise_pixels)
+    model.beam_profiles(base + 2 * raise_pixels)  # evicts the oldest (base)
+    assert model.beam_profiles(base) is not first
+    collapse = base.copy()
+    collapse[5:] = 20.0
+    for _ in range(2):  # a failure is remembered and raised again, as the same error
+        with pytest.raises(CollapseError, match="collapses"):
+            model.beam_profiles(collapse)
+    unmemo = get_model("beam", layout, memo_frames=0)
+    assert unmemo.beam_profiles(base) is not unmemo.beam_profiles(base)
+
+
+def test_quantised_frames_share_a_solution_and_stay_close():
+    layout = load_layout("crs1d")
+    model = get_model("beam", layout, quantum_mm=1e-4)
+    base = np.array([0.0, 1.0, 2.0, 1.0, 0.0, 0.05, 0.05])
+    a = model.beam_profiles(base)
+    assert model.beam_profiles(base + 3e-5) is a
+    exact = get_model("beam", layout).beam_profiles(base + 3e-5)
+    s = np.linspace(0.0, 180.0, 361)
+    np.testing.assert_allclose(a.profile(0)(s), exact.profile(0)(s), atol=1e-3)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"memo_frames": -1}, "memo_frames must be a whole number"),
+    ({"memo_frames": 2.5}, "memo_frames must be a whole number"),
+    ({"quantum_mm": -1e-4}, "quantum_mm must be >= 0"),
+    ({"quantum_mm": float("nan")}, "quantum_mm must be >= 0"),
+])
+def test_memo_options_are_checked(options, message):
+    with pytest.raises(DisplayModelError, match=message):
+        get_model("beam", load_layout("crs1d"), **options)

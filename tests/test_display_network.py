@@ -109,3 +109,42 @@ def test_subdivisions_that_miss_the_clamps():
 def test_bad_points_shape(layout):
     with pytest.raises(DisplayModelError, match=r"expected points of shape \(n, 2\), got \(3,\)"):
         get_model("spline", layout).surface(np.zeros(layout.n_actuators), np.zeros(3))
+
+
+def _dense_correction_weights(fabric: Fabric, xy: np.ndarray) -> np.ndarray:
+    """The fade weights c_b prod_{b' != b} (1 - c_b') written out densely, (beams, points)."""
+    rel = xy[None, :, :] - fabric.beam_starts[:, None, :]
+    s = np.einsum("bnk,bk->bn", rel, fabric.beam_units)
+    off = np.abs(rel[..., 0] * fabric.beam_units[:, None, 1]
+                 - rel[..., 1] * fabric.beam_units[:, None, 0])
+    close = np.where((s > 0) & (s < fabric.beam_spans[:, None]),
+                     np.clip(1 - off / (fabric.h * np.sqrt(3) / 2), 0, 1), 0.0)
+    return np.stack([close[b] * np.prod(np.delete(1 - close, b, axis=0), axis=0)
+                     for b in range(len(close))])
+
+
+def test_sparse_correction_weights_equal_the_dense_formula(layout):
+    """Points at random, on pixels, on beam lines and at crossings (weight 1 on a line)."""
+    fabric = get_model("beam", layout).fabric
+    rng = np.random.default_rng(11)
+    xy = np.vstack([rng.uniform(-100, 100, (2000, 2)), layout.pixel_xy,
+                    0.5 * (layout.pixel_xy[:-1] + layout.pixel_xy[1:]),
+                    0.3 * layout.pixel_xy[:-1] + 0.7 * layout.pixel_xy[1:]])
+    beam, point, *_, weight = fabric._correction_terms(xy)
+    sparse = np.zeros((len(layout.beams), len(xy)))
+    sparse[beam, point] = weight
+    np.testing.assert_allclose(sparse, _dense_correction_weights(fabric, xy), atol=1e-14)
+
+
+def test_surface_plans_are_reused_and_give_the_same_heights(layout):
+    model = get_model("beam", layout)
+    setpoints = Renderer(layout, "crs").render(Bump((10.0, 5.0), 90.0, 3.0)).setpoints
+    xy = np.random.default_rng(2).uniform(-80, 80, (500, 2))
+    first = model.surface(setpoints, xy)
+    plans = len(model.fabric._plans)
+    again = model.surface(setpoints, xy.copy())
+    assert len(model.fabric._plans) == plans
+    np.testing.assert_array_equal(first, again)
+    # a plan built for a superset gives the same heights on the shared points
+    more = model.surface(setpoints, np.vstack([xy, [[0.0, 0.0]]]))
+    np.testing.assert_allclose(more[:-1], first, atol=1e-13)

@@ -50,3 +50,20 @@ def test_yield_curvature():
     setpoints = np.array([0.0, 9.0, 0.0, 9.0, 0.0, 0.0, 0.0])
     with pytest.raises(DisplayModelError, match=r"spline: beam 0 bends to curvature .* plastic"):
         get_model("spline", layout).surface(setpoints, np.zeros((1, 2)))
+
+
+def test_2d_beams_are_scipy_clamped_splines_with_their_arc_length():
+    """Every beam of the 2D network (precomputed knot-slope map, Hermite evaluation) against
+    scipy's CubicSpline, and its length against 12-point Gauss-Legendre on scipy's spline."""
+    from crs_study.display.spline import spline_arc_length
+
+    layout = load_layout("crs2d")
+    rng = np.random.default_rng(5)
+    setpoints = np.zeros(layout.n_actuators)
+    setpoints[: layout.n_pixels] = rng.uniform(0, 4, layout.n_pixels)
+    model = get_model("spline", layout)
+    profiles = model.beam_profiles(setpoints)
+    for b, spline in enumerate(model.splines(setpoints)):
+        s = np.linspace(0.0, model.spans[b], 401)
+        np.testing.assert_allclose(profiles.profile(b)(s), spline(s), atol=1e-12)
+        assert profiles.length_mm[b] == pytest.approx(spline_arc_length(spline), abs=1e-10)

@@ -94,7 +94,8 @@ _TINY_LOAD = 1e-200
 _SCAN_POINTS = 400  # grid for the first determinant sign change (critical load)
 _GRID_POINTS = 48  # N grid for bracketing the length root
 _WINDOW = 8  # points of the inverse interpolation
-_DIAGONAL = (np.arange(_WINDOW), np.arange(_WINDOW))
+_EYE = np.eye(_WINDOW)[:, :, None]
+_OFF_EYE = 1.0 - _EYE
 _FACTORIALS = np.array([math.factorial(n) for n in range(_SERIES_TERMS)], dtype=float)
 
 
@@ -544,16 +545,15 @@ class CompressedBeams:
         state = None
         active = need
         for _ in range(60):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                # Lagrange form of the inverse interpolant a(f) at f = 0
-                ratio = pf[None, :, :] / (pf[None, :, :] - pf[:, None, :])  # [i, j]
-                ratio[_DIAGONAL] = 1.0
-                guess = np.sum(pa * np.prod(ratio, axis=1), axis=0)
+            # Lagrange form of the inverse interpolant a(f) at f = 0: sum_i a_i prod_{j != i}
+            # f_j / (f_j - f_i); the identity on the diagonal makes its factors 1
+            denominator = pf[None, :, :] - pf[:, None, :] + _EYE
+            ratio = np.divide(pf[None, :, :] * _OFF_EYE + _EYE, denominator,
+                              out=np.full(denominator.shape, np.nan), where=denominator != 0)
+            guess = np.sum(pa * np.prod(ratio, axis=1), axis=0)
             inside = (guess > lo) & (guess < hi)  # False for nan
-            if not inside[active].all():
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    falsi = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
-                guess = np.where(inside, guess, falsi)
+            if not inside[active].all():  # regula falsi (f_hi > 0 >= f_lo: no division by 0)
+                guess = np.where(inside, guess, (lo * f_hi - hi * f_lo) / (f_hi - f_lo))
             trial = np.where(active, guess, a)
             trial_state = self._state(trial, heights)
             f = trial_state.length - target * (1.0 - trial * self.axial_compliance)
