@@ -148,3 +148,19 @@ def test_surface_plans_are_reused_and_give_the_same_heights(layout):
     # a plan built for a superset gives the same heights on the shared points
     more = model.surface(setpoints, np.vstack([xy, [[0.0, 0.0]]]))
     np.testing.assert_allclose(more[:-1], first, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", ["beam", "spline"])
+def test_prepared_beam_queries_give_the_plain_heights(layout, name):
+    """The fabric's prepared fast path against the plain ``heights`` (prepare switched off),
+    frame after frame on the same plan (the query is reused across frames)."""
+    from dataclasses import replace
+
+    model = get_model(name, layout)
+    xy = np.random.default_rng(4).uniform(-90, 90, (800, 2))
+    renderer = Renderer(layout, "crs")
+    for centre in [(0.0, 0.0), (12.0, -7.0), (-20.0, 15.0)]:
+        profiles = model.beam_profiles(renderer.render(Bump(centre, 90.0, 3.0)).setpoints)
+        plain = replace(profiles, prepare=None, evaluate_prepared=None, geometry=None)
+        np.testing.assert_allclose(model.fabric.surface(profiles, xy),
+                                   model.fabric.surface(plain, xy), atol=1e-13)

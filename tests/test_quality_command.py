@@ -88,3 +88,34 @@ def test_bad_arguments_are_one_line_errors(argv, message, capsys):
     err = capsys.readouterr().err
     assert message in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_speed_accuracy_writes_chart_table_and_rows(tmp_path, capsys, monkeypatch):
+    """``--speed-accuracy``: the bench's rows (time per surface, error vs the reference),
+    speed_accuracy.png and .md in --out; the compressed beam is far closer to the reference
+    than the models without the CRS feed."""
+    from crs_study.benchmarks import display as bench
+
+    monkeypatch.setattr(bench, "MODELS", ("nearest", "spline", "beam"))
+    out = tmp_path / "q"
+    assert main(["quality", "--speed-accuracy", "--json", "--out", str(out)]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert {(r["layout"], r["model"]) for r in rows} == {
+        (lay, m) for lay in ("1d", "2d") for m in ("nearest", "spline", "beam")}
+    assert (out / "speed_accuracy.png").stat().st_size > 1000
+    table = (out / "speed_accuracy.md").read_text()
+    assert table.startswith("| layout | model | ms/surface |") and "| 2d | beam |" in table
+    for layout in ("1d", "2d"):
+        error = {r["model"]: r["rms_error_mm"] for r in rows if r["layout"] == layout}
+        assert error["beam"] < 0.05 * min(error["spline"], error["nearest"])
+        assert all(r["seconds_per_surface"] > 0 for r in rows)
+
+
+def test_parallel_sweep_equals_the_serial_one_and_restores_the_environment(monkeypatch):
+    import os
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    args = (["nearest", "linear"], ["1d"], [0.2, 0.3])
+    parallel = sweep_module.sweep(*args, jobs=2)
+    assert parallel == sweep_module.sweep(*args, jobs=1)
+    assert "OPENBLAS_NUM_THREADS" not in os.environ

@@ -110,17 +110,27 @@ def speed_accuracy_rows(quick: bool = True) -> list[dict]:
     return rows
 
 
-def format_table(rows: list[dict]) -> str:
-    lines = [f"{'layout':6s} {'model':10s} {'ms/surface':>11s} {'x nearest':>10s} "
-             f"{'max err mm':>11s} {'rms err mm':>11s}"]
+def format_table(rows: list[dict], markdown: bool = False) -> str:
+    """The speed-accuracy rows as aligned text, or as a Markdown table."""
+    head = ["layout", "model", "ms/surface", "x nearest", "max err mm", "rms err mm"]
+    body = []
     for r in rows:
         if "error" in r:
-            lines.append(f"{r['layout']:6s} {r['model']:10s} failed: {r['error']}")
+            body.append([r["layout"], r["model"], "failed: " + r["error"], "", "", ""])
             continue
-        lines.append(f"{r['layout']:6s} {r['model']:10s} {1e3 * r['seconds_per_surface']:11.3f} "
-                     f"{r['ratio_to_nearest']:10.1f} {r['max_error_mm']:11.4f} "
-                     f"{r['rms_error_mm']:11.4f}")
-    return "\n".join(lines)
+        body.append([r["layout"], r["model"], f"{1e3 * r['seconds_per_surface']:.3f}",
+                     f"{r['ratio_to_nearest']:.1f}", f"{r['max_error_mm']:.4f}",
+                     f"{r['rms_error_mm']:.4f}"])
+    if markdown:
+        lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in body])
+    widths = [6, 10, 11, 10, 11, 11]
+
+    def line(row: list[str]) -> str:
+        return " ".join(f"{c:{w}s}" if i < 2 else f"{c:>{w}s}"
+                        for i, (c, w) in enumerate(zip(row, widths, strict=True)))
+
+    return "\n".join([line(head)] + [line(row) for row in body])
 
 
 def plot_speed_accuracy(rows: list[dict], ax=None):

@@ -7,6 +7,11 @@ writes a chart (quality.png) with the paper's theory lines overlaid and a table
 line: {"layout", "model", "d_over_l", "D_P", "D_S"}. Points are cached on disk (keyed by the
 source of the models), so a repeated run is quick; points that cannot be computed (a model
 without that lattice, a collapsing beam) are listed with the reason.
+
+``--speed-accuracy`` answers the other question of issue 2 (point 6): each display model's
+median time per surface against its error versus the FE reference on CRS bumps (crs1d,
+crs2d), as a table and a chart (speed_accuracy.png, speed_accuracy.md in --out); which model
+to use for what is in :mod:`crs_study.benchmarks.display`.
 """
 
 from __future__ import annotations
@@ -33,6 +38,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         choices=["1d", "square", "hex"], help="lattices")
     parser.add_argument("--d-over-l", nargs="+", type=float, default=list(DEFAULT_D_OVER_L),
                         metavar="X", help="pixel pitch over bump diameter")
+    parser.add_argument("--speed-accuracy", action="store_true",
+                        help="instead of D_P/D_S: time each display model's surface against its "
+                             "error versus the FE reference (crs1d, crs2d; CRS bumps) and write "
+                             "speed_accuracy.png and speed_accuracy.md to --out (default "
+                             "./quality); with --json print the rows. The same rows are the "
+                             "figures of `crs-study bench display`")
     group = parser.add_argument_group("numerics")
     group.add_argument("--order", type=int, default=4,
                        help="Gauss order per panel of the peak-position cell")
@@ -55,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     from crs_study.quality.criteria import MAX_D_OVER_L, MIN_D_OVER_L
     from crs_study.quality.sweep import Settings, default_cache_dir, sweep
 
+    if args.speed_accuracy:
+        return _speed_accuracy(args)
     unknown = [m for m in args.models if m not in MODELS]
     if unknown:
         raise DisplayModelError(f"--models: unknown display model {unknown[0]!r}; "
@@ -110,3 +123,40 @@ def _write(points: list, out: Path) -> list[Path]:
     csv_path.write_text(to_csv(points), encoding="utf-8")
     md_path.write_text(to_markdown(points), encoding="utf-8")
     return [chart, csv_path, md_path]
+
+
+def _speed_accuracy(args: argparse.Namespace) -> int:
+    """Time per surface against error versus the reference, chart and table (issue 2, 6)."""
+    import json
+
+    from crs_study.benchmarks.display import (
+        format_table,
+        plot_speed_accuracy,
+        speed_accuracy_rows,
+    )
+
+    rows = speed_accuracy_rows(quick=True)
+    out = args.out if args.out is not None else (None if args.json else Path("quality"))
+    written = []
+    if out is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        out.mkdir(parents=True, exist_ok=True)
+        ax = plot_speed_accuracy(rows)
+        chart = out / "speed_accuracy.png"
+        ax.figure.savefig(chart, dpi=120, bbox_inches="tight")
+        plt.close(ax.figure)
+        table = out / "speed_accuracy.md"
+        table.write_text(format_table(rows, markdown=True) + "\n", encoding="utf-8")
+        written = [chart, table]
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+        return 0
+    print(format_table(rows))
+    for path in written:
+        print(f"wrote {path}")
+    return 0

@@ -585,10 +585,12 @@ class CompressedBeams:
             worst = np.maximum(curvature.max(axis=1), at_supports.max(axis=1))
             bi = int(np.argmax(worst))
             check_yield(model, bi, float(worst[bi]), self.layout)
+        shape = _ShapeEvaluator(self, a, coef)
         return BeamProfiles(
-            spans_mm=self.spans, evaluate=_ShapeEvaluator(self, a, coef),
+            spans_mm=self.spans, evaluate=shape,
             axial_load_n=a * self.ei / self.d**2, critical_load_n=self.critical_load_n,
             commanded_length_mm=target, length_mm=state.length,
+            prepare=shape.prepare, evaluate_prepared=shape.prepared, geometry=self,
         )
 
     def solve_with_load(self, setpoints_mm: np.ndarray, axial_load_n: np.ndarray | float
@@ -620,24 +622,38 @@ class _State:
 
 
 class _ShapeEvaluator:
-    """y(beam, s) of solved beams: the segment's state times row 0 of its fundamental matrix."""
+    """y(beam, s) of solved beams: the segment's state times row 0 of its fundamental matrix.
+
+    ``prepare(beam, s)`` does the frame-independent part (segment, offset) once for points
+    asked again and again (a fabric plan); ``prepared(query)`` evaluates it for this frame.
+    """
 
     def __init__(self, solver: CompressedBeams, a: np.ndarray, coef: np.ndarray) -> None:
         self.d, self.b = solver.d, solver.b
         self.seg_start, self.n_segments = solver.seg_start, solver.n_segments
         self.a, self.coef = a, coef
 
-    def __call__(self, beam: np.ndarray, s: np.ndarray) -> np.ndarray:
+    def prepare(self, beam: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
         s_hat = s / self.d
         seg = np.sum(s_hat[:, None] >= self.seg_start[beam], axis=1) - 1
         seg = np.clip(seg, 0, self.n_segments[beam] - 1)
         t = s_hat - self.seg_start[beam, seg]
+        return beam, seg, t, t * t, t**3
+
+    def __call__(self, beam: np.ndarray, s: np.ndarray) -> np.ndarray:
+        return self.prepared(self.prepare(beam, s))
+
+    def prepared(self, query: tuple[np.ndarray, ...]) -> np.ndarray:
+        beam, seg, t, t2, t3 = query
         c = self.coef[beam, seg]
         a = self.a[beam]
         if self.b == 0.0:
-            _, one_minus_cos, _ = _trig_terms(t, a)
+            a = np.maximum(a, _TINY_LOAD)
             k = np.sqrt(a)
-            cubic = t**3 * _theta_minus_sin_over_cube(k * t)  # (kt - sin kt)/k^3
+            theta = k * t
+            half_sin = np.sin(0.5 * theta)
+            one_minus_cos = 2.0 * half_sin * half_sin / a
+            cubic = t3 * _theta_minus_sin_over_cube(theta)  # (kt - sin kt)/k^3
             return c[:, 0] + c[:, 1] * t + c[:, 2] * one_minus_cos + c[:, 3] * cubic
         phi = fundamental_matrix(t[:, None], a, self.b)[:, 0, 0, :]
         return np.einsum("nj,nj->n", phi, c)

@@ -45,7 +45,7 @@ import math
 from abc import abstractmethod
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
@@ -118,6 +118,12 @@ class BeamProfiles:
     critical_load_n: np.ndarray
     commanded_length_mm: np.ndarray
     length_mm: np.ndarray  # arc length of the shape
+    #: optional fast path for points asked every frame (inside the clamps): ``prepare(beam,
+    #: s)`` gives a query valid for every profile of the same ``geometry`` (a hashable key),
+    #: ``evaluate_prepared(query)`` the heights; equal to ``evaluate(beam, s)``
+    prepare: Callable[[np.ndarray, np.ndarray], object] | None = None
+    evaluate_prepared: Callable[[object], np.ndarray] | None = None
+    geometry: object = None
 
     def heights(self, beam: np.ndarray, s_mm: np.ndarray) -> np.ndarray:
         beam = np.asarray(beam, dtype=int)
@@ -307,7 +313,13 @@ class Fabric:
         """
         xy = np.asarray(xy_mm, dtype=float)
         plan = self._plan(xy)
-        values = profiles.heights(plan.beam, plan.s)
+        if profiles.prepare is None:
+            values = profiles.heights(plan.beam, plan.s)
+        else:  # every plan abscissa lies within its beam's clamps
+            query = plan.prepared.get(profiles.geometry)
+            if query is None:
+                query = plan.prepared[profiles.geometry] = profiles.prepare(plan.beam, plan.s)
+            values = profiles.evaluate_prepared(query)
         n_samples = len(self.sample_node)
         z_nodes = self._node_heights(values[:n_samples])
         return plan.interpolate @ z_nodes + plan.correct @ values[n_samples:]
@@ -409,3 +421,5 @@ class _SurfacePlan:
     s: np.ndarray
     interpolate: csr_matrix  # (n_points, n_nodes) barycentric weights
     correct: csr_matrix  # (n_points, 3 * terms) weight * (exact - linear)
+    #: BeamProfiles.geometry -> its prepared query of (beam, s)
+    prepared: dict = field(default_factory=dict)

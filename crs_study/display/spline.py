@@ -110,17 +110,13 @@ class SplineModel(NetworkModel):
         slope = (m[:, seg] + left[:, seg] * t
                  + (right - left)[:, seg] * t * t / (2.0 * ell[:, seg]))
         lengths = np.sum(self.gl_w * np.sqrt(1.0 + slope**2), axis=-1)
-        knots, n_segments = self.knots, self.n_segments
+        def evaluate_prepared(query: tuple[np.ndarray, ...]) -> np.ndarray:
+            beam, k, w = query
+            return (w[0] * y[beam, k] + w[1] * m[beam, k] + w[2] * y[beam, k + 1]
+                    + w[3] * m[beam, k + 1])
 
         def evaluate(beam: np.ndarray, s: np.ndarray) -> np.ndarray:
-            k = np.sum(s[:, None] >= knots[beam, :-1], axis=1) - 1
-            k = np.clip(k, 0, n_segments[beam] - 1)
-            h = ell[beam, k]
-            x = (s - knots[beam, k]) / h
-            x2 = x * x
-            x3 = x2 * x
-            return ((2 * x3 - 3 * x2 + 1) * y[beam, k] + (x3 - 2 * x2 + x) * h * m[beam, k]
-                    + (3 * x2 - 2 * x3) * y[beam, k + 1] + (x3 - x2) * h * m[beam, k + 1])
+            return evaluate_prepared(self._prepare(beam, s))
 
         return BeamProfiles(
             spans_mm=self.spans, evaluate=evaluate,
@@ -129,4 +125,16 @@ class SplineModel(NetworkModel):
             commanded_length_mm=self.spans + setpoints[self.start_servo]
             + setpoints[self.end_servo],
             length_mm=lengths,
+            prepare=self._prepare, evaluate_prepared=evaluate_prepared, geometry=self,
         )
+
+    def _prepare(self, beam: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Segment and cubic Hermite weights of points (beam, s): frame-independent."""
+        k = np.sum(s[:, None] >= self.knots[beam, :-1], axis=1) - 1
+        k = np.clip(k, 0, self.n_segments[beam] - 1)
+        h = self.seg_length[beam, k]
+        x = (s - self.knots[beam, k]) / np.where(h > 0.0, h, 1.0)
+        x2 = x * x
+        x3 = x2 * x
+        return beam, k, np.stack([2 * x3 - 3 * x2 + 1, (x3 - 2 * x2 + x) * h,
+                                  3 * x2 - 2 * x3, (x3 - x2) * h])
