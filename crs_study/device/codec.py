@@ -202,12 +202,11 @@ def servo_move_arrays(ids: np.ndarray, pulses_us: np.ndarray, time_ms: int) -> b
 
 
 @dataclass(frozen=True)
-class ActionGroupRun:
-    """Run stored action group ``group`` ``times`` times (0 = forever)."""
+class _GroupTimes:
+    """Frames whose parameters are an action group and a 16-bit repetition count."""
 
     group: int
     times: int
-    code: ClassVar[int] = Command.ACTION_GROUP_RUN
 
     def __post_init__(self) -> None:
         _check_int("action group", self.group, 0, 255)
@@ -215,6 +214,13 @@ class ActionGroupRun:
 
     def encode(self) -> bytes:
         return _frame(self.code, bytes((self.group,)) + _u16(self.times))
+
+
+@dataclass(frozen=True)
+class ActionGroupRun(_GroupTimes):
+    """Run stored action group ``group`` ``times`` times (0 = forever)."""
+
+    code: ClassVar[int] = Command.ACTION_GROUP_RUN
 
 
 @dataclass(frozen=True)
@@ -286,19 +292,10 @@ class MultServoPosRead:
 
 
 @dataclass(frozen=True)
-class ActionGroupRunning:
+class ActionGroupRunning(_GroupTimes):
     """Notice: action group ``group`` started, to run ``times`` times."""
 
-    group: int
-    times: int
     code: ClassVar[int] = Reply.ACTION_GROUP_RUNNING
-
-    def __post_init__(self) -> None:
-        _check_int("action group", self.group, 0, 255)
-        _check_int("repetitions", self.times, 0, 0xFFFF)
-
-    def encode(self) -> bytes:
-        return _frame(self.code, bytes((self.group,)) + _u16(self.times))
 
 
 @dataclass(frozen=True)
@@ -312,19 +309,10 @@ class ActionGroupStopped:
 
 
 @dataclass(frozen=True)
-class ActionGroupComplete:
+class ActionGroupComplete(_GroupTimes):
     """Notice: action group ``group`` finished its ``times`` runs."""
 
-    group: int
-    times: int
     code: ClassVar[int] = Reply.ACTION_GROUP_COMPLETE
-
-    def __post_init__(self) -> None:
-        _check_int("action group", self.group, 0, 255)
-        _check_int("repetitions", self.times, 0, 0xFFFF)
-
-    def encode(self) -> bytes:
-        return _frame(self.code, bytes((self.group,)) + _u16(self.times))
 
 
 @dataclass(frozen=True)
