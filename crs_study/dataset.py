@@ -10,11 +10,20 @@ Layout (DESIGN.md, "The stored dataset")::
       sourcedata/sub-<id>/ses-<n>/..._trial-<k>_frames.tsv.gz       per-frame device log
       sourcedata/sub-<id>/ses-<n>/..._beh-torn-<time>.bin           bytes cut from a torn tail
 
-Durability (the order matters): a trial's frame log is written to a temporary file, fsynced
-and renamed into place; then its row is appended to the ``_beh.tsv`` with a single
-``write`` and fsynced; then the sidecar is rewritten atomically (temporary file, fsync,
-``os.replace``, fsync of the directory). The TSV is the authority on which trials are done;
-the sidecar may lag it by one trial after a crash and is brought up to date on resume.
+Durability (the order matters): a trial's frames are appended to the session's frame log as
+one gzip member with a single ``write`` and fsynced; then its row is appended to the
+``_beh.tsv`` the same way; then the sidecar is rewritten atomically (temporary file, fsync,
+``os.replace``; the directory is fsynced at the start and the end of a session). The TSV is
+the authority on which trials are done; the sidecar may lag it after a crash and is brought
+up to date on resume. ``crs-study run`` fsyncs after every trial; dry-runs
+(``durable=False``, a documented choice: a seed regenerates them) fsync each session once,
+when it stops, and keep every write atomic and ordered, so a killed dry-run loses nothing.
+
+A session whose sidecar says ``complete`` is never written again: resuming it checks the
+TSV against the recorded ``TrialsSha256`` without changing a byte, and a mismatch is a
+one-line :class:`~crs_study.errors.SessionError`. Failures of the operating system (disk
+full, permission denied) are one-line :class:`~crs_study.errors.DatasetError` s naming the
+file; an append cut short by a full disk is cut back, so the file keeps whole rows only.
 
 A process killed in the middle of an append can leave a torn last line (no newline, or fewer
 fields than the header). :meth:`SessionStore.recover_rows` cuts it off, keeps the cut bytes
@@ -46,6 +55,15 @@ from pathlib import Path
 from typing import Any
 
 from crs_study import __version__, schema
+from crs_study._files import (  # noqa: F401  (re-exported: older imports)
+    append_durably,
+    fsync_dir,
+    fsync_path,
+    make_dirs,
+    os_errors,
+    sha256_bytes,
+    write_atomically,
+)
 from crs_study.errors import DatasetError, SessionError
 
 BIDS_VERSION = "1.10.0"
@@ -74,53 +92,6 @@ def check_label(label: str) -> str:
 def utc_now() -> str:
     """The current time, ISO 8601 in UTC, to the second."""
     return datetime.now(UTC).isoformat(timespec="seconds")
-
-
-def sha256_bytes(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-# --- durable file primitives -------------------------------------------------------------------
-
-def fsync_dir(directory: Path) -> None:
-    """Make a directory's entries (a created or renamed file) durable."""
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def make_dirs(directory: Path) -> None:
-    """Create ``directory`` and its parents, fsyncing each new entry's parent."""
-    missing = []
-    path = directory
-    while not path.exists():
-        missing.append(path)
-        path = path.parent
-    for path in reversed(missing):
-        path.mkdir(exist_ok=True)
-        fsync_dir(path.parent)
-
-
-def write_atomically(path: Path, data: bytes | str, *, durable: bool = True,
-                     sync_dir: bool = True) -> None:
-    """Replace ``path`` whole or not at all: temporary file, fsync, ``os.replace``, dir fsync.
-
-    ``durable=False`` skips the fsyncs: the replacement is still atomic for readers and
-    survives the process being killed, but not a power cut.
-    """
-    if isinstance(data, str):
-        data = data.encode("utf-8")
-    temp = path.with_name(f".{path.name}.tmp")
-    with open(temp, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        if durable:
-            os.fsync(handle.fileno())
-    os.replace(temp, path)
-    if durable and sync_dir:
-        fsync_dir(path.parent)
 
 
 def json_text(data: Any) -> str:
@@ -202,8 +173,12 @@ class Dataset:
     @contextlib.contextmanager
     def locked(self) -> Iterator[None]:
         """Hold the dataset-wide lock (short updates of shared files such as participants)."""
-        make_dirs(self.root)
-        with open(self.root / DATASET_LOCK, "a+") as handle:
+        if self.root.exists() and not self.root.is_dir():
+            raise DatasetError(f"{self.root}: exists and is not a directory")
+        with os_errors(DatasetError, "create the dataset", self.root):
+            make_dirs(self.root)
+            handle = open(self.root / DATASET_LOCK, "a+")  # noqa: SIM115 - closed below
+        with handle:
             fcntl.flock(handle, fcntl.LOCK_EX)
             try:
                 yield
@@ -233,14 +208,19 @@ class Dataset:
             }
             for name, text in files.items():
                 if not (self.root / name).exists():
-                    write_atomically(self.root / name, text)
+                    with os_errors(DatasetError, "write", self.root / name):
+                        write_atomically(self.root / name, text)
 
     def participants(self) -> dict[str, int]:
         """Label -> counterbalance index, from ``participants.tsv``."""
         path = self.root / "participants.tsv"
         if not path.exists():
             return {}
-        rows = list(csv.reader(io.StringIO(path.read_text(encoding="utf-8")), delimiter="\t"))
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DatasetError(f"{path}: cannot read the participants table: {exc}") from None
+        rows = list(csv.reader(io.StringIO(text), delimiter="\t"))
         if not rows or tuple(rows[0][:2]) != PARTICIPANT_COLUMNS:
             raise DatasetError(f"{path}: expected columns {PARTICIPANT_COLUMNS}, got "
                                f"{rows[0] if rows else []!r}")
@@ -279,7 +259,8 @@ class Dataset:
             known[label] = index
             lines = ["\t".join(PARTICIPANT_COLUMNS) + "\n"]
             lines += [tsv_line([f"sub-{k}", v]) for k, v in sorted(known.items())]
-            write_atomically(self.root / "participants.tsv", "".join(lines))
+            with os_errors(DatasetError, "write", self.root / "participants.tsv"):
+                write_atomically(self.root / "participants.tsv", "".join(lines))
             return index
 
     def session_paths(self, participant: str, session: int) -> SessionPaths:
@@ -357,8 +338,9 @@ class SessionStore:
 
     # --- lock ---
     def acquire(self) -> None:
-        make_dirs(self.paths.session_dir)
-        handle = open(self.paths.lock, "a+")  # noqa: SIM115 - held until release()
+        with os_errors(DatasetError, "create the session", self.paths.session_dir):
+            make_dirs(self.paths.session_dir)
+            handle = open(self.paths.lock, "a+")  # noqa: SIM115 - held until release()
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -407,16 +389,43 @@ class SessionStore:
         self._recover_frames(len(rows))
         return rows
 
-    def _recover_tsv(self) -> list[dict[str, str]]:
+    def verify_complete(self, recorded_sha256: str | None) -> list[dict[str, str]]:
+        """The rows of a session marked complete, checked and read without changing a byte.
+
+        The TSV must hash to ``recorded_sha256`` (the sidecar's ``TrialsSha256``) and parse
+        whole; otherwise a :class:`SessionError`: a completed session is never rewritten,
+        not even to cut a torn tail.
+        """
         path = self.paths.tsv
+        data = self._read(path)
+        actual = sha256_bytes(data)
+        if actual != recorded_sha256:
+            raise SessionError(
+                f"{path}: the session is marked complete but its trial file changed since "
+                f"(sha256 {actual[:12]}..., recorded {str(recorded_sha256)[:12]}...); a "
+                "completed session is never rewritten: restore the file or use another "
+                "--session")
+        rows, keep = self._parse_tsv(path, data)
+        if keep != len(data):
+            raise SessionError(f"{path}: the session is marked complete but its last line is "
+                               "incomplete; a completed session is never rewritten")
+        self._hash = hashlib.sha256(data)
+        self._created = True
+        return rows
+
+    @staticmethod
+    def _read(path: Path) -> bytes:
         if not path.exists():
-            return []
-        data = path.read_bytes()
+            return b""
+        with os_errors(DatasetError, "read", path):
+            return path.read_bytes()
+
+    def _parse_tsv(self, path: Path, data: bytes) -> tuple[list[dict[str, str]], int]:
+        """Rows of the TSV bytes and how many bytes hold whole lines (the rest is torn)."""
         header = "\t".join(self.columns).encode() + b"\n"
         if not data.startswith(header):
             if header.startswith(data):  # killed while writing the header
-                self._cut(path, data, 0, "beh")
-                return []
+                return [], 0
             first = data.split(b"\n", 1)[0].decode("utf-8", "replace")
             raise DatasetError(f"{path}: unexpected header {first!r}; expected the columns of "
                                f"crs_study.schema.TRIAL_COLUMNS")
@@ -432,6 +441,14 @@ class SessionStore:
                 raise DatasetError(f"{path}:{number}: expected {len(self.columns)} fields, "
                                    f"got {len(fields)}; the file was edited or damaged")
             rows.append(dict(zip(self.columns, fields, strict=True)))
+        return rows, keep
+
+    def _recover_tsv(self) -> list[dict[str, str]]:
+        path = self.paths.tsv
+        if not path.exists():
+            return []
+        data = self._read(path)
+        rows, keep = self._parse_tsv(path, data)
         if keep < len(data):
             self._cut(path, data, keep, "beh")
         self._hash = hashlib.sha256(data[:keep])
@@ -443,7 +460,7 @@ class SessionStore:
         path = self.paths.frame_log
         if not path.exists():
             return
-        data = path.read_bytes()
+        data = self._read(path)
         keep = 0
         position = 0
         expected = -1  # the header member first, then trial 0, 1, ...
@@ -470,38 +487,36 @@ class SessionStore:
         self._frames_created = keep > 0
 
     def _cut(self, path: Path, data: bytes, keep: int, what: str) -> None:
-        """Truncate ``path`` to ``keep`` bytes, saving the rest under ``sourcedata``."""
-        make_dirs(self.paths.source_dir)
+        """Truncate ``path`` to ``keep`` bytes, saving the rest under ``sourcedata`` first.
+
+        The cut bytes are durable in their backup before the file is truncated (and the
+        truncation is fsynced), so a crash at any point keeps every byte somewhere.
+        """
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
         backup = self.paths.source_dir / f"{self.paths.stem}_{what}-torn-{stamp}.bin"
-        write_atomically(backup, data[keep:])
-        with open(path, "r+b") as handle:
-            handle.truncate(keep)
-            handle.flush()
-            os.fsync(handle.fileno())
+        with os_errors(DatasetError, "cut the torn tail of", path):
+            make_dirs(self.paths.source_dir)
+            write_atomically(backup, data[keep:])
+            with open(path, "r+b") as handle:
+                handle.truncate(keep)
+                handle.flush()
+                os.fsync(handle.fileno())
 
     # --- writing ---
     def _append(self, path: Path, data: bytes, create: bool = False) -> None:
-        """One ``write`` (all or, after a kill, a torn tail that recovery cuts), then fsync."""
-        flags = os.O_WRONLY | (os.O_CREAT | os.O_TRUNC if create else os.O_APPEND)
-        fd = os.open(path, flags, 0o644)
-        try:
-            written = os.write(fd, data)
-            if written != len(data):
-                raise DatasetError(f"{path}: short write ({written} of {len(data)} bytes); "
-                                   "disk full?")
-            if self.durable or create:
-                os.fsync(fd)
-        finally:
-            os.close(fd)
-        if create:
-            fsync_dir(path.parent)
+        """One ``write`` (all or, after a kill, a torn tail that recovery cuts), then fsync.
+
+        A failed or short write (disk full) is cut back off and raised as one line.
+        """
+        with os_errors(DatasetError, "append to", path):
+            append_durably(path, data, create=create, sync=self.durable)
 
     def create(self) -> None:
         """Start the TSV with its header (durably) if it has none."""
         if self._created:
             return
-        make_dirs(self.paths.beh_dir)
+        with os_errors(DatasetError, "create", self.paths.beh_dir):
+            make_dirs(self.paths.beh_dir)
         header = ("\t".join(self.columns) + "\n").encode()
         self._append(self.paths.tsv, header, create=True)
         self._hash = hashlib.sha256(header)
@@ -524,10 +539,14 @@ class SessionStore:
         return self._hash.hexdigest()
 
     def write_sidecar(self, metadata: dict[str, Any], final: bool = False) -> None:
-        """Rewrite the sidecar atomically (fsynced when durable or ``final``)."""
-        make_dirs(self.paths.beh_dir)
-        write_atomically(self.paths.sidecar, json_text(metadata),
-                         durable=self.durable or final, sync_dir=final)
+        """Rewrite the sidecar atomically (fsynced when durable or ``final``).
+
+        On failure (disk full) the old sidecar stays whole and the error is one line.
+        """
+        with os_errors(DatasetError, "write", self.paths.sidecar):
+            make_dirs(self.paths.beh_dir)
+            write_atomically(self.paths.sidecar, json_text(metadata),
+                             durable=self.durable or final, sync_dir=final)
 
     def append_frames(self, trial_index: int, columns: Sequence[str],
                       rows: Sequence[Sequence[Any] | str]) -> None:
@@ -539,7 +558,8 @@ class SessionStore:
         frames; members without a row are cut on resume. A row given as a string is taken as
         already formatted (tab-separated, without the trial column).
         """
-        make_dirs(self.paths.source_dir)
+        with os_errors(DatasetError, "create", self.paths.source_dir):
+            make_dirs(self.paths.source_dir)
         if not self._frames_created:
             header = "\t".join(("trial", *columns)) + "\n"
             self._append(self.paths.frame_log, _gzip(header), create=True)
@@ -552,11 +572,8 @@ class SessionStore:
         """fsync every session file (the end of a session written with ``durable=False``)."""
         for path in (self.paths.tsv, self.paths.frame_log):
             if path.exists():
-                fd = os.open(path, os.O_RDONLY)
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
+                with os_errors(DatasetError, "fsync", path):
+                    fsync_path(path)
 
 
 def _gzip(text: str) -> bytes:

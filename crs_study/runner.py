@@ -45,9 +45,10 @@ from typing import Any
 import numpy as np
 
 from crs_study import __version__, schema
+from crs_study._files import sha256_bytes
 from crs_study.clock import RealClock, VirtualClock
-from crs_study.dataset import Dataset, SessionStore, sha256_bytes, utc_now
-from crs_study.errors import DeviceError, SessionError
+from crs_study.dataset import Dataset, SessionStore, utc_now
+from crs_study.errors import CrsStudyError, DeviceError, SessionError
 
 #: Session time spent before the first trial with the display neutral (settled and flat).
 SETTLE_S = 1.0
@@ -201,6 +202,29 @@ class _SigtermAsInterrupt:
             signal.signal(signal.SIGTERM, self._old)
 
 
+class _DeferInterrupts:
+    """Hold Ctrl-C and SIGTERM back until the block ends, then pause (main thread only).
+
+    Wraps the storing of a trial (frame log, row, in-memory rows, sidecar) so an interrupt
+    never falls between them: the trial is stored whole, then the session pauses.
+    """
+
+    def __enter__(self) -> None:
+        self._old: dict[int, Any] = {}
+        self._caught = False
+        if threading.current_thread() is threading.main_thread():
+            def handler(signum: int, frame: object) -> None:
+                self._caught = True
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._old[signum] = signal.signal(signum, handler)
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        for signum, old in self._old.items():
+            signal.signal(signum, old)
+        if self._caught and exc_type is None:
+            raise KeyboardInterrupt
+
+
 class _IgnoreInterrupts:
     """Defer Ctrl-C while the session is being put safely to rest (main thread only)."""
 
@@ -333,17 +357,25 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
     store = SessionStore(paths, durable=spec.durable)
     with store:
         stored = store.read_sidecar()
-        rows = store.recover_rows()
         if stored is not None:
             check_resume(stored, expected, paths.sidecar)
-        _check_rows(rows, plan, paths.tsv)
-        if stored is not None and stored.get("Status") == "complete" and len(rows) == n_trials:
+        if stored is not None and stored.get("Status") == "complete":
+            # Never rewritten: checked read-only (no torn-tail cut), then left alone.
+            rows = store.verify_complete(stored.get("TrialsSha256"))
+            _check_rows(rows, plan, paths.tsv)
+            if len(rows) != n_trials:
+                raise SessionError(
+                    f"{paths.sidecar}: the session is marked complete but holds {len(rows)} "
+                    f"of {n_trials} planned trials; a completed session is never rewritten: "
+                    "use another --session")
             return SessionResult(
                 "already-complete", spec.participant, spec.session, n_trials, n_trials, 0, 0,
                 0.0, 0.0, paths.tsv, paths.sidecar,
                 f"session {spec.session} of participant {spec.participant} is complete "
                 f"({n_trials} trials) in {paths.tsv.parent}; nothing to do (a new session "
                 "needs --session N)")
+        rows = store.recover_rows()
+        _check_rows(rows, plan, paths.tsv)
         if responder is None:
             responder = make_responder(spec.responder, seed=int(plan.seed), layout=layout,
                                        protocol=protocol)
@@ -392,14 +424,17 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             if state.in_trial:
                 state.metadata["Faults"].append({"trial": k, "time": utc_now(),
                                                  "message": str(error)})
-            with _IgnoreInterrupts():
-                _save(state, "interrupted", final=True)
+            status = "fault"
+            _save_after_failure(state)
             raise DeviceError(f"device fault {where}: {error}; the session is marked "
                               "interrupted: run the same command to resume") from None
-        finally:
-            if status != "complete":
-                with _IgnoreInterrupts():
-                    _save(state, "interrupted", final=True)
+        except BaseException:
+            status = "failed"
+            _save_after_failure(state)  # the first error is the one reported
+            raise
+        if status == "interrupted":
+            with _IgnoreInterrupts():
+                _save(state, "interrupted", final=True)
         if status == "complete":
             _save(state, "complete", final=True)
         done = len(state.rows)
@@ -450,6 +485,19 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
         "Resumes": resumes,
         "Faults": list(previous.get("Faults", [])),
     }
+
+
+def _save_after_failure(state: _Session) -> None:
+    """Mark the session interrupted while another error is on its way out.
+
+    A failure here (the disk that just filled up) must not hide the first error: the TSV is
+    the authority and the sidecar is brought up to date on resume, so it is let go.
+    """
+    with _IgnoreInterrupts():
+        try:
+            _save(state, "interrupted", final=True)
+        except CrsStudyError:
+            pass
 
 
 def _save(state: _Session, status: str, final: bool = False) -> None:
@@ -566,12 +614,13 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
     flat = "\t".join(f"{v:.4f}" for v in state.layout.neutral_setpoints().tolist())
     log.append(_frame_line("neutral", n, shown.neutral_due, shown.neutral, origin, flat))
     columns = FRAME_LOG_COLUMNS + tuple(f"a{j:02d}" for j in range(frames.shape[1]))
-    state.store.append_frames(trial.index, columns, log)
-    state.store.append_row(row)
-    state.rows.append({k: str(v) for k, v in row.items()})
-    state.late_frames += shown.late
-    if state.spec.durable or len(state.rows) % DRY_RUN_SIDECAR_EVERY == 0:
-        _save(state, "running")
+    with _DeferInterrupts():  # stored whole: frames, row, rows in memory, sidecar
+        state.store.append_frames(trial.index, columns, log)
+        state.store.append_row(row)
+        state.rows.append({k: str(v) for k, v in row.items()})
+        state.late_frames += shown.late
+        if state.spec.durable or len(state.rows) % DRY_RUN_SIDECAR_EVERY == 0:
+            _save(state, "running")
     if trial.feedback:
         responder.feedback(trial, response, bool(correct))
     responder.end_trial()

@@ -305,3 +305,91 @@ def test_feedback_only_on_practice(tmp_path, devices):
 
     run_session(spec_for(tmp_path, tiny_protocol(tmp_path)), responder=Feedback())
     assert [c[0] for c in calls] == ["practice", "practice"]
+
+
+# --- review: completed sessions, interrupts while storing, full disks ------------------------
+
+@pytest.mark.parametrize("damage", ["rows removed", "torn tail added", "cell edited"])
+def test_a_damaged_complete_session_is_refused_and_left_alone(tmp_path, devices, damage):
+    """A rerun used to 'resume' a complete session whose rows were cut, appending new trials
+    (with whatever responder the rerun named) to a finished session, and to cut a torn tail
+    out of it. A completed session is now checked read-only and never rewritten."""
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path))
+    result = run_session(spec)
+    data = result.tsv.read_bytes()
+    lines = data.splitlines(keepends=True)
+    damaged = {"rows removed": b"".join(lines[:-2]),
+               "torn tail added": data + b"8\ttest\t1",
+               "cell edited": data.replace(b"\tcrs\t", b"\tCRS\t", 1)}[damage]
+    result.tsv.write_bytes(damaged)
+    before = {p: p.read_bytes() for p in spec.dataset.rglob("*") if p.is_file()}
+    with pytest.raises(SessionError, match="marked complete.*never rewritten"):
+        run_session(spec)
+    after = {p: p.read_bytes() for p in spec.dataset.rglob("*") if p.is_file()}
+    assert after == before
+
+
+def test_ctrl_c_while_a_trial_is_stored_keeps_row_and_sidecar_together(tmp_path, devices,
+                                                                         monkeypatch):
+    """Ctrl-C between the row's append and the sidecar used to leave the sidecar's
+    TrialsSha256/TrialsCompleted disagreeing with the TSV (a false tamper warning). The
+    storing of a trial is now held whole and the pause comes after it."""
+    import os
+    import signal
+
+    from crs_study.dataset import SessionStore
+
+    real_append = SessionStore.append_row
+
+    def append_then_interrupt(self, row):
+        if row["trial_index"] == 3:
+            os.kill(os.getpid(), signal.SIGINT)  # arrives between the row and the sidecar
+        real_append(self, row)
+
+    monkeypatch.setattr(SessionStore, "append_row", append_then_interrupt)
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path))
+    paused = run_session(spec)
+    assert paused.status == "interrupted" and paused.trials_completed == 4
+    meta = json.loads(paused.sidecar.read_text())
+    assert meta["TrialsCompleted"] == 4 == len(read_rows(paused.tsv))
+    assert meta["TrialsSha256"] == hashlib.sha256(paused.tsv.read_bytes()).hexdigest()
+    monkeypatch.setattr(SessionStore, "append_row", real_append)
+    whole = run_session(spec_for(tmp_path, spec.protocol, "whole"))
+    assert run_session(spec).status == "complete"
+    assert paused.tsv.read_bytes() == whole.tsv.read_bytes()
+
+
+def test_disk_full_mid_session_is_one_line_and_loses_nothing(tmp_path, devices, monkeypatch):
+    """ENOSPC on a row's append: one-line DatasetError naming the file, the stored rows
+    whole, the half-written row cut back, and the same command resumes exactly."""
+    import errno
+
+    import crs_study._files as files
+    from crs_study.errors import DatasetError
+
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path))
+    tsv_name = "sub-p01_ses-1_task-digitid_beh.tsv"
+    real_write = files.os.write
+    calls = {"rows": 0}
+
+    def full_disk(fd, data):
+        if os_path_of(fd).endswith(tsv_name):
+            calls["rows"] += 1
+            if calls["rows"] == 6:  # header + 4 rows fit, the 5th is cut short
+                real_write(fd, bytes(data)[:7])
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    def os_path_of(fd):
+        import os
+        return os.readlink(f"/proc/self/fd/{fd}")
+
+    monkeypatch.setattr(files.os, "write", full_disk)
+    with pytest.raises(DatasetError, match=rf"{tsv_name}: cannot append to: No space left"):
+        run_session(spec)
+    monkeypatch.setattr(files.os, "write", real_write)
+    tsv = spec.dataset / "sub-p01/ses-1/beh" / tsv_name
+    assert tsv.read_bytes().endswith(b"\n") and len(read_rows(tsv)) == 4
+    whole = run_session(spec_for(tmp_path, spec.protocol, "whole"))
+    assert run_session(spec).status == "complete"
+    assert tsv.read_bytes() == whole.tsv.read_bytes()
