@@ -194,3 +194,20 @@ def test_a_session_through_ptys_with_virtual_boards(tmp_path, capsys):
     meta = json.loads((tmp_path / "ds" / SIDECAR).read_text())
     assert meta["Clock"] == "real" and meta["DeviceURL"].startswith("serial://")
     assert os.path.basename(meta["ProtocolPath"]) == "tiny.toml"
+
+
+@pytest.mark.parametrize("command", ["run", "dry-run", "demo"])
+def test_an_unwritable_dataset_is_one_line(tmp_path, capsys, command):
+    """--out under a file used to end in a traceback (NotADirectoryError from mkdir)."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = blocker / "ds"
+    args = {"run": run_args(tiny_protocol(tmp_path), out),
+            "dry-run": ["dry-run", str(tiny_protocol(tmp_path)), "--participants", "1",
+                        "--out", str(out), "--responder", "random"],
+            "demo": ["demo", "--out", str(out)]}[command]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert f"crs-study {command}: error: {out}" in err and "Not a directory" in err
+    assert blocker.read_text() == ""

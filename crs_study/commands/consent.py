@@ -48,6 +48,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """The command; an OSError becomes a one-line error naming the file."""
+    from crs_study._files import os_errors
+    from crs_study.errors import ConsentError
+
+    with os_errors(ConsentError):  # disk full, permission denied, a file where a folder should be
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
     from crs_study import consent

@@ -50,6 +50,15 @@ def fresh_directory(base: Path | None = None) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
+    """The command; an OSError becomes a one-line error naming the file."""
+    from crs_study._files import os_errors
+    from crs_study.errors import DatasetError
+
+    with os_errors(DatasetError):  # disk full, permission denied, a file where a folder should be
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
     from crs_study.errors import SessionError
     from crs_study.paths import shipped_file

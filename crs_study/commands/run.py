@@ -76,6 +76,15 @@ def stderr_progress(enabled: bool):
 
 
 def run(args: argparse.Namespace) -> int:
+    """The command; an OSError becomes a one-line error naming the file."""
+    from crs_study._files import os_errors
+    from crs_study.errors import DatasetError
+
+    with os_errors(DatasetError):  # disk full, permission denied, a file where a folder should be
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from crs_study.runner import run_session, seed_check
 
     spec = spec_from_args(args)
