@@ -21,7 +21,6 @@ once recovered, fully withdrawn. Files of other participants are never opened fo
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import json
 import os
 import re
@@ -34,6 +33,8 @@ from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from crs_study._files import append_durably, fsync_dir, os_errors, sha256_bytes, write_atomically
+from crs_study.dataset import Dataset
 from crs_study.errors import ConsentError
 
 REGISTER_ENV = "CRS_STUDY_CONSENT_DIR"
@@ -104,7 +105,7 @@ def read_form(path: str | Path) -> ConsentForm:
         )
     if "- [ ]" not in text:
         raise ConsentError(f"{path}: not a consent form: expected '- [ ]' consent statements")
-    return ConsentForm(path, titles[0], versions[0], hashlib.sha256(data).hexdigest())
+    return ConsentForm(path, titles[0], versions[0], sha256_bytes(data))
 
 
 @dataclass(frozen=True)
@@ -129,15 +130,6 @@ def _now() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
 
 
-def _append_durably(path: Path, line: str) -> None:
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
-    try:
-        os.write(fd, line.encode("utf-8") + b"\n")
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 class Register:
     """The consent register directory (see the module docstring)."""
 
@@ -156,14 +148,24 @@ class Register:
 
     def _append(self, path: Path, event: dict) -> None:
         self._ensure()
-        _append_durably(path, json.dumps(event, sort_keys=True))
-        os.chmod(path, 0o600)
+        with os_errors(ConsentError, "write the consent register", path):
+            new = not path.exists()
+            append_durably(path, json.dumps(event, sort_keys=True).encode("utf-8") + b"\n",
+                           mode=0o600)
+            os.chmod(path, 0o600)
+            if new:
+                fsync_dir(path.parent)
 
     def events(self) -> list[dict]:
         if not self.path.exists():
             return []
         events = []
-        for number, line in enumerate(self.path.read_text(encoding="utf-8").splitlines(), 1):
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConsentError(f"{self.path}: cannot read the consent register: {exc}"
+                               ) from None
+        for number, line in enumerate(text.splitlines(), 1):
             if not line.strip():
                 continue
             try:
@@ -324,23 +326,8 @@ def _check_not_running(dataset: Path, participant: str) -> None:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def _write_atomically(path: Path, data: dict | str) -> None:
-    text = data if isinstance(data, str) else json.dumps(data, indent=2, sort_keys=True)
-    temp = path.with_name(path.name + ".tmp")
-    with open(temp, "w", encoding="utf-8") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temp, path)
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+def _write_json_atomically(path: Path, data: dict) -> None:
+    write_atomically(path, json.dumps(data, indent=2, sort_keys=True))
 
 
 def _without_participant_row(text: str, participant: str) -> str:
@@ -384,14 +371,15 @@ def _complete(dataset: Path, journal: dict) -> dict:
             os.rename(source, target)
             _checkpoint()
     participants = dataset / "participants.tsv"
-    if participants.exists():
-        text = participants.read_text(encoding="utf-8")
-        reduced = _without_participant_row(text, participant)
-        if reduced != text:
-            _write_atomically(participants, reduced)
+    with Dataset(dataset).locked():  # a runner adding a participant rewrites it too
+        if participants.exists():
+            text = participants.read_text(encoding="utf-8")
+            reduced = _without_participant_row(text, participant)
+            if reduced != text:
+                write_atomically(participants, reduced)
     _checkpoint()
     shutil.rmtree(staging, ignore_errors=False)
-    _fsync_dir(dataset)
+    fsync_dir(dataset)
     _checkpoint()
     register = Register(journal["register"])
     register.mark_withdrawn(participant)
@@ -403,7 +391,7 @@ def _complete(dataset: Path, journal: dict) -> dict:
     register.audit(entry)
     _checkpoint()
     (dataset / JOURNAL_FILE).unlink()
-    _fsync_dir(dataset)
+    fsync_dir(dataset)
     return entry
 
 
@@ -431,7 +419,7 @@ def withdraw(participant: str, datasets: Iterable[str | Path],
                 "paths": participant_paths(dataset, participant),
                 "journal_id": secrets.token_hex(8),
             }
-            _write_atomically(dataset / JOURNAL_FILE, journal)
+            _write_json_atomically(dataset / JOURNAL_FILE, journal)
             _checkpoint()
         entries.append(_complete(dataset, journal))
     register.mark_withdrawn(participant)

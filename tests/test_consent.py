@@ -288,3 +288,37 @@ def test_analysis_refuses_a_dataset_with_an_unfinished_withdrawal(tmp_path):
     assert code == -9 and consent.pending_withdrawal(dataset) is not None
     with pytest.raises(DatasetError, match="withdrawal was interrupted.*consent recover"):
         load_datasets([dataset])
+
+
+def test_cli_unwritable_register_is_one_line(tmp_path, capsys):
+    """A register path that is a file: one line, exit 2, no traceback."""
+    from crs_study.cli import main
+
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    form = tmp_path / "form.md"
+    form.write_text("# Consent\n\nVersion: 1.0\n\n- [ ] I agree\n")
+    assert main(["consent", "record", "--participant", "p01", "--form", str(form),
+                 "--experimenter", "AB", "--register", str(blocker / "reg")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "cannot create the consent register" in err
+
+
+def test_withdrawal_waits_for_the_dataset_lock(tmp_path):
+    """participants.tsv is rewritten under the dataset lock a runner takes to add a
+    participant; without it the two read-modify-writes could lose a row or bring one back."""
+    import threading
+
+    from crs_study.dataset import Dataset
+
+    dataset = make_dataset(tmp_path / "ds")
+    done = threading.Event()
+    with Dataset(dataset).locked():
+        worker = threading.Thread(
+            target=lambda: (consent.withdraw("a1", [dataset], tmp_path / "reg"), done.set()))
+        worker.start()
+        assert not done.wait(0.3)  # blocked on the lock, participants.tsv untouched
+        assert "sub-a1\t0\n" in (dataset / "participants.tsv").read_text()
+    worker.join(10)
+    assert done.is_set() and "sub-a1\t" not in (dataset / "participants.tsv").read_text()
