@@ -245,3 +245,14 @@ def test_conditions_outside_the_plan_are_analysed_after_the_planned_ones():
     ordered, reference, notes = order_conditions(trials, plan)
     assert ordered == ["pixel-only", "crs", "alpha", "zeta"] and reference == "pixel-only"
     assert "condition(s) ['alpha', 'zeta'] are not in the plan" in notes[0]
+
+
+def test_cli_unwritable_output_is_one_line(tmp_path, capsys):
+    """--out under a file (or a full disk) used to end in a traceback of OSErrors."""
+    root = dataset(tmp_path / "ds", n_participants=2, repetitions=1)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["analyze", str(root), "--out", str(blocker / "out")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "file/out/figures: cannot write the analysis: Not a directory" in err

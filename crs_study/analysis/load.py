@@ -36,7 +36,6 @@ after the session (or a bug): a warning by default, a :class:`DatasetError` with
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 from dataclasses import dataclass, field
@@ -45,6 +44,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from crs_study._files import os_errors, sha256_bytes
 from crs_study.analysis.plan import Exclusions
 from crs_study.errors import DatasetError
 from crs_study.schema import MISSING, SESSION_STATUSES, TASK, TRIAL_COLUMNS
@@ -71,10 +71,6 @@ class LoadedData:
     def analysed(self) -> pd.DataFrame:
         """The trials kept after the plan's exclusions."""
         return self.trials.loc[~self.trials["excluded"]].reset_index(drop=True)
-
-
-def sha256_file(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions | None = None,
@@ -197,7 +193,8 @@ def _read_session(tsv: Path, dataset: str, file_number: int
     """One session's rows as read (typed later, all files at once) and its metadata."""
     problems: list[str] = []
     participant, session = _labels(tsv)
-    data = tsv.read_bytes()
+    with os_errors(DatasetError, "read", tsv):
+        data = tsv.read_bytes()
     sidecar_path = tsv.with_suffix(".json")
     try:
         meta = json.loads(sidecar_path.read_text(encoding="utf-8"))
@@ -243,7 +240,7 @@ def _check_metadata(meta: dict, tsv: Path, data: bytes, participant: str,
     problems = []
     sidecar = tsv.with_suffix(".json")
     recorded = meta.get("TrialsSha256")
-    actual = hashlib.sha256(data).hexdigest()
+    actual = sha256_bytes(data)
     if recorded is None:
         problems.append(f"{sidecar}: TrialsSha256 missing; the trials cannot be verified")
     elif recorded != actual:
@@ -253,7 +250,7 @@ def _check_metadata(meta: dict, tsv: Path, data: bytes, participant: str,
     for text_key, sha_key in (("Protocol", "ProtocolSha256"), ("DeviceFile", "DeviceFileSha256")):
         text, sha = meta.get(text_key), meta.get(sha_key)
         if isinstance(text, str) and isinstance(sha, str) and \
-                hashlib.sha256(text.encode("utf-8")).hexdigest() != sha:
+                sha256_bytes(text.encode("utf-8")) != sha:
             problems.append(f"{sidecar}: {sha_key} does not match the recorded {text_key} "
                             "text (possible tampering)")
     for key, expected in (("Participant", participant), ("Session", session),

@@ -22,7 +22,6 @@ an odds ratio), ``primary`` (omnibus test and the fitted model), ``per_digit``,
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import json
 import math
 import tomllib
@@ -33,6 +32,7 @@ import numpy as np
 import pandas as pd
 
 from crs_study import __version__
+from crs_study._files import os_errors, sha256_file, write_atomically
 from crs_study.analysis import charts
 from crs_study.analysis.accuracy import analyse_accuracy, chance_level
 from crs_study.analysis.confusion import analyse_confusions
@@ -80,7 +80,7 @@ def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
     every = list(loaded.warnings) + plan_notes + results["warnings"]
     results["warnings"] = list(dict.fromkeys(every))          # each sentence once, in order
     results["plan"] = {"name": plan.name, "path": str(plan_file),
-                       "sha256": hashlib.sha256(Path(plan_file).read_bytes()).hexdigest()}
+                       "sha256": sha256_file(plan_file)}
     results["datasets"] = [{"path": str(d.resolve()), "name": name} for d, name in
                            zip(datasets, pd.unique(loaded.trials["dataset"]), strict=False)]
     results["sessions"] = _sessions(loaded)
@@ -94,15 +94,15 @@ def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
         return AnalysisResult(results["headline"], results, None, None,
                               tuple(results["warnings"]))
     out = _out_dir(datasets, out_dir)
-    figures = out / "figures"
-    figures.mkdir(parents=True, exist_ok=True)
-    chart_files = draw_charts(parts, plan, figures)
-    results["charts"] = [str(p.relative_to(out)) for p in chart_files]
-    results_path = out / "results.json"
-    results_path.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n",
-                            encoding="utf-8")
-    report_path = write_report(out, results, parts, plan, chart_files)
-    _derivative_description(out, datasets)
+    with os_errors(AnalysisError, "write the analysis", out):  # disk full, no permission
+        figures = out / "figures"
+        figures.mkdir(parents=True, exist_ok=True)
+        chart_files = draw_charts(parts, plan, figures)
+        results["charts"] = [str(p.relative_to(out)) for p in chart_files]
+        results_path = out / "results.json"
+        write_atomically(results_path, json.dumps(results, indent=2, allow_nan=False) + "\n")
+        report_path = write_report(out, results, parts, plan, chart_files)
+        _derivative_description(out, datasets)
     return AnalysisResult(results["headline"], results, report_path, results_path,
                           tuple(results["warnings"]), tuple(chart_files))
 

@@ -10,7 +10,6 @@ This is a test and benchmark aid; real datasets come from ``crs-study run`` / ``
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from crs_study import __version__
+from crs_study._files import sha256_bytes
 from crs_study.dataset import column_dictionary  # the runner's, so both files agree
 from crs_study.schema import MISSING, TASK, TRIAL_COLUMNS
 
@@ -164,15 +164,15 @@ def write_sessions(root: str | Path, sessions: dict[str, list[dict[str, object]]
         data = write_tsv(beh / f"{stem}.tsv", columns, rows)
         sidecar = {
             "TaskName": TASK, "Protocol": protocol_text,
-            "ProtocolSha256": hashlib.sha256(protocol_text.encode()).hexdigest(),
+            "ProtocolSha256": sha256_bytes(protocol_text.encode()),
             "ProtocolPath": "protocols/synthetic.toml", "DeviceFile": device_text,
-            "DeviceFileSha256": hashlib.sha256(device_text.encode()).hexdigest(),
+            "DeviceFileSha256": sha256_bytes(device_text.encode()),
             "DeviceURL": "sim://", "SoftwareVersion": __version__, "Seed": seed * 1000 + i,
             "Participant": label, "Session": "1", "ConsentFormVersion": "synthetic",
             "Responder": "observer", "Clock": "virtual",
             "StartTime": "2026-01-01T09:00:00Z", "EndTime": "2026-01-01T10:00:00Z",
             "Status": "complete", "TrialsPlanned": len(rows), "TrialsCompleted": len(rows),
-            "TrialsSha256": hashlib.sha256(data).hexdigest(),
+            "TrialsSha256": sha256_bytes(data),
         }
         (beh / f"{stem}.json").write_text(json.dumps(sidecar, indent=2) + "\n")
     return root
