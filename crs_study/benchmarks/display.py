@@ -9,16 +9,42 @@ surface measured in the same run (the baseline). ``speed_accuracy_rows(quick)`` 
 rows (reused by a ``quality`` option), ``format_table(rows)`` prints them and
 ``plot_speed_accuracy(rows)`` draws the chart.
 
-Which model to use (measured; see the table of ``crs-study bench display``)
-    * Runner / simulated observer, CRS condition: ``beam``. It is the cheapest model of the
-      compressed skeleton within 0.5 % of the bump height of the reference (measured
-      <= 0.25 % at z_f = 6 mm); ``spline``, ``linear`` and ``nearest`` miss the CRS peak by
-      ~10 % of the height or more, so they are not accurate enough for the CRS condition at
-      any speed. Pixel-only condition: ``nearest`` (it *is* the pixel display).
-    * Quality criteria (D_P, D_S over many peak positions): ``beam`` too; ``reference`` agrees
-      with it to 0.25 % of the height but costs ~100x more, so use it only to validate.
-    * When a frame only needs the beams (peak along a beam, contact on a beam line), call
-      ``BeamModel.beam_profiles`` and skip the fabric.
+The chart and a Markdown table of these rows: ``crs-study quality --speed-accuracy --out DIR``
+(speed_accuracy.png, speed_accuracy.md). The session figures time ``beam_profiles`` of the
+2D and 1D devices per frame (32 CRS bumps at random centres, every frame a new scene: memo
+off), alone and with the surface on the observer's 19 x 19 grid, against the ``nearest``
+surface on that grid, the targets (2D <= 0.4 ms, 1D <= 0.1 ms) and the budget of a session
+simulated 100x faster than real time at 15 frames/s (1/1500 s a frame), and state the
+simulated seconds per wall second.
+
+Which model to use (measured with ``crs-study bench display`` on a busy 2-CPU machine; bump
+z_f = 4 mm, l = 90 mm; time per surface, RMS / max error against ``reference``)
+
+    ========= ================================ ================================
+    model     1D (721 points)                  2D (41 x 41 points)
+    ========= ================================ ================================
+    nearest   0.008 ms, 0.60 / 1.9 mm          0.24 ms, 0.32 / 1.9 mm
+    linear    0.010 ms, 0.34 / 1.1 mm          0.067 ms, 0.16 / 1.4 mm
+    spline    0.11 ms, 0.15 / 0.49 mm          0.24 ms, 0.068 / 0.49 mm
+    beam      0.25 ms, 0.0008 / 0.0028 mm      0.50 ms, 0.0002 / 0.0024 mm
+    reference 54 ms (the yardstick)            246 ms
+    ========= ================================ ================================
+
+* Runner and simulated observer, CRS condition: ``beam``. It is the only model of the
+  compressed skeleton accurate enough: within 0.07 % of the bump height of the reference
+  (max 0.0028 mm of 4 mm), while ``spline``, ``linear`` and ``nearest`` miss by 12-48 % of
+  the height (they have no boundary feed), at any speed. Cost: ``beam_profiles`` 0.26 ms a
+  2D frame (0.14 ms 1D), 0.48 ms with the surface on the observer's 361 points: a 15
+  frames/s session runs ~140x faster than real time (~260x for profiles alone); a repeated
+  frame is a memo hit (microseconds). Pixel-only condition: ``nearest`` (it *is* the pixel
+  display; 0.06 ms on 361 points).
+* Quality criteria (D_P, D_S over many peak positions and large patches): ``beam``; the
+  default ``crs-study quality`` sweep takes ~4 s from an empty cache. ``reference`` agrees
+  with it to 0.07 % of the height but costs 200-500x more per surface.
+* Validation (of ``beam`` and of the other models): ``reference``, the independent FE energy
+  minimisation with the exact arc-length constraint.
+* When a frame only needs the beams (peak along a beam, contact on a beam line), call
+  ``BeamModel.beam_profiles`` and skip the fabric.
 """
 
 from __future__ import annotations

@@ -121,6 +121,8 @@ def fundamental_matrix(t: np.ndarray, a: np.ndarray, b: float = 0.0) -> np.ndarr
 
 def _theta_minus_sin_over_cube(theta: np.ndarray) -> np.ndarray:
     """(theta - sin theta) / theta^3, by its series below 0.5 (no cancellation)."""
+    if theta.size and theta.min() >= 0.5:  # the common case of a loaded segment
+        return (theta - np.sin(theta)) / (theta * theta * theta)
     small = theta < 0.5
     th2 = theta * theta
     series = 1 / 6 - th2 * (1 / 120 - th2 * (1 / 5040 - th2 * (1 / 362880 - th2 * (
