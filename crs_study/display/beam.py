@@ -90,7 +90,7 @@ _SERIES_LIMIT = 12.0  # largest rho * t for which 64 Taylor terms stay accurate 
 #: the height error it leaves is a few nm
 LENGTH_TOLERANCE_MM = 1e-6
 #: smallest dimensionless load used in the closed forms (their a -> 0 limits are exact there)
-_TINY_LOAD = 1e-200
+_TINY_LOAD = 1e-100
 _SCAN_POINTS = 400  # grid for the first determinant sign change (critical load)
 _GRID_POINTS = 48  # N grid for bracketing the length root
 _WINDOW = 8  # points of the inverse interpolation
