@@ -51,7 +51,8 @@ def describe_os_error(error: OSError, what: str = "", path: str | Path | None = 
 @contextlib.contextmanager
 def os_errors(error: type[CrsStudyError], what: str = "",
               path: str | Path | None = None) -> Iterator[None]:
-    """Within the block, an :class:`OSError` becomes ``error`` with a one-line message."""
+    """Within the block (or the decorated function) an :class:`OSError` becomes ``error``
+    with a one-line message."""
     try:
         yield
     except OSError as exc:

@@ -32,12 +32,13 @@ line; the trial is rerun on resume and its row then says ``device_fault = 1``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -187,55 +188,47 @@ def _choose_clock(spec: SessionSpec, responder: Any) -> str:
     return spec.clock
 
 
-class _SigtermAsInterrupt:
-    """Within the block, SIGTERM raises KeyboardInterrupt (a safe pause); main thread only."""
+@contextlib.contextmanager
+def _signals(handler: Any, signums: tuple[int, ...]) -> Iterator[None]:
+    """Within the block ``handler`` serves ``signums``; restored after (main thread only)."""
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in signums:
+            old[signum] = signal.signal(signum, handler)
+    try:
+        yield
+    finally:
+        for signum, previous in old.items():
+            signal.signal(signum, previous)
 
-    def __enter__(self) -> None:
-        self._old = None
-        if threading.current_thread() is threading.main_thread():
-            def handler(signum: int, frame: object) -> None:
-                raise KeyboardInterrupt
-            self._old = signal.signal(signal.SIGTERM, handler)
 
-    def __exit__(self, *exc: object) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGTERM, self._old)
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
-class _DeferInterrupts:
-    """Hold Ctrl-C and SIGTERM back until the block ends, then pause (main thread only).
+def _sigterm_as_interrupt() -> contextlib.AbstractContextManager[None]:
+    """Within the block, SIGTERM raises KeyboardInterrupt (a safe pause)."""
+    return _signals(_raise_interrupt, (signal.SIGTERM,))
+
+
+def _ignore_interrupts() -> contextlib.AbstractContextManager[None]:
+    """Ignore Ctrl-C while the session is being put safely to rest."""
+    return _signals(signal.SIG_IGN, (signal.SIGINT,))
+
+
+@contextlib.contextmanager
+def _defer_interrupts() -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM back until the block ends, then pause.
 
     Wraps the storing of a trial (frame log, row, in-memory rows, sidecar) so an interrupt
     never falls between them: the trial is stored whole, then the session pauses.
     """
-
-    def __enter__(self) -> None:
-        self._old: dict[int, Any] = {}
-        self._caught = False
-        if threading.current_thread() is threading.main_thread():
-            def handler(signum: int, frame: object) -> None:
-                self._caught = True
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                self._old[signum] = signal.signal(signum, handler)
-
-    def __exit__(self, exc_type: object, *exc: object) -> None:
-        for signum, old in self._old.items():
-            signal.signal(signum, old)
-        if self._caught and exc_type is None:
-            raise KeyboardInterrupt
-
-
-class _IgnoreInterrupts:
-    """Defer Ctrl-C while the session is being put safely to rest (main thread only)."""
-
-    def __enter__(self) -> None:
-        self._old = None
-        if threading.current_thread() is threading.main_thread():
-            self._old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-    def __exit__(self, *exc: object) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+    caught: list[int] = []
+    with _signals(lambda signum, frame: caught.append(signum),
+                  (signal.SIGINT, signal.SIGTERM)):
+        yield
+    if caught:
+        raise KeyboardInterrupt
 
 
 @dataclass
@@ -280,6 +273,15 @@ def prepare(spec: SessionSpec) -> tuple[Any, Any, Any, Dataset]:
     return protocol, layout, plan, dataset
 
 
+def _fingerprints(protocol: Any, plan: Any, device_text: str) -> dict[str, Any]:
+    """What a stored session must match to be resumed (see :func:`check_resume`)."""
+    return {
+        "ProtocolSha256": protocol.sha256, "Seed": int(plan.seed),
+        "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
+        "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
+    }
+
+
 def check_resume(stored: dict, expected: dict, sidecar: Path) -> None:
     """A stored session may only be resumed with the same plan: one line saying what differs."""
     for key, label in (("ProtocolSha256", "protocol file"), ("Seed", "seed"),
@@ -314,11 +316,7 @@ def seed_check(spec: SessionSpec) -> dict[str, Any]:
     protocol, layout, plan, dataset = prepare(spec)
     paths = dataset.session_paths(spec.participant, spec.session)
     device_text = _device_file_text(layout, protocol)
-    expected = {
-        "ProtocolSha256": protocol.sha256, "Seed": int(plan.seed),
-        "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
-        "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
-    }
+    expected = _fingerprints(protocol, plan, device_text)
     stored = SessionStore(paths).read_sidecar()
     if stored is not None:
         check_resume(stored, expected, paths.sidecar)
@@ -349,11 +347,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
     paths = dataset.session_paths(spec.participant, spec.session)
     n_trials = len(plan.trials)
     device_text = _device_file_text(layout, protocol)
-    expected = {
-        "ProtocolSha256": protocol.sha256, "Seed": int(plan.seed),
-        "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
-        "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
-    }
+    expected = _fingerprints(protocol, plan, device_text)
     store = SessionStore(paths, durable=spec.durable)
     with store:
         stored = store.read_sidecar()
@@ -394,7 +388,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         status = "interrupted"
         origin = 0.0
         try:
-            with _SigtermAsInterrupt(), responder, open_device(
+            with _sigterm_as_interrupt(), responder, open_device(
                     spec.device_url, layout, clock, **(device_options or {})) as device:
                 device.neutral()
                 if clock_kind == "virtual":
@@ -433,7 +427,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             _save_after_failure(state)  # the first error is the one reported
             raise
         if status == "interrupted":
-            with _IgnoreInterrupts():
+            with _ignore_interrupts():
                 _save(state, "interrupted", final=True)
         if status == "complete":
             _save(state, "complete", final=True)
@@ -493,7 +487,7 @@ def _save_after_failure(state: _Session) -> None:
     A failure here (the disk that just filled up) must not hide the first error: the TSV is
     the authority and the sidecar is brought up to date on resume, so it is let go.
     """
-    with _IgnoreInterrupts():
+    with _ignore_interrupts():
         try:
             _save(state, "interrupted", final=True)
         except CrsStudyError:
@@ -614,7 +608,7 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
     flat = "\t".join(f"{v:.4f}" for v in state.layout.neutral_setpoints().tolist())
     log.append(_frame_line("neutral", n, shown.neutral_due, shown.neutral, origin, flat))
     columns = FRAME_LOG_COLUMNS + tuple(f"a{j:02d}" for j in range(frames.shape[1]))
-    with _DeferInterrupts():  # stored whole: frames, row, rows in memory, sidecar
+    with _defer_interrupts():  # stored whole: frames, row, rows in memory, sidecar
         state.store.append_frames(trial.index, columns, log)
         state.store.append_row(row)
         state.rows.append({k: str(v) for k, v in row.items()})

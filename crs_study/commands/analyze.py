@@ -11,6 +11,9 @@ import argparse
 import json
 import sys
 
+from crs_study._files import os_errors
+from crs_study.errors import AnalysisError
+
 NAME = "analyze"
 HELP = "analyse datasets: accuracy, GLMM, secondary tests, confusions, speed-accuracy, report"
 
@@ -31,16 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a failed checksum or metadata check is an error, not a warning")
 
 
+@os_errors(AnalysisError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    """The command; an OSError becomes a one-line error naming the file."""
-    from crs_study._files import os_errors
-    from crs_study.errors import AnalysisError
-
-    with os_errors(AnalysisError):  # disk full, permission denied, a file where a folder should be
-        return _run(args)
-
-
-def _run(args: argparse.Namespace) -> int:
     from crs_study.analysis.report import analyze
 
     result = analyze(args.datasets, args.plan, args.out, strict=args.strict)

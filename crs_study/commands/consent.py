@@ -9,6 +9,9 @@ from __future__ import annotations
 import argparse
 import json
 
+from crs_study._files import os_errors
+from crs_study.errors import ConsentError
+
 NAME = "consent"
 HELP = "record consent, list records, withdraw a participant (removes their data)"
 
@@ -47,16 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     recover.add_argument("--dataset", action="append", required=True, metavar="DIR")
 
 
+@os_errors(ConsentError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    """The command; an OSError becomes a one-line error naming the file."""
-    from crs_study._files import os_errors
-    from crs_study.errors import ConsentError
-
-    with os_errors(ConsentError):  # disk full, permission denied, a file where a folder should be
-        return _run(args)
-
-
-def _run(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
     from crs_study import consent

@@ -16,6 +16,9 @@ import sys
 from datetime import datetime
 from pathlib import Path
 
+from crs_study._files import os_errors
+from crs_study.errors import DatasetError
+
 NAME = "demo"
 HELP = "dry-run the default protocol with simulated participants, analyse, print the headline"
 DEFAULT_PROTOCOL = "protocols/digit_identification.toml"
@@ -49,16 +52,8 @@ def fresh_directory(base: Path | None = None) -> Path:
     return candidate
 
 
+@os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    """The command; an OSError becomes a one-line error naming the file."""
-    from crs_study._files import os_errors
-    from crs_study.errors import DatasetError
-
-    with os_errors(DatasetError):  # disk full, permission denied, a file where a folder should be
-        return _run(args)
-
-
-def _run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
     from crs_study.errors import SessionError
     from crs_study.paths import shipped_file

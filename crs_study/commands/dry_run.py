@@ -13,6 +13,9 @@ import json
 import os
 from pathlib import Path
 
+from crs_study._files import os_errors
+from crs_study.errors import DatasetError
+
 NAME = "dry-run"
 HELP = "rehearse a protocol: simulated device, simulated participants, virtual clock"
 
@@ -36,16 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="print a JSON summary on stdout and no progress")
 
 
+@os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    """The command; an OSError becomes a one-line error naming the file."""
-    from crs_study._files import os_errors
-    from crs_study.errors import DatasetError
-
-    with os_errors(DatasetError):  # disk full, permission denied, a file where a folder should be
-        return _run(args)
-
-
-def _run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
     from crs_study.runner import dry_run
 

@@ -15,6 +15,9 @@ import os
 import sys
 from pathlib import Path
 
+from crs_study._files import os_errors
+from crs_study.errors import DatasetError
+
 NAME = "run"
 HELP = "run or resume a participant session on a device"
 EXIT_INTERRUPTED = 130
@@ -75,16 +78,8 @@ def stderr_progress(enabled: bool):
     return show
 
 
+@os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    """The command; an OSError becomes a one-line error naming the file."""
-    from crs_study._files import os_errors
-    from crs_study.errors import DatasetError
-
-    with os_errors(DatasetError):  # disk full, permission denied, a file where a folder should be
-        return _run(args)
-
-
-def _run(args: argparse.Namespace) -> int:
     from crs_study.runner import run_session, seed_check
 
     spec = spec_from_args(args)
