@@ -30,12 +30,12 @@ import signal
 import string
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 
 from crs_study._files import append_durably, fsync_dir, os_errors, sha256_bytes, write_atomically
-from crs_study.dataset import Dataset
-from crs_study.errors import ConsentError
+from crs_study.dataset import Dataset, utc_now
+from crs_study.dataset import check_label as dataset_check_label
+from crs_study.errors import ConsentError, SessionError
 
 REGISTER_ENV = "CRS_STUDY_CONSENT_DIR"
 REGISTER_FILE = "register.jsonl"
@@ -45,7 +45,6 @@ STAGING_DIR = ".crs-study-withdrawal-staging"
 #: Test hook: kill the process at the n-th withdrawal checkpoint (simulates a power cut).
 CRASH_ENV = "CRS_STUDY_WITHDRAW_CRASH_AT"
 
-_LABEL_RE = re.compile(r"^[A-Za-z0-9]+$")
 _VERSION_RE = re.compile(r"^Version:\s*(\S+)", re.MULTILINE)
 _INITIALS_RE = re.compile(r"^[A-Za-z]{1,4}$")
 _LABEL_ALPHABET = string.ascii_lowercase + string.digits
@@ -58,12 +57,11 @@ def default_register_dir() -> Path:
 
 
 def check_label(label: str) -> str:
-    """A participant label must be BIDS-valid: letters and digits only."""
-    if not isinstance(label, str) or not _LABEL_RE.match(label):
-        raise ConsentError(
-            f"participant label {label!r} is not valid: use letters and digits only (BIDS)"
-        )
-    return label
+    """A participant label must be BIDS-valid: letters and digits only (as in the dataset)."""
+    try:
+        return dataset_check_label(label)
+    except SessionError as error:
+        raise ConsentError(str(error)) from None
 
 
 def generate_label(existing: Iterable[str] = (), length: int = 7) -> str:
@@ -124,10 +122,6 @@ class ConsentRecord:
     @property
     def status(self) -> str:
         return "withdrawn" if self.withdrawn_at else "consented"
-
-
-def _now() -> str:
-    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 class Register:
@@ -209,7 +203,7 @@ class Register:
                 "give a returning person a new label"
             )
         event = {
-            "event": "consent", "participant": participant, "time": _now(),
+            "event": "consent", "participant": participant, "time": utc_now(),
             "form_path": str(form.path), "form_version": form.version,
             "form_sha256": form.sha256, "experimenter": experimenter.upper(),
         }
@@ -223,7 +217,7 @@ class Register:
         if record is not None and record.withdrawn_at:
             return  # idempotent
         self._append(self.path, {"event": "withdrawal", "participant": participant,
-                                 "time": _now()})
+                                 "time": utc_now()})
 
     def audit(self, entry: dict) -> None:
         if self.audit_path.exists() and any(
@@ -385,7 +379,7 @@ def _complete(dataset: Path, journal: dict) -> dict:
     register.mark_withdrawn(participant)
     entry = {
         "event": "withdrawal", "participant": participant, "time": journal["time"],
-        "completed": _now(), "dataset": str(dataset.resolve()), "removed": journal["paths"],
+        "completed": utc_now(), "dataset": str(dataset.resolve()), "removed": journal["paths"],
         "participants_tsv_row_removed": True, "journal_id": journal["journal_id"],
     }
     register.audit(entry)
@@ -414,7 +408,7 @@ def withdraw(participant: str, datasets: Iterable[str | Path],
         if journal is None:
             _check_not_running(dataset, participant)
             journal = {
-                "participant": participant, "time": _now(),
+                "participant": participant, "time": utc_now(),
                 "register": str(register.directory.resolve()),
                 "paths": participant_paths(dataset, participant),
                 "journal_id": secrets.token_hex(8),
