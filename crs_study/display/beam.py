@@ -402,6 +402,9 @@ class CompressedBeams:
             self.pixel_map[bi, : len(beam.pixels)] = beam.pixels
         self.start_servo = np.array([b.start_servo for b in layout.beams], dtype=int)
         self.end_servo = np.array([b.end_servo for b in layout.beams], dtype=int)
+        self._pixel_index = np.maximum(self.pixel_map, 0)
+        self._pixel_real = (self.pixel_map >= 0).astype(float)
+        self._cols = np.arange(self.n_beams)
         self._precompute_geometries(supports)
         self.critical_load_n = self.a_critical * self.ei / d**2
 
@@ -432,6 +435,9 @@ class CompressedBeams:
         self.a_grid = self.margin * self.a_critical[None, :] * (1.0 - (1.0 - u) ** 2)  # (K, B)
         self._shortening = 1.0 - self.a_grid * self.axial_compliance
         self._windows = np.arange(_GRID_POINTS - _WINDOW + 1)[:, None] + np.arange(_WINDOW)
+        self._window_start = np.clip(np.arange(_GRID_POINTS) - _WINDOW // 2, 0,
+                                     _GRID_POINTS - _WINDOW)  # by the bracket's upper index
+        self._grid_windows = self.a_grid.T[:, self._windows].transpose(1, 0, 2)  # (start, B, W)
         nq = self.beams.t_nodes.shape[1]
         ops = np.zeros((self.n_beams, _GRID_POINTS, nq, self.beams.n_pixels))
         for bi, (_, op) in enumerate(entries):
@@ -480,7 +486,7 @@ class CompressedBeams:
 
     # --- per frame ------------------------------------------------------------------------
     def heights(self, setpoints: np.ndarray) -> np.ndarray:
-        return np.where(self.pixel_map >= 0, setpoints[np.maximum(self.pixel_map, 0)], 0.0)
+        return setpoints[self._pixel_index] * self._pixel_real
 
     def _commanded(self, setpoints: np.ndarray) -> np.ndarray:
         return self.spans + setpoints[self.start_servo] + setpoints[self.end_servo]
@@ -534,15 +540,14 @@ class CompressedBeams:
         at the interpolated root and replaces the point of largest |f|; a step outside the
         current bracket falls back to regula falsi. Beams that need no load keep a = 0.
         """
-        cols = np.arange(self.n_beams)
+        cols = self._cols
         hi_index = np.maximum(first, 1)
-        lo = self.a_grid[hi_index - 1, cols]
-        hi = self.a_grid[hi_index, cols]
-        f_lo = excess[hi_index - 1, cols]
-        f_hi = excess[hi_index, cols]
-        window = self._windows[np.clip(hi_index - _WINDOW // 2, 0, _GRID_POINTS - _WINDOW)].T
-        pa = self.a_grid[window, cols]  # (W, B)
-        pf = excess[window, cols]
+        start = self._window_start[hi_index]
+        pa = self._grid_windows[start, cols].T  # (W, B): the grid loads around the bracket
+        pf = excess[self._windows[start].T, cols]
+        bracket = hi_index - start
+        lo, hi = pa[bracket - 1, cols], pa[bracket, cols]
+        f_lo, f_hi = pf[bracket - 1, cols], pf[bracket, cols]
         a = np.zeros(self.n_beams)
         state = None
         active = need
