@@ -481,7 +481,9 @@ class SessionStore:
             expected += 1
         if expected < n_rows and n_rows > 0:
             raise DatasetError(f"{path}: frame log holds trials up to {expected - 1}, the "
-                               f"trial file has {n_rows} rows; the files were edited or damaged")
+                               f"trial file has {n_rows} rows; the files were edited or damaged "
+                               "(a dry-run cut by a power failure: remove this session's files "
+                               "and run the same command to regenerate it)")
         if keep < len(data):
             self._cut(path, data, keep, "frames")
         self._frames_created = keep > 0

@@ -644,9 +644,11 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
     balanced across the N. With ``jobs > 1`` sessions run in that many worker processes (each
     session is written by one process; the dataset lock serialises ``participants.tsv``).
     Completed sessions already in the dataset are left as they are (a rerun resumes).
-    ``durable=False`` fsyncs each session when it stops rather than after every trial: a
-    killed dry-run still loses nothing, and a power cut costs at most the unfinished
-    sessions, which the same command regenerates exactly from their seeds.
+    ``durable=False`` (a documented choice; ``--fsync`` turns it off) fsyncs each session
+    once, when it stops, rather than after every trial as ``crs-study run`` does: a killed
+    dry-run still loses nothing and resumes exactly. A power cut costs at most the unfinished
+    sessions; one whose files the cut left inconsistent is refused on resume in one line,
+    and removing its files lets the same command regenerate it exactly from its seed.
     """
     if not device_url.startswith("sim://"):
         raise SessionError(f"a dry-run uses the simulated device (sim://...), got "

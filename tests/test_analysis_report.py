@@ -256,3 +256,41 @@ def test_cli_unwritable_output_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert "file/out/figures: cannot write the analysis: Not a directory" in err
+
+
+def test_results_agree_with_scipy_and_statsmodels_from_the_raw_files(full_run):
+    """results.json recomputed independently from the stored TSVs: practice, device faults,
+    time-outs and anticipations (< 0.15 s) left out; Wilson intervals from statsmodels
+    ``proportion_confint(method="wilson")``, tests against chance from scipy ``binomtest``,
+    McNemar's mid-p (Fagerland et al. 2013: exact two-sided p minus the point probability)
+    on trials paired by participant, digit and repetition from scipy's binomial."""
+    import glob
+
+    import pandas as pd
+    from scipy import stats
+    from statsmodels.stats.proportion import proportion_confint
+
+    root, _, result = full_run
+    files = sorted(glob.glob(str(root / "sub-*/ses-*/beh/*_beh.tsv")))
+    raw = pd.concat([pd.read_csv(f, sep="\t", na_values=["n/a"]).assign(p=f) for f in files])
+    kept = raw[(raw.trial_type == "test") & (raw.device_fault == 0) & (raw.timed_out == 0)
+               & (raw.response_time >= 0.15)]
+    assert (raw.trial_type == "practice").any() and len(kept) < len(raw)
+    for condition, rows in kept.groupby("condition"):
+        k, n = int(rows.correct.sum()), len(rows)
+        stored = result.results["conditions"][condition]
+        assert (stored["n_correct"], stored["n_trials"]) == (k, n)
+        assert stored["accuracy"] == pytest.approx(k / n, abs=1e-12)
+        assert stored["ci95"] == pytest.approx(proportion_confint(k, n, method="wilson"),
+                                               abs=1e-12)
+        assert stored["p_vs_chance"] == pytest.approx(stats.binomtest(k, n, 0.1).pvalue,
+                                                      rel=1e-9)
+    pairs = kept.pivot_table(index=["p", "digit", "repetition"], columns="condition",
+                             values="correct").dropna()
+    b = int(((pairs["crs"] == 1) & (pairs["pixel-only"] == 0)).sum())
+    c = int(((pairs["crs"] == 0) & (pairs["pixel-only"] == 1)).sum())
+    n, low = b + c, min(b, c)
+    mid_p = min(1.0, 2 * stats.binom.cdf(low, n, 0.5)) - stats.binom.pmf(low, n, 0.5)
+    mcnemar = next(x for x in result.results["comparisons"] if "McNemar" in x["method"])
+    assert mcnemar["p_value"] == pytest.approx(mid_p, rel=1e-9)
+    assert mcnemar["estimate"] == pytest.approx(b / c, rel=1e-12)
