@@ -25,19 +25,20 @@ HELP = "display quality D_P and D_S against d/l per model and lattice (chart, ta
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from crs_study.quality.sweep import DEFAULT_D_OVER_L, DEFAULT_MODELS
-
+    # Defaults are resolved in run(): importing the quality package here would load scipy
+    # for every crs-study command.
     parser.add_argument("--json", action="store_true",
                         help="print one JSON row per point instead of the summary")
     parser.add_argument("--out", type=Path, default=None,
                         help="folder for quality.png, quality.csv, quality.md "
                              "(default ./quality; with --json none unless given)")
-    parser.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS), metavar="MODEL",
-                        help="display models to evaluate")
+    parser.add_argument("--models", nargs="+", default=None, metavar="MODEL",
+                        help="display models to evaluate (default: nearest linear spline beam)")
     parser.add_argument("--layouts", nargs="+", default=["1d", "square", "hex"],
                         choices=["1d", "square", "hex"], help="lattices")
-    parser.add_argument("--d-over-l", nargs="+", type=float, default=list(DEFAULT_D_OVER_L),
-                        metavar="X", help="pixel pitch over bump diameter")
+    parser.add_argument("--d-over-l", nargs="+", type=float, default=None, metavar="X",
+                        help="pixel pitch over bump diameter "
+                             "(default: 0.1 0.15 0.2 0.25 0.3 1/3 0.4 0.5)")
     parser.add_argument("--speed-accuracy", action="store_true",
                         help="instead of D_P/D_S: time each display model's surface against its "
                              "error versus the FE reference (crs1d, crs2d; CRS bumps) and write "
@@ -64,8 +65,16 @@ def run(args: argparse.Namespace) -> int:
     from crs_study.display.base import MODELS, get_model  # noqa: F401
     from crs_study.errors import DisplayModelError
     from crs_study.quality.criteria import MAX_D_OVER_L, MIN_D_OVER_L
-    from crs_study.quality.sweep import Settings, default_cache_dir, sweep
+    from crs_study.quality.sweep import (
+        DEFAULT_D_OVER_L,
+        DEFAULT_MODELS,
+        Settings,
+        default_cache_dir,
+        sweep,
+    )
 
+    args.models = args.models or list(DEFAULT_MODELS)
+    args.d_over_l = args.d_over_l or list(DEFAULT_D_OVER_L)
     if args.speed_accuracy:
         return _speed_accuracy(args)
     unknown = [m for m in args.models if m not in MODELS]
