@@ -344,6 +344,13 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         from crs_study.consent import require_consent
 
         require_consent(spec.consent_register, spec.participant, protocol.consent_form_version)
+    # The order of arrival is taken under the dataset lock: two runners adding participants
+    # at once would otherwise both read the same count and share a counterbalance index.
+    counterbalance = dataset.register_participant(spec.participant, spec.counterbalance)
+    if counterbalance != int(plan.counterbalance):
+        from crs_study.plan import make_plan
+
+        plan = make_plan(protocol, spec.participant, spec.session, counterbalance)
     paths = dataset.session_paths(spec.participant, spec.session)
     n_trials = len(plan.trials)
     device_text = _device_file_text(layout, protocol)
@@ -374,7 +381,6 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             responder = make_responder(spec.responder, seed=int(plan.seed), layout=layout,
                                        protocol=protocol)
         clock_kind = _choose_clock(spec, responder)
-        dataset.register_participant(spec.participant, int(plan.counterbalance))
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials)
         faults = {int(f["trial"]) for f in metadata["Faults"]}

@@ -393,3 +393,24 @@ def test_disk_full_mid_session_is_one_line_and_loses_nothing(tmp_path, devices, 
     whole = run_session(spec_for(tmp_path, spec.protocol, "whole"))
     assert run_session(spec).status == "complete"
     assert tsv.read_bytes() == whole.tsv.read_bytes()
+
+
+def test_participants_arriving_together_get_their_own_counterbalance(tmp_path, devices,
+                                                                     monkeypatch):
+    """The order of arrival used to be read without the dataset lock and written back as
+    given: a second runner registering in between left both participants on index 0."""
+    import crs_study.runner as runner
+    from crs_study.dataset import Dataset
+
+    real_prepare = runner.prepare
+
+    def prepare_then_another_arrives(spec):
+        prepared = real_prepare(spec)
+        Dataset(spec.dataset).register_participant("other")  # the other runner, in between
+        return prepared
+
+    monkeypatch.setattr(runner, "prepare", prepare_then_another_arrives)
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path), participant="p02")
+    result = run_session(spec)
+    assert Dataset(spec.dataset).participants() == {"other": 0, "p02": 1}
+    assert json.loads(result.sidecar.read_text())["Counterbalance"] == 1
