@@ -266,6 +266,24 @@ def test_one_port_vanishing_is_reported_by_name(layout2d):
         device.send(np.zeros(layout2d.n_actuators))
 
 
+def test_one_port_vanishing_still_sends_neutral_to_the_other_board(layout2d):
+    # a lab's safety need: the board whose port survived must still reach the neutral pose
+    device = sim(layout2d, "sim://?disconnect_at=B@0.5", record=True)
+    device.send(np.full(layout2d.n_actuators, 4.0))
+    device.clock.advance(1.0)
+    with pytest.raises(DeviceError, match="controller B: port vanished"):
+        device.send(np.full(layout2d.n_actuators, 5.0))
+    device.close()
+    a, b = device.boards
+    last_a = [r.message for r in a.received if isinstance(r.message, codec.ServoMove)][-1]
+    neutral = expected_frame(layout2d, "A", layout2d.neutral_setpoints(), move_ms=500)
+    assert last_a.encode() == neutral
+    assert not any(isinstance(r.message, codec.ServoMove) and r.message.time_ms == 500
+                   for r in b.received)
+    assert any("controller B" in f and "neutral pose not reached" in f for f in device.faults)
+    assert not any("controller A" in f for f in device.faults)
+
+
 def test_garbage_is_counted_resynchronised_and_never_hangs(layout2d):
     def run(seed):
         rng = np.random.default_rng(11)

@@ -390,6 +390,11 @@ class SimulatedDevice(Device):
                        check_faults=False, full=True)
         except DeviceError as exc:
             self.faults.append(f"close: neutral pose not reached: {exc}")
+        else:
+            for wire in self._wires:
+                if wire.cut:  # the healthy boards got it; this one could not
+                    self.faults.append(f"close: neutral pose not reached: {self.url}: "
+                                       f"controller {wire.board.name}: port vanished")
         finally:
             # like a flushed port: whatever is on or waiting for the wire still goes out
             self._advance(max(w.free_at for w in self._wires) + self._frame_s_bound())
@@ -414,11 +419,9 @@ class SimulatedDevice(Device):
             state = "closed" if self.closed else "not open"
             raise DeviceError(f"{self.url}: cannot send: the device is {state}")
         t = self.clock.now()
-        if t >= self._fault_at:
-            self._advance(t)
-            self._raise_faults(t, check_faults)
-        else:
-            self._advance(t)
+        self._advance(t)
+        if t >= self._fault_at and check_faults:
+            self._raise_faults(t)
         pulses = self.builder.pulses(setpoints_mm)
         if move_ms is None:
             move_ms = self.default_move_ms
@@ -431,6 +434,9 @@ class SimulatedDevice(Device):
         channels = 0
         merged = False
         for k, wire in enumerate(self._wires):
+            if wire.cut:  # only close() gets here: the other boards still get their frame
+                bytes_sent.append(0)
+                continue
             if full:
                 wire.force_full = True
             if wire.free_at > t:  # busy: replace whatever waits, never queue
@@ -516,20 +522,19 @@ class SimulatedDevice(Device):
         out += data[previous:]
         return bytes(out)
 
-    def _raise_faults(self, t: float, brownout_too: bool) -> None:
+    def _raise_faults(self, t: float) -> None:
         for wire in self._wires:
             if wire.cut:
                 self._fault(f"{self.url}: controller {wire.board.name}: port vanished at "
                             f"{wire.vanish_at - self.opened_at:.3f} s after open")
-        if brownout_too:
-            for board in self.boards:
-                board.battery_mv(t)  # fires the board's events up to t
-                if board.browned_out_at is not None:
-                    self._fault(
-                        f"{self.url}: controller {board.name}: brown-out at "
-                        f"{board.browned_out_at - self.opened_at:.3f} s after open: battery "
-                        f"reads {board.battery_mv()} mV, servos limp"
-                    )
+        for board in self.boards:
+            board.battery_mv(t)  # fires the board's events up to t
+            if board.browned_out_at is not None:
+                self._fault(
+                    f"{self.url}: controller {board.name}: brown-out at "
+                    f"{board.browned_out_at - self.opened_at:.3f} s after open: battery "
+                    f"reads {board.battery_mv()} mV, servos limp"
+                )
 
     def _fault(self, message: str) -> None:
         if message not in self.faults:
