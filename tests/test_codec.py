@@ -159,6 +159,37 @@ def test_board_direction_reads_replies_and_notices():
     assert skipped == []
 
 
+# Hiwonder, "LSC Series Controller Communication Protocol" (public copy:
+# github.com/Hiwonder-docs/32-Channel-Servo-Controller, source/docs/2_Communication_Protocol.md)
+# section 2.1 examples (host -> board) and section 2.2 (board -> host notices).
+VENDOR_COMMANDS = [
+    ("55 55 05 06 08 01 00", ActionGroupRun(8, 1)),  # run group 8 once
+    ("55 55 05 06 02 00 00", ActionGroupRun(2, 0)),  # run group 2 forever
+    ("55 55 02 07", ActionGroupStop()),
+    ("55 55 05 0B 08 32 00", ActionGroupSpeed(8, 50)),  # group 8 at 50 %
+    ("55 55 05 0B FF 2C 01", ActionGroupSpeed(0xFF, 300)),  # every group at 300 %
+    ("55 55 02 0F", GetBatteryVoltage()),
+]
+VENDOR_NOTICES = [
+    ("55 55 05 06 08 01 00", ActionGroupRunning(8, 1)),  # group 8 started, to run once
+    ("55 55 02 07", ActionGroupStopped()),  # a running group was stopped
+    ("55 55 05 08 08 01 00", ActionGroupComplete(8, 1)),  # group 8 finished its one run
+]
+
+
+@pytest.mark.parametrize(("hex_bytes", "message", "direction"),
+                         [(h, m, Direction.HOST) for h, m in VENDOR_COMMANDS]
+                         + [(h, m, Direction.BOARD) for h, m in VENDOR_NOTICES])
+def test_vendor_sheet_vectors_encode_and_decode_exactly(hex_bytes, message, direction):
+    data = bytes.fromhex(hex_bytes)
+    assert message.encode() == data
+    assert decode_frame(data, direction) == message
+    # inside a stream, between the published battery reply / one-servo move
+    other = VECTOR_BATTERY if direction is Direction.BOARD else VECTOR_ONE_SERVO
+    frames, skipped = decode_all(other + data + other, direction)
+    assert [f.raw for f in frames] == [other, data, other] and skipped == []
+
+
 def test_partial_frame_waits_and_flush_reports_it_truncated():
     decoder = FrameDecoder()
     assert decoder.feed(VECTOR_ONE_SERVO[:7]) == []

@@ -22,9 +22,15 @@ Board to host (replies and notices)
     battery voltage                 15  4        millivolts lo, hi
     servo positions                 21  3n + 3   n, n x (id, pos lo, pos hi)
 
-The lengths of the 0x06/0x07/0x08 notices follow Hiwonder's LobotServoController reference
-code (the vendor protocol sheet lists the codes only); they are the same layout as the
-corresponding commands.
+The 0x06/0x07/0x08 notices and their lengths are the vendor's: Hiwonder's "LSC Series
+Controller Communication Protocol", section 2.2 "Data Sent by the Controller to User"
+(public copy: github.com/Hiwonder-docs/32-Channel-Servo-Controller,
+source/docs/2_Communication_Protocol.md) gives Length 5, 2, 5 with the examples
+``55 55 05 06 08 01 00`` (group 8 started, once), ``55 55 02 07`` (stopped) and
+``55 55 05 08 08 01 00`` (group 8 done); Hiwonder's Arduino LobotServoController receive
+handler reads the same layout (group, times lo, times hi). Those vectors, and the sheet's
+command examples (``55 55 05 06 02 00 00``, ``55 55 05 0B 08 32 00``, ``55 55 05 0B FF 2C
+01``), are in tests/test_codec.py.
 
 Value ranges enforced by the encoders (and by the decoder, which is how it resynchronises):
 pulse width 500..2500 us, move time 0..30000 ms (hardware.md), servo ids 0..32 (the largest
