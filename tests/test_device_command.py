@@ -5,36 +5,22 @@ from __future__ import annotations
 import json
 import os
 import pty
+import re
 import threading
+import time
 
 import pytest
-from test_serial_device import PtyBoard
+from _pty_helpers import boards_fixture, url_of  # noqa: F401 - the boards fixture
 
 from crs_study.cli import main
-from crs_study.device import codec
+from crs_study.device import codec, protocol_lscsim
+from crs_study.device.virtual_controller import VirtualController
 from crs_study.layout import load_layout
-
-
-@pytest.fixture
-def boards():
-    made: list[PtyBoard] = []
-
-    def make(n: int, **kwargs) -> list[PtyBoard]:
-        made.extend(PtyBoard(**kwargs) for _ in range(n))
-        return made[-n:]
-
-    yield make
-    for board in made:
-        board.close()
-
-
-def _url(boards) -> str:
-    return "serial://" + ",".join(b.path for b in boards)
 
 
 def test_neutral_puts_valid_servo_moves_on_both_ttys(boards, capsys):
     pair = boards(2, battery_mv=None)  # boards that never answer the battery request
-    status = main(["device", "neutral", "--device", _url(pair), "--battery-timeout-s", "0.05"])
+    status = main(["device", "neutral", "--device", url_of(pair), "--battery-timeout-s", "0.05"])
     assert status == 0
     err = capsys.readouterr().err
     assert err.count("warning: controller") == 2 and "no answer to GET_BATTERY_VOLTAGE" in err
@@ -50,7 +36,7 @@ def test_neutral_puts_valid_servo_moves_on_both_ttys(boards, capsys):
 
 def test_check_prints_batteries_balance_and_wire_budget(boards, capsys):
     pair = boards(2, battery_mv=7400)
-    assert main(["device", "check", "--device", _url(pair), "--protocol",
+    assert main(["device", "check", "--device", url_of(pair), "--protocol",
                  "protocols/pilot.toml"]) == 0
     out = capsys.readouterr().out
     assert "controller A: battery 7.40 V" in out and "controller B: battery 7.40 V" in out
@@ -61,7 +47,7 @@ def test_check_prints_batteries_balance_and_wire_budget(boards, capsys):
 
 def test_check_json(boards, capsys):
     pair = boards(1, battery_mv=7200)
-    assert main(["device", "check", "--device", _url(pair), "--layout", "crs1d", "--json"]) == 0
+    assert main(["device", "check", "--device", url_of(pair), "--layout", "crs1d", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["battery_mv"] == {"A": 7200.0}
     assert report["full_frame_ms"] == pytest.approx(28 * 10 / 9.6)  # 7 channels: 28 bytes
@@ -69,7 +55,7 @@ def test_check_json(boards, capsys):
 
 def test_sweep_moves_one_channel_through_its_range(boards):
     (board,) = boards(1)
-    assert main(["device", "sweep", "--device", _url([board]), "--layout", "crs1d",
+    assert main(["device", "sweep", "--device", url_of([board]), "--layout", "crs1d",
                  "--channel", "A:2", "--seconds", "0.3", "--frame-rate", "20"]) == 0
     moves = board.wait_for(4)
     pulses = [dict(m.positions).get(2) for m in moves if m.time_ms == 50]
@@ -80,7 +66,7 @@ def test_sweep_moves_one_channel_through_its_range(boards):
 
 def test_unknown_channel_is_a_one_line_error(boards, capsys):
     (board,) = boards(1)
-    assert main(["device", "sweep", "--device", _url([board]), "--layout", "crs1d",
+    assert main(["device", "sweep", "--device", url_of([board]), "--layout", "crs1d",
                  "--channel", "C:9"]) == 2
     assert "--channel: unknown channel(s) 'C:9'" in capsys.readouterr().err
 
@@ -91,7 +77,7 @@ def test_calibrate_records_endpoints_into_a_new_device_file(boards, tmp_path, mo
     answers = iter(["+", "ok", "--", ">", "ok"])  # A:1: 1010 us at base, 1951 us at full
     monkeypatch.setattr("builtins.input", lambda prompt="": next(answers))
     out = tmp_path / "calibrated.toml"
-    assert main(["device", "calibrate", "--device", _url([board]), "--layout", "crs1d",
+    assert main(["device", "calibrate", "--device", url_of([board]), "--layout", "crs1d",
                  "--channel", "A:1", "--output", str(out)]) == 0
     layout = load_layout(out)
     cal = layout.actuators[0].calibration
@@ -101,7 +87,7 @@ def test_calibrate_records_endpoints_into_a_new_device_file(boards, tmp_path, mo
     positions = [dict(m.positions).get(1) for m in board.wait_for(5)]
     assert 1010 in positions and 1951 in positions
     # the original is untouched and the copy is never overwritten silently
-    assert main(["device", "calibrate", "--device", _url([board]), "--layout", "crs1d",
+    assert main(["device", "calibrate", "--device", url_of([board]), "--layout", "crs1d",
                  "--output", str(out)]) == 2
     assert "already exists" in capsys.readouterr().err
 
@@ -126,3 +112,124 @@ def test_monitor_decodes_frames_and_reports_garbage(capsys):
     assert "skipped 4 byte(s) (unknown command 0x42): 55 55 02 42" in out
     assert "ServoMove [2] in 800 ms: 2:1200 9:2300" in out
     assert "2 frame(s), 6 byte(s) skipped" in out
+
+
+# ---------------------------------------------------------------------------------------------
+# the simulator's lscsim:// ports, bad numbers, faults met on the way to neutral
+
+
+@pytest.fixture
+def lscsim_boards(request):
+    """Recording virtual boards behind lscsim://NAME-A and lscsim://NAME-B (unique names)."""
+    names = [f"{request.node.name}-{c}" for c in "AB"]
+    made = [protocol_lscsim.attach(n, VirtualController(n, record=True, t0=time.monotonic()))
+            for n in names]
+    yield names, made
+    for n in names:
+        protocol_lscsim.detach(n)
+
+
+def test_lscsim_ports_work_from_the_command_line(lscsim_boards, capsys):
+    (a, b), boards = lscsim_boards
+    url = f"serial://lscsim://{a},lscsim://{b}"
+    assert main(["device", "neutral", "--device", url]) == 0
+    assert "neutral pose sent" in capsys.readouterr().out
+    for board, channels in zip(boards, (19, 18), strict=True):
+        moves = [r.message for r in board.received if isinstance(r.message, codec.ServoMove)]
+        assert moves and moves[-1].positions == tuple((ch, 1000) for ch in range(1, channels + 1))
+        assert board.bad_frames == 0
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [(["--seconds", "inf"], r"--seconds: expected a time per channel in \(0, 600\] s, got inf"),
+     (["--seconds", "0"], r"--seconds: .* got 0\.0"),
+     (["--frame-rate", "nan"], r"--frame-rate: expected 0\.0333\.\.100 frames/s .* got nan"),
+     (["--frame-rate", "0.001"], r"--frame-rate: .* got 0\.001")])
+def test_sweep_refuses_bad_numbers_in_one_line_before_opening(flags, message, capsys):
+    # a port that does not exist: the numbers are refused before any port is opened
+    assert main(["device", "sweep", "--device", "serial:///nonexistent", "--layout", "crs1d",
+                 *flags]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and err.count("\n") == 1
+
+
+def test_a_neutral_pose_not_reached_is_never_reported_as_success(capsys):
+    # board B's port vanished: A still gets neutral, the command says what failed, exit 2
+    assert main(["device", "neutral", "--device", "sim://?disconnect_at=B@0"]) == 2
+    out, err = capsys.readouterr()
+    assert "neutral pose sent" not in out
+    assert "warning: close: neutral pose not reached" in err and "controller B" in err
+    assert err.strip().splitlines()[-1].startswith("crs-study device: error: ")
+
+
+def test_neutral_fails_when_the_pose_cannot_be_confirmed_on_close(monkeypatch, capsys):
+    from crs_study.device.simulated import SimulatedDevice
+
+    real_close = SimulatedDevice.close
+
+    def failing_close(self):
+        real_close(self)
+        self.faults.append("controller A: neutral pose not confirmed sent (timeout)")
+
+    monkeypatch.setattr(SimulatedDevice, "close", failing_close)
+    assert main(["device", "check", "--device", "sim://", "--layout", "crs1d"]) == 2
+    err = capsys.readouterr().err
+    assert ("error: closing the device: controller A: neutral pose not confirmed sent" in err)
+
+
+def test_calibrate_refuses_an_unwritable_output_before_asking_anything(boards, tmp_path,
+                                                                      monkeypatch, capsys):
+    (board,) = boards(1)
+    monkeypatch.setattr("builtins.input", lambda prompt="": pytest.fail("asked for input"))
+    for out, extra in ((tmp_path / "missing" / "x.toml", []), (tmp_path, ["--overwrite"])):
+        assert main(["device", "calibrate", "--device", url_of([board]), "--layout", "crs1d",
+                     "--output", str(out), *extra]) == 2
+        assert "expected a new file in a writable directory" in capsys.readouterr().err
+    assert board.moves() == []  # the port was never opened
+
+
+def test_calibrate_prints_the_endpoints_when_the_file_cannot_be_written(boards, tmp_path,
+                                                                       monkeypatch, capsys):
+    (board,) = boards(1)
+    answers = iter(["ok", "ok"])
+    monkeypatch.setattr("builtins.input", lambda prompt="": next(answers))
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("crs_study.device.calibration.write_calibrated_copy", disk_full)
+    out = tmp_path / "calibrated.toml"
+    assert main(["device", "calibrate", "--device", url_of([board]), "--layout", "crs1d",
+                 "--channel", "A:1", "--output", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert '"A:1" = {zero_us = 1000, full_us = 2000}' in captured.out  # nothing lost
+    assert "No space left on device" in captured.err and not out.exists()
+
+
+def test_monitor_ends_cleanly_on_ctrl_c(monkeypatch, capsys):
+    class Port:
+        """Carries one frame, then the experimenter presses Ctrl-C during the next read."""
+
+        in_waiting = 0
+
+        def __init__(self) -> None:
+            self.chunks = [codec.servo_move({1: 2000}, 1000), b"\x55"]
+            self.closed = False
+
+        def read(self, n: int) -> bytes:
+            if self.chunks:
+                return self.chunks.pop(0)
+            raise KeyboardInterrupt
+
+        def close(self) -> None:
+            self.closed = True
+
+    port = Port()
+    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
+                        lambda spec, **kw: port)
+    assert main(["device", "monitor", "--port", "loop://"]) == 0
+    out = capsys.readouterr().out
+    assert "ServoMove [1] in 1000 ms: 1:2000" in out and "stopped (Ctrl-C)" in out
+    assert "end of stream: skipped 1 byte(s) (truncated frame): 55" in out
+    assert "1 frame(s), 1 byte(s) skipped" in out and port.closed

@@ -6,14 +6,12 @@ answers GET_BATTERY_VOLTAGE like a board (hardware.md: reply ``55 55 04 0F lo hi
 
 from __future__ import annotations
 
-import os
-import pty
-import select
 import threading
 import time
 
 import numpy as np
 import pytest
+from _pty_helpers import boards_fixture, url_of  # noqa: F401 - the boards fixture
 
 from crs_study.clock import RealClock
 from crs_study.device import codec
@@ -27,77 +25,6 @@ from crs_study.device.serial_device import (
 from crs_study.errors import DeviceError
 
 FRAME_S = 64 * BYTE_TIME_S  # a full 19-servo frame, 66.7 ms
-
-
-class PtyBoard:
-    """The board end of a pty pair: decodes host frames, answers battery requests."""
-
-    def __init__(self, battery_mv: int | None = 7400, garbage: bytes = b"") -> None:
-        self.master, slave = pty.openpty()
-        self.path = os.ttyname(slave)
-        self._slave = slave  # kept open so the master sees no hang-up before the device opens
-        self.battery_mv = battery_mv
-        self.garbage = garbage
-        self.raw = bytearray()
-        self.frames: list[codec.Frame] = []
-        self.decoder = codec.FrameDecoder(codec.Direction.HOST)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], 0.01)
-            if not ready:
-                continue
-            try:
-                data = os.read(self.master, 4096)
-            except OSError:
-                return
-            self.raw += data
-            for frame in self.decoder.feed(data):
-                self.frames.append(frame)
-                if isinstance(frame.message, codec.GetBatteryVoltage) and self.battery_mv:
-                    os.write(self.master, self.garbage + codec.battery_voltage_reply(
-                        self.battery_mv))
-
-    def moves(self) -> list[codec.ServoMove]:
-        return [f.message for f in self.frames if isinstance(f.message, codec.ServoMove)]
-
-    def wait_for(self, count: int, timeout: float = 2.0) -> list[codec.ServoMove]:
-        deadline = time.monotonic() + timeout
-        while len(self.moves()) < count and time.monotonic() < deadline:
-            time.sleep(0.005)
-        return self.moves()
-
-    def vanish(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        os.close(self.master)
-
-    def close(self) -> None:
-        if not self._stop.is_set():
-            self._stop.set()
-            self._thread.join()
-            os.close(self.master)
-        os.close(self._slave)
-
-
-@pytest.fixture
-def boards():
-    made: list[PtyBoard] = []
-
-    def make(n: int, **kwargs) -> list[PtyBoard]:
-        made.extend(PtyBoard(**kwargs) for _ in range(n))
-        return made[-n:]
-
-    yield make
-    for board in made:
-        board.close()
-
-
-def _url(boards: list[PtyBoard]) -> str:
-    return "serial://" + ",".join(b.path for b in boards)
 
 
 FAST = dict(pace=False, refresh_s=0.0)  # tests that count frames: no pacing, no refreshes
@@ -141,7 +68,7 @@ def test_missing_port_is_a_one_line_device_error(layout1d):
 
 def test_battery_is_read_on_open_even_after_garbage(layout2d, boards):
     pair = boards(2, battery_mv=7400, garbage=bytes.fromhex("00 55 55 09 FF 13"))
-    with SerialDevice.from_url(_url(pair), layout2d) as device:
+    with SerialDevice.from_url(url_of(pair), layout2d) as device:
         assert device.battery_mv() == [7400.0, 7400.0]
 
 
@@ -159,7 +86,7 @@ def test_silent_board_gives_none_and_a_warning(layout1d):
 
 def test_low_battery_refuses_to_open_and_releases_ports(layout2d, boards):
     pair = boards(2, battery_mv=5400)
-    device = SerialDevice.from_url(_url(pair), layout2d)
+    device = SerialDevice.from_url(url_of(pair), layout2d)
     with pytest.raises(DeviceError, match=r"controller A on .*: battery 5400 mV is below the "
                        r"6000 mV minimum"):
         device.open()
@@ -172,7 +99,7 @@ def test_low_battery_refuses_to_open_and_releases_ports(layout2d, boards):
 
 def test_frames_arrive_complete_changed_only_and_in_order(layout2d, boards):
     pair = boards(2)
-    with SerialDevice.from_url(_url(pair), layout2d, **FAST) as device:
+    with SerialDevice.from_url(url_of(pair), layout2d, **FAST) as device:
         setpoints = np.zeros(layout2d.n_actuators)
         first = device.send(setpoints, move_ms=50)
         assert first.bytes_sent == (64, 61) and first.channels_sent == 37
@@ -199,7 +126,7 @@ def test_frames_arrive_complete_changed_only_and_in_order(layout2d, boards):
 
 def test_deadband_holds_tiny_changes_back(layout1d, boards):
     (board,) = boards(1)
-    with SerialDevice.from_url(_url([board]), layout1d, deadband_us=2, **FAST) as device:
+    with SerialDevice.from_url(url_of([board]), layout1d, deadband_us=2, **FAST) as device:
         device.send(np.zeros(7))
         board.wait_for(1)
         step = np.zeros(7)
@@ -212,7 +139,7 @@ def test_deadband_holds_tiny_changes_back(layout1d, boards):
 
 def test_out_of_range_setpoint_never_reaches_the_wire(layout2d, boards):
     pair = boards(2)
-    with SerialDevice.from_url(_url(pair), layout2d, **FAST) as device:
+    with SerialDevice.from_url(url_of(pair), layout2d, **FAST) as device:
         device.send(np.zeros(37))
         for board in pair:
             board.wait_for(1)
@@ -230,7 +157,7 @@ def test_out_of_range_setpoint_never_reaches_the_wire(layout2d, boards):
 
 def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout2d, boards):
     pair = boards(2)
-    with SerialDevice.from_url(_url(pair), layout2d, refresh_s=0.0) as device:  # paced
+    with SerialDevice.from_url(url_of(pair), layout2d, refresh_s=0.0) as device:  # paced
         reports = []
         for k in range(12):  # every channel changes, 4 ms apart: far beyond the wire
             reports.append(device.send(np.full(37, 0.1 * (k + 1))))
@@ -248,7 +175,7 @@ def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout2d, b
 
 def test_full_refresh_resends_every_channel(layout1d, boards):
     (board,) = boards(1)
-    with SerialDevice.from_url(_url([board]), layout1d, pace=False, refresh_s=0.05) as device:
+    with SerialDevice.from_url(url_of([board]), layout1d, pace=False, refresh_s=0.05) as device:
         device.send(np.zeros(7))
         moves = board.wait_for(3, timeout=1.0)
         assert len(moves) >= 3 and all(len(m.positions) == 7 for m in moves)
@@ -294,7 +221,7 @@ def test_controllers_are_written_concurrently(layout2d):
 
 def test_vanished_port_raises_within_one_frame_period_and_close_releases(layout2d, boards):
     pair = boards(2)
-    device = SerialDevice.from_url(_url(pair), layout2d)
+    device = SerialDevice.from_url(url_of(pair), layout2d)
     device.open()
     try:
         for k in range(5):
@@ -352,7 +279,7 @@ def test_stalled_writer_is_reported_not_waited_for(layout1d):
 
 def test_ctrl_c_inside_a_session_still_sends_neutral_and_releases(layout1d, boards):
     (board,) = boards(1)
-    device = SerialDevice.from_url(_url([board]), layout1d, **FAST)
+    device = SerialDevice.from_url(url_of([board]), layout1d, **FAST)
     with pytest.raises(KeyboardInterrupt), device:
         device.send(np.full(7, 4.0))
         raise KeyboardInterrupt

@@ -9,10 +9,16 @@ or ``sim://[?options]`` (the simulated device). Serial options (--deadband-us, -
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import warnings
+from contextlib import contextmanager
 
 NAME = "device"
+#: ``sweep`` limits: the LSC move time is 0..30000 ms (hardware.md), one frame period a frame.
+SWEEP_MIN_RATE_HZ = 1 / 30
+SWEEP_MAX_RATE_HZ = 100.0
+SWEEP_MAX_S = 600.0
 HELP = "check the controllers, neutral pose, sweep, calibrate endpoints, monitor a port"
 
 
@@ -108,6 +114,33 @@ def _open(args: argparse.Namespace, layout=None):
     return open_device(args.device, layout, **options)
 
 
+@contextmanager
+def _session(device):
+    """Open ``device``; on the way out (success, error or Ctrl-C) close it, which sends the
+    neutral pose. A neutral pose that could not be confirmed is never reported as success: it
+    is a one-line DeviceError, or, when another error is already on its way, a warning."""
+    from crs_study.errors import DeviceError
+
+    device.open()
+    try:
+        yield device
+    except BaseException:
+        for fault in _close(device):
+            print(f"crs-study device: warning: {fault}", file=sys.stderr)
+        raise
+    faults = _close(device)
+    if faults:
+        raise DeviceError(f"closing the device: {faults[0]}"
+                          + (f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""))
+
+
+def _close(device) -> list[str]:
+    """Close ``device``; the faults it recorded while doing so."""
+    before = len(getattr(device, "faults", []))
+    device.close()
+    return list(getattr(device, "faults", [])[before:])
+
+
 def _check(args: argparse.Namespace) -> int:
     import json
 
@@ -116,7 +149,7 @@ def _check(args: argparse.Namespace) -> int:
 
     device = _open(args)
     layout = device.layout
-    with device:
+    with _session(device):
         battery = device.battery_mv()
     balance = channel_balance(layout)
     report = {
@@ -177,10 +210,13 @@ def _protocol_budget(path: str, layout) -> dict:
 
 
 def _neutral(args: argparse.Namespace) -> int:
-    with _open(args) as device:
+    from crs_study.errors import DeviceError
+
+    with _session(_open(args)) as device:
         report = device.neutral()
-        if hasattr(device, "wait_sent"):
-            device.wait_sent(2.0)
+        if hasattr(device, "wait_sent") and not device.wait_sent(2.0):
+            raise DeviceError(f"--device {args.device}: the neutral pose was not written "
+                              f"within 2 s")
     print(f"neutral pose sent: {sum(report.bytes_sent)} bytes, {report.channels_sent} channels")
     return 0
 
@@ -203,16 +239,20 @@ def _sweep(args: argparse.Namespace) -> int:
 
     from crs_study.errors import DeviceError
 
-    if not (args.frame_rate > 0 and args.seconds > 0):
-        raise DeviceError(f"--frame-rate and --seconds: expected > 0, got {args.frame_rate!r} "
-                          f"and {args.seconds!r}")
+    if not (SWEEP_MIN_RATE_HZ <= args.frame_rate <= SWEEP_MAX_RATE_HZ):
+        raise DeviceError(f"--frame-rate: expected {SWEEP_MIN_RATE_HZ:.3g}..{SWEEP_MAX_RATE_HZ:g} "
+                          f"frames/s (a frame's move time is at most 30 s), got "
+                          f"{args.frame_rate!r}")
+    if not (math.isfinite(args.seconds) and 0 < args.seconds <= SWEEP_MAX_S):
+        raise DeviceError(f"--seconds: expected a time per channel in (0, {SWEEP_MAX_S:g}] s, "
+                          f"got {args.seconds!r}")
     device = _open(args)
     layout = device.layout
     chosen = _selected(layout, args.channel)
     n = max(2, int(round(args.seconds * args.frame_rate)))
     shape = 0.5 * (1 - np.cos(2 * np.pi * np.arange(n + 1) / n))  # 0 -> 1 -> 0, smooth
     period_ms = int(round(1000 / args.frame_rate))
-    with device:
+    with _session(device):
         for index in chosen:
             actuator = layout.actuators[index]
             print(f"sweeping {actuator.controller}:{actuator.channel} {actuator.name} "
@@ -227,15 +267,23 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
+    import os
     from pathlib import Path
 
-    from crs_study.device.calibration import write_calibrated_copy
-    from crs_study.errors import DeviceError
+    from crs_study.device.calibration import (
+        calibration_table,
+        previous_default_endpoints,
+        write_calibrated_copy,
+    )
+    from crs_study.errors import DeviceError, DeviceFileError
     from crs_study.layout import device_file_path
 
     out = Path(args.output)
     if out.exists() and not args.overwrite:
         raise DeviceError(f"--output {out}: already exists; choose another file or --overwrite")
+    if out.is_dir() or not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
+        # found out now, not after the experimenter has set every endpoint by hand
+        raise DeviceError(f"--output {out}: expected a new file in a writable directory")
     if args.deadband_us is None:
         args.deadband_us = 0  # every 1 us step the experimenter asks for must reach the servo
     device = _open(args)
@@ -247,7 +295,7 @@ def _calibrate(args: argparse.Namespace) -> int:
           "us, 'ok' to keep the position, 'skip' to leave the channel as it is, 'quit' to stop "
           "(nothing is written).")
     endpoints: dict[str, tuple[float, float]] = {}
-    with device:  # on the way out, every channel goes to its (old) calibrated neutral
+    with _session(device):  # on the way out, every channel goes to its (old) neutral
         neutral = device.pulse_map.neutral_pulses(layout)
         device.send_pulses(neutral, move_ms=300)
         for index in chosen:
@@ -270,8 +318,14 @@ def _calibrate(args: argparse.Namespace) -> int:
                     endpoints[key] = (found[0], found[1])
                     print(f"  {key}: zero_us = {found[0]}, full_us = {found[1]}")
             device.send_pulses(neutral, move_ms=300)
-    new = write_calibrated_copy(device_file_path(args.layout), out, endpoints,
-                                overwrite=args.overwrite)
+    try:
+        new = write_calibrated_copy(device_file_path(args.layout), out, endpoints,
+                                    overwrite=args.overwrite)
+    except (OSError, DeviceFileError) as exc:
+        # the endpoints took the experimenter a while: print them rather than lose them
+        print(calibration_table(endpoints, previous_default_endpoints(layout, endpoints)), end="")
+        raise DeviceError(f"--output {out}: not written ({exc}); the endpoints found are "
+                          f"printed above as a [calibration] table") from None
     print(f"wrote {out}: {len(endpoints)} channel(s) calibrated, device {new.name!r}")
     return 0
 
@@ -312,7 +366,7 @@ def _monitor(args: argparse.Namespace) -> int:
     import serial
 
     from crs_study.device.codec import FrameDecoder
-    from crs_study.device.serial_device import parse_serial_url
+    from crs_study.device.serial_device import parse_serial_url, serial_for_spec
     from crs_study.errors import DeviceError
 
     spec = args.port
@@ -322,7 +376,7 @@ def _monitor(args: argparse.Namespace) -> int:
             raise DeviceError(f"--port {spec!r}: expected one port, got {len(specs)}")
         spec = specs[0]
     try:
-        port = serial.serial_for_url(spec, baudrate=args.baud, timeout=0.05, write_timeout=0.5)
+        port = serial_for_spec(spec, baudrate=args.baud, timeout=0.05, write_timeout=0.5)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceError(f"--port {spec}: cannot open: {exc}") from None
     decoder = FrameDecoder(args.direction)
@@ -331,6 +385,8 @@ def _monitor(args: argparse.Namespace) -> int:
     start = time.monotonic()
     try:
         while args.seconds is None or time.monotonic() - start < args.seconds:
+            # every read returns within the port's 0.05 s timeout, so a silent port still
+            # ends at --seconds and Ctrl-C lands between reads
             try:
                 data = port.read(max(1, port.in_waiting))
             except (serial.SerialException, OSError) as exc:
@@ -347,6 +403,9 @@ def _monitor(args: argparse.Namespace) -> int:
             frames += sum(1 for e in events if not e[1].startswith("skipped"))
             if args.max_frames is not None and frames >= args.max_frames:
                 break
+    except KeyboardInterrupt:
+        # Ctrl-C is how a monitor without --seconds is meant to end: report, exit 0
+        print("stopped (Ctrl-C)", flush=True)
     finally:
         port.close()
         decoder.flush()

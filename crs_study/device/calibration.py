@@ -187,7 +187,7 @@ def write_calibrated_copy(source: str | Path, destination: str | Path,
         raise DeviceFileError(f"{dest}: refusing to overwrite the device file being calibrated")
     layout = load_layout(source_path)
     text = source_path.read_text(encoding="utf-8")
-    default = _default_endpoints(layout, endpoints)
+    default = previous_default_endpoints(layout, endpoints)
     head, tail = _split_out_section(text, "calibration")
     new_text = head.rstrip("\n") + "\n\n" + calibration_table(endpoints, default)
     if tail.strip():
@@ -203,7 +203,7 @@ def write_calibrated_copy(source: str | Path, destination: str | Path,
     return new_layout
 
 
-def _default_endpoints(layout: Layout, endpoints: Mapping[str, tuple[float, float]]
+def previous_default_endpoints(layout: Layout, endpoints: Mapping[str, tuple[float, float]]
                        ) -> tuple[float, float]:
     """The previous default: the calibration of any channel without an override."""
     for a in layout.actuators:

@@ -128,6 +128,18 @@ def _whole(x: object, low: int, high: int) -> bool:
     return isinstance(x, int) and not isinstance(x, bool) and low <= x <= high
 
 
+def serial_for_spec(spec: str, **settings: Any) -> Any:
+    """``serial.serial_for_url(spec, **settings)``, with the simulator's ``lscsim://`` scheme
+    registered first when ``spec`` uses it (so a dry run of the serial path needs no code)."""
+    import serial
+
+    if spec.startswith("lscsim://"):
+        from crs_study.device import protocol_lscsim
+
+        protocol_lscsim.register()
+    return serial.serial_for_url(spec, **settings)
+
+
 def parse_serial_url(url: str) -> list[str]:
     """The port specs of ``serial://PORT[,PORT...]`` (module docstring)."""
     if not url.startswith("serial://"):
@@ -178,7 +190,7 @@ class _Port:
         options = self.device.options
         if self.serial is None:
             try:
-                self.serial = serial.serial_for_url(
+                self.serial = serial_for_spec(
                     self.spec, baudrate=options.baud, bytesize=serial.EIGHTBITS,
                     parity=serial.PARITY_NONE, stopbits=serial.STOPBITS_ONE,
                     timeout=options.read_timeout_s, write_timeout=options.write_timeout_s,
