@@ -6,6 +6,7 @@ The linear map is the device file's (layout.py ``Calibration``; hardware.md "Lin
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -187,3 +188,66 @@ def test_fast_to_pulses_matches_the_reference_arithmetic(layout1d, cals, shifts,
         mm = np.clip(mm, -pm.tolerance_mm / 2, pm.travel_mm + pm.tolerance_mm / 2)
     np.testing.assert_array_equal(pm.to_pulses(mm), _reference_to_pulses(pm, mm))
     np.testing.assert_array_equal(pm.to_pulses(mm[0]), _reference_to_pulses(pm, mm[0]))
+
+
+class _CapturePort:
+    """A serial-like port that keeps every byte written (no timing, no replies)."""
+
+    name, is_open, in_waiting = "capture", True, 0
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+
+    def write(self, data: bytes) -> int:
+        self.data += data
+        return len(data)
+
+    def read(self, n: int) -> bytes:
+        time.sleep(0.005)
+        return b""
+
+    def reset_input_buffer(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self.is_open = False
+
+
+@settings(max_examples=25, deadline=None)
+@given(cals=st.lists(calibrations, min_size=7, max_size=7),
+       frames=st.lists(st.lists(st.floats(-2.0, 25.0) | st.just(float("nan")), min_size=7,
+                                max_size=7), min_size=1, max_size=6))
+def test_no_pulse_outside_limits_reaches_either_devices_wire(layout1d, cals, frames):
+    # the whole path, not only PulseMap: SerialDevice's writer thread (bytes captured) and
+    # SimulatedDevice's boards (bytes decoded) under random, reversed calibrations; every
+    # SERVO_MOVE that reaches a wire, the neutral pose on close included, stays in range
+    from crs_study.clock import VirtualClock
+    from crs_study.device.serial_device import SerialDevice, SerialOptions
+    from crs_study.device.simulated import SimulatedDevice
+
+    acts = tuple(replace(a, calibration=Calibration(zero, full, travel))
+                 for a, (zero, full, travel) in zip(layout1d.actuators, cals, strict=True))
+    layout = replace(layout1d, actuators=acts)
+    low = {a.channel: min(a.calibration.zero_us, a.calibration.full_us) for a in acts}
+    high = {a.channel: max(a.calibration.zero_us, a.calibration.full_us) for a in acts}
+    port = _CapturePort()
+    serial_device = SerialDevice(layout, [port], VirtualClock(), SerialOptions(
+        check_battery=False, pace=False, refresh_s=0.0))
+    sim_device = SimulatedDevice(layout, VirtualClock(), record=True)
+    for device in (serial_device, sim_device):
+        with device:
+            for setpoints in frames:
+                try:
+                    device.send(np.array(setpoints))
+                except DeviceError:
+                    pass  # refused: nothing of it may reach the wire (checked below)
+                device.clock.sleep(0.07)
+                if device is serial_device:
+                    assert device.wait_sent(1.0)  # every accepted frame written, none merged
+    wire, skipped = codec.decode_all(bytes(port.data))
+    received = [f.message for f in wire] + [r.message for r in sim_device.boards[0].received]
+    moves = [m for m in received if isinstance(m, codec.ServoMove)]
+    assert skipped == [] and sum(m.time_ms == 500 for m in moves) == 2  # both went to neutral
+    for move in moves:
+        for channel, pulse in move.positions:
+            assert low[channel] <= pulse <= high[channel], (channel, pulse)
