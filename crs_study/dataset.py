@@ -292,10 +292,13 @@ def column_dictionary() -> dict[str, Any]:
     """The BIDS column dictionary (``task-digitid_beh.json``) from :mod:`crs_study.schema`.
 
     Closed sets become ``Levels`` (an object level -> meaning, as BIDS requires); numeric
-    columns get ``Units``; free labels (condition, responder) only a description.
+    columns get ``Units``; free labels (condition, responder) only a description. The level
+    columns (:data:`crs_study.schema.LEVEL_COLUMNS`) are described too: the file is one per
+    dataset, and only sessions of protocols with ``[levels]`` hold them.
     """
     columns: dict[str, Any] = {}
-    for name, (description, units) in schema.TRIAL_COLUMNS.items():
+    described = {**schema.TRIAL_COLUMNS, **schema.LEVEL_COLUMNS}
+    for name, (description, units) in described.items():
         entry: dict[str, Any] = {"LongName": name.replace("_", " "), "Description": description}
         if units in _LEVEL_TEXT:
             entry["Levels"] = _LEVEL_TEXT[units]

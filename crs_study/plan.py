@@ -30,6 +30,12 @@ Design
     extend a run beyond the limit; a dead end (only the blocked digit left) restarts the
     block with the same generator (rare: a fraction of a percent of blocks for 10 digits).
 
+    Levels: a protocol with ``[levels]`` crosses them with conditions and digits: every
+    (condition, digit, level) cell gets ``repetitions`` test trials, ordered as above (the
+    run constraint is on digits, whatever their level). Practice trials also cycle through
+    a shuffled list of the levels (drawn after the digits' cycle). Without ``[levels]``
+    nothing is drawn for them, so such a protocol's plans are those of earlier versions.
+
     Breaks: ``break_before`` on a trial preceded by a multiple of ``break_every`` trials of
     its block. Block starts carry the condition's prompt to the experimenter instead.
 """
@@ -63,6 +69,7 @@ class PlannedTrial:
     feedback: bool
     break_before: bool
     prompt_before: str | None
+    level: float | None = None  # the varied stimulus parameter's value ([levels]), else None
 
 
 @dataclass(frozen=True)
@@ -77,17 +84,23 @@ class TrialPlan:
     def __len__(self) -> int:
         return len(self.trials)
 
-    def count(self, trial_type: str | None = None, condition: str | None = None) -> int:
+    def count(self, trial_type: str | None = None, condition: str | None = None,
+              level: float | None = None) -> int:
         return sum(1 for t in self.trials
                    if (trial_type is None or t.trial_type == trial_type)
-                   and (condition is None or t.condition == condition))
+                   and (condition is None or t.condition == condition)
+                   and (level is None or t.level == level))
 
     def sha256(self) -> str:
-        """Fingerprint of the plan (seed, counterbalance, every trial), e.g. to check a resume."""
+        """Fingerprint of the plan (seed, counterbalance, every trial), e.g. to check a resume.
+
+        A trial's level is appended to its row only when it has one (``repr`` of the float),
+        so plans without levels keep their earlier fingerprints."""
         rows = [f"{self.seed}\t{self.counterbalance}"]
         rows += ["\t".join(str(v) for v in (t.index, t.trial_type, t.block, t.condition,
                                               t.repetition, t.digit, int(t.feedback),
-                                              int(t.break_before), t.prompt_before or ""))
+                                              int(t.break_before), t.prompt_before or "")
+                           + (() if t.level is None else (repr(float(t.level)),)))
                  for t in self.trials]
         return hashlib.sha256("\n".join(rows).encode()).hexdigest()
 
@@ -164,18 +177,19 @@ class _Draw:
         return out
 
 
-def constrained_order(groups: dict[tuple[str, int], list[int]], max_run: int, draw: _Draw,
-                      history: Sequence[int] = ()) -> list[tuple[str, int, int]]:
-    """Order (condition, digit, repetition) items so no digit runs longer than ``max_run``.
+def constrained_order(groups: dict[tuple, list[int]], max_run: int, draw: _Draw,
+                      history: Sequence[int] = ()) -> list[tuple]:
+    """Order items so no digit runs longer than ``max_run``.
 
-    ``groups`` maps (condition, digit) to its repetitions (taken smallest first); ``history``
-    is the digits shown just before (so the constraint holds across the junction).
+    ``groups`` maps a cell (condition, digit) or (condition, digit, level) to its repetitions
+    (taken smallest first); the items returned are the cell's fields then the repetition.
+    ``history`` is the digits shown just before (so the constraint holds across the junction).
     """
     keys = list(groups)
     for _ in range(MAX_RESTARTS):
         remaining = {k: sorted(v) for k, v in groups.items()}
         recent = list(history)
-        out: list[tuple[str, int, int]] = []
+        out: list[tuple] = []
         total = sum(len(v) for v in remaining.values())
         while len(out) < total:
             blocked = recent[-1] if len(recent) >= max_run and \
@@ -184,7 +198,7 @@ def constrained_order(groups: dict[tuple[str, int], list[int]], max_run: int, dr
             if not any(weights):
                 break  # dead end: restart
             key = keys[draw.weighted(weights)]
-            out.append((key[0], key[1], remaining[key].pop(0)))
+            out.append((*key, remaining[key].pop(0)))
             recent.append(key[1])
         else:
             return out
@@ -199,14 +213,15 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
     draw = _Draw(seed)
     design = protocol.design
     digits = protocol.digits
+    levels = protocol.levels.values if protocol.levels is not None else None
     blocks = block_order(protocol, counterbalance)
     conditions_of = [b.split("+") for b in blocks]
     appearances: dict[str, int] = {}
     trials: list[PlannedTrial] = []
 
     for block, conditions in enumerate(conditions_of):
-        practice_groups: dict[tuple[str, int], list[int]] = {}
-        test_groups: dict[tuple[str, int], list[int]] = {}
+        practice_groups: dict[tuple, list[int]] = {}
+        test_groups: dict[tuple, list[int]] = {}
         practising: list[str] = []
         for condition in conditions:
             nth = appearances.get(condition, 0)
@@ -214,26 +229,37 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
             per_condition = blocks.count(condition) if design.ordering == "blocked" else 1
             reps = [r for r in range(design.repetitions) if r % per_condition == nth]
             for digit in digits:
-                test_groups[(condition, digit)] = list(reps)
+                if levels is None:
+                    test_groups[(condition, digit)] = list(reps)
+                else:
+                    for level in levels:
+                        test_groups[(condition, digit, level)] = list(reps)
             if design.practice_trials and (nth == 0 or design.practice_in == "every-block"):
                 practising.append(condition)
         # One cycle of shuffled digits for the block's practice, dealt to its conditions in
         # turn: digit counts differ by at most one, so the run constraint can always be met.
+        n_practice = design.practice_trials * len(practising)
         cycle: list[int] = []
-        while len(cycle) < design.practice_trials * len(practising):
+        while len(cycle) < n_practice:
             cycle += draw.shuffled(digits)
-        for i, digit in enumerate(cycle[: design.practice_trials * len(practising)]):
-            shown = practice_groups.setdefault((practising[i % len(practising)], digit), [])
-            shown.append(len(shown))  # repetition: the digit's nth practice trial
+        level_cycle: list[float] = []
+        while levels is not None and len(level_cycle) < n_practice:
+            level_cycle += draw.shuffled(levels)
+        for i, digit in enumerate(cycle[:n_practice]):
+            cell = (practising[i % len(practising)], digit) if levels is None else \
+                (practising[i % len(practising)], digit, level_cycle[i])
+            shown = practice_groups.setdefault(cell, [])
+            shown.append(len(shown))  # repetition: the cell's nth practice trial
         practice = constrained_order(practice_groups, design.max_same_digit_run, draw)
         test = constrained_order(test_groups, design.max_same_digit_run, draw,
-                                 history=[d for _, d, _ in practice])
+                                 history=[p[1] for p in practice])
         prompt = None
         if design.ordering == "blocked":
             prompt = protocol.prompt(conditions[0]) or \
                 f"Block {block + 1} of {len(blocks)}: {conditions[0]}"
         items = [("practice", *p) for p in practice] + [("test", *t) for t in test]
-        for position, (kind, condition, digit, repetition) in enumerate(items):
+        for position, (kind, condition, digit, *rest) in enumerate(items):
+            level, repetition = (None, rest[0]) if levels is None else rest
             feedback = protocol.feedback_practice if kind == "practice" else \
                 protocol.feedback_test
             trials.append(PlannedTrial(
@@ -241,6 +267,6 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
                 repetition=repetition, digit=digit, feedback=feedback,
                 break_before=bool(design.break_every and position
                                   and position % design.break_every == 0),
-                prompt_before=prompt if position == 0 else None,
+                prompt_before=prompt if position == 0 else None, level=level,
             ))
     return TrialPlan(seed, counterbalance, tuple(trials), blocks)

@@ -5,7 +5,8 @@ A protocol is a TOML file with five tables (``protocols/README.md`` documents ev
 size in pixel pitches, the bump, stroke speed, placement, frame rate), ``[conditions]``
 (registered display conditions and the experimenter's prompt for each), ``[design]``
 (repetitions, blocking, counterbalancing, run constraint, practice, breaks, inter-trial
-interval) and ``[responses]`` (keys, time limit, feedback).
+interval) and ``[responses]`` (keys, time limit, feedback). An optional ``[levels]`` table
+varies one stimulus parameter across trials (a psychometric study, :class:`LevelSpec`).
 
 Reading is strict (:mod:`crs_study._toml`): unknown keys, wrong types and out-of-range values
 are one-line :class:`~crs_study.errors.ProtocolError` s naming the file, the line where the key
@@ -52,6 +53,16 @@ OPTIONAL_KEYS: dict[str, object] = {
 #: Slowest stroke speed accepted (mm/s): a 60 mm digit then takes a minute.
 MIN_STROKE_SPEED_MM_S = 1.0
 
+#: Stimulus parameters a ``[levels]`` table may vary: key -> (dataset column, units, min, max).
+#: The dataset column names are those the analysis looks for
+#: (``crs_study.analysis.plan.KNOWN_LEVEL_COLUMNS``); the ranges are those of ``[stimulus]``.
+LEVEL_PARAMETERS: dict[str, tuple[str, str, float, float]] = {
+    "digit_height_pitch": ("digit_height", "pitch", 0.01, 20.0),
+    "stroke_speed_mm_s": ("stroke_speed", "mm/s", MIN_STROKE_SPEED_MM_S, 1000.0),
+}
+#: Most levels one protocol may declare (each multiplies the number of trials).
+MAX_LEVELS = 20
+
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
@@ -72,6 +83,30 @@ class StimulusSpec:
     stroke_pause_s: float
     start_hold_s: float
     end_hold_s: float
+
+
+@dataclass(frozen=True)
+class LevelSpec:
+    """The optional ``[levels]`` table: one stimulus parameter varied across trials.
+
+    ``parameter`` is a key of :data:`LEVEL_PARAMETERS` (it is then absent from ``[stimulus]``);
+    ``values`` are its levels, distinct, in the protocol's order. Varying
+    ``digit_height_pitch`` scales the whole digit: its width is ``width_to_height`` times the
+    height (the shipped shape 0.49 / 0.81 = 0.605), so ``digit_width_pitch`` is absent too.
+    """
+
+    parameter: str
+    values: tuple[float, ...]
+    width_to_height: float | None = None
+
+    @property
+    def column(self) -> str:
+        """The dataset column holding a trial's level (``digit_height``, ``stroke_speed``)."""
+        return LEVEL_PARAMETERS[self.parameter][0]
+
+    @property
+    def units(self) -> str:
+        return LEVEL_PARAMETERS[self.parameter][1]
 
 
 @dataclass(frozen=True)
@@ -118,7 +153,25 @@ class Protocol:
     stimulus: StimulusSpec
     design: DesignSpec
     responses: ResponseSpec
+    levels: LevelSpec | None = None  # None: every trial shows the [stimulus] values
     checks: tuple[str, ...] = field(default=(), compare=False)  # what check_on_device passed
+
+    @property
+    def level_values(self) -> tuple[float | None, ...]:
+        """The levels of the varied parameter, or ``(None,)`` when nothing varies."""
+        return self.levels.values if self.levels is not None else (None,)
+
+    def stimulus_at(self, level: float | None) -> StimulusSpec:
+        """The stimulus of a trial at ``level`` (``None``: the protocol's fixed stimulus)."""
+        if level is None or self.levels is None:
+            if level is not None:
+                raise ProtocolError(f"{self.path}: the protocol varies no level, got "
+                                    f"level {level!r}")
+            return self.stimulus
+        if level not in self.levels.values:
+            raise ProtocolError(f"{self.path}: levels.values: expected one of "
+                                f"{list(self.levels.values)}, got {level!r}")
+        return _spec_at(self.stimulus, self.levels, float(level))
 
     @property
     def frame_rate_hz(self) -> float:
@@ -225,6 +278,9 @@ def protocol_from_dict(data: dict, path: Path, text: str = "", sha256: str = "")
     stimulus_table = root.table("stimulus")
     design_table = root.table("design")
     responses_table = root.table("responses")
+    levels_table = root.table("levels") if root.has("levels") else None
+    if levels_table is None:
+        root.raw("levels", None)
     root.done()
 
     study_id = _identifier(study, "id")
@@ -237,7 +293,8 @@ def protocol_from_dict(data: dict, path: Path, text: str = "", sha256: str = "")
     study.done()
 
     conditions, prompts = _conditions(conditions_table)
-    stimulus = _stimulus(stimulus_table, path)
+    levels = _levels(levels_table) if levels_table is not None else None
+    stimulus = _stimulus(stimulus_table, path, levels)
     design = _design(design_table, conditions)
     responses = _responses(responses_table, stimulus.digits)
 
@@ -245,7 +302,7 @@ def protocol_from_dict(data: dict, path: Path, text: str = "", sha256: str = "")
         path=path, text=text, sha256=sha256, study_id=study_id, version=version, title=title,
         device=device, consent_form=consent_form, consent_form_version=consent_form_version,
         analysis_plan=analysis_plan, conditions=conditions, condition_prompts=prompts,
-        stimulus=stimulus, design=design, responses=responses,
+        stimulus=stimulus, design=design, responses=responses, levels=levels,
     )
 
 
@@ -301,7 +358,47 @@ def _conditions(table: Section) -> tuple[tuple[str, ...], tuple[tuple[str, str],
     return tuple(names), tuple(prompts)
 
 
-def _stimulus(table: Section, path: Path) -> StimulusSpec:
+def _levels(table: Section) -> LevelSpec:
+    """The ``[levels]`` table (see :class:`LevelSpec` and protocols/README.md)."""
+    parameter = table.string("parameter", choices=tuple(LEVEL_PARAMETERS))
+    _, units, low, high = LEVEL_PARAMETERS[parameter]
+    values = table.array("values")
+    if not 2 <= len(values) <= MAX_LEVELS:
+        raise table.fail("values", f"expected 2 to {MAX_LEVELS} levels of {parameter} "
+                         f"({units}), got {values!r}")
+    for i, v in enumerate(values):
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) \
+                or not low <= v <= high:
+            raise table.fail(f"values[{i}]", f"expected a number {low:g} to {high:g} "
+                             f"({parameter}), got {v!r}")
+    floats = tuple(float(v) for v in values)
+    if len(set(floats)) != len(floats):
+        raise table.fail("values", f"a level appears twice in {values!r}")
+    ratio = None
+    if parameter == "digit_height_pitch":
+        ratio = table.number("width_to_height", minimum=0.05, maximum=20.0)
+        for i, v in enumerate(floats):
+            if not 0.01 <= v * ratio <= 20.0:
+                raise table.fail(f"values[{i}]", f"the width {v * ratio:g} pitch "
+                                 f"(width_to_height {ratio:g} x {v!r}) is outside 0.01-20")
+    elif table.has("width_to_height"):
+        raise table.fail("width_to_height", "only used with parameter = "
+                         f"\"digit_height_pitch\", got parameter = {parameter!r}")
+    table.done()
+    return LevelSpec(parameter, floats, ratio)
+
+
+def _spec_at(spec: StimulusSpec, levels: LevelSpec, level: float) -> StimulusSpec:
+    """``spec`` with the varied parameter set to ``level`` (width follows a varied height)."""
+    from dataclasses import replace
+
+    if levels.parameter == "digit_height_pitch":
+        return replace(spec, digit_height_pitch=level,
+                       digit_width_pitch=level * float(levels.width_to_height or 1.0))
+    return replace(spec, **{levels.parameter: level})
+
+
+def _stimulus(table: Section, path: Path, levels: LevelSpec | None = None) -> StimulusSpec:
     digits = table.array("digits")
     for i, d in enumerate(digits):
         if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= 9:
@@ -324,11 +421,25 @@ def _stimulus(table: Section, path: Path) -> StimulusSpec:
     def positive(key: str, maximum: float) -> float:
         return table.number(key, minimum=0.0, exclusive_minimum=True, maximum=maximum)
 
-    height = table.number("digit_height_pitch", minimum=0.01, maximum=20.0)
-    width = table.number("digit_width_pitch", minimum=0.01, maximum=20.0)
+    varied = () if levels is None else (levels.parameter,) + (
+        ("digit_width_pitch",) if levels.parameter == "digit_height_pitch" else ())
+    for key in varied:
+        if table.has(key):
+            raise table.fail(key, f"set by [levels] (parameter = {levels.parameter!r}): "
+                             f"remove it from [stimulus], got {table.data[key]!r}")
+    if levels is not None and levels.parameter == "digit_height_pitch":
+        height = levels.values[0]  # the spec holds the first level; see Protocol.stimulus_at
+        width = height * float(levels.width_to_height or 1.0)
+    else:
+        height = table.number("digit_height_pitch", minimum=0.01, maximum=20.0)
+        width = table.number("digit_width_pitch", minimum=0.01, maximum=20.0)
     diameter = positive("bump_diameter_mm", 1000.0)
     bump_height = positive("bump_height_mm", 100.0)
-    speed = table.number("stroke_speed_mm_s", minimum=MIN_STROKE_SPEED_MM_S, maximum=1000.0)
+    if levels is not None and levels.parameter == "stroke_speed_mm_s":
+        speed = levels.values[0]
+    else:
+        speed = table.number("stroke_speed_mm_s", minimum=MIN_STROKE_SPEED_MM_S,
+                             maximum=1000.0)
     placement = table.string("placement", choices=PLACEMENTS)
     offset = (0.0, 0.0)
     if table.has("offset_mm"):
@@ -414,13 +525,34 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
     passed += _consent_check(protocol, source)
     from crs_study.stimulus import device_limits
 
-    try:
-        passed += device_limits(protocol.stimulus, protocol.conditions, layout)
-    except CrsStudyError as exc:
-        message = _one_line(exc)
-        if not message.startswith(source):
-            message = f"{source}: {message}"
-        raise ProtocolError(message) from None
+    if protocol.levels is None:
+        try:
+            passed += device_limits(protocol.stimulus, protocol.conditions, layout)
+        except CrsStudyError as exc:
+            message = _one_line(exc)
+            if not message.startswith(source):
+                message = f"{source}: {message}"
+            raise ProtocolError(message) from None
+        return tuple(passed)
+    # Every level is checked like a fixed stimulus; lines shared by all levels are kept once,
+    # the others are prefixed with their level.
+    levels = protocol.levels
+    per_level: list[list[str]] = []
+    for i, value in enumerate(levels.values):
+        try:
+            per_level.append(device_limits(protocol.stimulus_at(value), protocol.conditions,
+                                           layout))
+        except CrsStudyError as exc:
+            message = _one_line(exc)
+            if message.startswith(source):
+                message = message[len(source):].lstrip(": ")
+            raise ProtocolError(f"{source}: levels.values[{i}]: at {levels.parameter} = "
+                                f"{value:g}: {message}") from None
+    shared = set.intersection(*(set(lines) for lines in per_level))
+    passed += [line for line in per_level[0] if line in shared]
+    for value, lines in zip(levels.values, per_level, strict=True):
+        passed += [f"{levels.parameter} = {value:g}: {line}" for line in lines
+                   if line not in shared]
     return tuple(passed)
 
 

@@ -113,28 +113,31 @@ def ceil_ms(seconds: float) -> float:
 
 
 class StimulusCache:
-    """Rendered frames per (digit, condition), computed once (a digit's stimulus never varies)."""
+    """Rendered frames per (digit, condition, level), computed once (a stimulus never varies);
+    ``level`` is None for protocols without ``[levels]``."""
 
     def __init__(self, protocol: Any, layout: Any) -> None:
         self.protocol = protocol
         self.layout = layout
         self._renderers: dict[str, Any] = {}
-        self._stimuli: dict[int, Any] = {}
-        self._frames: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
-        self._text: dict[tuple[int, str], list[str]] = {}
+        self._stimuli: dict[tuple[int, float | None], Any] = {}
+        self._frames: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._text: dict[tuple, list[str]] = {}
 
-    def get(self, digit: int, condition: str) -> tuple[np.ndarray, np.ndarray]:
+    def get(self, digit: int, condition: str, level: float | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
         """``(frame_times (n,), setpoints (n, n_actuators))``."""
-        key = (int(digit), condition)
+        key = (int(digit), condition, level)
         if key not in self._frames:
             from crs_study.render import Renderer
             from crs_study.stimulus import make_stimulus, render_frames
 
-            if digit not in self._stimuli:
-                self._stimuli[digit] = make_stimulus(self.protocol, self.layout, digit)
+            if (digit, level) not in self._stimuli:
+                self._stimuli[(digit, level)] = make_stimulus(self.protocol, self.layout, digit,
+                                                              level)
             if condition not in self._renderers:
                 self._renderers[condition] = Renderer(self.layout, condition)
-            stimulus = self._stimuli[digit]
+            stimulus = self._stimuli[(digit, level)]
             frames = np.asarray(render_frames(stimulus, self._renderers[condition]), float)
             times = np.asarray(stimulus.frame_times, dtype=float)
             if frames.ndim != 2 or len(frames) != len(times) or len(times) == 0:
@@ -143,11 +146,12 @@ class StimulusCache:
             self._frames[key] = (times, frames)
         return self._frames[key]
 
-    def setpoint_text(self, digit: int, condition: str) -> list[str]:
+    def setpoint_text(self, digit: int, condition: str, level: float | None = None
+                      ) -> list[str]:
         """The frames' setpoints as tab-separated text (mm, 4 decimals), for the frame log."""
-        key = (int(digit), condition)
+        key = (int(digit), condition, level)
         if key not in self._text:
-            _, frames = self.get(digit, condition)
+            _, frames = self.get(digit, condition, level)
             self._text[key] = ["\t".join(f"{v:.4f}" for v in row) for row in frames.tolist()]
         return self._text[key]
 
@@ -273,6 +277,12 @@ def prepare(spec: SessionSpec) -> tuple[Any, Any, Any, Dataset]:
     return protocol, layout, plan, dataset
 
 
+def session_columns(protocol: Any) -> tuple[str, ...]:
+    """The session TSV's columns: the schema's, plus the level column when levels vary."""
+    levels = getattr(protocol, "levels", None)
+    return schema.trial_columns(levels.column if levels is not None else None)
+
+
 def _fingerprints(protocol: Any, plan: Any, device_text: str) -> dict[str, Any]:
     """What a stored session must match to be resumed (see :func:`check_resume`)."""
     return {
@@ -317,7 +327,7 @@ def seed_check(spec: SessionSpec) -> dict[str, Any]:
     paths = dataset.session_paths(spec.participant, spec.session)
     device_text = _device_file_text(layout, protocol)
     expected = _fingerprints(protocol, plan, device_text)
-    stored = SessionStore(paths).read_sidecar()
+    stored = SessionStore(paths, columns=session_columns(protocol)).read_sidecar()
     if stored is not None:
         check_resume(stored, expected, paths.sidecar)
     return {
@@ -355,7 +365,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
     n_trials = len(plan.trials)
     device_text = _device_file_text(layout, protocol)
     expected = _fingerprints(protocol, plan, device_text)
-    store = SessionStore(paths, durable=spec.durable)
+    store = SessionStore(paths, columns=session_columns(protocol), durable=spec.durable)
     with store:
         stored = store.read_sidecar()
         if stored is not None:
@@ -564,9 +574,14 @@ def _replay(state: _Session, device: Any, clock: Any, cache: StimulusCache) -> N
     """
     period = 1.0 / float(state.protocol.frame_rate_hz)
     for row, trial in zip(state.rows, state.plan.trials, strict=False):
-        frame_times, frames = cache.get(trial.digit, trial.condition)
+        frame_times, frames = cache.get(trial.digit, trial.condition, _level(trial))
         _present(device, clock, frame_times, frames, period)
         clock.sleep_until(float(row["trial_end"]))
+
+
+def _level(trial: Any) -> float | None:
+    """The trial's stimulus level (None for plans without levels)."""
+    return getattr(trial, "level", None)
 
 
 def _frame_line(kind: str, frame: int, due: float, report: Any, origin: float,
@@ -584,7 +599,8 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
     protocol = state.protocol
     if trial.prompt_before or trial.break_before:
         responder.prompt(trial.prompt_before or "Break: rest, then continue", clock)
-    frame_times, frames = cache.get(trial.digit, trial.condition)
+    level = _level(trial)
+    frame_times, frames = cache.get(trial.digit, trial.condition, level)
     period = 1.0 / float(protocol.frame_rate_hz)
     responder.begin_trial(trial, clock.now(), clock)
     shown = _present(device, clock, frame_times, frames, period)
@@ -608,7 +624,9 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
         "late_frames": shown.late, "median_wire_latency": float(np.median(latencies)),
         "responder": responder.name, "trial_end": trial_end,
     }
-    text = cache.setpoint_text(trial.digit, trial.condition)
+    if getattr(protocol, "levels", None) is not None:
+        row[protocol.levels.column] = level
+    text = cache.setpoint_text(trial.digit, trial.condition, level)
     log = [_frame_line("stimulus", i, onset + frame_times[i], r, origin, text[i])
            for i, r in enumerate(reports)]
     flat = "\t".join(f"{v:.4f}" for v in state.layout.neutral_setpoints().tolist())

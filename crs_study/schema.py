@@ -40,6 +40,31 @@ TRIAL_COLUMNS: dict[str, tuple[str, str]] = {
                   "(a resumed session continues from the last stored trial_end)", "s"),
 }
 
+#: Level columns: a session whose protocol has a ``[levels]`` table has the varied
+#: parameter's column right after ``digit`` (absent otherwise: BIDS allows extra columns and a
+#: constant column would suggest a level was varied). Names are those the analysis looks for
+#: (``crs_study.analysis.plan.KNOWN_LEVEL_COLUMNS``); the protocol key that sets each is in
+#: ``crs_study.protocol.LEVEL_PARAMETERS``.
+LEVEL_COLUMNS: dict[str, tuple[str, str]] = {
+    "digit_height": ("Height of the digit's box in pixel pitches, varied across trials by "
+                     "the protocol's [levels] (the width scales with it); only in sessions of "
+                     "such protocols", "pitch"),
+    "stroke_speed": ("Speed of the bump centre along the strokes, varied across trials by the "
+                     "protocol's [levels]; only in sessions of such protocols", "mm/s"),
+}
+
+
+def trial_columns(level_column: str | None = None) -> tuple[str, ...]:
+    """A session TSV's columns: :data:`TRIAL_COLUMNS`, with ``level_column`` after ``digit``."""
+    names = list(TRIAL_COLUMNS)
+    if level_column is None:
+        return tuple(names)
+    if level_column not in LEVEL_COLUMNS:
+        raise ValueError(f"expected a level column {sorted(LEVEL_COLUMNS)}, got {level_column!r}")
+    names.insert(names.index("digit") + 1, level_column)
+    return tuple(names)
+
+
 #: Session sidecar keys (``..._beh.json``) beyond the BIDS column descriptions.
 SESSION_KEYS: tuple[str, ...] = (
     "TaskName",

@@ -12,9 +12,11 @@ frame rate. Frame k is shown at t_k = k / f from onset. The timeline of a digit:
 4. ``end_hold_s``: the bump rests at the last point. Then the runner returns to neutral.
 
 The stimulus of a digit is the same in every trial (no per-trial randomness), so its
-setpoints are rendered once per (digit, condition, device) and cached
-(:func:`render_frames`). :func:`device_limits` renders every digit in every condition with
-``policy="error"`` to check a protocol against its device.
+setpoints are rendered once per (digit, level, condition, device) and cached
+(:func:`render_frames`): a protocol with ``[levels]`` has one stimulus spec per level
+(:meth:`crs_study.protocol.Protocol.stimulus_at`), and the spec is part of every cache key.
+:func:`device_limits` renders every digit in every condition with ``policy="error"`` to
+check a protocol against its device.
 """
 
 from __future__ import annotations
@@ -97,10 +99,11 @@ def placement_centre(spec: StimulusSpec, layout: Layout) -> tuple[float, float]:
     return cx + spec.offset_mm[0], cy + spec.offset_mm[1]
 
 
-def make_stimulus(protocol: Protocol, layout: Layout, digit: int) -> Stimulus:
-    """The stimulus of ``digit`` under ``protocol`` on ``layout`` (cached)."""
-    return stimulus_for(protocol.stimulus, layout.pitch_mm, placement_centre(protocol.stimulus,
-                        layout), digit)
+def make_stimulus(protocol: Protocol, layout: Layout, digit: int,
+                  level: float | None = None) -> Stimulus:
+    """The stimulus of ``digit`` at ``level`` (None: no [levels]) on ``layout`` (cached)."""
+    spec = protocol.stimulus_at(level)
+    return stimulus_for(spec, layout.pitch_mm, placement_centre(spec, layout), digit)
 
 
 @lru_cache(maxsize=256)

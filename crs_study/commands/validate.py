@@ -6,6 +6,8 @@ and the CRS limits, the frame rate within the wire. Wire use is reported two way
 frames (every channel of every controller in every frame, the bound the check uses) and
 changed-only frames (channels whose pulse width changes on the rendered frames, first frame
 from neutral excluded from the busiest; :func:`crs_study.device.schedule.wire_plan`).
+A protocol with ``[levels]`` also gets its levels and, per level, the trials of each condition
+and the frames per trial; frames and wire use are then over every (digit, level) stimulus.
 """
 
 from __future__ import annotations
@@ -47,13 +49,20 @@ def summarise(protocol, participant: str = "example", session: int = 1,
 
     layout = protocol.layout()
     plan = make_plan(protocol, participant, session, counterbalance)
-    stimuli = {d: make_stimulus(protocol, layout, d) for d in protocol.digits}
-    frames = {d: s.n_frames for d, s in stimuli.items()}
+    levels = protocol.level_values
+    stimuli = {(d, v): make_stimulus(protocol, layout, d, v) for v in levels
+               for d in protocol.digits}
+
+    def label(d: int, v: float | None) -> str:
+        return str(d) if v is None else f"{d}@{v:g}"
+
+    frames = {label(d, v): s.n_frames for (d, v), s in stimuli.items()}
     period = 1.0 / protocol.frame_rate_hz
 
     seconds = 0.0
     for trial in plan.trials:
-        seconds += stimuli[trial.digit].duration_s + protocol.responses.expected_response_s
+        seconds += stimuli[(trial.digit, trial.level)].duration_s
+        seconds += protocol.responses.expected_response_s
         seconds += protocol.inter_trial_interval_s
         if trial.break_before:
             seconds += protocol.design.break_duration_s
@@ -89,6 +98,23 @@ def summarise(protocol, participant: str = "example", session: int = 1,
     schemes = protocol.design.counterbalancing
     orders = sorted({block_order(protocol, k) for k in range(12)})
     plan_file = analysis_plan_path(protocol)
+    level_summary = None
+    if protocol.levels is not None:
+        level_summary = {
+            "parameter": protocol.levels.parameter, "column": protocol.levels.column,
+            "units": protocol.levels.units, "values": list(protocol.levels.values),
+            "width_to_height": protocol.levels.width_to_height,
+            "per_level": {f"{v:g}": {
+                "per_condition": {c: {"practice": plan.count("practice", c, v),
+                                      "test": plan.count("test", c, v)}
+                                  for c in protocol.conditions},
+                "frames_per_trial": {
+                    "min": min(stimuli[(d, v)].n_frames for d in protocol.digits),
+                    "max": max(stimuli[(d, v)].n_frames for d in protocol.digits),
+                    "mean": float(np.mean([stimuli[(d, v)].n_frames
+                                           for d in protocol.digits]))}}
+                for v in protocol.levels.values},
+        }
     return {
         "protocol": str(protocol.path),
         "sha256": protocol.sha256,
@@ -103,7 +129,8 @@ def summarise(protocol, participant: str = "example", session: int = 1,
         "frames_per_trial": {"min": min(frames.values()), "max": max(frames.values()),
                              "mean": float(np.mean(list(frames.values()))),
                              "per_digit": {str(d): n for d, n in frames.items()}},
-        "stimulus_duration_s": {str(d): s.duration_s for d, s in stimuli.items()},
+        "stimulus_duration_s": {label(d, v): s.duration_s for (d, v), s in stimuli.items()},
+        "levels": level_summary,
         "frame_rate_hz": protocol.frame_rate_hz,
         "wire": {
             "full_frame_bytes": full_bytes,
@@ -136,11 +163,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(_text(summary))
     if args.list:
+        with_levels = protocol.levels is not None
         print()
-        print("index type     block condition   rep digit feedback break prompt")
+        print("index type     block condition   rep digit " + ("   level " if with_levels else "")
+              + "feedback break prompt")
         for t in plan.trials:
+            level = f"{t.level:8g} " if with_levels else ""
             print(f"{t.index:5d} {t.trial_type:8s} {t.block:5d} {t.condition:11s} "
-                  f"{t.repetition:3d} {t.digit:5d} {'yes' if t.feedback else 'no':8s} "
+                  f"{t.repetition:3d} {t.digit:5d} {level}{'yes' if t.feedback else 'no':8s} "
                   f"{'yes' if t.break_before else '':5s} {t.prompt_before or ''}")
     return 0
 
@@ -156,6 +186,19 @@ def _text(s: dict) -> str:
     ]
     for condition, c in t["per_condition"].items():
         lines.append(f"  {condition}: {c['practice']} practice, {c['test']} test")
+    levels = s.get("levels")
+    if levels:
+        values = ", ".join(f"{v:g}" for v in levels["values"])
+        shape = (f"; width = {levels['width_to_height']:g} x height"
+                 if levels["width_to_height"] else "")
+        lines.append(f"levels: {levels['parameter']} = {values} ({levels['units']}; dataset "
+                     f"column {levels['column']}{shape})")
+        for value, entry in levels["per_level"].items():
+            counts = ", ".join(f"{c} {n['practice']} practice + {n['test']} test"
+                               for c, n in entry["per_condition"].items())
+            fr = entry["frames_per_trial"]
+            lines.append(f"  {levels['parameter']} = {value}: {counts}; frames per trial "
+                         f"{fr['min']} to {fr['max']} (mean {fr['mean']:.1f})")
     orders = " | ".join(" ".join(o) for o in s["block_orders"]["orders"])
     lines.append(f"block orders ({s['block_orders']['counterbalancing']}): {orders}")
     f = s["frames_per_trial"]

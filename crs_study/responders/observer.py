@@ -30,6 +30,18 @@ display could sense, never from the true digit:
    ln n (0 certain, 1 guessing): uncertain decisions are slower, errors slower on average.
    A response past the time limit (from offset) becomes a time-out.
 
+**Levels** (protocols with ``[levels]``). The templates are per level: the template of digit
+k at a trial's level is the bump path of k drawn at that level (the observer knows how big
+and how fast the digits of a trial are, as a participant soon learns, but never which digit).
+Distances stay in mm, so nothing is rescaled: a bigger digit spreads its templates further
+apart while the sensed peak's noise (receptor noise, pixel quantisation) stays the same in
+mm, which makes it easier to identify. A faster stroke is harder because fewer frames are
+drawn at the fixed frame rate: the peak path is sampled more coarsely (at 15 frames/s a
+20 mm/s stroke moves 1.3 mm a frame, 80 mm/s moves 5.3 mm), the holds and pen lifts take a
+larger share of the ``max_sensed_frames`` sensed frames, and the simulated device's servo
+speed limit makes the displayed bump lag behind and cut the corners of fast strokes. The
+sensing window grows when needed to hold the largest digit (``sense_radius_mm`` is a minimum).
+
 Randomness comes from ``np.random.default_rng([seed, trial.index])`` only, so a resumed session
 answers exactly as an uninterrupted one. Cost: at most ``max_sensed_frames`` frames a trial are
 sensed (spread evenly); display models linear in the setpoints (``linear``, ``nearest``) are
@@ -170,11 +182,13 @@ class PerceptualObserver(Responder):
         self._layout_key = layout_key(self.layout)
         o = self.options
         cx, cy = placement_centre(protocol.stimulus, self.layout)
-        axis = np.arange(-o.sense_radius_mm, o.sense_radius_mm + 1e-9, o.grid_spacing_mm)
+        radius = max(o.sense_radius_mm, _largest_half_diagonal(protocol, self.layout)
+                     + o.grid_spacing_mm)
+        axis = np.arange(-radius, radius + 1e-9, o.grid_spacing_mm)
         self._gx, self._gy = np.meshgrid(cx + axis, cy + axis)
         self._points = np.column_stack([self._gx.ravel(), self._gy.ravel()])
         self._sigma_cells = o.skin_blur_mm / o.grid_spacing_mm
-        self._templates: dict[int, np.ndarray] = {}
+        self._templates: dict[tuple[int, float | None], np.ndarray] = {}
         self.last_decision: dict[str, Any] = {}
 
     # -- sensing ---------------------------------------------------------------------------
@@ -262,25 +276,27 @@ class PerceptualObserver(Responder):
 
     # -- deciding --------------------------------------------------------------------------
 
-    def template(self, digit: int) -> np.ndarray:
-        """A digit's bump-centre path (drawn frames), resampled and centred."""
-        if digit not in self._templates:
+    def template(self, digit: int, level: float | None = None) -> np.ndarray:
+        """A digit's bump-centre path (drawn frames) at ``level``, resampled and centred."""
+        key = (digit, level)
+        if key not in self._templates:
             from crs_study.stimulus import make_stimulus
 
-            stim = make_stimulus(self.protocol, self.layout, digit)
-            self._templates[digit] = _normalise(stim.centres_mm[stim.drawn],
-                                                self.options.path_points)
-        return self._templates[digit]
+            stim = make_stimulus(self.protocol, self.layout, digit, level)
+            self._templates[key] = _normalise(stim.centres_mm[stim.drawn],
+                                              self.options.path_points)
+        return self._templates[key]
 
-    def choice_probabilities(self, path: np.ndarray, choices: tuple[int, ...]
-                             ) -> tuple[np.ndarray, np.ndarray]:
-        """(p, d): choice probabilities and template distances (mm) for each choice."""
+    def choice_probabilities(self, path: np.ndarray, choices: tuple[int, ...],
+                             level: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(p, d): choice probabilities and template distances (mm) for each choice, against
+        the templates at the trial's ``level`` (None: no levels)."""
         o = self.options
         n = len(choices)
         if len(path) < 2:
             return np.full(n, 1.0 / n), np.full(n, np.nan)
         shape = _normalise(path, o.path_points)
-        d = np.array([np.sqrt(np.mean(np.sum((shape - self.template(c)) ** 2, axis=1)))
+        d = np.array([np.sqrt(np.mean(np.sum((shape - self.template(c, level)) ** 2, axis=1)))
                       for c in choices])
         logits = -(d - d.min()) / self.temperature_mm
         p = np.exp(logits)
@@ -293,7 +309,7 @@ class PerceptualObserver(Responder):
         rng = trial_rng(self.seed, trial.index)
         choices = tuple(stimulus.digit_choices)
         path = self.peak_path(stimulus, rng)
-        p, d = self.choice_probabilities(path, choices)
+        p, d = self.choice_probabilities(path, choices, getattr(trial, "level", None))
         u = rng.random()
         index = min(int(np.searchsorted(np.cumsum(p), u * p.sum(), side="right")),
                     len(choices) - 1)
@@ -305,6 +321,14 @@ class PerceptualObserver(Responder):
                               "entropy": entropy, "decision_s": decision_s}
         return respond_at(clock, stimulus, stimulus.duration_s + decision_s, time_limit_s,
                           choices[index])
+
+
+def _largest_half_diagonal(protocol: Any, layout: Any) -> float:
+    """Half the diagonal (mm) of the largest digit box over the protocol's levels."""
+    specs = [protocol.stimulus_at(v) for v in getattr(protocol, "level_values", (None,))] \
+        if hasattr(protocol, "stimulus_at") else [protocol.stimulus]
+    return max(0.5 * layout.pitch_mm * float(np.hypot(s.digit_width_pitch,
+                                                      s.digit_height_pitch)) for s in specs)
 
 
 def _normalise(path: np.ndarray, points: int) -> np.ndarray:
