@@ -1,4 +1,4 @@
-"""Pseudo-terminal boards shared by the serial device and ``crs-study device`` tests.
+"""Shared by the device tests: pseudo-terminal boards, and a base-0, reversed layout.
 
 The far end of each pty decodes what the host writes with the codec (host direction) and
 answers GET_BATTERY_VOLTAGE like a board (hardware.md: reply ``55 55 04 0F lo hi``). Test
@@ -88,3 +88,17 @@ def boards_fixture():
 def url_of(boards: list[PtyBoard]) -> str:
     """``serial://`` URL of the boards' ttys, in controller order."""
     return "serial://" + ",".join(b.path for b in boards)
+
+
+def base0_reversed(layout):
+    """``layout`` with its first controller counting channels from 0 (hardware.md leaves 0 or
+    1 open) and actuator 2's calibration reversed (zero_us > full_us)."""
+    from dataclasses import replace
+
+    first = layout.controllers[0]
+    acts = [replace(a, channel=a.channel - 1) if a.controller == first.name else a
+            for a in layout.actuators]
+    cal = acts[2].calibration
+    acts[2] = replace(acts[2], calibration=replace(cal, zero_us=cal.full_us, full_us=cal.zero_us))
+    controllers = (replace(first, channel_base=0), *layout.controllers[1:])
+    return replace(layout, controllers=controllers, actuators=tuple(acts))

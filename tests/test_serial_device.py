@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from _pty_helpers import boards_fixture, url_of  # noqa: F401 - the boards fixture
+from _pty_helpers import base0_reversed, boards_fixture, url_of  # noqa: F401 - the fixture
 
 from crs_study.clock import RealClock
 from crs_study.device import codec
@@ -135,6 +135,20 @@ def test_deadband_holds_tiny_changes_back(layout1d, boards):
         step[0] = 0.027  # 3 us: sent
         assert device.send(step).bytes_sent == (10,)
         assert board.wait_for(2)[1].positions == ((1, 1003),)
+
+
+def test_channel_base_0_and_a_reversed_servo_on_the_wire(layout1d, boards):
+    (board,) = boards(1)
+    layout = base0_reversed(layout1d)
+    setpoints = np.linspace(0.5, 8.5, layout.n_actuators)
+    with SerialDevice.from_url(url_of([board]), layout, **FAST) as device:
+        device.send(setpoints)
+        assert device.wait_sent(1.0)
+    first = board.wait_for(2)[0]
+    assert [i for i, _ in first.positions] == list(range(7))
+    assert dict(first.positions)[2] == round(2000 - 1000 * setpoints[2] / 9)  # reversed
+    assert [p for _, p in board.moves()[-1].positions] == [1000, 1000, 2000, 1000, 1000, 1000,
+                                                            1000]  # neutral 0 mm, reversed too
 
 
 def test_out_of_range_setpoint_never_reaches_the_wire(layout2d, boards):

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from _pty_helpers import base0_reversed
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -67,6 +68,23 @@ def test_boards_receive_the_calibrated_frames_then_only_changed_channels(layout2
         expected_frame(layout2d, "B", first, move_ms=40),
         expected_frame(layout2d, "B", second, only={12}, move_ms=40),
     ]
+
+
+def test_channel_base_0_and_a_reversed_servo_reach_the_right_servos(layout1d):
+    layout = base0_reversed(layout1d)
+    setpoints = np.linspace(0.5, 8.5, layout.n_actuators)
+    device = sim(layout, record=True)
+    device.send(setpoints)
+    device.clock.advance(1.0)
+    displayed = device.displayed_setpoints()  # delivers the frame, moves the servos
+    (move,) = [r.message for r in device.boards[0].received
+               if isinstance(r.message, codec.ServoMove)]
+    # ids 0..6 on the wire; actuator 2 runs from 2000 us at 0 mm down to 1000 us at 9 mm
+    assert move.encode() == expected_frame(layout, "A", setpoints, move_ms=device.default_move_ms)
+    assert [i for i, _ in move.positions] == list(range(7))
+    assert dict(move.positions)[2] == round(2000 - 1000 * setpoints[2] / 9)
+    assert device.boards[0].unknown_ids == 0
+    assert np.allclose(displayed, setpoints, atol=MM_PER_US / 2)
 
 
 def test_full_refresh_resends_every_channel(layout2d):
