@@ -6,7 +6,6 @@ The linear map is the device file's (layout.py ``Calibration``; hardware.md "Lin
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -190,29 +189,6 @@ def test_fast_to_pulses_matches_the_reference_arithmetic(layout1d, cals, shifts,
     np.testing.assert_array_equal(pm.to_pulses(mm[0]), _reference_to_pulses(pm, mm[0]))
 
 
-class _CapturePort:
-    """A serial-like port that keeps every byte written (no timing, no replies)."""
-
-    name, is_open, in_waiting = "capture", True, 0
-
-    def __init__(self) -> None:
-        self.data = bytearray()
-
-    def write(self, data: bytes) -> int:
-        self.data += data
-        return len(data)
-
-    def read(self, n: int) -> bytes:
-        time.sleep(0.005)
-        return b""
-
-    def reset_input_buffer(self) -> None:
-        pass
-
-    def close(self) -> None:
-        self.is_open = False
-
-
 @settings(max_examples=25, deadline=None)
 @given(cals=st.lists(calibrations, min_size=7, max_size=7),
        frames=st.lists(st.lists(st.floats(-2.0, 25.0) | st.just(float("nan")), min_size=7,
@@ -221,6 +197,7 @@ def test_no_pulse_outside_limits_reaches_either_devices_wire(layout1d, cals, fra
     # the whole path, not only PulseMap: SerialDevice's writer thread (bytes captured) and
     # SimulatedDevice's boards (bytes decoded) under random, reversed calibrations; every
     # SERVO_MOVE that reaches a wire, the neutral pose on close included, stays in range
+    from crs_study.benchmarks.device import PacedPort
     from crs_study.clock import VirtualClock
     from crs_study.device.serial_device import SerialDevice, SerialOptions
     from crs_study.device.simulated import SimulatedDevice
@@ -230,7 +207,7 @@ def test_no_pulse_outside_limits_reaches_either_devices_wire(layout1d, cals, fra
     layout = replace(layout1d, actuators=acts)
     low = {a.channel: min(a.calibration.zero_us, a.calibration.full_us) for a in acts}
     high = {a.channel: max(a.calibration.zero_us, a.calibration.full_us) for a in acts}
-    port = _CapturePort()
+    port = PacedPort("capture", 0.0)  # keeps the bytes, no wire time
     serial_device = SerialDevice(layout, [port], VirtualClock(), SerialOptions(
         check_battery=False, pace=False, refresh_s=0.0))
     sim_device = SimulatedDevice(layout, VirtualClock(), record=True)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from _pty_helpers import base0_reversed, boards_fixture, url_of  # noqa: F401 - the fixture
 
+from crs_study.benchmarks.device import PacedPort
 from crs_study.clock import RealClock
 from crs_study.device import codec
 from crs_study.device.base import BYTE_TIME_S, open_device
@@ -196,36 +197,14 @@ def test_full_refresh_resends_every_channel(layout1d, boards):
 
 
 def test_controllers_are_written_concurrently(layout2d):
-    intervals: dict[str, list[tuple[float, float]]] = {"A": [], "B": []}
-
-    class PacedPort:
-        """A port that takes the wire's time to write: 10 bits a byte at 9600 baud."""
-
-        def __init__(self, name: str) -> None:
-            self.name, self.is_open, self.in_waiting = name, True, 0
-
-        def write(self, data: bytes) -> int:
-            start = time.monotonic()
-            time.sleep(len(data) * BYTE_TIME_S)
-            intervals[self.name].append((start, time.monotonic()))
-            return len(data)
-
-        def read(self, n: int) -> bytes:
-            time.sleep(0.01)
-            return b""
-
-        def reset_input_buffer(self) -> None:
-            pass
-
-        def close(self) -> None:
-            self.is_open = False
-
-    device = SerialDevice(layout2d, [PacedPort("A"), PacedPort("B")], RealClock(),
+    # ports that take the wire's time to write: 10 bits a byte at 9600 baud
+    ports = [PacedPort(c.name, BYTE_TIME_S) for c in layout2d.controllers]
+    device = SerialDevice(layout2d, ports, RealClock(),
                           SerialOptions(check_battery=False, refresh_s=0.0))
     with device:
         device.send(np.full(37, 1.0))
         assert device.wait_sent(1.0)
-    (a_start, a_end), (b_start, b_end) = intervals["A"][0], intervals["B"][0]
+    (a_start, a_end, _), (b_start, b_end, _) = ports[0].writes[0], ports[1].writes[0]
     assert a_start < b_end and b_start < a_end  # the two writes overlap in time
 
 
@@ -259,24 +238,12 @@ def test_vanished_port_raises_within_one_frame_period_and_close_releases(layout2
 def test_stalled_writer_is_reported_not_waited_for(layout1d):
     release = threading.Event()
 
-    class StuckPort:
-        is_open, in_waiting, name = True, 0, "stuck"
-
+    class StuckPort(PacedPort):
         def write(self, data: bytes) -> int:
             release.wait(3.0)  # ignores its write timeout, like a wedged driver
             return len(data)
 
-        def read(self, n: int) -> bytes:
-            time.sleep(0.01)
-            return b""
-
-        def reset_input_buffer(self) -> None:
-            pass
-
-        def close(self) -> None:
-            self.is_open = False
-
-    device = SerialDevice(layout1d, [StuckPort()], RealClock(),
+    device = SerialDevice(layout1d, [StuckPort("stuck", 0.0)], RealClock(),
                           SerialOptions(check_battery=False, write_timeout_s=0.05, refresh_s=0))
     device.open()
     try:

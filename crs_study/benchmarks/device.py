@@ -33,12 +33,14 @@ TARGET_LATENCY_S = 0.045
 
 
 class PacedPort:
-    """A serial-like port that takes the wire's time to write; records write intervals."""
+    """A serial-like port that takes the wire's time to write (``byte_s`` a byte, 0: none);
+    records write intervals and keeps the bytes (tests decode them)."""
 
     def __init__(self, name: str, byte_s: float) -> None:
         self.name, self.byte_s = name, byte_s
         self.is_open, self.in_waiting = True, 0
         self.writes: list[tuple[float, float, int]] = []
+        self.data = bytearray()
         self._lock = threading.Lock()
 
     def write(self, data: bytes) -> int:
@@ -48,6 +50,7 @@ class PacedPort:
             time.sleep(min(left, 0.002) if left > 0.003 else 0)
         with self._lock:
             self.writes.append((start, time.monotonic(), len(data)))
+            self.data += data
         return len(data)
 
     def read(self, n: int) -> bytes:

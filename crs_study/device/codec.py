@@ -208,6 +208,27 @@ def servo_move_arrays(ids: np.ndarray, pulses_us: np.ndarray, time_ms: int) -> b
 
 
 @dataclass(frozen=True)
+class _NoParams:
+    """Frames without parameters: ``55 55 02 CODE``."""
+
+    def encode(self) -> bytes:
+        return _frame(self.code, b"")
+
+
+@dataclass(frozen=True)
+class _ServoIds:
+    """Frames whose parameters are a count and that many servo ids."""
+
+    ids: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ids", _check_ids(self.ids))
+
+    def encode(self) -> bytes:
+        return _frame(self.code, bytes((len(self.ids), *self.ids)))
+
+
+@dataclass(frozen=True)
 class _GroupTimes:
     """Frames whose parameters are an action group and a 16-bit repetition count."""
 
@@ -230,13 +251,10 @@ class ActionGroupRun(_GroupTimes):
 
 
 @dataclass(frozen=True)
-class ActionGroupStop:
+class ActionGroupStop(_NoParams):
     """Stop the running action group."""
 
     code: ClassVar[int] = Command.ACTION_GROUP_STOP
-
-    def encode(self) -> bytes:
-        return _frame(self.code, b"")
 
 
 @dataclass(frozen=True)
@@ -256,41 +274,24 @@ class ActionGroupSpeed:
 
 
 @dataclass(frozen=True)
-class GetBatteryVoltage:
+class GetBatteryVoltage(_NoParams):
     """Ask for the supply voltage; the board answers with :class:`BatteryVoltage`."""
 
     code: ClassVar[int] = Command.GET_BATTERY_VOLTAGE
 
-    def encode(self) -> bytes:
-        return _frame(self.code, b"")
-
 
 @dataclass(frozen=True)
-class MultServoUnload:
+class MultServoUnload(_ServoIds):
     """Switch the listed servos off (no holding torque)."""
 
-    ids: tuple[int, ...]
     code: ClassVar[int] = Command.MULT_SERVO_UNLOAD
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "ids", _check_ids(self.ids))
-
-    def encode(self) -> bytes:
-        return _frame(self.code, bytes((len(self.ids), *self.ids)))
 
 
 @dataclass(frozen=True)
-class MultServoPosRead:
+class MultServoPosRead(_ServoIds):
     """Ask for the listed servos' positions; the board answers with :class:`ServoPositions`."""
 
-    ids: tuple[int, ...]
     code: ClassVar[int] = Command.MULT_SERVO_POS_READ
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "ids", _check_ids(self.ids))
-
-    def encode(self) -> bytes:
-        return _frame(self.code, bytes((len(self.ids), *self.ids)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -305,13 +306,10 @@ class ActionGroupRunning(_GroupTimes):
 
 
 @dataclass(frozen=True)
-class ActionGroupStopped:
+class ActionGroupStopped(_NoParams):
     """Notice: the action group was stopped."""
 
     code: ClassVar[int] = Reply.ACTION_GROUP_STOPPED
-
-    def encode(self) -> bytes:
-        return _frame(self.code, b"")
 
 
 @dataclass(frozen=True)
