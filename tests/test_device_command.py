@@ -233,3 +233,15 @@ def test_monitor_ends_cleanly_on_ctrl_c(monkeypatch, capsys):
     assert "ServoMove [1] in 1000 ms: 1:2000" in out and "stopped (Ctrl-C)" in out
     assert "end of stream: skipped 1 byte(s) (truncated frame): 55" in out
     assert "1 frame(s), 1 byte(s) skipped" in out and port.closed
+
+
+def test_monitor_on_a_silent_port_ends_at_its_time(capsys):
+    master, slave = pty.openpty()  # a tty on which nothing ever arrives
+    try:
+        start = time.monotonic()
+        assert main(["device", "monitor", "--port", os.ttyname(slave), "--seconds", "0.3"]) == 0
+        assert time.monotonic() - start < 2.0  # reads time out; the loop sees the clock
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert "0 frame(s), 0 byte(s) skipped" in capsys.readouterr().out

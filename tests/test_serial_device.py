@@ -76,9 +76,11 @@ def test_battery_is_read_on_open_even_after_garbage(layout2d, boards):
 def test_silent_board_gives_none_and_a_warning(layout1d):
     # loop:// echoes our own request, which is not a battery reply
     device = SerialDevice.from_url("serial://loop://", layout1d, battery_timeout_s=0.05)
+    start = time.monotonic()
     with pytest.warns(DeviceWarning, match=r"controller A on loop://: no answer to "
                       r"GET_BATTERY_VOLTAGE within 0\.05 s"):
         device.open()
+    assert time.monotonic() - start < 1.0  # the wait is bounded (0.05 s + one 0.05 s read)
     try:
         assert device.battery_mv() == [None]
     finally:
