@@ -274,3 +274,33 @@ def test_ctrl_c_inside_a_session_still_sends_neutral_and_releases(layout1d, boar
     with pytest.raises(DeviceError, match="send\\(\\) on a device that is closed"):
         device.send(np.zeros(7))
     device.close()  # idempotent
+
+
+def test_neutral_on_a_failed_port_waits_for_the_write_in_progress(layout1d):
+    # the reader notices the port failing while the writer is still inside a write: the
+    # neutral frame close() writes directly must not overlap it (the bytes would interleave)
+    failing = threading.Event()
+
+    class FailingReads(PacedPort):
+        def read(self, n: int) -> bytes:
+            time.sleep(0.005)
+            if failing.is_set():
+                raise OSError(5, "Input/output error")
+            return b""
+
+    port = FailingReads("A", 0.003)  # a 7-servo frame, 28 bytes, takes 84 ms to write
+    device = SerialDevice(layout1d, [port], RealClock(),
+                          SerialOptions(check_battery=False, refresh_s=0.0))
+    device.open()
+    device.send(np.full(7, 3.0))
+    deadline = time.monotonic() + 2.0
+    while device.ports[0].writing_since is None and time.monotonic() < deadline:
+        time.sleep(0.001)  # until the writer is inside write()
+    failing.set()
+    while device.ports[0].error is None and time.monotonic() < deadline:
+        time.sleep(0.001)
+    device.close()
+    (first_start, first_end, _), (second_start, _, _) = sorted(port.writes)
+    assert second_start >= first_end  # one after the other
+    frames, skipped = codec.decode_all(bytes(port.data))
+    assert skipped == [] and frames[-1].message.time_ms == 500  # neutral, whole

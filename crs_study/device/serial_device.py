@@ -161,6 +161,9 @@ class _Port:
         self.spec = spec if isinstance(spec, str) else getattr(spec, "name", repr(spec))
         self.serial: Any = None if isinstance(spec, str) else spec
         self.cond = threading.Condition()
+        # held around every serial.write: two threads writing one port could interleave the
+        # bytes of two frames, and an LSC frame has no checksum to catch it
+        self.write_lock = threading.Lock()
         self.wanted: np.ndarray | None = None  # full actuator pulse vector last handed over
         self.wanted_seq = 0
         self.sent_seq = 0
@@ -268,7 +271,8 @@ class _Port:
             if not data:
                 continue
             try:
-                self.serial.write(data)
+                with self.write_lock:
+                    self.serial.write(data)
             except Exception as exc:  # noqa: BLE001 - SerialException, OSError, timeouts
                 with self.cond:
                     self.error = exc
@@ -506,11 +510,20 @@ class SerialDevice(Device):
     def _neutral_direct(self, port: _Port, pulses: np.ndarray) -> None:
         local = np.arange(len(self.split.members[port.index]))
         data = self.split.frame(port.index, pulses, local, self.options.neutral_move_ms)
+        if port.serial is None or not data:
+            return
+        # the writer thread may still be inside a write (a reader noticed the failure first):
+        # wait for it rather than interleave, but never longer than a write may take
+        if not port.write_lock.acquire(timeout=self.options.write_timeout_s + 0.5):
+            self.faults.append(f"{port.label}: neutral pose not sent: a write is still stuck "
+                               f"({port.error})")
+            return
         try:
-            if port.serial is not None and data:
-                port.serial.write(data)
+            port.serial.write(data)
         except Exception as exc:  # noqa: BLE001 - the port already failed; report, go on
             self.faults.append(f"{port.label}: neutral pose not sent: {exc}")
+        finally:
+            port.write_lock.release()
 
     def wait_sent(self, timeout_s: float = 1.0) -> bool:
         """Wait until every frame handed over has been written (or merged and written).
