@@ -32,6 +32,7 @@ def test_neutral_puts_valid_servo_moves_on_both_ttys(boards, capsys):
         assert isinstance(frames[0].message, codec.GetBatteryVoltage)
         assert moves and all(m.positions == tuple((ch, 1000) for ch in range(1, channels + 1))
                              for m in moves)
+        assert moves[0].time_ms == 500  # the slow neutral move, from wherever they were
 
 
 def test_check_prints_batteries_balance_and_wire_budget(boards, capsys):

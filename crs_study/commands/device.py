@@ -213,7 +213,10 @@ def _neutral(args: argparse.Namespace) -> int:
     from crs_study.errors import DeviceError
 
     with _session(_open(args)) as device:
-        report = device.neutral()
+        # where the actuators are is unknown (after a crash, anywhere): the slow neutral move
+        # close() uses, not the runner's one-frame return to flat
+        report = device.send(device.layout.neutral_setpoints(),
+                             move_ms=device.options.neutral_move_ms)
         if hasattr(device, "wait_sent") and not device.wait_sent(2.0):
             raise DeviceError(f"--device {args.device}: the neutral pose was not written "
                               f"within 2 s")
