@@ -15,7 +15,7 @@ from _pty_helpers import boards_fixture, url_of  # noqa: F401 - the boards fixtu
 from crs_study.cli import main
 from crs_study.device import codec, protocol_lscsim
 from crs_study.device.virtual_controller import VirtualController
-from crs_study.layout import load_layout
+from crs_study.layout import device_file_path, load_layout
 
 
 def test_neutral_puts_valid_servo_moves_on_both_ttys(boards, capsys):
@@ -187,6 +187,12 @@ def test_calibrate_refuses_an_unwritable_output_before_asking_anything(boards, t
         assert main(["device", "calibrate", "--device", url_of([board]), "--layout", "crs1d",
                      "--output", str(out), *extra]) == 2
         assert "expected a new file in a writable directory" in capsys.readouterr().err
+    original = tmp_path / "mine.toml"
+    original.write_bytes(device_file_path("crs1d").read_bytes())
+    before = original.read_bytes()
+    assert main(["device", "calibrate", "--device", url_of([board]), "--layout", str(original),
+                 "--output", str(original), "--overwrite"]) == 2
+    assert "never the original" in capsys.readouterr().err and original.read_bytes() == before
     assert board.moves() == []  # the port was never opened
 
 

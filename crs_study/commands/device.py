@@ -284,9 +284,12 @@ def _calibrate(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.exists() and not args.overwrite:
         raise DeviceError(f"--output {out}: already exists; choose another file or --overwrite")
+    # found out now, not after the experimenter has set every endpoint by hand
     if out.is_dir() or not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
-        # found out now, not after the experimenter has set every endpoint by hand
         raise DeviceError(f"--output {out}: expected a new file in a writable directory")
+    if out.exists() and out.resolve() == device_file_path(args.layout).resolve():
+        raise DeviceError(f"--output {out}: is the device file being calibrated; the "
+                          f"calibration goes into a copy, never the original")
     if args.deadband_us is None:
         args.deadband_us = 0  # every 1 us step the experimenter asks for must reach the servo
     device = _open(args)
