@@ -67,3 +67,34 @@ def test_2d_beams_are_scipy_clamped_splines_with_their_arc_length():
         s = np.linspace(0.0, model.spans[b], 401)
         np.testing.assert_allclose(profiles.profile(b)(s), spline(s), atol=1e-12)
         assert profiles.length_mm[b] == pytest.approx(spline_arc_length(spline), abs=1e-10)
+
+
+def test_design_md_spline_check_values():
+    """DESIGN.md: a bump of wavelength 3 pitches half-way between two pixels (pixel heights
+    0.75 of the target's 1.0) gives a "spline maximum about 0.77". What the set-ups give
+    (scipy CubicSpline, the independent reference): ours, clamps one pitch beyond the 5 pixels
+    of the published 1D device, 0.902; an infinite lattice (20 pixels) 0.9007; natural ends at
+    the end pixels 0.881; four pixels clamped at the outer two 0.9375 (= 15/16 by hand: the
+    clamped cubic through 0, 3/4, 3/4, 0 with unit spacing). None is near 0.77; the claim in
+    DESIGN.md is not reproduced by any cubic spline, only the conclusion (spline < 0.95 << 1)."""
+    def heights(x):
+        r = np.abs(x - 45.0)
+        return np.where(r < 45.0, 0.5 * (1 + np.cos(2 * np.pi * r / 90.0)), 0.0)
+
+    def spline_max(knots, bc):
+        x = np.linspace(knots[0], knots[-1], 20001)
+        return CubicSpline(knots, heights(knots), bc_type=bc)(x).max()
+
+    layout = load_layout("crs1d")
+    setpoints = np.concatenate([heights(layout.pixel_xy[:, 0]), [0.0, 0.0]])
+    np.testing.assert_allclose(setpoints[1:3], 0.75)
+    x = np.linspace(-30.0, 150.0, 3601)
+    ours = get_model("spline", layout).surface(setpoints, np.column_stack([x, 0 * x])).max()
+    reference = spline_max(np.array([-30.0, 0, 30, 60, 90, 120, 150]), "clamped")
+    assert ours == pytest.approx(reference, abs=1e-6)
+    assert ours == pytest.approx(0.902, abs=1e-3)
+    lattice = spline_max(45.0 + 30.0 * (np.arange(20) - 9.5), "natural")
+    assert lattice == pytest.approx(0.9007, abs=1e-4)
+    assert spline_max(np.arange(5) * 30.0, "natural") == pytest.approx(0.881, abs=1e-3)
+    assert spline_max(np.array([0.0, 30, 60, 90]), "clamped") == pytest.approx(15 / 16)
+    assert min(ours, lattice) > 0.77 + 0.1
