@@ -21,6 +21,23 @@ while the whole fits in the two ends' travel. The beam's shape does not depend o
 (both clamps sit at base height and fixed positions); the even split halves the distance each
 servo moves and therefore the time a change takes.
 
+Feed cap (``cap_feed=True``, the default): a beam cannot be made longer than its longest
+stable shape through the commanded pixel heights, the one at the solver's margin of the
+critical load (0.98 N_cr, beam without foundation: the display as shown). Beyond it the real
+beam would buckle into a mode its pixels do not control (Eq. 3: the denominator vanishes at
+N_cr), and the ``beam`` model raises :class:`~crs_study.errors.CollapseError`. The feed rule
+asks for that in two ways: a bump crossing a beam's line between pixels (or between the last
+pixel and a clamp) while every pixel of the beam is at base (the beam can then only take the
+steel's elastic shortening, ~N_cr S / EA, a few micrometres), and tall bumps whose arc length
+exceeds what the pixel heights can guide. So the total feed of each beam is capped at
+:meth:`~crs_study.display.beam.CompressedBeams.longest_feeds` (the beam then shows its longest
+stable shape) and the cap is reported in :attr:`Rendering.clamped` like any clip, or raised
+under ``policy="error"``. Measured (``crs-study`` at commit of this change): the shipped digit
+stimuli need no cap (0 of 537 frames); bump centres uniform in the 2D pixel hull need it in
+0/3000 frames at z_f = 1 mm and 35/3000 at 5 mm; centres beyond the hull, where the flat-beam
+case lives, in ~23 %. ``cap_feed=False`` keeps the paper's rule unchanged (the quality
+criteria evaluate that rule and report the points where it collapses).
+
 Clamp policy: a setpoint outside its actuator's range (pixel 0..travel, boundary
 0..boundary travel) is clipped to the range and reported in :attr:`Rendering.clamped`, or,
 with ``policy="error"``, raised as :class:`~crs_study.errors.RenderError`. Nothing beyond range
@@ -119,7 +136,8 @@ def register_condition(name: str,
 class Renderer:
     """Renders targets for one layout and condition, reusing precomputed beam geometry."""
 
-    def __init__(self, layout: Layout, condition: str, policy: ClampPolicy = "clip") -> None:
+    def __init__(self, layout: Layout, condition: str, policy: ClampPolicy = "clip",
+                 cap_feed: bool = True) -> None:
         if condition not in CONDITIONS:
             raise RenderError(
                 f"unknown condition {condition!r}; known: {', '.join(sorted(CONDITIONS))}"
@@ -132,6 +150,15 @@ class Renderer:
         self._func = CONDITIONS[condition]
         self._geometry = BeamGeometry(layout)
         self._upper = np.array([a.calibration.travel_mm for a in layout.actuators])
+        self.cap_feed = cap_feed
+        self._beams = None  # CompressedBeams, built on the first frame that feeds a beam
+
+    def _longest_feeds(self, heights: np.ndarray) -> np.ndarray:
+        if self._beams is None:
+            from crs_study.display.beam import CompressedBeams  # scipy: only when needed
+
+            self._beams = CompressedBeams.for_layout(self.layout)
+        return self._beams.longest_feeds(heights)
 
     def render(self, target: Bump) -> Rendering:
         raw = self._func(self.layout, target, self._geometry)
@@ -141,16 +168,41 @@ class Renderer:
         """Apply the clamp policy to a raw setpoint vector."""
         clipped = np.clip(raw, 0.0, self._upper)
         bad = np.flatnonzero(np.abs(clipped - raw) > 1e-12)
-        if bad.size == 0:
-            return Rendering(raw, ())
-        messages = tuple(
+        messages = [
             f"{self.layout.actuators[i].name}: {raw[i]:.3f} mm clipped to {clipped[i]:.3f} mm "
             f"(range 0..{self._upper[i]:g} mm)"
             for i in bad
-        )
-        if self.policy == "error":
+        ]
+        if messages and self.policy == "error":
             raise RenderError(f"{self.condition}: setpoint out of range: {messages[0]}")
-        return Rendering(clipped, messages)
+        if self.cap_feed and self.layout.beams:
+            clipped, capped = self._cap_feeds(clipped)
+            if capped and self.policy == "error":
+                raise RenderError(f"{self.condition}: {capped[0]}")
+            messages += capped
+        if not messages:
+            return Rendering(raw, ())
+        return Rendering(clipped, tuple(messages))
+
+    def _cap_feeds(self, setpoints: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """Each beam's total feed at most its longest stable one (module docstring)."""
+        g = self._geometry
+        total = setpoints[g.start_servo] + setpoints[g.end_servo]
+        if not total.any():
+            return setpoints, []
+        longest = np.maximum(self._longest_feeds(setpoints[: self.layout.n_pixels]), 0.0)
+        over = np.flatnonzero(total > longest)
+        if over.size == 0:
+            return setpoints, []
+        capped = setpoints.copy()
+        start, end = split_feed(np.minimum(total, longest), self.layout.boundary_travel_mm)
+        capped[g.start_servo[over]] = start[over]
+        capped[g.end_servo[over]] = end[over]
+        return capped, [
+            f"beam {b}: feed {total[b]:.4f} mm capped to {longest[b]:.4f} mm (the longest "
+            f"stable shape through its pixel heights; more would collapse the beam)"
+            for b in over
+        ]
 
 
 def render(layout: Layout, target: Bump, condition: str, policy: ClampPolicy = "clip"

@@ -61,9 +61,10 @@ def test_design_check_peak_between_two_pixels():
 
     Pixel heights 0.75 (Eq. 7 at 0.5 pitch from the centre); the compressed beam made as long
     as the target's arc length peaks at ~1.0 at the centre. DESIGN.md quotes ~0.77 for the
-    plain clamped spline; on the published device the clamped spline (scipy, clamped ends one
-    pitch beyond the end pixels) peaks at 0.90 (natural and not-a-knot ends give 0.89-0.90
-    too), still well short of the target and of the compressed beam.
+    plain clamped spline; what the published device's spline gives is 0.902 (scipy clamped
+    CubicSpline on the knots clamp, 5 pixels, clamp), and no interpolating cubic spline gives
+    0.77 (tests/test_display_spline.py::test_design_md_spline_check_values): still well short
+    of the target and of the compressed beam, which is the point of the check.
     """
     layout = load_layout("crs1d")
     bump = Bump((45.0, 0.0), 90.0, 2.0)
@@ -74,7 +75,7 @@ def test_design_check_peak_between_two_pixels():
         assert z.max() == pytest.approx(1.0, abs=0.03)
         assert X1D[z.argmax()] == pytest.approx(45.0, abs=0.5)
     spline = get_model("spline", layout).surface(setpoints, XY1D) / 2.0
-    assert 0.75 < spline.max() < 0.92
+    assert spline.max() == pytest.approx(0.9022, abs=5e-4)
     assert z.max() - spline.max() > 0.08
 
 
@@ -221,7 +222,8 @@ def test_zero_feed_falls_back_to_the_spline():
 
 def test_small_and_large_d_over_l():
     """d/l = 1/20: the beam reproduces the bump closely. d/l = 1.5: a bump between pixels
-    leaves every pixel at base, so its feed can only buckle the beam: CollapseError."""
+    leaves every pixel at base, so the paper's feed can only buckle the beam: CollapseError;
+    the renderer's default feed cap (crs_study.render) commands the straight beam instead."""
     fine = line_layout(pixels=21, pitch=4.5)
     bump = Bump((44.0, 0.0), 90.0, 2.0)
     setpoints = Renderer(fine, "crs").render(bump).setpoints
@@ -230,10 +232,14 @@ def test_small_and_large_d_over_l():
     z = get_model("beam", fine).surface(setpoints, xy)
     assert np.abs(z - bump.height(xy)).max() < 0.01 * 2.0
     coarse = line_layout(pitch=135.0)
-    setpoints = Renderer(coarse, "crs").render(Bump((67.5, 0.0), 90.0, 2.0)).setpoints
+    wide = Bump((67.5, 0.0), 90.0, 2.0)
+    setpoints = Renderer(coarse, "crs", cap_feed=False).render(wide).setpoints
     assert np.all(setpoints[:5] == 0.0) and setpoints[5] > 0
     with pytest.raises(CollapseError, match="the beam collapses"):
         get_model("beam", coarse).surface(setpoints, XY1D)
+    capped = Renderer(coarse, "crs").render(wide)
+    assert capped.clamped and "capped" in capped.clamped[0]
+    np.testing.assert_array_equal(get_model("beam", coarse).surface(capped.setpoints, XY1D), 0.0)
 
 
 def test_setpoints_of_the_wrong_shape_or_not_finite():

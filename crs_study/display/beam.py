@@ -445,6 +445,8 @@ class CompressedBeams:
         # slopes dy/ds (dimensionless) at every grid load: (B, K * nq, n_pix) @ heights
         self._grid_slopes = ops.reshape(self.n_beams, _GRID_POINTS * nq, -1) / self.d
         self._grid_weights = self.beams.w_nodes * self.d  # mm per node
+        self._top_slopes = np.ascontiguousarray(  # slopes at margin N_cr: (B, nq, n_pix)
+            self._grid_slopes.reshape(self.n_beams, _GRID_POINTS, nq, -1)[:, -1])
 
     def _critical_a(self, beams: _BeamSet) -> np.ndarray:
         """First zero of det(A(a)) per beam: the critical load in units EI/d^2."""
@@ -497,6 +499,23 @@ class CompressedBeams:
         slope, second = self.beams.node_derivatives(a, self.b, coef)
         length = np.sum(self._grid_weights * np.sqrt(1.0 + (slope / self.d) ** 2), axis=-1)
         return _State(coef, slope, second, length)
+
+    def longest_feeds(self, pixel_heights_mm: np.ndarray) -> np.ndarray:
+        """Largest total feed (mm) per beam that :meth:`solve` can show for these pixel heights.
+
+        The longest stable shape is the one at N = margin N_cr (the length grows with N);
+        after the steel's shortening the commanded length may be at most
+        L(margin N_cr) / (1 - margin N_cr / EA), so the feed at most that less the span S,
+        less ``LENGTH_TOLERANCE_MM`` (so the root is bracketed strictly). With every pixel at
+        base this is ~margin N_cr S / EA (the straight beam's elastic shortening). One
+        (nq x n_pix) product per beam: the renderer's feed cap (:mod:`crs_study.render`).
+        """
+        setpoints = np.zeros(self.layout.n_actuators)
+        setpoints[: self.layout.n_pixels] = pixel_heights_mm
+        heights = self.heights(setpoints)
+        top = self._top_slopes @ heights[:, :, None]
+        length = np.sum(self._grid_weights * np.sqrt(1.0 + top[..., 0] ** 2), axis=-1)
+        return length / self._shortening[-1] - self.spans - LENGTH_TOLERANCE_MM
 
     def solve(self, setpoints_mm: np.ndarray, check_yield_curvature: bool = True,
               model: str = "beam") -> BeamProfiles:

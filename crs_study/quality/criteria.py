@@ -131,7 +131,7 @@ class _Evaluator:
                  height: float, condition: str, resolution: int) -> None:
         self.model, self.layout, self.lattice = model, layout, lattice
         self.l, self.height, self.d = l, height, layout.pitch_mm
-        self.renderer = Renderer(layout, condition, policy="error")
+        self.renderer = Renderer(layout, condition, policy="error", cap_feed=False)
         self.resolution = resolution
         self.peak_xy = getattr(model, "peak_xy", None)
         if lattice != "1d":
