@@ -77,3 +77,44 @@ def test_too_few_levels_skip_that_condition_with_a_warning():
     result = analyse_psychometric(trials, ["crs"], 0.1, n_bootstrap=0)
     assert not result.fits and any("a fit needs 3 or more" in w for w in result.warnings)
     assert result.skipped and "no condition has 3 or more levels" in result.note
+
+
+def test_a_flat_function_warns_and_reports_no_threshold():
+    """No level effect (accuracy 0.6 at every level): the fit's alpha is an extrapolation
+    (before this check it reported a 'threshold' of -0.3 on levels 1..6); now the slope's
+    likelihood-ratio test (statsmodels binomial GLM, chi2(1)) is not significant, so no
+    threshold or interval is reported and a warning says why."""
+    rng = np.random.default_rng(3)
+    levels = np.repeat([1.0, 2, 3, 4, 5, 6], 60)
+    trials = pd.DataFrame({"condition": "crs", "digit_height": levels,
+                           "correct": (rng.random(levels.size) < 0.6).astype(int)})
+    result = analyse_psychometric(trials, ["crs"], 0.1, n_bootstrap=20)
+    fit = result.fits["crs"]
+    assert np.isnan(fit.threshold) and fit.threshold_ci95 is None
+    assert fit.to_dict()["threshold"] is None
+    assert any("does not change with 'digit_height'" in w and "no threshold" in w
+               for w in result.warnings)
+
+
+def test_level_effect_pvalue_matches_a_hand_likelihood_ratio():
+    """LR slope test against scipy: the GLM log-likelihood maximised directly."""
+    from scipy import optimize, stats
+    from scipy.special import expit
+
+    from crs_study.analysis.psychometric import level_effect_pvalue
+
+    levels, n, k = np.array([1.0, 2, 3, 4]), np.array([30, 30, 30, 30]), np.array([8, 12, 17, 22])
+
+    def nll(b):
+        p = expit(b[0] + b[1] * levels)
+        return -np.sum(k * np.log(p) + (n - k) * np.log1p(-p))
+
+    full = -optimize.minimize(nll, [0.0, 0.0], method="Nelder-Mead",
+                              options={"xatol": 1e-10, "fatol": 1e-12}).fun
+    p0 = k.sum() / n.sum()
+    null = np.sum(k * np.log(p0) + (n - k) * np.log1p(-p0))
+    expected = stats.chi2.sf(2 * (full - null), 1)
+    assert level_effect_pvalue(levels, n, k) == pytest.approx(expected, rel=1e-4)
+    assert level_effect_pvalue(levels, n, np.zeros(4)) == 1.0
+    separated = level_effect_pvalue(levels, n, np.array([0, 0, 30, 30]))
+    assert 0.0 < separated < 1e-10

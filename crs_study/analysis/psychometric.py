@@ -9,15 +9,21 @@ maximise the binomial likelihood of the counts per level (``scipy.optimize.minim
 L-BFGS-B, several starts). The threshold is the level where ``F = threshold`` (0.5: half-way
 between guessing and ``1 - lambda``); its interval is a seeded percentile bootstrap that
 redraws the count at each level from its observed proportion (resampling the trials there).
+
+A flat psychometric function has no threshold: when a binomial logistic regression of the
+counts on the level (statsmodels GLM) finds no slope (likelihood-ratio p >= alpha, chi2(1)),
+the threshold is reported as missing (NaN here, ``None`` in ``to_dict``), no interval is
+bootstrapped, and a warning says so, instead of an alpha extrapolated far beyond the levels.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
-from scipy import optimize, special
+from scipy import optimize, special, stats
 
 from crs_study.analysis.accuracy import wilson_interval
 from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
@@ -48,7 +54,7 @@ class PsychometricFit:
     def to_dict(self) -> dict:
         return {"condition": self.condition, "function": self.function, "alpha": self.alpha,
                 "beta": self.beta, "lapse": self.lapse, "guess": self.guess,
-                "threshold": self.threshold,
+                "threshold": None if np.isnan(self.threshold) else self.threshold,
                 "threshold_ci95": None if self.threshold_ci95 is None
                 else list(self.threshold_ci95),
                 "loglike": self.loglike, "n_bootstrap": self.n_bootstrap, "note": self.note,
@@ -158,6 +164,29 @@ def fit_counts(levels: np.ndarray, n: np.ndarray, k: np.ndarray, function: str, 
     return float(a), float(b), float(lam), -float(result.fun)
 
 
+def level_effect_pvalue(levels: np.ndarray, n: np.ndarray, k: np.ndarray) -> float:
+    """Likelihood-ratio p-value (chi2(1)) of the slope of ``logit p = b0 + b1 level``.
+
+    Binomial GLM by statsmodels; 0 % or 100 % everywhere (no information) gives 1.0.
+    """
+    import statsmodels.api as sm
+
+    n, k = np.asarray(n, float), np.asarray(k, float)
+    if k.sum() in (0.0, n.sum()):
+        return 1.0
+    endog = np.column_stack([k, n - k])
+    exog = sm.add_constant(np.asarray(levels, float))
+    with np.errstate(over="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # separation (0 % below a level, 100 % above): llf -> 0
+        full = sm.GLM(endog, exog, family=sm.families.Binomial()).fit()
+    p_hat = k.sum() / n.sum()
+    constant = float(np.sum(k * np.log(p_hat) + (n - k) * np.log1p(-p_hat)))
+    constant += float(np.sum(special.gammaln(n + 1) - special.gammaln(k + 1)
+                             - special.gammaln(n - k + 1)))
+    statistic = max(2.0 * (float(full.llf) - constant), 0.0)
+    return float(stats.chi2.sf(statistic, 1))
+
+
 def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: float,
                          level_column: str = "auto", function: str = "logistic",
                          lapse_max: float = 0.1, threshold: float = 0.5,
@@ -194,6 +223,15 @@ def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: flo
         a, b, lam, ll = fit_counts(levels, n, k, function, guess, lapse_max)
         point = threshold_level(function, a, b, threshold)
         ci, note = None, ""
+        p_level = level_effect_pvalue(levels, n, k)
+        if p_level >= alpha:
+            note = (f"accuracy does not change with {column!r} (likelihood-ratio test of the "
+                    f"slope, p = {p_level:.3g}): the function is flat and has no threshold; "
+                    "none is reported")
+            warnings.append(f"psychometric function of {condition!r}: {note}")
+            fits[condition] = PsychometricFit(condition, function, a, b, lam, guess, np.nan,
+                                              None, ll, table, 0, note)
+            continue
         if n_bootstrap:
             rng = np.random.default_rng([seed, 8, index])
             draws = rng.binomial(n, k / n, size=(n_bootstrap, len(n)))
