@@ -51,6 +51,8 @@ OPTIONAL_KEYS: dict[str, object] = {
 }
 
 #: Slowest stroke speed accepted (mm/s): a 60 mm digit then takes a minute.
+#: Slowest frame rate a protocol may ask for (frames/s).
+MIN_FRAME_RATE_HZ = 1.0
 MIN_STROKE_SPEED_MM_S = 1.0
 
 #: Stimulus parameters a ``[levels]`` table may vary: key -> (dataset column, units, min, max).
@@ -453,7 +455,9 @@ def _stimulus(table: Section, path: Path, levels: LevelSpec | None = None) -> St
         offset = (float(raw[0]), float(raw[1]))
     elif placement == "offset":
         raise table.fail("offset_mm", "missing: placement = \"offset\" needs offset_mm = [x, y]")
-    frame_rate = positive("frame_rate_hz", 1000.0)
+    # Below one frame a second a moving bump is a slide show, and the frame count of a stroke
+    # (L f / v) loses meaning as f -> 0 (hypothesis found f = 5e-324).
+    frame_rate = table.number("frame_rate_hz", minimum=MIN_FRAME_RATE_HZ, maximum=1000.0)
     pause = table.number("stroke_pause_s", 0.4, minimum=0.0, maximum=10.0)
     start_hold = table.number("start_hold_s", 0.3, minimum=0.0, maximum=10.0)
     end_hold = table.number("end_hold_s", 0.3, minimum=0.0, maximum=10.0)

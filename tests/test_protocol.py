@@ -229,6 +229,8 @@ def test_optional_keys_take_their_documented_defaults(tmp_path):
                  r"most the pixel travel 9 mm, got 9.5", id="travel"),
     pytest.param({"stimulus__frame_rate_hz": 20.0}, r"stimulus.frame_rate_hz: expected at most "
                  r"15.00 frames/s .*66.7 ms.* got 20.0", id="wire"),
+    pytest.param({"stimulus__frame_rate_hz": 5e-324}, r"stimulus.frame_rate_hz: expected a "
+                 r"number >= 1(\.0)?, got 5e-324", id="rate-denormal"),
     pytest.param({"stimulus__stroke_speed_mm_s": 1.0, "stimulus__digit_height_pitch": 12.0},
                  r"stimulus.stroke_speed_mm_s: digit 0 would take \d+ s to draw; expected at "
                  r"most 120 s", id="too-slow"),
@@ -324,4 +326,4 @@ def test_numeric_values_either_load_or_fail_in_one_line(tmp_path_factory, repeti
     except ProtocolError as exc:
         assert "\n" not in str(exc) and str(exc).startswith(str(path))
     else:
-        assert p.design.repetitions == repetitions and 0 < height <= 9 and 0 < rate <= 15
+        assert p.design.repetitions == repetitions and 0 < height <= 9 and 1 <= rate <= 15
