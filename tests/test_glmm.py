@@ -426,3 +426,43 @@ def test_missing_values_are_errors(two_conditions):
     df.loc[5, "participant"] = None
     with pytest.raises(AnalysisError, match="group column 'participant' has 1 missing"):
         fit_glmm(df, "correct", "condition", "participant")
+
+
+def test_unbalanced_real_dataset_shape_against_statsmodels():
+    """What a real dataset brings at once: 1 to 120 trials per participant (one with a single
+    trial), a participant 100 % correct, three conditions with 'pixel-only' as reference.
+    The all-correct participant is not separation of a fixed effect (its intercept is a random
+    effect), so no penalty; the LRT of condition has df 2, of the variance the 50:50 mixture;
+    the variance-0 fit is statsmodels' GLM (estimates and standard errors); the profile
+    interval holds the estimate and is within 25 % of the Wald width."""
+    import statsmodels.api as sm
+    import statsmodels.formula.api as smf
+
+    rng = np.random.default_rng(7)
+    rows = []
+    for p in range(12):
+        u = rng.normal(0.0, 0.8)
+        for t in range([1, 5, 40, 80, 120][p % 5]):
+            c = ("pixel-only", "crs", "crs-fast")[t % 3]
+            eta = 0.2 + {"pixel-only": 0.0, "crs": 0.8, "crs-fast": 0.4}[c] + u
+            rows.append((f"p{p}", c, int(rng.random() < expit(eta))))
+    rows += [("all", c, 1) for c in ("pixel-only", "crs", "crs-fast") * 10]
+    data = pd.DataFrame(rows, columns=["participant", "condition", "correct"])
+    formula = "C(condition, Treatment('pixel-only'))"
+    full = fit_glmm(data, "correct", formula, "participant")
+    assert full.penalty is None and not full.warnings
+    assert full.params.index[1].endswith("[T.crs]")
+    by_condition = lrt(full, fit_glmm(data, "correct", "1", "participant"))
+    assert by_condition.df == 2 and by_condition.distribution == "chi2(2)"
+    no_variance = fit_glmm(data, "correct", formula)
+    by_variance = lrt(full, no_variance)
+    assert by_variance.df == 1 and by_variance.distribution == "0.5 chi2(0) + 0.5 chi2(1)"
+    assert 0.0 < by_variance.pvalue < 1e-10 and (full.pvalues > 0).all()
+    glm = smf.glm(f"correct ~ {formula}", data, family=sm.families.Binomial()).fit()
+    np.testing.assert_allclose(no_variance.params.to_numpy(), glm.params.to_numpy(), atol=1e-6)
+    np.testing.assert_allclose(no_variance.bse.to_numpy(), glm.bse.to_numpy(), rtol=1e-4)
+    wald = full.conf_int()
+    profile = profile_conf_int(full)
+    assert (profile["ci_low"] < full.params).all() and (full.params < profile["ci_high"]).all()
+    ratio = (profile["ci_high"] - profile["ci_low"]) / (wald["ci_low"].rsub(wald["ci_high"]))
+    assert ratio.between(0.95, 1.25).all()
