@@ -22,18 +22,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
+from crs_study.display.beam import no_collapse_number  # Eq. 4, one definition (re-exported)
 from crs_study.errors import CollapseError, RenderError
 from crs_study.layout import BeamSection, Layout
 from crs_study.render import BeamGeometry, split_feed
 from crs_study.targets import Bump, arc_excess
-
-
-def no_collapse_number(bending_stiffness: float, foundation_stiffness: float,
-                       pitch_mm: float) -> float:
-    """Delta = 16 pi^4 EI / (27 beta d^4) (Eq. 4); infinite without a foundation."""
-    if foundation_stiffness <= 0:
-        return math.inf
-    return 16 * math.pi**4 * bending_stiffness / (27 * foundation_stiffness * pitch_mm**4)
 
 
 def layout_delta(layout: Layout) -> float:
