@@ -99,7 +99,9 @@ def _wait_for(process, needle: str, timeout: float = 60.0) -> str:
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_ctrl_c_is_a_safe_pause(tmp_path, signum):
     """A real-clock session paused by Ctrl-C (or SIGTERM): exit 130, neutral, resumable."""
-    protocol = tiny_protocol(tmp_path)
+    # Inter-trial intervals of 2 s keep the six trials after "trial 2/8" running for well over
+    # ten seconds, so a loaded machine cannot finish the session before the signal lands.
+    protocol = tiny_protocol(tmp_path, iti=2.0)
     dataset = tmp_path / "ds"
     process = _start(run_args(protocol, dataset, "--clock", "real"), tmp_path)
     try:
