@@ -87,6 +87,18 @@ def test_silent_board_gives_none_and_a_warning(layout1d):
         device.close()
 
 
+def test_a_port_already_driven_by_another_device_is_refused(layout1d, boards):
+    # two programs writing one board would interleave their frames (no checksum catches it)
+    (board,) = boards(1)
+    with SerialDevice.from_url(url_of([board]), layout1d, **FAST):
+        second = SerialDevice.from_url(url_of([board]), layout1d, **FAST)
+        with pytest.raises(DeviceError, match=r"controller A on .*: cannot open the port: "
+                           r".*exclusively lock"):
+            second.open()
+    with SerialDevice.from_url(url_of([board]), layout1d, **FAST):
+        pass  # released on close: the port opens again
+
+
 def test_low_battery_refuses_to_open_and_releases_ports(layout2d, boards):
     pair = boards(2, battery_mv=5400)
     device = SerialDevice.from_url(url_of(pair), layout2d)

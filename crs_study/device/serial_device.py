@@ -197,6 +197,9 @@ class _Port:
                     self.spec, baudrate=options.baud, bytesize=serial.EIGHTBITS,
                     parity=serial.PARITY_NONE, stopbits=serial.STOPBITS_ONE,
                     timeout=options.read_timeout_s, write_timeout=options.write_timeout_s,
+                    # a second program on the same board (a `device neutral` run during a
+                    # session) would interleave its frames with ours: lock the port (flock)
+                    exclusive=True,
                 )
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise DeviceError(f"{self.label}: cannot open the port: {exc}") from None
