@@ -12,6 +12,7 @@ from crs_study.analysis.secondary import (
     mcnemar_midp,
     mcnemar_test,
     paired_t,
+    paired_table,
     per_digit,
     secondary_tests,
     wilcoxon_signed_rank,
@@ -137,3 +138,14 @@ def test_secondary_tests_run_every_planned_test():
                              ("paired_t", "wilcoxon", "mcnemar", "per_digit"))
     assert [t.method.split()[0] for t in result.tests] == ["paired", "Wilcoxon", "exact"]
     assert set(result.per_digit) == {"crs"} and len(result.to_frame()) == 3
+
+
+def test_pairs_keep_every_level_of_a_level_protocol():
+    """A psychometric protocol repeats (digit, repetition) at each level; a pair must match the
+    level too, or three quarters of these trials would be dropped as duplicates."""
+    rows = [{"participant_id": "p1", "session": 1, "digit": d, "repetition": 0,
+             "digit_height": h, "condition": c, "correct": float((d + h * 10 + (c == "crs")) % 2)}
+            for d in range(3) for h in (0.5, 0.8, 1.2, 1.6) for c in ("pixel-only", "crs")]
+    pairs = paired_table(pd.DataFrame(rows), "crs", "pixel-only")
+    assert len(pairs) == 12
+    assert sorted(set(pairs["digit_height"])) == [0.5, 0.8, 1.2, 1.6]

@@ -28,6 +28,7 @@ from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.multitest import multipletests
 
 from crs_study.analysis.accuracy import floor_p
+from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
 
 PAIR_KEYS = ("participant_id", "session", "digit", "repetition")
 
@@ -145,9 +146,12 @@ def mcnemar_midp(b: int, c: int) -> tuple[float, float]:
 
 
 def paired_table(trials: pd.DataFrame, condition: str, reference: str) -> pd.DataFrame:
-    """Trials of the two conditions matched on :data:`PAIR_KEYS` (columns ``ref``, ``cond``)."""
+    """Trials of the two conditions matched on :data:`PAIR_KEYS` and any stimulus level column
+    (columns ``ref``, ``cond``)."""
     answered = trials.loc[trials["correct"].notna()]
-    keys = list(PAIR_KEYS)
+    # A protocol that varies a stimulus level repeats (digit, repetition) at every level: the
+    # level is part of what makes two trials a pair, or pairs would be dropped as duplicates.
+    keys = list(PAIR_KEYS) + [c for c in KNOWN_LEVEL_COLUMNS if c in answered.columns]
     left = answered.loc[answered["condition"] == reference, [*keys, "correct"]]
     right = answered.loc[answered["condition"] == condition, [*keys, "correct"]]
     left = left.drop_duplicates(keys)
