@@ -252,3 +252,21 @@ def test_monitor_on_a_silent_port_ends_at_its_time(capsys):
         os.close(master)
         os.close(slave)
     assert "0 frame(s), 0 byte(s) skipped" in capsys.readouterr().out
+
+
+def test_monitor_on_a_port_that_vanishes_is_one_line(monkeypatch, capsys):
+    class Vanished:
+        in_waiting = 0
+
+        def read(self, n: int) -> bytes:
+            raise OSError(5, "Input/output error")
+
+        def close(self) -> None:
+            raise OSError(5, "Input/output error")  # closing a pulled-out adapter fails too
+
+    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
+                        lambda spec, **kw: Vanished())
+    assert main(["device", "monitor", "--port", "/dev/ttyUSB9"]) == 2
+    err = capsys.readouterr().err
+    assert err == "crs-study device: error: --port /dev/ttyUSB9: read failed: [Errno 5] " \
+                  "Input/output error\n"

@@ -413,7 +413,10 @@ def _monitor(args: argparse.Namespace) -> int:
         # Ctrl-C is how a monitor without --seconds is meant to end: report, exit 0
         print("stopped (Ctrl-C)", flush=True)
     finally:
-        port.close()
+        try:
+            port.close()
+        except (serial.SerialException, OSError):
+            pass  # a vanished port may fail to close; the read error above says why
         decoder.flush()
         for s in _join([*held, *decoder.take_skipped()]):
             print(f"end of stream: skipped {len(s.data)} byte(s) ({s.reason}): "
