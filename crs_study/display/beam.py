@@ -447,6 +447,8 @@ class CompressedBeams:
         self._grid_weights = self.beams.w_nodes * self.d  # mm per node
         self._top_slopes = np.ascontiguousarray(  # slopes at margin N_cr: (B, nq, n_pix)
             self._grid_slopes.reshape(self.n_beams, _GRID_POINTS, nq, -1)[:, -1])
+        self._top_stretch = 1.0 / self._shortening[-1]
+        self._top_offset = self.spans + LENGTH_TOLERANCE_MM
 
     def _critical_a(self, beams: _BeamSet) -> np.ndarray:
         """First zero of det(A(a)) per beam: the critical load in units EI/d^2."""
@@ -510,12 +512,10 @@ class CompressedBeams:
         base this is ~margin N_cr S / EA (the straight beam's elastic shortening). One
         (nq x n_pix) product per beam: the renderer's feed cap (:mod:`crs_study.render`).
         """
-        setpoints = np.zeros(self.layout.n_actuators)
-        setpoints[: self.layout.n_pixels] = pixel_heights_mm
-        heights = self.heights(setpoints)
-        top = self._top_slopes @ heights[:, :, None]
-        length = np.sum(self._grid_weights * np.sqrt(1.0 + top[..., 0] ** 2), axis=-1)
-        return length / self._shortening[-1] - self.spans - LENGTH_TOLERANCE_MM
+        heights = np.asarray(pixel_heights_mm, dtype=float)[self._pixel_index] * self._pixel_real
+        top = np.matmul(self._top_slopes, heights[:, :, None])[..., 0]
+        length = np.einsum("bq,bq->b", self._grid_weights, np.sqrt(1.0 + top * top))
+        return length * self._top_stretch - self._top_offset
 
     def solve(self, setpoints_mm: np.ndarray, check_yield_curvature: bool = True,
               model: str = "beam") -> BeamProfiles:
