@@ -270,3 +270,26 @@ def test_monitor_on_a_port_that_vanishes_is_one_line(monkeypatch, capsys):
     err = capsys.readouterr().err
     assert err == "crs-study device: error: --port /dev/ttyUSB9: read failed: [Errno 5] " \
                   "Input/output error\n"
+
+
+def test_sweep_keeps_every_pulse_inside_a_reversed_narrow_calibration(lscsim_boards, tmp_path):
+    from crs_study.device.calibration import write_calibrated_copy
+
+    (a, _), (board, _) = lscsim_boards
+    device_file = tmp_path / "crs1d-cal.toml"
+    limits = {"A:1": (1900, 1100), "A:2": (1400, 1600), "A:7": (2450, 550)}  # 2 reversed
+    layout = write_calibrated_copy(device_file_path("crs1d"), device_file, limits)
+    assert main(["device", "sweep", "--device", f"serial://lscsim://{a}", "--layout",
+                 str(device_file), "--seconds", "0.1", "--frame-rate", "30"]) == 0
+    low = {x.channel: min(x.calibration.zero_us, x.calibration.full_us) for x in layout.actuators}
+    high = {x.channel: max(x.calibration.zero_us, x.calibration.full_us)
+            for x in layout.actuators}
+    moves = [r.message for r in board.received if isinstance(r.message, codec.ServoMove)]
+    seen = {ch: set() for ch in low}
+    for move in moves:
+        for channel, pulse in move.positions:
+            assert low[channel] <= pulse <= high[channel], (channel, pulse)
+            seen[channel].add(pulse)
+    # each channel went through its whole range: both endpoints reached
+    assert all({low[ch], high[ch]} <= seen[ch] for ch in seen)
+    assert moves[-1].time_ms == 500  # neutral on the way out

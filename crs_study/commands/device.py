@@ -252,7 +252,9 @@ def _sweep(args: argparse.Namespace) -> int:
     device = _open(args)
     layout = device.layout
     chosen = _selected(layout, args.channel)
-    n = max(2, int(round(args.seconds * args.frame_rate)))
+    # frames per channel, even, so that frame n/2 sits exactly at full travel (an odd count
+    # turned back short of it: 3 frames reached 75 %)
+    n = 2 * max(1, int(round(args.seconds * args.frame_rate / 2)))
     shape = 0.5 * (1 - np.cos(2 * np.pi * np.arange(n + 1) / n))  # 0 -> 1 -> 0, smooth
     period_ms = int(round(1000 / args.frame_rate))
     with _session(device):
