@@ -21,7 +21,6 @@ check a protocol against its device.
 
 from __future__ import annotations
 
-import math
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
@@ -201,12 +200,11 @@ def inside_convex_hull(points: np.ndarray, polygon_xy: np.ndarray) -> tuple[np.n
 
 
 def collapse_delta(layout: Layout) -> float:
-    """The no-collapse number of Eq. 4: Delta = 16 pi^4 E I / (27 beta d^4) (inf if beta = 0)."""
-    beta = layout.foundation_stiffness
-    if beta <= 0:
-        return math.inf
-    return 16 * math.pi**4 * layout.beam_section.bending_stiffness / (
-        27 * beta * layout.pitch_mm**4)
+    """The no-collapse number of Eq. 4 for a device (inf when the skin has no stiffness)."""
+    from crs_study.display.beam import no_collapse_number
+
+    return no_collapse_number(layout.beam_section.bending_stiffness,
+                              layout.foundation_stiffness, layout.pitch_mm)
 
 
 def device_limits(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layout

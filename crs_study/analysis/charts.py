@@ -144,7 +144,8 @@ def plot_psychometric(result: PsychometricResult, ax: Axes | None = None) -> Axe
                     fmt="o", color=colour, capsize=3)
         grid = np.linspace(data["level"].min(), data["level"].max(), 200)
         ax.plot(grid, 100 * fit.predict(grid), color=colour,
-                label=f"{condition}: threshold {fit.threshold:.3g}")
+                label=f"{condition}: threshold {fit.threshold:.3g}" if np.isfinite(fit.threshold)
+                else f"{condition}: no threshold (flat)")
         if fit.threshold_ci95 is not None:
             ax.axvspan(*fit.threshold_ci95, color=colour, alpha=0.12, lw=0)
     if result.fits:
