@@ -293,3 +293,15 @@ def test_sweep_keeps_every_pulse_inside_a_reversed_narrow_calibration(lscsim_boa
     # each channel went through its whole range: both endpoints reached
     assert all({low[ch], high[ch]} <= seen[ch] for ch in seen)
     assert moves[-1].time_ms == 500  # neutral on the way out
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [(["--refresh-s", "-1"], r"sim://': option refresh_s: expected a number in \[0\.0, "),
+     (["--deadband-us", "500"], r"option deadband_us: expected a whole number in \[0, 100\]"),
+     (["--min-battery-mv", "5", "--no-battery-check"],
+      r"error: --min-battery-mv, --no-battery-check: for serial:// devices only")])
+def test_serial_flags_reach_the_simulator_or_are_refused_never_ignored(flags, message, capsys):
+    assert main(["device", "check", "--device", "sim://", "--layout", "crs1d", *flags]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and err.count("\n") == 1

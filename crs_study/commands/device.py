@@ -99,18 +99,27 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _open(args: argparse.Namespace, layout=None):
+    """The device of ``--device``, with the options given on the command line: every option
+    for serial://; the dead-band and refresh (which the simulator models too) for sim://; an
+    option the device cannot honour is refused, never ignored."""
     from crs_study.device.base import open_device
+    from crs_study.errors import DeviceError
     from crs_study.layout import load_layout
 
     layout = layout or load_layout(args.layout)
-    options = {}
-    if args.device.startswith("serial://"):
-        names = {"deadband_us": args.deadband_us, "refresh_s": args.refresh_s,
-                 "min_battery_mv": args.min_battery_mv,
-                 "battery_timeout_s": args.battery_timeout_s}
-        options = {k: v for k, v in names.items() if v is not None}
-        if args.no_battery_check:
-            options["check_battery"] = False
+    flags = {"deadband_us": ("--deadband-us", args.deadband_us),
+             "refresh_s": ("--refresh-s", args.refresh_s),
+             "min_battery_mv": ("--min-battery-mv", args.min_battery_mv),
+             "battery_timeout_s": ("--battery-timeout-s", args.battery_timeout_s),
+             "check_battery": ("--no-battery-check", False if args.no_battery_check else None)}
+    options = {key: value for key, (_, value) in flags.items() if value is not None}
+    if args.device.startswith("sim://"):
+        serial_only = [flags[k][0] for k in options if k not in ("deadband_us", "refresh_s")]
+        if serial_only:
+            raise DeviceError(f"{', '.join(serial_only)}: for serial:// devices only, got "
+                              f"--device {args.device!r}")
+    elif not args.device.startswith("serial://"):
+        options = {}  # open_device names the unknown URL
     return open_device(args.device, layout, **options)
 
 
