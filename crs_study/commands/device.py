@@ -2,8 +2,9 @@
 
 Device URLs: ``serial://PORT[,PORT...]`` (one port per controller, in device-file order; a
 PORT is a path like /dev/ttyUSB0 or any pyserial URL such as spy:///dev/ttyUSB0 or loop://)
-or ``sim://[?options]`` (the simulated device). Serial options (--deadband-us, --refresh-s,
---min-battery-mv, --battery-timeout-s, --no-battery-check) apply to serial:// URLs only.
+or ``sim://[?options]`` (the simulated device). --deadband-us and --refresh-s apply to both;
+--min-battery-mv, --battery-timeout-s and --no-battery-check to serial:// only (refused with
+sim://). A ``lscsim://NAME`` port is a virtual board (a dry run of the serial path).
 """
 
 from __future__ import annotations
