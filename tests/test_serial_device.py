@@ -211,13 +211,14 @@ def test_full_refresh_resends_every_channel(layout1d, boards):
 
 
 def test_controllers_are_written_concurrently(layout2d):
-    # ports that take the wire's time to write: 10 bits a byte at 9600 baud
-    ports = [PacedPort(c.name, BYTE_TIME_S) for c in layout2d.controllers]
+    # ports that take time to write (4 x the 9600-baud wire's: 0.27 s a frame, a margin
+    # against a loaded machine starting one writer thread late)
+    ports = [PacedPort(c.name, 4 * BYTE_TIME_S) for c in layout2d.controllers]
     device = SerialDevice(layout2d, ports, RealClock(),
                           SerialOptions(check_battery=False, refresh_s=0.0))
     with device:
         device.send(np.full(37, 1.0))
-        assert device.wait_sent(1.0)
+        assert device.wait_sent(2.0)
     (a_start, a_end, _), (b_start, b_end, _) = ports[0].writes[0], ports[1].writes[0]
     assert a_start < b_end and b_start < a_end  # the two writes overlap in time
 
@@ -252,8 +253,11 @@ def test_vanished_port_raises_within_one_frame_period_and_close_releases(layout2
 def test_stalled_writer_is_reported_not_waited_for(layout1d):
     release = threading.Event()
 
+    entered = threading.Event()
+
     class StuckPort(PacedPort):
         def write(self, data: bytes) -> int:
+            entered.set()
             release.wait(3.0)  # ignores its write timeout, like a wedged driver
             return len(data)
 
@@ -262,11 +266,16 @@ def test_stalled_writer_is_reported_not_waited_for(layout1d):
     device.open()
     try:
         device.send(np.zeros(7))
+        # timed from when the writer is stuck (a loaded machine may start the thread late):
+        # reported once a write has taken write_timeout_s + 0.5 s
+        assert entered.wait(2.0)
         time.sleep(0.6)
         start = time.monotonic()
         with pytest.raises(DeviceError, match=r"controller A on stuck: a write has not finished"):
             device.send(np.ones(7))
-        assert time.monotonic() - start < 0.05  # send() itself never blocks
+        # send() never blocks: it returned while the write it found stuck (3 s) still hangs
+        assert time.monotonic() - start < 0.5 and not release.is_set()
+        assert device.ports[0].writing_since is not None
     finally:
         release.set()
         device.close()
