@@ -27,11 +27,10 @@ which is no cost of this code. The speed figure is wall time, as a user meets it
 
 from __future__ import annotations
 
-import statistics
 import time
 from collections.abc import Callable
 
-from crs_study.benchmarks import Figure
+from crs_study.benchmarks import Figure, median_seconds
 
 AREA = "simulated"
 DESCRIPTION = "simulated device: per-frame cost of send + displayed_setpoints, speed vs real time"
@@ -46,14 +45,8 @@ FRAME_RATE_HZ = 15.0
 
 
 def median_cpu_seconds(func: Callable[[], object], repeat: int, number: int) -> float:
-    """Median CPU time (s) of ``number`` calls of ``func`` over ``repeat`` repeats, per call."""
-    times = []
-    for _ in range(repeat):
-        start = time.process_time()
-        for _ in range(number):
-            func()
-        times.append((time.process_time() - start) / number)
-    return statistics.median(times)
+    """Median CPU time (s) per call: :func:`median_seconds` on ``time.process_time``."""
+    return median_seconds(func, repeat, number, timer=time.process_time)
 
 
 def _digit_frames():
