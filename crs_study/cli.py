@@ -26,6 +26,7 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from crs_study import __version__
+from crs_study.commands import HelpFormatter
 from crs_study.errors import CrsStudyError
 
 #: Exit status for a known error (bad input, device fault, refused consent, ...).
@@ -68,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
             module.NAME,
             help=module.HELP,
             description=module.__doc__,
-            formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+            formatter_class=HelpFormatter,
         )
         module.add_arguments(sub)
         sub.set_defaults(_run=module.run)

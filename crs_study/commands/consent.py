@@ -10,6 +10,7 @@ import argparse
 import json
 
 from crs_study._files import os_errors
+from crs_study.commands import HelpFormatter
 from crs_study.errors import ConsentError
 
 NAME = "consent"
@@ -21,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     def add(name: str, help_text: str) -> argparse.ArgumentParser:
         sub = actions.add_parser(name, help=help_text, description=help_text,
-                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                 formatter_class=HelpFormatter)
         sub.add_argument("--register", metavar="DIR", default=None,
                          help="consent register directory (default: $CRS_STUDY_CONSENT_DIR "
                               "or ~/.crs-study/consent)")
@@ -42,12 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     listing.add_argument("--show-names", action="store_true", help="include names")
 
     withdraw = add("withdraw", "withdraw a participant: remove all their data, keep an audit line")
-    withdraw.add_argument("--participant", required=True, metavar="ID")
+    withdraw.add_argument("--participant", required=True, metavar="ID",
+                          help="the participant's label, as in the consent register")
     withdraw.add_argument("--dataset", action="append", default=[], metavar="DIR",
                           help="dataset to remove the participant from (repeatable)")
 
     recover = add("recover", "finish a withdrawal that was interrupted")
-    recover.add_argument("--dataset", action="append", required=True, metavar="DIR")
+    recover.add_argument("--dataset", action="append", required=True, metavar="DIR",
+                         help="dataset whose interrupted withdrawal to finish (repeatable)")
 
 
 @os_errors(ConsentError)  # disk full, permission denied, a file where a folder should be: one line

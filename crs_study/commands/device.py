@@ -15,6 +15,8 @@ import sys
 import warnings
 from contextlib import contextmanager
 
+from crs_study.commands import HelpFormatter
+
 NAME = "device"
 #: ``sweep`` limits: the LSC move time is 0..30000 ms (hardware.md), one frame period a frame.
 SWEEP_MIN_RATE_HZ = 1 / 30
@@ -28,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     def add(name: str, help_text: str, device: bool = True) -> argparse.ArgumentParser:
         sub = actions.add_parser(name, help=help_text, description=help_text,
-                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                 formatter_class=HelpFormatter)
         if device:
             sub.add_argument("--device", required=True, metavar="URL",
                              help="serial:///dev/ttyUSB0,/dev/ttyUSB1 or sim://")
