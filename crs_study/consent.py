@@ -9,13 +9,20 @@ Consent events hold the participant's pseudonymous label, the UTC time, the form
 version and sha256, the experimenter's initials and, only when the lab chooses, a name. Names
 never leave the register: datasets hold labels alone.
 
+A register inside a dataset (any folder with a ``dataset_description.json`` above it) is
+refused: names would travel with the data.
+
 Withdrawal is all-or-nothing per dataset. A journal naming every path to remove is made
-durable first (``DATASET/.crs-study-withdrawal.json``); the paths are then renamed into a
-staging directory, ``participants.tsv`` is rewritten atomically, the staging directory is
-deleted, the register marks the withdrawal, the audit line is appended and the journal is
-removed. Every step is idempotent, so an interrupted withdrawal is finished by running it again
-(or :func:`recover_withdrawal`): the dataset is either as before (journal not yet written) or,
-once recovered, fully withdrawn. Files of other participants are never opened for writing.
+durable first (``DATASET/.crs-study-withdrawal.json``), under the dataset lock and only when no
+session of the participant holds its lock; while the journal exists no session may start in
+the dataset (:meth:`crs_study.dataset.Dataset.refuse_pending_withdrawal`), so no runner can
+write the participant's data back. The register then marks the withdrawal (so the gate refuses
+real sessions at once), the paths are renamed into a staging directory, ``participants.tsv``
+is rewritten atomically, the staging directory is deleted, the audit line is appended and the
+journal is removed. Every step is idempotent, so an interrupted withdrawal is finished by
+running it again (or :func:`recover_withdrawal`): the dataset is either as before (journal not
+yet written) or, once recovered, fully withdrawn. Files of other participants are never opened
+for writing.
 """
 
 from __future__ import annotations
@@ -28,24 +35,25 @@ import secrets
 import shutil
 import signal
 import string
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from crs_study._files import append_durably, fsync_dir, os_errors, sha256_bytes, write_atomically
-from crs_study.dataset import Dataset, utc_now
+from crs_study.dataset import WITHDRAWAL_JOURNAL, Dataset, utc_now
 from crs_study.dataset import check_label as dataset_check_label
 from crs_study.errors import ConsentError, SessionError
 
 REGISTER_ENV = "CRS_STUDY_CONSENT_DIR"
 REGISTER_FILE = "register.jsonl"
 AUDIT_FILE = "audit.jsonl"
-JOURNAL_FILE = ".crs-study-withdrawal.json"
+JOURNAL_FILE = WITHDRAWAL_JOURNAL
 STAGING_DIR = ".crs-study-withdrawal-staging"
 #: Test hook: kill the process at the n-th withdrawal checkpoint (simulates a power cut).
 CRASH_ENV = "CRS_STUDY_WITHDRAW_CRASH_AT"
 
-_VERSION_RE = re.compile(r"^Version:\s*(\S+)", re.MULTILINE)
+#: the version is the first word on its line ("Version: 1.0 (2026-11-22)"), never the next line's
+_VERSION_RE = re.compile(r"^Version:[ \t]*(\S*)", re.MULTILINE)
 _INITIALS_RE = re.compile(r"^[A-Za-z]{1,4}$")
 _LABEL_ALPHABET = string.ascii_lowercase + string.digits
 _TEXT_SUFFIXES = {".json", ".tsv", ".md", ".html", ".csv", ".txt", ".jsonl"}
@@ -54,6 +62,15 @@ _TEXT_SUFFIXES = {".json", ".tsv", ".md", ".html", ".csv", ".txt", ".jsonl"}
 def default_register_dir() -> Path:
     """``$CRS_STUDY_CONSENT_DIR``, else ``~/.crs-study/consent``."""
     return Path(os.environ.get(REGISTER_ENV) or Path.home() / ".crs-study" / "consent")
+
+
+def enclosing_dataset(path: str | Path) -> Path | None:
+    """The dataset (a folder with ``dataset_description.json``) holding ``path``, or None."""
+    resolved = Path(path).resolve()
+    for folder in (resolved, *resolved.parents):
+        if (folder / "dataset_description.json").is_file():
+            return folder
+    return None
 
 
 def check_label(label: str) -> str:
@@ -101,6 +118,9 @@ def read_form(path: str | Path) -> ConsentForm:
         raise ConsentError(
             f"{path}: expected exactly one 'Version: X' line, found {len(versions)}"
         )
+    if not versions[0]:
+        raise ConsentError(f"{path}: the 'Version:' line gives no version; expected e.g. "
+                           "'Version: 1.0'")
     if "- [ ]" not in text:
         raise ConsentError(f"{path}: not a consent form: expected '- [ ]' consent statements")
     return ConsentForm(path, titles[0], versions[0], sha256_bytes(data))
@@ -132,7 +152,15 @@ class Register:
         self.path = self.directory / REGISTER_FILE
         self.audit_path = self.directory / AUDIT_FILE
 
+    def _check_outside_datasets(self) -> None:
+        dataset = enclosing_dataset(self.directory)
+        if dataset is not None:
+            raise ConsentError(
+                f"{self.directory}: the consent register lies inside the dataset {dataset}; "
+                "keep it outside every dataset (names must never travel with the data)")
+
     def _ensure(self) -> None:
+        self._check_outside_datasets()
         try:
             self.directory.mkdir(mode=0o700, parents=True, exist_ok=True)
             os.chmod(self.directory, 0o700)
@@ -151,6 +179,7 @@ class Register:
                 fsync_dir(path.parent)
 
     def events(self) -> list[dict]:
+        self._check_outside_datasets()
         if not self.path.exists():
             return []
         events = []
@@ -213,9 +242,9 @@ class Register:
         return self.records()[participant]
 
     def mark_withdrawn(self, participant: str) -> None:
-        record = self.records().get(participant)
-        if record is not None and record.withdrawn_at:
-            return  # idempotent
+        if any(e["event"] == "withdrawal" and e["participant"] == participant
+               for e in self.events()):
+            return  # idempotent (also for a simulated participant with no consent record)
         self._append(self.path, {"event": "withdrawal", "participant": participant,
                                  "time": utc_now()})
 
@@ -228,9 +257,13 @@ class Register:
         self._append(self.audit_path, entry)
 
 
-def require_consent(register_dir: str | Path | None, participant: str, form_version: str
-                    ) -> ConsentRecord:
-    """The gate before a real session: a current consent on ``form_version`` or a refusal."""
+def require_consent(register_dir: str | Path | None, participant: str, form_version: str,
+                    form: ConsentForm | None = None) -> ConsentRecord:
+    """The gate before a real session: a current consent on ``form_version`` or a refusal.
+
+    With ``form`` (the protocol's consent form) the consent must also be on that very text
+    (same sha256): a form edited without a new version is refused, not silently accepted.
+    """
     register = Register(register_dir)
     record = register.records().get(participant)
     if record is None:
@@ -249,6 +282,12 @@ def require_consent(register_dir: str | Path | None, participant: str, form_vers
             f"participant {participant!r} consented to form version {record.form_version!r}, "
             f"the protocol needs version {form_version!r}; record consent on the current form"
         )
+    if form is not None and record.form_sha256 != form.sha256:
+        raise ConsentError(
+            f"participant {participant!r} consented on a form whose text differs from "
+            f"{form.path} (sha256 {record.form_sha256[:12]} vs {form.sha256[:12]}, both "
+            f"version {form_version!r}); give a changed form a new version and record "
+            "consent on it")
     return record
 
 
@@ -277,32 +316,46 @@ def participant_paths(dataset: Path, participant: str) -> list[str]:
     """Every path of ``dataset`` holding the participant's data (relative, sorted).
 
     ``sub-<label>`` directories and files named ``sub-<label>_*`` anywhere in the dataset
-    (sessions, ``sourcedata/``, ``derivatives/``); and, under ``derivatives/``, every output
-    directory with a text file that mentions the label (group results computed from the
-    participant's data are removed whole; rerun the analysis).
+    (sessions, ``sourcedata/``, ``derivatives/``), but not inside another dataset nested in
+    it (a folder with its own ``dataset_description.json`` outside ``derivatives/``); and
+    the group results computed from the participant's data: under ``derivatives/``, every
+    text file that mentions the label marks its folder as such. In a pipeline's own folder
+    (``derivatives/<pipeline>/``) that means its group outputs (every entry but its
+    ``dataset_description.json`` and the other participants' ``sub-*``); deeper down, the
+    whole folder. Rerun the analysis afterwards.
     """
     check_label(participant)
     prefix = f"sub-{participant}"
+    derivatives = dataset / "derivatives"
     found: set[Path] = set()
     for root, dirs, files in os.walk(dataset):
         root_path = Path(root)
-        if root_path.name in (STAGING_DIR,):
-            dirs[:] = []
-            continue
         for name in list(dirs):
-            if name == prefix or name.startswith(prefix + "_"):
-                found.add(root_path / name)
+            child = root_path / name
+            nested = ((child / "dataset_description.json").is_file()
+                      and derivatives not in child.parents)
+            if name == STAGING_DIR or nested:
+                dirs.remove(name)
+            elif name == prefix or name.startswith(prefix + "_"):
+                found.add(child)
                 dirs.remove(name)
         for name in files:
             if name == prefix or name.startswith(prefix + "_") or name.startswith(prefix + "."):
                 found.add(root_path / name)
-    derivatives = dataset / "derivatives"
     if derivatives.is_dir():
         token = re.compile(rf"(?<![A-Za-z0-9]){re.escape(participant)}(?![A-Za-z0-9])")
         for path in derivatives.rglob("*"):
-            if (path.is_file() and path.suffix in _TEXT_SUFFIXES
+            if not (path.is_file() and path.suffix in _TEXT_SUFFIXES
                     and not any(p in found for p in path.parents) and _mentions(path, token)):
-                found.add(path.parent if path.parent != derivatives else path)
+                continue
+            if path.parent == derivatives:
+                found.add(path)
+            elif path.parent.parent == derivatives:  # a pipeline's group outputs
+                found.update(entry for entry in path.parent.iterdir()
+                             if entry.name != "dataset_description.json"
+                             and not (entry.name.startswith("sub-") and entry.is_dir()))
+            else:
+                found.add(path.parent)
     relative = sorted({p.relative_to(dataset) for p in found})
     # drop paths inside another path already listed
     return [str(p) for p in relative if not any(q in p.parents for q in relative)]
@@ -324,10 +377,13 @@ def _write_json_atomically(path: Path, data: dict) -> None:
     write_atomically(path, json.dumps(data, indent=2, sort_keys=True))
 
 
+def _participant_row(participant: str) -> Callable[[str], bool]:
+    return lambda line: line.split("\t", 1)[0].strip() == f"sub-{participant}"
+
+
 def _without_participant_row(text: str, participant: str) -> str:
-    lines = text.splitlines(keepends=True)
-    keep = [line for line in lines if line.split("\t", 1)[0].strip() != f"sub-{participant}"]
-    return "".join(keep)
+    is_row = _participant_row(participant)
+    return "".join(line for line in text.splitlines(keepends=True) if not is_row(line))
 
 
 def pending_withdrawal(dataset: str | Path) -> dict | None:
@@ -353,8 +409,37 @@ def recover_withdrawal(dataset: str | Path) -> dict | None:
     return _complete(dataset, journal)
 
 
+def _check_dataset(dataset: Path) -> None:
+    if not dataset.is_dir():
+        raise ConsentError(f"{dataset}: no such dataset directory")
+    if not (dataset / "dataset_description.json").is_file():
+        raise ConsentError(f"{dataset}: not a dataset (no dataset_description.json); give the "
+                           "dataset's top folder")
+
+
+def _begin(dataset: Path, participant: str, register: Register) -> dict:
+    """Write the journal under the dataset lock, once no session of the participant runs."""
+    with Dataset(dataset).locked():
+        _check_not_running(dataset, participant)
+        participants = dataset / "participants.tsv"
+        listed = participants.exists() and any(
+            map(_participant_row(participant),
+                participants.read_text(encoding="utf-8").splitlines()))
+        journal = {
+            "participant": participant, "time": utc_now(),
+            "register": str(register.directory.resolve()),
+            "paths": participant_paths(dataset, participant),
+            "participants_tsv_row": listed, "journal_id": secrets.token_hex(8),
+        }
+        _write_json_atomically(dataset / JOURNAL_FILE, journal)
+    _checkpoint()
+    return journal
+
+
 def _complete(dataset: Path, journal: dict) -> dict:
     participant = journal["participant"]
+    register = Register(journal["register"])
+    register.mark_withdrawn(participant)  # the gate refuses real sessions from here on
     staging = dataset / STAGING_DIR
     staging.mkdir(exist_ok=True)
     for relative in journal["paths"]:
@@ -375,12 +460,12 @@ def _complete(dataset: Path, journal: dict) -> dict:
     shutil.rmtree(staging, ignore_errors=False)
     fsync_dir(dataset)
     _checkpoint()
-    register = Register(journal["register"])
-    register.mark_withdrawn(participant)
     entry = {
         "event": "withdrawal", "participant": participant, "time": journal["time"],
         "completed": utc_now(), "dataset": str(dataset.resolve()), "removed": journal["paths"],
-        "participants_tsv_row_removed": True, "journal_id": journal["journal_id"],
+        # journals from before this key existed removed the row whenever it was there
+        "participants_tsv_row_removed": journal.get("participants_tsv_row", True),
+        "journal_id": journal["journal_id"],
     }
     register.audit(entry)
     _checkpoint()
@@ -393,28 +478,31 @@ def withdraw(participant: str, datasets: Iterable[str | Path],
              register_dir: str | Path | None = None) -> list[dict]:
     """Remove every file of ``participant`` from each dataset and mark the record withdrawn.
 
-    Returns one audit entry per dataset. Safe to run again after an interruption.
+    Returns one audit entry per dataset: an unfinished withdrawal of another participant
+    found in a dataset is finished first and has its own entry. Refused, with nothing
+    changed, while a session of the participant runs in any of the datasets, and when the
+    participant is neither in the register nor in any dataset (a mistyped label). Safe to
+    run again after an interruption.
     """
     check_label(participant)
     register = Register(register_dir)
+    datasets = [Path(d) for d in datasets]
+    for dataset in datasets:
+        _check_dataset(dataset)
+        _check_not_running(dataset, participant)
+    pending = {d: pending_withdrawal(d) for d in datasets}
+    if (not any(event["participant"] == participant for event in register.events())
+            and not any(j and j["participant"] == participant for j in pending.values())
+            and not any(participant_paths(d, participant) for d in datasets)):
+        where = ", ".join(map(str, datasets)) or "no dataset given"
+        raise ConsentError(f"participant {participant!r} has no consent record in "
+                           f"{register.directory} and no data in {where}: nothing to withdraw")
     entries = []
-    for dataset in map(Path, datasets):
-        if not dataset.is_dir():
-            raise ConsentError(f"{dataset}: no such dataset directory")
-        journal = pending_withdrawal(dataset)
+    for dataset in datasets:
+        journal = pending[dataset]
         if journal is not None and journal["participant"] != participant:
             entries.append(_complete(dataset, journal))  # finish the other one first
             journal = None
-        if journal is None:
-            _check_not_running(dataset, participant)
-            journal = {
-                "participant": participant, "time": utc_now(),
-                "register": str(register.directory.resolve()),
-                "paths": participant_paths(dataset, participant),
-                "journal_id": secrets.token_hex(8),
-            }
-            _write_json_atomically(dataset / JOURNAL_FILE, journal)
-            _checkpoint()
-        entries.append(_complete(dataset, journal))
+        entries.append(_complete(dataset, journal or _begin(dataset, participant, register)))
     register.mark_withdrawn(participant)
     return entries

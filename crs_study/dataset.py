@@ -68,6 +68,9 @@ from crs_study.errors import DatasetError, SessionError
 
 BIDS_VERSION = "1.10.0"
 DATASET_LOCK = ".crs-study.lock"
+#: Journal of a participant's withdrawal in progress (crs_study.consent); while it exists no
+#: session may start in the dataset.
+WITHDRAWAL_JOURNAL = ".crs-study-withdrawal.json"
 PARTICIPANT_COLUMNS = ("participant_id", "counterbalance")
 PARTICIPANTS_SIDECAR = {
     "participant_id": {"Description": "Pseudonymous participant label (never a name)"},
@@ -78,12 +81,12 @@ PARTICIPANTS_SIDECAR = {
         "Units": "index",
     },
 }
-_LABEL_RE = re.compile(r"^[A-Za-z0-9]+$")
+_LABEL_RE = re.compile(r"[A-Za-z0-9]+")
 
 
 def check_label(label: str) -> str:
     """BIDS participant labels: letters and digits only."""
-    if not isinstance(label, str) or not _LABEL_RE.match(label):
+    if not isinstance(label, str) or not _LABEL_RE.fullmatch(label):
         raise SessionError(f"participant label {label!r} is not valid: use letters and digits "
                            "only (BIDS), e.g. p7k2m9q")
     return label
@@ -185,11 +188,23 @@ class Dataset:
             finally:
                 fcntl.flock(handle, fcntl.LOCK_UN)
 
+    def refuse_pending_withdrawal(self) -> None:
+        """A :class:`SessionError` while a withdrawal is unfinished (call under :meth:`locked`).
+
+        Withdrawal writes its journal under the same lock, so a session either holds its lock
+        before the journal exists (and the withdrawal waits for it) or never starts.
+        """
+        if (self.root / WITHDRAWAL_JOURNAL).exists():
+            raise SessionError(
+                f"{self.root}: a participant's withdrawal was interrupted; no session may run "
+                f"until it is finished: crs-study consent recover --dataset {self.root}")
+
     def ensure(self) -> None:
         """Create the top-level files that are missing (never rewrites existing ones)."""
         if self.root.exists() and not self.root.is_dir():
             raise DatasetError(f"{self.root}: exists and is not a directory")
         with self.locked():
+            self.refuse_pending_withdrawal()
             files = {
                 "dataset_description.json": json_text({
                     "Name": self.name,
@@ -245,6 +260,7 @@ class Dataset:
         check_label(label)
         self.ensure()
         with self.locked():
+            self.refuse_pending_withdrawal()
             known = self.participants()
             if label in known:
                 if counterbalance is not None and counterbalance != known[label]:
@@ -341,16 +357,20 @@ class SessionStore:
 
     # --- lock ---
     def acquire(self) -> None:
-        with os_errors(DatasetError, "create the session", self.paths.session_dir):
-            make_dirs(self.paths.session_dir)
-            handle = open(self.paths.lock, "a+")  # noqa: SIM115 - held until release()
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.close()
-            raise SessionError(
-                f"session {self.paths.session} of participant {self.paths.participant!r} is "
-                f"in use by another runner ({self.paths.lock})") from None
+        """Take the session lock, under the dataset lock and only while no withdrawal is due."""
+        dataset = Dataset(self.paths.root)
+        with dataset.locked():
+            dataset.refuse_pending_withdrawal()
+            with os_errors(DatasetError, "create the session", self.paths.session_dir):
+                make_dirs(self.paths.session_dir)
+                handle = open(self.paths.lock, "a+")  # noqa: SIM115 - held until release()
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                handle.close()
+                raise SessionError(
+                    f"session {self.paths.session} of participant {self.paths.participant!r} "
+                    f"is in use by another runner ({self.paths.lock})") from None
         self._lock_handle = handle
 
     def release(self) -> None:

@@ -560,15 +560,19 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
     return tuple(passed)
 
 
-def _consent_check(protocol: Protocol, source: str) -> list[str]:
-    from crs_study.consent import read_form
+def consent_form_path(protocol: Protocol) -> Path:
+    """The protocol's consent form: beside the protocol file, else shipped with crs-study."""
     from crs_study.paths import shipped_file
 
-    form_path = Path(protocol.consent_form)
-    candidate = protocol.path.parent / form_path
+    candidate = protocol.path.parent / protocol.consent_form
+    return candidate if candidate.is_file() else shipped_file(protocol.consent_form)
+
+
+def _consent_check(protocol: Protocol, source: str) -> list[str]:
+    from crs_study.consent import read_form
+
     try:
-        resolved = candidate if candidate.is_file() else shipped_file(form_path)
-        form = read_form(resolved)
+        form = read_form(consent_form_path(protocol))
     except (ConfigError, ConsentError) as exc:
         raise ProtocolError(f"{source}: study.consent_form: {_one_line(exc)}") from None
     if form.version != protocol.consent_form_version:

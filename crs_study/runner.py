@@ -351,9 +351,11 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
     protocol, layout, plan, dataset = prepare(spec)
     if not spec.device_url.startswith("sim://"):
         # The gate comes before anything is written: no consent, no trace in the dataset.
-        from crs_study.consent import require_consent
+        from crs_study.consent import read_form, require_consent
+        from crs_study.protocol import consent_form_path
 
-        require_consent(spec.consent_register, spec.participant, protocol.consent_form_version)
+        require_consent(spec.consent_register, spec.participant, protocol.consent_form_version,
+                        read_form(consent_form_path(protocol)))
     # The order of arrival is taken under the dataset lock: two runners adding participants
     # at once would otherwise both read the same count and share a counterbalance index.
     counterbalance = dataset.register_participant(spec.participant, spec.counterbalance)

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from crs_study import consent
 from crs_study.cli import main
+from crs_study.dataset import DATASET_LOCK
 from crs_study.errors import ConsentError
 from crs_study.paths import shipped_file
 
@@ -42,6 +43,8 @@ def test_shipped_form_and_sheet_carry_version_1_0():
     pytest.param("# Form\n- [ ] yes\n", "exactly one 'Version", id="no-version"),
     pytest.param("# Form\nVersion: 1\nVersion: 2\n- [ ] yes\n", "found 2", id="two-versions"),
     pytest.param("# Form\nVersion: 1\nI agree.\n", "consent statements", id="no-statements"),
+    # an empty version line must not borrow the next line's first word ('-')
+    pytest.param("# Form\nVersion:\n\n- [ ] yes\n", "gives no version", id="empty-version"),
 ])
 def test_malformed_form_refused(tmp_path, text, match):
     path = tmp_path / "form.md"
@@ -91,6 +94,25 @@ def test_label_check_accepts_exactly_alphanumeric(label):
     else:
         with pytest.raises(ConsentError, match="letters and digits"):
             consent.check_label(label)
+
+
+@pytest.mark.parametrize("label", ["ab1\n", "\nab1", "ab 1", "sub-1", "a_b", "../x", "é1", ""])
+def test_label_check_refuses_near_misses(label):
+    """A trailing newline slipped through a '$'-anchored pattern; it is not BIDS-valid."""
+    with pytest.raises(ConsentError, match="letters and digits"):
+        consent.check_label(label)
+
+
+def test_register_inside_a_dataset_is_refused(tmp_path):
+    dataset = tmp_path / "ds"
+    (dataset / "code").mkdir(parents=True)
+    (dataset / "dataset_description.json").write_text("{}")
+    for place in (dataset / "register", dataset / "code" / "reg", dataset):
+        with pytest.raises(ConsentError, match="inside the dataset"):
+            consent.Register(place).record(consent.read_form(FORM), "AB", "p1", name="Ada")
+        with pytest.raises(ConsentError, match="inside the dataset"):
+            consent.Register(place).records()
+    assert not any("Ada" in p.read_text() for p in dataset.rglob("*") if p.is_file())
 
 
 @pytest.mark.parametrize("initials", ["", "A1", "ABCDE", "A B"])
@@ -145,11 +167,22 @@ def test_gate_refuses_mismatched_version_and_admits_match(tmp_path):
     assert consent.require_consent(tmp_path, "p1", "2.0").form_version == "2.0"
 
 
+def test_gate_refuses_a_form_changed_without_a_new_version(tmp_path):
+    register = consent.Register(tmp_path / "reg")
+    register.record(consent.read_form(write_form(tmp_path / "old.md", "2.0")), "AB", "p1")
+    changed = consent.read_form(write_form(tmp_path / "new.md", "2.0", "- [ ] I agree to more.\n"))
+    with pytest.raises(ConsentError, match="text differs.*new version"):
+        consent.require_consent(register.directory, "p1", "2.0", changed)
+    same_text = consent.read_form(write_form(tmp_path / "copy.md", "2.0"))
+    assert consent.require_consent(register.directory, "p1", "2.0", same_text).participant == "p1"
+
+
 def test_gate_refuses_withdrawn_participant(tmp_path):
     register = consent.Register(tmp_path / "reg")
     register.record(consent.read_form(FORM), "AB", "p1")
     dataset = tmp_path / "ds"
     dataset.mkdir()
+    (dataset / "dataset_description.json").write_text("{}")
     consent.withdraw("p1", [dataset], tmp_path / "reg")
     with pytest.raises(ConsentError, match="withdrew consent"):
         consent.require_consent(tmp_path / "reg", "p1", "1.0")
@@ -167,6 +200,7 @@ def make_dataset(root: Path) -> Path:
     prefix on purpose)."""
     root.mkdir(parents=True)
     (root / "dataset_description.json").write_text('{"Name": "t"}\n')
+    (root / DATASET_LOCK).touch()  # as in every dataset a runner made
     rows = "".join(f"sub-{p}\t{i}\n" for i, p in enumerate(PARTICIPANTS))
     (root / "participants.tsv").write_text("participant_id\tcounterbalance\n" + rows)
     for p in PARTICIPANTS:
@@ -202,6 +236,7 @@ def test_withdrawal_removes_one_participant_and_leaves_others_byte_identical(tmp
     after = snapshot(dataset)
     gone = {k for k in before if "sub-a1/" in k or "/sub-a1_" in k or k.startswith("sub-a1/")}
     assert gone and not any(k in after for k in gone)
+    assert set(after) == set(before) - gone  # nothing added (no journal, no staging, no tmp)
     for key, data in before.items():
         if key not in gone and key != "participants.tsv":
             assert after[key] == data, key
@@ -225,6 +260,118 @@ def test_withdrawal_removes_group_derivatives_that_mention_the_participant(tmp_p
     (group / "accuracy.png").write_bytes(b"png")
     assert "derivatives/crs-study/report" in consent.participant_paths(dataset, "b2")
     assert "derivatives/crs-study/report" not in consent.participant_paths(dataset, "a1")
+
+
+def test_withdrawal_removes_a_pipelines_group_outputs_but_not_other_participants(tmp_path):
+    """crs-study analyze writes results.json, report.md and figures/ at the pipeline's top;
+    they are computed from every participant, so they go; the pipeline's description and the
+    other participants' own derivatives stay byte-identical."""
+    dataset = make_dataset(tmp_path / "ds")
+    pipeline = dataset / "derivatives" / "crs-study"
+    (pipeline / "dataset_description.json").write_text('{"DatasetType": "derivative"}')
+    (pipeline / "results.json").write_text('{"participants": ["a1", "a10", "b2"]}')
+    (pipeline / "report.md").write_text("12 participants")
+    (pipeline / "figures").mkdir()
+    (pipeline / "figures" / "accuracy.png").write_bytes(b"png")
+    paths = consent.participant_paths(dataset, "b2")
+    for group in ("results.json", "report.md", "figures"):
+        assert f"derivatives/crs-study/{group}" in paths
+    assert "derivatives/crs-study/sub-b2" in paths
+    assert not any(p.endswith(("dataset_description.json", "sub-a1", "sub-a10")) for p in paths)
+    before = snapshot(dataset)
+    consent.withdraw("b2", [dataset], tmp_path / "reg")
+    after = snapshot(dataset)
+    for key in ("derivatives/crs-study/dataset_description.json",
+                "derivatives/crs-study/sub-a1/sub-a1_accuracy.tsv"):
+        assert after[key] == before[key]
+
+
+def test_withdrawal_needs_a_dataset_and_skips_nested_ones(tmp_path):
+    folder = tmp_path / "folder"
+    make_dataset(folder / "copy")
+    with pytest.raises(ConsentError, match="not a dataset"):
+        consent.withdraw("a1", [folder], tmp_path / "reg")
+    assert (folder / "copy" / "sub-a1").exists()
+    outer = make_dataset(tmp_path / "outer")
+    nested = make_dataset(outer / "sourcedata" / "old")  # another dataset kept inside
+    consent.withdraw("a1", [outer], tmp_path / "reg")
+    assert not (outer / "sub-a1").exists() and (nested / "sub-a1").exists()
+    audit = json.loads(consent.Register(tmp_path / "reg").audit_path.read_text())
+    assert audit["participants_tsv_row_removed"] is True
+
+
+def test_withdrawal_of_an_unknown_label_is_refused(tmp_path):
+    """A mistyped label must not 'succeed': no consent record and no data is an error."""
+    dataset = make_dataset(tmp_path / "ds")
+    before = snapshot(dataset)
+    with pytest.raises(ConsentError, match="'zz9' has no consent record.*nothing to withdraw"):
+        consent.withdraw("zz9", [dataset], tmp_path / "reg")
+    assert snapshot(dataset) == before
+    assert not (tmp_path / "reg" / consent.REGISTER_FILE).exists()
+
+
+def test_withdrawal_marks_the_register_once(tmp_path):
+    """A simulated participant has data but no consent record: one withdrawal event."""
+    dataset = make_dataset(tmp_path / "ds")
+    register = consent.Register(tmp_path / "reg")
+    consent.withdraw("a1", [dataset], register.directory)
+    consent.withdraw("a1", [dataset], register.directory)  # again: nothing left, still fine
+    events = register.events()
+    assert [e["event"] for e in events] == ["withdrawal"]
+
+
+def test_withdraw_cli_needs_a_dataset_or_register_only(tmp_path, capsys):
+    reg = str(tmp_path / "reg")
+    consent.Register(reg).record(consent.read_form(FORM), "AB", "p1")
+    assert main(["consent", "withdraw", "--register", reg, "--participant", "p1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--dataset DIR" in err[0] and "--register-only" in err[0]
+    assert consent.Register(reg).records()["p1"].status == "consented"
+    assert main(["consent", "withdraw", "--register", reg, "--participant", "p1",
+                 "--register-only"]) == 0
+    assert consent.Register(reg).records()["p1"].status == "withdrawn"
+
+
+def test_withdraw_cli_names_each_participant_it_finishes(tmp_path, capsys):
+    dataset = make_dataset(tmp_path / "ds")
+    assert _withdraw_in_subprocess(dataset, tmp_path / "reg", crash_at=2) == -9
+    assert main(["consent", "withdraw", "--register", str(tmp_path / "reg"),
+                 "--participant", "b2", "--dataset", str(dataset)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("withdrawn a1 from") and out[1].startswith("withdrawn b2 from")
+
+
+def test_no_session_starts_while_a_withdrawal_is_unfinished(tmp_path, capsys):
+    """Killed right after its journal: the participant's data must not come back through a
+    session started (or resumed) before the withdrawal is finished."""
+    from crs_study.dataset import Dataset, SessionPaths, SessionStore
+    from crs_study.errors import SessionError
+
+    dataset = make_dataset(tmp_path / "ds")
+    assert _withdraw_in_subprocess(dataset, tmp_path / "reg", crash_at=1) == -9
+    before = snapshot(dataset)
+    with pytest.raises(SessionError, match="withdrawal was interrupted.*consent recover"):
+        SessionStore(SessionPaths(dataset, "a1", 3)).acquire()
+    with pytest.raises(SessionError, match="withdrawal was interrupted"):
+        Dataset(dataset).register_participant("c3")
+    code = main(["run", str(shipped_file("protocols/pilot.toml")), "--participant", "a1",
+                 "--session", "3", "--device", "sim://", "--responder", "random",
+                 "--out", str(dataset)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "consent recover" in err[0]
+    assert snapshot(dataset) == before
+    assert main(["consent", "recover", "--dataset", str(dataset)]) == 0
+    assert not (dataset / "sub-a1").exists()
+
+
+def test_the_register_is_marked_before_any_file_moves(tmp_path):
+    """Killed after the first file moved: the gate already refuses real sessions."""
+    dataset = make_dataset(tmp_path / "ds")
+    consent.Register(tmp_path / "reg").record(consent.read_form(FORM), "AB", "a1")
+    assert _withdraw_in_subprocess(dataset, tmp_path / "reg", crash_at=2) == -9
+    assert consent.pending_withdrawal(dataset) is not None
+    with pytest.raises(ConsentError, match="withdrew consent"):
+        consent.require_consent(tmp_path / "reg", "a1", "1.0")
 
 
 def test_withdrawal_refused_while_a_session_runs(tmp_path):
@@ -264,7 +411,13 @@ def test_interrupted_withdrawal_recovers_to_a_whole_state(tmp_path):
         journal = consent.pending_withdrawal(dataset)
         if journal is None:
             assert snapshot(dataset) == before or snapshot(dataset) == whole
-        consent.recover_withdrawal(dataset)
+        if crash_at % 2:
+            consent.recover_withdrawal(dataset)
+        else:  # the command a lab would type, or the same withdrawal again
+            args = (["consent", "recover", "--dataset", str(dataset)] if crash_at % 4 else
+                    ["consent", "withdraw", "--participant", "a1", "--dataset", str(dataset),
+                     "--register", str(tmp_path / f"reg{crash_at}")])
+            assert main(args) == 0
         assert snapshot(dataset) == whole, f"crash at checkpoint {crash_at}"
         audit = consent.Register(tmp_path / f"reg{crash_at}").audit_path.read_text()
         assert len(audit.splitlines()) == 1  # one audit line, however often it was resumed

@@ -26,18 +26,28 @@ def dataset_text(root: Path):
 
 @pytest.mark.slow
 def test_names_in_the_register_never_reach_the_dataset(tmp_path, capsys):
+    """Real sessions (the serial code path against virtual boards, so the gate reads the
+    register), then an analysis: no part of a name in any file, frame logs decompressed."""
+    from tests._session_helpers import tiny_protocol
+
     register = consent.Register(tmp_path / "register")
     form = consent.read_form(shipped_file("consent/consent_form.md"))
     for label, name in NAMES.items():
         register.record(form, "AB", label, name=name)
+    protocol = tiny_protocol(tmp_path, digits=(1, 7), practice=0, iti=0.1)
+    script = tmp_path / "answers.txt"
+    script.write_text("7\t0.05\n" * 4)
     out = tmp_path / "dataset"
     for label in NAMES:
-        code = main(["run", PILOT, "--participant", label, "--device", "sim://",
-                     "--clock", "virtual", "--responder", "random", "--out", str(out),
+        code = main(["run", str(protocol), "--participant", label,
+                     "--device", "serial://lscsim://A,lscsim://B", "--clock", "real",
+                     "--responder", f"scripted:{script}", "--out", str(out), "--json",
                      "--consent-register", str(register.directory)])
         assert code == 0, capsys.readouterr().err
+    assert main(["analyze", str(out), "--json"]) == 0
     files = list(dataset_text(out))
     assert any(path.name.endswith("_beh.tsv") for path, _ in files)
+    assert any(path.name == "results.json" for path, _ in files)
     for path, data in files:
         for name in NAMES.values():
             for part in (name, *name.split()):

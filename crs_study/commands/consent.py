@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           help="the participant's label, as in the consent register")
     withdraw.add_argument("--dataset", action="append", default=[], metavar="DIR",
                           help="dataset to remove the participant from (repeatable)")
+    withdraw.add_argument("--register-only", action="store_true",
+                          help="no dataset holds the participant's data: only mark the "
+                               "consent record withdrawn")
 
     recover = add("recover", "finish a withdrawal that was interrupted")
     recover.add_argument("--dataset", action="append", required=True, metavar="DIR",
@@ -83,9 +86,12 @@ def run(args: argparse.Namespace) -> int:
             print(f"no consent records in {register.directory}")
         return 0
     if args.action == "withdraw":
+        if bool(args.dataset) == args.register_only:
+            raise ConsentError("withdraw needs --dataset DIR (each dataset holding the "
+                               "participant's data) or, when none does, --register-only")
         entries = consent.withdraw(args.participant, args.dataset, register.directory)
         for entry in entries:
-            print(f"withdrawn {args.participant} from {entry['dataset']}: "
+            print(f"withdrawn {entry['participant']} from {entry['dataset']}: "
                   f"{len(entry['removed'])} paths removed")
         print(f"consent record of {args.participant} marked withdrawn in {register.directory}")
         return 0
