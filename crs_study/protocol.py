@@ -27,6 +27,7 @@ from pathlib import Path
 from crs_study._toml import Section
 from crs_study.errors import ConfigError, ConsentError, CrsStudyError, ProtocolError
 from crs_study.layout import BUILTIN_DEVICES, Layout, load_layout
+from crs_study.responders.base import PAUSE_KEYS
 
 #: Closed choices.
 PLACEMENTS = ("centre", "offset")
@@ -298,6 +299,11 @@ def protocol_from_dict(data: dict, path: Path, text: str = "", sha256: str = "")
     levels = _levels(levels_table) if levels_table is not None else None
     stimulus = _stimulus(stimulus_table, path, levels)
     design = _design(design_table, conditions)
+    if design.ordering == "interleaved" and prompts:
+        raise conditions_table.fail(
+            "prompts", "an interleaved design changes condition from trial to trial, so there "
+            "is no block start to prompt at (mount or remove the skeleton); drop "
+            "[conditions.prompts] or use ordering = \"blocked\"")
     responses = _responses(responses_table, stimulus.digits)
 
     return Protocol(
@@ -497,6 +503,10 @@ def _responses(table: Section, digits: tuple[int, ...]) -> ResponseSpec:
             raise table.fail(f"keys[{i}]", f"expected a single printable character, got {key!r}")
     if len(set(keys)) != len(keys):
         raise table.fail("keys", f"a key appears twice in {keys!r}")
+    paused = sorted(set(keys) & PAUSE_KEYS)
+    if paused:
+        raise table.fail("keys", f"{paused[0]!r} pauses the session at the keypad (q, Q and "
+                         f"Escape do); choose another key, got {keys!r}")
     time_limit = None
     if table.has("time_limit_s"):
         time_limit = table.number("time_limit_s", minimum=0.0, exclusive_minimum=True,

@@ -189,6 +189,9 @@ def _choose_clock(spec: SessionSpec, responder: Any) -> str:
     if spec.clock == "virtual" and responder.needs_real_clock:
         raise SessionError(f"the {responder.name} responder needs --clock real (a person answers "
                            "in real time)")
+    if spec.clock == "virtual" and not spec.device_url.startswith("sim://"):
+        raise SessionError(f"--clock virtual needs the simulated device (sim://); "
+                           f"{spec.device_url} moves real servos in real time")
     return spec.clock
 
 
@@ -210,9 +213,13 @@ def _raise_interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+#: Signals that end a session as Ctrl-C does (a safe pause): a kill, a closed terminal or SSH.
+PAUSE_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def _sigterm_as_interrupt() -> contextlib.AbstractContextManager[None]:
-    """Within the block, SIGTERM raises KeyboardInterrupt (a safe pause)."""
-    return _signals(_raise_interrupt, (signal.SIGTERM,))
+    """Within the block, SIGTERM and SIGHUP raise KeyboardInterrupt (a safe pause)."""
+    return _signals(_raise_interrupt, PAUSE_SIGNALS[1:])
 
 
 def _ignore_interrupts() -> contextlib.AbstractContextManager[None]:
@@ -222,14 +229,13 @@ def _ignore_interrupts() -> contextlib.AbstractContextManager[None]:
 
 @contextlib.contextmanager
 def _defer_interrupts() -> Iterator[None]:
-    """Hold Ctrl-C and SIGTERM back until the block ends, then pause.
+    """Hold Ctrl-C, SIGTERM and SIGHUP back until the block ends, then pause.
 
     Wraps the storing of a trial (frame log, row, in-memory rows, sidecar) so an interrupt
     never falls between them: the trial is stored whole, then the session pauses.
     """
     caught: list[int] = []
-    with _signals(lambda signum, frame: caught.append(signum),
-                  (signal.SIGINT, signal.SIGTERM)):
+    with _signals(lambda signum, frame: caught.append(signum), PAUSE_SIGNALS):
         yield
     if caught:
         raise KeyboardInterrupt
@@ -304,6 +310,28 @@ def check_resume(stored: dict, expected: dict, sidecar: Path) -> None:
                 "another --session")
 
 
+def _device_kind(url: str) -> str:
+    return "simulated" if url.startswith("sim://") else "real"
+
+
+def check_same_kind_of_run(stored: dict, spec: SessionSpec, responder_name: str,
+                           clock_kind: str, sidecar: Path) -> None:
+    """A session is finished as it began: by the same kind of responder, on the same kind of
+    device and clock. Ports may differ (a board replugged as another ttyUSB), so only
+    ``sim://`` against a real device counts, not the URL."""
+    now = {"Responder": responder_name, "Clock": clock_kind,
+           "Device": _device_kind(spec.device_url)}
+    then = {"Responder": stored.get("Responder"), "Clock": stored.get("Clock"),
+            "Device": _device_kind(str(stored.get("DeviceURL", spec.device_url)))}
+    for key, option in (("Responder", "--responder"), ("Clock", "--clock"),
+                        ("Device", "--device")):
+        if then[key] is not None and then[key] != now[key]:
+            raise SessionError(
+                f"{sidecar}: cannot resume: the session began with {key.lower()} "
+                f"{then[key]!r}, now {now[key]!r}; resume with the same {option} or start "
+                "another --session")
+
+
 def _check_rows(rows: list[dict[str, str]], plan: Any, tsv: Path) -> None:
     if len(rows) > len(plan.trials):
         raise SessionError(f"{tsv}: {len(rows)} rows but the plan has {len(plan.trials)} trials")
@@ -349,6 +377,13 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
 
     wall_start = time.perf_counter()
     protocol, layout, plan, dataset = prepare(spec)
+    # Everything that can refuse the run is asked before anything is written (a typo must
+    # not take a counterbalance slot or leave an empty session behind).
+    if responder is None:
+        responder = make_responder(spec.responder, seed=int(plan.seed), layout=layout,
+                                   protocol=protocol)
+    clock_kind = _choose_clock(spec, responder)
+    responder.check_ready()
     if not spec.device_url.startswith("sim://"):
         # The gate comes before anything is written: no consent, no trace in the dataset.
         from crs_study.consent import read_form, require_consent
@@ -387,12 +422,10 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                 f"session {spec.session} of participant {spec.participant} is complete "
                 f"({n_trials} trials) in {paths.tsv.parent}; nothing to do (a new session "
                 "needs --session N)")
+        if stored is not None:
+            check_same_kind_of_run(stored, spec, responder.name, clock_kind, paths.sidecar)
         rows = store.recover_rows()
         _check_rows(rows, plan, paths.tsv)
-        if responder is None:
-            responder = make_responder(spec.responder, seed=int(plan.seed), layout=layout,
-                                       protocol=protocol)
-        clock_kind = _choose_clock(spec, responder)
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials)
         faults = {int(f["trial"]) for f in metadata["Faults"]}
@@ -419,6 +452,8 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                 else:
                     clock.sleep(SETTLE_S)
                     origin = clock.now() - resume_at
+                if first and not responder.simulated:
+                    responder.prompt(_resume_prompt(plan, first), clock)
                 for k in range(first, n_trials):
                     if progress:
                         progress(f"sub-{spec.participant} ses-{spec.session}: trial "
@@ -464,7 +499,8 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
     previous = stored or {}
     resumes = list(previous.get("Resumes", []))
     if stored is not None:
-        resumes.append(utc_now())
+        resumes.append({"Time": utc_now(), "AtTrial": int(previous.get("TrialsCompleted", 0)),
+                        "DeviceURL": spec.device_url, "SoftwareVersion": __version__})
     return {
         "TaskName": schema.TASK,
         "TaskDescription": "Identify the digit drawn by a moving bump on the CRS display",
@@ -497,6 +533,19 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
         "Resumes": resumes,
         "Faults": list(previous.get("Faults", [])),
     }
+
+
+def _resume_prompt(plan: Any, first: int) -> str:
+    """What the experimenter sees before a resumed session's first trial: where it stands and
+    the current block's prompt (mount or remove the skeleton), which was shown before the
+    interruption and may no longer hold."""
+    trial = plan.trials[first]
+    text = f"Resuming at trial {first + 1} of {len(plan.trials)}"
+    if trial.prompt_before:  # the block starts here: its own prompt follows
+        return text
+    block_start = next((t for t in reversed(plan.trials[:first])
+                        if t.block == trial.block and t.prompt_before), None)
+    return f"{text}. {block_start.prompt_before}" if block_start else text
 
 
 def _save_after_failure(state: _Session) -> None:
@@ -601,6 +650,8 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
     protocol = state.protocol
     if trial.prompt_before or trial.break_before:
         responder.prompt(trial.prompt_before or "Break: rest, then continue", clock)
+    if trial.break_before and not responder.needs_real_clock:  # a person rests until ready
+        clock.sleep(float(protocol.design.break_duration_s))
     level = _level(trial)
     frame_times, frames = cache.get(trial.digit, trial.condition, level)
     period = 1.0 / float(protocol.frame_rate_hz)
@@ -681,6 +732,9 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
                            f"{device_url!r}; use crs-study run for a real device")
     if not isinstance(jobs, int) or jobs < 1:
         raise SessionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
+    if responder == "keypad":
+        raise SessionError("a dry-run has no person at the keypad: use --responder observer, "
+                           "random or scripted:FILE")
     labels = simulated_labels(participants, prefix)
     Dataset(dataset).ensure()
     specs = [SessionSpec(Path(protocol), label, Path(dataset), device_url, 1, responder,

@@ -89,7 +89,7 @@ SESSION_KEYS: tuple[str, ...] = (
     "TrialsSha256",        # sha256 of the _beh.tsv bytes when the session was last written
     "PlanSha256",          # sha256 of the trial plan (checked on resume)
     "Counterbalance",      # counterbalance index the plan was made with
-    "Resumes",             # UTC times the session was resumed after an interruption
+    "Resumes",             # one per resume: Time (UTC), AtTrial, DeviceURL, SoftwareVersion
     "Faults",              # device faults: trial index, time, message
 )
 

@@ -137,6 +137,11 @@ def test_key_for_and_digit_for_key():
                  r"design.counterbalancing: \"abba\" splits", id="abba-reps"),
     pytest.param({"design__ordering": "interleaved"}, r"design.counterbalancing: interleaved",
                  id="interleaved-counterbalanced"),
+    pytest.param({"design__ordering": "interleaved", "design__counterbalancing": "none"},
+                 r"conditions.prompts: an interleaved design changes condition from trial to "
+                 r"trial", id="interleaved-with-prompts"),
+    pytest.param({"responses__keys": ["q"] + [str(i) for i in range(1, 10)]},
+                 r"responses.keys: 'q' pauses the session at the keypad", id="pause-key"),
     pytest.param({"stimulus__placement": "offset"}, r"stimulus.offset_mm: missing",
                  id="offset-missing"),
     pytest.param({"stimulus__offset_mm": [1.0, 2.0]}, r"stimulus.offset_mm: only used with "

@@ -96,30 +96,37 @@ def _wait_for(process, needle: str, timeout: float = 60.0) -> str:
     return seen.decode()
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+                         ids=["ctrl-c", "sigterm", "sighup"])
 def test_ctrl_c_is_a_safe_pause(tmp_path, signum):
-    """A real-clock session paused by Ctrl-C (or SIGTERM): exit 130, neutral, resumable."""
-    # Inter-trial intervals of 2 s keep the six trials after "trial 2/8" running for well over
+    """A real-clock session paused by Ctrl-C, SIGTERM or SIGHUP (a closed terminal or SSH):
+    exit 130, neutral, resumable; resumed (after Ctrl-C) on the same real clock, as a
+    resume must be, with nothing lost or twice."""
+    # Inter-trial intervals of 2 s keep the three trials after "trial 2/4" running for over
     # ten seconds, so a loaded machine cannot finish the session before the signal lands.
-    protocol = tiny_protocol(tmp_path, iti=2.0)
+    protocol = tiny_protocol(tmp_path, digits=(1, 7), practice=0, iti=2.0)
     dataset = tmp_path / "ds"
     process = _start(run_args(protocol, dataset, "--clock", "real"), tmp_path)
     try:
-        _wait_for(process, "trial 2/8")
+        _wait_for(process, "trial 2/4")
         process.send_signal(signum)
         _, err = process.communicate(timeout=30)
     finally:
         process.kill()
         process.wait()
     assert process.returncode == 130, err
-    assert "paused at trial 2/8" in err and "run the same command to resume" in err
+    assert "paused at trial 2/4" in err and "run the same command to resume" in err
     meta = json.loads((dataset / SIDECAR).read_text())
     assert meta["Status"] == "interrupted" and meta["TrialsCompleted"] == 1
-    # resume (on the virtual clock to keep the test short): the rest, nothing twice
-    assert main(run_args(protocol, dataset, "--clock", "virtual", "--json")) == 0
+    if signum != signal.SIGINT:
+        return
+    assert main(run_args(protocol, dataset, "--clock", "virtual")) == 2  # not another clock
+    assert main(run_args(protocol, dataset, "--clock", "real", "--json")) == 0
     with open(dataset / TSV, newline="") as handle:
         rows = list(csv.DictReader(handle, delimiter="\t"))
-    assert [int(r["trial_index"]) for r in rows] == list(range(8))
+    assert [int(r["trial_index"]) for r in rows] == list(range(4))
+    resumes = json.loads((dataset / SIDECAR).read_text())["Resumes"]
+    assert [r["AtTrial"] for r in resumes] == [1]
 
 
 @pytest.mark.slow

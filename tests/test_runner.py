@@ -13,7 +13,9 @@ from _session_helpers import FakeDevice, tiny_protocol
 
 import crs_study.device.base as device_base
 from crs_study.dataset import read_frame_log
-from crs_study.errors import ConsentError, DeviceError, SessionError
+from crs_study.errors import ConsentError, CrsStudyError, DeviceError, SessionError
+from crs_study.plan import make_plan
+from crs_study.protocol import load_protocol
 from crs_study.responders.base import Responder, Response
 from crs_study.responders.random import RandomResponder
 from crs_study.runner import (
@@ -236,10 +238,108 @@ def test_keypad_needs_the_real_clock(tmp_path, devices):
 
 def test_real_devices_need_consent(tmp_path, devices):
     spec = spec_for(tmp_path, tiny_protocol(tmp_path), device_url="serial:///dev/null",
-                    consent_register=tmp_path / "register")
+                    consent_register=tmp_path / "register", clock="real")
     with pytest.raises(ConsentError, match="no consent record for participant 'p01'"):
         run_session(spec)
     assert not (spec.dataset / "sub-p01/ses-1/beh").exists()
+
+
+def test_a_virtual_clock_never_drives_a_real_device(tmp_path, devices):
+    """Session time faster than the wall on real servos would store fictional data."""
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path), device_url="serial:///dev/null")
+    with pytest.raises(SessionError, match="--clock virtual needs the simulated device"):
+        run_session(spec)
+    assert not spec.dataset.exists()
+
+
+@pytest.mark.parametrize("responder, match", [
+    pytest.param("keypad", "needs --clock real", id="keypad-on-virtual-clock"),
+    pytest.param("scripted:no-such-file.txt", "no-such-file", id="missing-script"),
+])
+def test_a_run_refused_at_the_start_writes_nothing(tmp_path, devices, responder, match):
+    """A typo must not take a counterbalance slot or leave an empty session behind."""
+    protocol = tiny_protocol(tmp_path)
+    run_session(spec_for(tmp_path, protocol, participant="a1"))
+    before = (tmp_path / "ds" / "participants.tsv").read_bytes()
+    with pytest.raises(CrsStudyError, match=match):
+        run_session(spec_for(tmp_path, protocol, participant="b2", responder=responder))
+    assert (tmp_path / "ds" / "participants.tsv").read_bytes() == before
+    assert not (tmp_path / "ds" / "sub-b2").exists()
+
+
+def test_keypad_without_a_terminal_writes_nothing(tmp_path, devices, monkeypatch):
+    import io
+
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path), responder="keypad", clock="real")
+    with pytest.raises(SessionError, match="needs a terminal"):
+        run_session(spec)
+    assert not spec.dataset.exists()
+
+
+@pytest.mark.parametrize("change, match", [
+    pytest.param(dict(responder="observer"), "responder 'random', now 'observer'", id="responder"),
+    pytest.param(dict(device_url="serial:///dev/null", clock="real", responder="random"),
+                 "clock 'virtual', now 'real'", id="clock-and-device"),
+])
+def test_a_session_is_finished_as_it_began(tmp_path, devices, change, match):
+    """Rows by a guessing simulation must not be followed by rows from another kind of
+    responder, device or clock under the same session."""
+    protocol = tiny_protocol(tmp_path)
+    devices[1]["fail_at"] = 40  # during trial 2 or 3
+    with pytest.raises(DeviceError):
+        run_session(spec_for(tmp_path, protocol))
+    devices[1].pop("fail_at")
+    register = tmp_path / "register"
+    from crs_study.consent import Register, read_form
+    from crs_study.paths import shipped_file
+
+    Register(register).record(read_form(shipped_file("consent/consent_form.md")), "AB", "p01")
+    with pytest.raises(SessionError, match=f"cannot resume.*{match}"):
+        run_session(spec_for(tmp_path, protocol, consent_register=register, **change))
+    assert run_session(spec_for(tmp_path, protocol)).status == "complete"
+
+
+def test_a_resumed_session_prompts_the_person_first(tmp_path, devices):
+    """After a pause mid-block the experimenter sees where the session stands and the
+    block's prompt again (the skeleton may have been taken off meanwhile)."""
+    protocol = tiny_protocol(tmp_path)
+    devices[1]["fail_at"] = 40  # during trial 2 or 3
+    with pytest.raises(DeviceError):
+        run_session(spec_for(tmp_path, protocol))
+    devices[1].pop("fail_at")
+
+    class Person(Recorder):
+        name = "random"  # the same kind as the session began with
+        simulated = False
+
+        def prompt(self, text, clock):
+            self.prompts.append(text)
+
+    person = Person(seed=1)
+    person.prompts = []
+    run_session(spec_for(tmp_path, protocol), responder=person)
+    assert person.prompts[0].startswith("Resuming at trial ")
+    assert "skeleton" in person.prompts[0]  # the pilot's block prompts name the skeleton
+
+
+def test_simulated_participants_rest_through_breaks(tmp_path, devices):
+    """A dry-run's session time counts the protocol's breaks, as the plan's estimate does."""
+    protocol = tiny_protocol(tmp_path, break_every=2)
+    text = protocol.read_text().replace("break_duration_s = 0.0", "break_duration_s = 7.0")
+    protocol.write_text(text)
+    rows = read_rows(run_session(spec_for(tmp_path, protocol)).tsv)
+    plan = [t for t in make_plan(load_protocol(protocol), "p01", 1, 0).trials]
+    for row, trial in zip(rows[1:], plan[1:], strict=True):
+        if trial.break_before:
+            previous = rows[int(row["trial_index"]) - 1]
+            assert float(row["onset"]) - float(previous["trial_end"]) >= 7.0 - 1e-9
+
+
+def test_a_dry_run_has_no_person_at_the_keypad(tmp_path):
+    with pytest.raises(SessionError, match="no person at the keypad"):
+        dry_run(tiny_protocol(tmp_path), 2, tmp_path / "ds", responder="keypad")
+    assert not (tmp_path / "ds").exists()
 
 
 def test_counterbalance_follows_arrival(tmp_path, devices):

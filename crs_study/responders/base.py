@@ -65,6 +65,10 @@ class Response:
         return self.digit is None
 
 
+#: Keys that pause a session at the keypad (so never response keys): q, Q, Escape.
+PAUSE_KEYS = frozenset({"q", "Q", "\x1b"})
+
+
 class Responder(ABC):
     """Answers trials. Subclasses set :attr:`name` and implement :meth:`respond`.
 
@@ -84,6 +88,11 @@ class Responder(ABC):
     def respond(self, trial: Any, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         """The response to ``trial``; ``time_limit_s`` counts from stimulus offset."""
+
+    def check_ready(self) -> None:
+        """Refuse now (one line) what opening the responder would refuse, before a session
+        writes anything; the default has nothing to check."""
+        return None
 
     def begin_trial(self, trial: Any, onset_time: float, clock: Clock) -> None:
         """Called just before the stimulus onset (clock time ``onset_time``)."""

@@ -26,9 +26,9 @@ import tty
 from typing import Any, TextIO
 
 from crs_study.errors import ConfigError, SessionError
-from crs_study.responders.base import Responder, Response, StimulusRecord
+from crs_study.responders.base import PAUSE_KEYS, Responder, Response, StimulusRecord
 
-QUIT_KEYS = frozenset({"q", "Q", "\x1b"})
+QUIT_KEYS = PAUSE_KEYS
 CONTINUE_KEYS = frozenset({" ", "\r", "\n"})
 
 
@@ -60,9 +60,8 @@ class KeypadResponder(Responder):
         self._onset: float | None = None
 
     # --- terminal and reader thread ------------------------------------------------------
-    def open(self) -> None:
-        if self._thread is not None:
-            return
+    def check_ready(self) -> None:
+        """A terminal on stdin (or the given fd), else one-line :class:`SessionError`."""
         if self.fd is None:
             try:
                 self.fd = sys.stdin.fileno()
@@ -71,6 +70,11 @@ class KeypadResponder(Responder):
         if self.fd < 0 or not os.isatty(self.fd):
             raise SessionError("the keypad responder needs a terminal on stdin; use "
                                "--responder scripted:FILE or random without one")
+
+    def open(self) -> None:
+        if self._thread is not None:
+            return
+        self.check_ready()
         self._saved = termios.tcgetattr(self.fd)
         tty.setcbreak(self.fd)
         self._stop.clear()
