@@ -204,6 +204,20 @@ class Layout:
         return replace(self, pitch_mm=pitch_mm, pixel_xy=self.pixel_xy * scale, beams=beams)
 
 
+#: Finest fabric mesh (subdivisions of a pitch) the 2D display models will build.
+MAX_FABRIC_SUBDIVISIONS = 64
+
+
+def fabric_mesh_for_margin(margin_pitch: float, at_least: int = 8) -> int | None:
+    """The 2D fabric's mesh, subdivisions m of a pitch: the smallest m >= ``at_least`` that
+    puts the beam clamps (``margin_pitch`` pitches beyond the end pixels) on mesh nodes, i.e.
+    ``margin_pitch * m`` whole; None when no m up to :data:`MAX_FABRIC_SUBDIVISIONS` does."""
+    for m in range(max(1, at_least), MAX_FABRIC_SUBDIVISIONS + 1):
+        if abs(margin_pitch * m - round(margin_pitch * m)) < 1e-9:
+            return m
+    return None
+
+
 def device_file_path(name_or_path: str | Path) -> Path:
     """Path of a built-in device (``"crs2d"``, ``"crs1d"``) or of a file given by path."""
     text = str(name_or_path)
@@ -228,21 +242,28 @@ def layout_from_dict(data: dict, source: str = "<device>") -> Layout:
 
     geometry = root.table("geometry")
     lattice = geometry.string("lattice", choices=("line", "hex"))
-    pitch = geometry.number("pitch_mm", minimum=0.0, exclusive_minimum=True)
-    margin = geometry.number("end_margin_pitch", 1.0, minimum=0.0, exclusive_minimum=True)
+    pitch = geometry.number("pitch_mm", minimum=1.0, maximum=1000.0)
+    margin = geometry.number("end_margin_pitch", 1.0, minimum=0.0, exclusive_minimum=True,
+                             maximum=10.0)
+    if lattice == "hex" and fabric_mesh_for_margin(margin) is None:
+        raise geometry.fail("end_margin_pitch", "on a hexagonal display the clamps must fall on "
+                            "the fabric's mesh: expected a multiple of 1/m pitch for some m <= "
+                            f"{MAX_FABRIC_SUBDIVISIONS} (e.g. 0.25, 0.3, 1), got {margin!r}")
     coords = _read_pixels(geometry, lattice)
     beam_lists = _read_beams(geometry, len(coords))
     geometry.done()
 
     servos = root.table("servos")
-    travel = servos.number("travel_mm", minimum=0.0, exclusive_minimum=True)
-    boundary_travel = servos.number("boundary_travel_mm", minimum=0.0, exclusive_minimum=True)
-    speed = servos.number("speed_s_per_cm", minimum=0.0, exclusive_minimum=True) / 10.0
+    travel = servos.number("travel_mm", minimum=0.0, exclusive_minimum=True, maximum=100.0)
+    boundary_travel = servos.number("boundary_travel_mm", minimum=0.0, exclusive_minimum=True,
+                                    maximum=100.0)
+    speed = servos.number("speed_s_per_cm", minimum=0.0, exclusive_minimum=True,
+                          maximum=100.0) / 10.0
     servos.done()
 
     section = _read_beam_section(root.table("beam"))
     skin = root.table("skin")
-    beta_kpa = skin.number("foundation_stiffness_kpa", minimum=0.0)
+    beta_kpa = skin.number("foundation_stiffness_kpa", minimum=0.0, maximum=1e6)
     skin.done()
 
     controllers = _read_controllers(root)
@@ -303,6 +324,11 @@ def layout_from_dict(data: dict, source: str = "<device>") -> Layout:
         beams.append(Beam(b, tuple(members), (float(start[0]), float(start[1])),
                           (float(end[0]), float(end[1])), s, e))
 
+    unused = sorted(set(calibration) - {"default"} - {f"{c}:{n}" for c, n in used})
+    if unused:
+        raise DeviceFileError(f"{source}: calibration.{unused[0]}: no pixel or boundary servo is "
+                              f"on channel {unused[0]} (a typo would leave the real channel on "
+                              "the default calibration)")
     return Layout(
         name=name, description=description, source=source, lattice=lattice, pitch_mm=pitch,
         lattice_coords=tuple(coords), pixel_xy=xy, beams=tuple(beams),
@@ -354,6 +380,9 @@ def _read_beams(geometry: Section, n_pixels: int) -> list[list[int]]:
                 )
         if len(set(members)) != len(members):
             raise geometry.fail(f"beams[{b}]", f"a pixel appears twice in {members!r}")
+        same = next((k for k, other in enumerate(beams) if set(other) == set(members)), None)
+        if same is not None:
+            raise geometry.fail(f"beams[{b}]", f"the same pixels as beams[{same}]: {members!r}")
         beams.append(list(members))
     return beams
 
@@ -387,11 +416,11 @@ def _lattice_xy(coords: list[tuple[int, ...]], lattice: str, pitch: float) -> np
 def _read_beam_section(beam: Section) -> BeamSection:
     section = BeamSection(
         material=beam.string("material"),
-        youngs_modulus_mpa=beam.number("youngs_modulus_gpa", minimum=0.0,
-                                       exclusive_minimum=True) * 1e3,
-        width_mm=beam.number("width_mm", minimum=0.0, exclusive_minimum=True),
-        thickness_mm=beam.number("thickness_mm", minimum=0.0, exclusive_minimum=True),
-        yield_strength_mpa=beam.number("yield_strength_mpa", minimum=0.0, exclusive_minimum=True),
+        # bounds: any real beam material and section, far from floating-point trouble
+        youngs_modulus_mpa=beam.number("youngs_modulus_gpa", minimum=0.1, maximum=2000.0) * 1e3,
+        width_mm=beam.number("width_mm", minimum=0.001, maximum=100.0),
+        thickness_mm=beam.number("thickness_mm", minimum=0.001, maximum=100.0),
+        yield_strength_mpa=beam.number("yield_strength_mpa", minimum=1.0, maximum=10000.0),
     )
     beam.done()
     return section
@@ -450,8 +479,12 @@ def _read_calibration(cal: Section, controllers: tuple[Controller, ...]) -> dict
         if abs(full - zero) < 10:
             raise item.fail("full_us", f"expected a range of at least 10 us from zero_us={zero!r}, "
                             f"got {full!r}")
-        if key != "default":
-            _parse_channel(key, cal.key_path(key), cal.source, controllers)
+        if key != "default":  # "A:03" and "A:3" are one channel: the lookup uses "A:3"
+            controller, channel = _parse_channel(key, cal.key_path(key), cal.source, controllers)
+            normal = f"{controller}:{channel}"
+            if normal in out:
+                raise cal.fail(key, f"channel {normal} is calibrated twice")
+            key = normal
         out[key] = (zero, full)
     if "default" not in out:
         raise cal.fail("default", "missing: give default = { zero_us = ..., full_us = ... }")

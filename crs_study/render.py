@@ -152,6 +152,8 @@ class Renderer:
         self._upper = np.array([a.calibration.travel_mm for a in layout.actuators])
         self.cap_feed = cap_feed
         self._beams = None  # CompressedBeams, built on the first frame that feeds a beam
+        # A line of pixels shows the 1D counterpart of Eq. 7: the profile in x alone
+        self._line_y = float(layout.pixel_xy[0, 1]) if layout.lattice == "line" else None
 
     def _longest_feeds(self, heights: np.ndarray) -> np.ndarray:
         if self._beams is None:
@@ -161,6 +163,8 @@ class Renderer:
         return self._beams.longest_feeds(heights)
 
     def render(self, target: Bump) -> Rendering:
+        if self._line_y is not None and target.centre_mm[1] != self._line_y:
+            target = target.moved_to((target.centre_mm[0], self._line_y))  # y_f is ignored
         raw = self._func(self.layout, target, self._geometry)
         return self.limit(raw)
 

@@ -68,7 +68,21 @@ def _set(path, value):
     pytest.param(_set(["geometry", "pitch_mm"], "30"),
                  r"crs2d: geometry.pitch_mm: expected a number, got '30'", id="wrong-type"),
     pytest.param(_set(["geometry", "pitch_mm"], -3.0),
-                 r"geometry.pitch_mm: expected a number > 0, got -3.0", id="negative-pitch"),
+                 r"geometry.pitch_mm: expected a number >= 1, got -3.0", id="negative-pitch"),
+    pytest.param(_set(["geometry", "pitch_mm"], 1e300),
+                 r"geometry.pitch_mm: expected a number <= 1000, got 1e\+300", id="huge-pitch"),
+    pytest.param(_set(["beam", "thickness_mm"], 1e-300),
+                 r"beam.thickness_mm: expected a number >= 0.001, got 1e-300", id="thin-beam"),
+    pytest.param(_set(["geometry", "end_margin_pitch"], 0.123),
+                 r"geometry.end_margin_pitch: on a hexagonal display the clamps must fall on "
+                 r"the fabric's mesh", id="margin-off-mesh"),
+    pytest.param(lambda d: d["geometry"]["beams"].__setitem__(1, [6, 5, 4, 3]),
+                 r"geometry.beams\[1\]: the same pixels as beams\[0\]", id="duplicate-beam"),
+    pytest.param(_set(["calibration", "A:03"], {"zero_us": 1000, "full_us": 1900}),
+                 None, id="padded-calibration-key"),
+    pytest.param(_set(["calibration", "A:24"], {"zero_us": 1000, "full_us": 1900}),
+                 r"calibration.A:24: no pixel or boundary servo is on channel A:24",
+                 id="calibration-of-an-unused-channel"),
     pytest.param(lambda d: d["geometry"]["pixels"].__setitem__(1, [0, -2]),
                  r"geometry.pixels\[1\]: duplicate pixel \[0, -2\] \(same as pixels\[0\]\)",
                  id="duplicate-pixel"),
@@ -104,6 +118,9 @@ def _set(path, value):
     pytest.param(lambda d: d.pop("skin"), r"crs2d: missing required key 'skin'", id="missing"),
 ])
 def test_malformed_device_file_is_a_one_line_error(change, message):
+    if message is None:  # accepted
+        layout_from_dict(_mutated("crs2d", change), source="crs2d")
+        return
     with pytest.raises(DeviceFileError, match=message) as info:
         layout_from_dict(_mutated("crs2d", change), source="crs2d")
     assert "\n" not in str(info.value)
@@ -162,3 +179,37 @@ def test_random_mutations_load_or_raise_device_file_error(name, data):
         layout_from_dict(document, source=name)
     except DeviceFileError as exc:
         assert "\n" not in str(exc)
+
+
+@pytest.mark.parametrize("key", ["A:03", "A:3"])
+def test_a_calibration_override_reaches_its_channel_however_it_is_written(key):
+    """'A:03' passed the check but the lookup used 'A:3': the channel kept the default."""
+    layout = layout_from_dict(
+        _mutated("crs2d", _set(["calibration", key], {"zero_us": 1100, "full_us": 1900})),
+        source="crs2d")
+    pixel = next(a for a in layout.actuators if (a.controller, a.channel) == ("A", 3))
+    assert (pixel.calibration.zero_us, pixel.calibration.full_us) == (1100, 1900)
+
+
+def test_the_same_channel_calibrated_twice_is_refused():
+    def change(d):
+        d["calibration"]["A:3"] = {"zero_us": 1100, "full_us": 1900}
+        d["calibration"]["A:03"] = {"zero_us": 1200, "full_us": 1900}
+
+    with pytest.raises(DeviceFileError, match="channel A:3 is calibrated twice"):
+        layout_from_dict(_mutated("crs2d", change), source="crs2d")
+
+
+@pytest.mark.parametrize("margin, mesh", [(1.0, 8), (0.5, 8), (0.3, 10), (1 / 3, 9), (0.35, 20)])
+def test_the_fabric_meshes_any_clamp_margin_on_the_lattice(margin, mesh):
+    """Clamps off the fabric's mesh made every 2D beam model fail (and a dry-run guess)."""
+    from crs_study.display.base import get_model
+    from crs_study.layout import fabric_mesh_for_margin
+
+    assert fabric_mesh_for_margin(margin) == mesh
+    layout = layout_from_dict(_mutated("crs2d", _set(["geometry", "end_margin_pitch"], margin)),
+                              source="crs2d")
+    model = get_model("beam", layout)
+    assert model.fabric.h == pytest.approx(layout.pitch_mm / mesh)
+    heights = model.surface(layout.neutral_setpoints(), layout.pixel_xy)
+    assert np.allclose(heights, 0.0)

@@ -217,3 +217,20 @@ def test_calibration_pixel_only_clearly_below_crs_near_the_paper(protocol, recor
     # Budget: a trial of ~54 frames may cost ~0.3 ms a frame in all; the observer's share
     # with warm caches is a fraction of that.
     assert per_trial_ms < 5.0
+
+
+def test_a_model_that_cannot_be_built_fails_the_run_not_the_frame(protocol, monkeypatch):
+    """Per-frame collapse skips a frame; a model that cannot be built at all must not turn
+    every CRS trial into a silent guess (it did, for a device file the fabric could not mesh)."""
+    import crs_study.display.base as display_base
+    import crs_study.responders.observer as observer_module
+    from crs_study.errors import DisplayModelError
+
+    def broken(name, layout, **options):
+        raise DisplayModelError(f"{name}: cannot mesh {layout.name!r}")
+
+    monkeypatch.setattr(display_base, "get_model", broken)
+    monkeypatch.setattr(observer_module, "_MODELS", {})
+    observer = PerceptualObserver(protocol.layout(), protocol, 3)
+    with pytest.raises(DisplayModelError, match="cannot mesh"):
+        observer.sensed_surface("crs", protocol.layout().neutral_setpoints() + 0.123)

@@ -97,6 +97,19 @@ def test_crs_1d_device(layout1d):
         arc_length(bump, beam.start, beam.end) - beam.straight_length, rel=1e-12)
 
 
+@pytest.mark.parametrize("condition", ["pixel-only", "crs"])
+def test_a_1d_device_shows_the_profile_in_x_alone(layout1d, condition):
+    """The 1D counterpart of Eq. 7 is rho = |x - x_f|: y_f must not lower the pixels or the
+    feeds (a bump at y_f = 20 mm used to render as a slice 20 mm off its centre)."""
+    on_line = render(layout1d, Bump((45.0, 0.0), 90.0, 5.0), condition)
+    off_line = render(layout1d, Bump((45.0, 20.0), 90.0, 5.0), condition)
+    np.testing.assert_array_equal(off_line.setpoints, on_line.setpoints)
+    # raised cosine at the pixels, 30 mm apart: z_f/2 (1 + cos(2 pi dx / l))
+    dx = layout1d.pixel_xy[:, 0] - 45.0
+    expected = np.where(np.abs(dx) <= 45.0, 2.5 * (1 + np.cos(2 * np.pi * dx / 90.0)), 0.0)
+    np.testing.assert_allclose(on_line.setpoints[: layout1d.n_pixels], expected, atol=1e-12)
+
+
 def test_flat_target_renders_the_neutral_pose(layout2d):
     result = render(layout2d, Bump((0.0, 0.0), 90.0, 0.0), "crs")
     np.testing.assert_array_equal(result.setpoints, layout2d.neutral_setpoints())

@@ -60,9 +60,10 @@ from scipy.spatial import ConvexHull
 
 from crs_study.display.base import DisplayModel
 from crs_study.errors import DisplayModelError
-from crs_study.layout import Beam, Layout
+from crs_study.layout import Beam, Layout, fabric_mesh_for_margin
 
-#: fine-lattice subdivisions of one pitch for the fabric (h = d / 8 = 3.75 mm at d = 30 mm)
+#: fine-lattice subdivisions of one pitch for the fabric (h = d / 8 = 3.75 mm at d = 30 mm);
+#: finer when the beam clamps need it (:func:`crs_study.layout.fabric_mesh_for_margin`)
 DEFAULT_FABRIC_SUBDIVISIONS = 8
 #: point sets whose surface plan a fabric keeps (LRU)
 _PLANS_KEPT = 16
@@ -161,7 +162,9 @@ class NetworkModel(DisplayModel):
         self.starts = np.array([b.start for b in layout.beams], dtype=float)
         self.units = np.array([b.direction for b in layout.beams])
         self.spans = np.array([b.straight_length for b in layout.beams])
-        self.fabric = (Fabric.for_layout(layout, fabric_subdivisions)
+        # the finest of the asked mesh and the one the clamps need (layout checked it exists)
+        mesh = fabric_mesh_for_margin(layout.end_margin_pitch, fabric_subdivisions)
+        self.fabric = (Fabric.for_layout(layout, mesh or fabric_subdivisions)
                        if layout.lattice == "hex" else None)
 
     @abstractmethod

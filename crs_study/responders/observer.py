@@ -238,8 +238,11 @@ class PerceptualObserver(Responder):
         found, z = cache.get(frame_key)
         if found:
             return z
+        # Built outside the try: a model that cannot be built at all (a device file it cannot
+        # mesh) is an error of the whole run, never a session of skipped frames and guesses.
+        surface = self._surface_function(model_name)
         try:
-            z = self._surface_function(model_name)(rounded).reshape(self._gx.shape)
+            z = surface(rounded).reshape(self._gx.shape)
         except DisplayModelError:
             # The model has no shape for this frame (a beam collapsing or yielding while the
             # servos are between two frames): nothing reliable to feel, the frame is skipped.
