@@ -81,7 +81,13 @@ def test_points_a_model_cannot_compute_are_reported(tmp_path, capsys):
 @pytest.mark.parametrize(("argv", "message"), [
     (["--models", "nearst"], "--models: unknown display model 'nearst'; known: "),
     (["--d-over-l", "3"], "--d-over-l: expected values in [0.02, "),
-    (["--order", "1"], "--order must be >= 2"),
+    (["--order", "1"], "--order: expected a whole number in 2..32, got 1"),
+    # resolution 100000 was killed out of memory; jobs 0 was taken silently
+    (["--resolution", "100000"], "--resolution: expected a whole number in 4..96, got 100000"),
+    (["--jobs", "0"], "--jobs: expected a whole number in 1..64, got 0"),
+    (["--out", "/proc/crs-study-nope"], "/proc/crs-study-nope"),
+    (["--device", "crs1d", "--layouts", "hex"], "the device 'crs1d' is a 1d lattice"),
+    (["--device", "no-such-device"], "no-such-device"),
 ])
 def test_bad_arguments_are_one_line_errors(argv, message, capsys):
     assert main(["quality", "--json", "--no-cache", *argv]) == 2
@@ -119,3 +125,28 @@ def test_parallel_sweep_equals_the_serial_one_and_restores_the_environment(monke
     parallel = sweep_module.sweep(*args, jobs=2)
     assert parallel == sweep_module.sweep(*args, jobs=1)
     assert "OPENBLAS_NUM_THREADS" not in os.environ
+
+
+def test_device_option_computes_that_devices_lattice_with_its_section(tmp_path, capsys):
+    """A device file by path: its lattice alone, its pitch and beam (a thicker beam changes
+    the CRS numbers, never the pixel-only ones, which are scale-free in d/l)."""
+    import tomllib
+
+    from crs_study.layout import device_file_path
+
+    text = device_file_path("crs1d").read_text()
+    thick = tmp_path / "thick1d.toml"
+    assert "thickness_mm = 0.1" in text
+    thick.write_text(text.replace("thickness_mm = 0.1", "thickness_mm = 0.3"))
+    tomllib.loads(thick.read_text())
+
+    def rows(device):
+        argv = ["quality", "--json", "--no-cache", "--models", "nearest", "beam",
+                "--d-over-l", "0.3", "--device", device]
+        assert main(argv) == 0, capsys.readouterr().err
+        return {r["model"]: r for r in map(json.loads, capsys.readouterr().out.splitlines())}
+
+    shipped, custom = rows("crs1d"), rows(str(thick))
+    assert {r["layout"] for r in [*shipped.values(), *custom.values()]} == {"1d"}
+    assert custom["nearest"] == shipped["nearest"]
+    assert custom["beam"]["D_S"] != shipped["beam"]["D_S"]

@@ -20,7 +20,13 @@ import argparse
 import sys
 from pathlib import Path
 
+from crs_study._files import os_errors
+from crs_study.errors import CrsStudyError
+
 NAME = "quality"
+#: Upper bounds of the numerical options: beyond them the cost (memory ~ resolution^2 per
+#: surface in 2D) outgrows any gain in accuracy (resolution 100000 was killed out of memory).
+MAX_ORDER, MAX_RESOLUTION, MAX_JOBS = 32, 96, 64
 HELP = "display quality D_P and D_S against d/l per model and lattice (chart, table, --json)"
 
 
@@ -34,8 +40,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default ./quality; with --json none unless given)")
     parser.add_argument("--models", nargs="+", default=None, metavar="MODEL",
                         help="display models to evaluate (default: nearest linear spline beam)")
-    parser.add_argument("--layouts", nargs="+", default=["1d", "square", "hex"],
-                        choices=["1d", "square", "hex"], help="lattices")
+    parser.add_argument("--layouts", nargs="+", default=None,
+                        choices=["1d", "square", "hex"],
+                        help="lattices (default: 1d square hex; with --device, its own)")
+    parser.add_argument("--device", default=None, metavar="NAME|FILE",
+                        help="device file whose pitch, beam section, clamp margin and skin the "
+                             "periodic patches take (default: the shipped crs1d for 1d, crs2d "
+                             "for square and hex)")
     parser.add_argument("--d-over-l", nargs="+", type=float, default=None, metavar="X",
                         help="pixel pitch over bump diameter "
                              "(default: 0.1 0.15 0.2 0.25 0.3 1/3 0.4 0.5)")
@@ -47,16 +58,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "figures of `crs-study bench display`")
     group = parser.add_argument_group("numerics")
     group.add_argument("--order", type=int, default=4,
-                       help="Gauss order per panel of the peak-position cell")
+                       help=f"Gauss order per panel of the peak-position cell "
+                            f"(2..{MAX_ORDER})")
     group.add_argument("--resolution", type=int, default=12,
-                       help="quadrature nodes per pitch for the shape integral")
+                       help=f"quadrature nodes per pitch for the shape integral "
+                            f"(4..{MAX_RESOLUTION})")
     group.add_argument("--jobs", type=int, default=None,
-                       help="worker processes (default: the CPUs, at most 4)")
+                       help=f"worker processes, 1..{MAX_JOBS} (default: the CPUs, at most 4)")
     group.add_argument("--cache-dir", type=Path, default=None,
                        help="cache folder (default $XDG_CACHE_HOME/crs-study/quality)")
     group.add_argument("--no-cache", action="store_true", help="recompute every point")
 
 
+@os_errors(CrsStudyError)  # an unwritable --out or --cache-dir: one line, not a traceback
 def run(args: argparse.Namespace) -> int:
     import json
     import os
@@ -77,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     args.d_over_l = args.d_over_l or list(DEFAULT_D_OVER_L)
     if args.speed_accuracy:
         return _speed_accuracy(args)
+    device = _device_settings(args)
     unknown = [m for m in args.models if m not in MODELS]
     if unknown:
         raise DisplayModelError(f"--models: unknown display model {unknown[0]!r}; "
@@ -86,14 +101,17 @@ def run(args: argparse.Namespace) -> int:
     if bad:
         raise DisplayModelError(f"--d-over-l: expected values in [{MIN_D_OVER_L}, {upper:.4f}], "
                                 f"got {bad[0]!r}")
-    if args.order < 2 or args.resolution < 4:
-        raise DisplayModelError(f"--order must be >= 2 and --resolution >= 4, got "
-                                f"{args.order!r} and {args.resolution!r}")
+    for option, value, low, high in (("--order", args.order, 2, MAX_ORDER),
+                                     ("--resolution", args.resolution, 4, MAX_RESOLUTION),
+                                     ("--jobs", args.jobs, 1, MAX_JOBS)):
+        if value is not None and not low <= value <= high:
+            raise DisplayModelError(f"{option}: expected a whole number in {low}..{high}, "
+                                    f"got {value!r}")
     cache = None if args.no_cache else (args.cache_dir or default_cache_dir())
     jobs = args.jobs or min(4, os.cpu_count() or 1)
     # points beyond a lattice's own covering limit are reported, not computed
     points = sweep(args.models, args.layouts, args.d_over_l,
-                   Settings(order=args.order, resolution=args.resolution),
+                   Settings(order=args.order, resolution=args.resolution, **device),
                    cache_dir=cache, jobs=jobs)
 
     out = args.out if args.out is not None else (None if args.json else Path("quality"))
@@ -113,6 +131,27 @@ def run(args: argparse.Namespace) -> int:
     for path in written:
         print(f"wrote {path}")
     return 0
+
+
+def _device_settings(args: argparse.Namespace) -> dict:
+    """``--device``: its lattice is the only one computed; the file's sha256 keys the cache."""
+    if args.device is None:
+        args.layouts = args.layouts or ["1d", "square", "hex"]
+        return {}
+    from crs_study._files import sha256_bytes
+    from crs_study.errors import DisplayModelError
+    from crs_study.layout import device_file_path, load_layout
+    from crs_study.quality.lattices import lattice_of
+
+    layout = load_layout(args.device)  # a malformed file: one line naming key and value
+    own = lattice_of(layout)
+    if args.layouts not in (None, [own]):
+        raise DisplayModelError(f"--layouts {' '.join(args.layouts)}: the device "
+                                f"{layout.name!r} is a {own} lattice; drop --layouts or give "
+                                f"--layouts {own}")
+    args.layouts = [own]
+    path = device_file_path(args.device)
+    return {"device": str(path.resolve()), "device_sha256": sha256_bytes(path.read_bytes())}
 
 
 def _write(points: list, out: Path) -> list[Path]:

@@ -43,7 +43,7 @@ import numpy as np
 
 from crs_study.display.base import DisplayModel, get_model
 from crs_study.errors import DisplayModelError, RenderError
-from crs_study.layout import Layout
+from crs_study.layout import Layout, load_layout
 from crs_study.quality.lattices import (
     LATTICES,
     LatticeName,
@@ -247,7 +247,8 @@ class _Evaluator:
 
 
 def distortion(model: str | DisplayModel, lattice: LatticeName, d_over_l: float, *,
-               layout: Layout | None = None, height_mm: float = DEFAULT_HEIGHT_MM,
+               layout: Layout | None = None, template: Layout | None = None,
+               height_mm: float = DEFAULT_HEIGHT_MM,
                condition: str = "crs", order: int = 4, resolution: int = 12,
                symmetric: bool | None = None, estimate_error: bool = False) -> Distortion:
     """D_P and D_S (Eqs. 1, 2, 5, 6) of a display model on a lattice at one d/l.
@@ -259,7 +260,9 @@ def distortion(model: str | DisplayModel, lattice: LatticeName, d_over_l: float,
     lattice : ``"1d"``, ``"square"`` or ``"hex"``.
     layout : the device to compute on, e.g. the published ``crs2d``; the bump's peak runs over
         the cell of the pixel nearest the pixels' centroid. Default: a periodic patch
-        (:func:`~crs_study.quality.lattices.periodic_layout`) at the shipped device's pitch.
+        (:func:`~crs_study.quality.lattices.periodic_layout`) of ``template``.
+    template : the device whose pitch, beam section, margins and skin the periodic patch takes
+        (default: the model's layout, else the shipped ``crs1d`` or ``crs2d``).
     height_mm : z_f of the bump; the criteria are scale-free for linear models.
     condition : how setpoints are rendered (``"crs"`` feeds the beams; pixel-only models
         ignore the feed).
@@ -270,11 +273,12 @@ def distortion(model: str | DisplayModel, lattice: LatticeName, d_over_l: float,
     check_d_over_l(lattice, d_over_l)
     name = model if isinstance(model, str) else model.name
     if layout is None:
-        template = None if isinstance(model, str) else model.layout
-        pitch = (template.pitch_mm if template is not None else
-                 (30.0 if lattice != "1d" else 30.0))
+        if template is None:
+            template = (model.layout if not isinstance(model, str) else
+                        load_layout("crs1d" if lattice == "1d" else "crs2d"))
+        pitch = template.pitch_mm
         cell_reach = float(np.max(np.hypot(*cell_vertices(lattice, pitch).T)))
-        layout = periodic_layout(lattice, pitch, 0.5 * pitch / d_over_l + cell_reach)
+        layout = periodic_layout(lattice, pitch, 0.5 * pitch / d_over_l + cell_reach, template)
     elif lattice_of(layout) != lattice:
         raise DisplayModelError(f"{layout.source}: a {layout.lattice!r} layout cannot give "
                                 f"{lattice!r} distortions")

@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from crs_study.errors import CrsStudyError
+from crs_study.layout import load_layout
 
 #: d/l values of the default sweep: the paper's range, and 0.1, 0.2, 0.3 and 1/3 always.
 DEFAULT_D_OVER_L = (0.1, 0.15, 0.2, 0.25, 0.3, 1 / 3, 0.4, 0.5)
@@ -56,6 +57,10 @@ class Settings:
     order: int = 4
     resolution: int = 12
     height_mm: float = 5.0
+    #: device file (name or path) whose pitch, beam and skin the periodic patches take; None:
+    #: the shipped crs1d / crs2d. Its sha256 keys the cache, so an edited file is recomputed.
+    device: str | None = None
+    device_sha256: str = ""
 
 
 def source_digest() -> str:
@@ -83,7 +88,9 @@ def compute_point(model: str, lattice: str, d_over_l: float, settings: Settings)
     symmetric = lattice in SYMMETRIC_MODELS.get(model, set()) | NETWORK_SYMMETRIC.get(model, set())
     order = settings.order if lattice == "1d" or symmetric else max(2, settings.order // 2)
     try:
-        result = distortion(model, lattice, d_over_l, height_mm=settings.height_mm, order=order,
+        template = load_layout(settings.device) if settings.device else None
+        result = distortion(model, lattice, d_over_l, template=template,
+                            height_mm=settings.height_mm, order=order,
                             resolution=settings.resolution, symmetric=symmetric)
     except CrsStudyError as exc:
         return Point(lattice, model, d_over_l, note=str(exc).splitlines()[0])
