@@ -18,6 +18,7 @@ from crs_study.clock import RealClock
 from crs_study.device import codec
 from crs_study.device.base import BYTE_TIME_S, open_device
 from crs_study.device.serial_device import (
+    OUT_WAITING_LOW_BYTES,
     DeviceWarning,
     SerialDevice,
     SerialOptions,
@@ -279,6 +280,43 @@ def test_stalled_writer_is_reported_not_waited_for(layout1d):
     finally:
         release.set()
         device.close()
+
+
+def test_writer_waits_for_the_output_buffer_and_reports_one_that_never_drains(layout1d):
+    # out_waiting is the port's own count of bytes not yet on the wire: the writer waits for
+    # it (at most OUT_WAITING_LOW_BYTES), so a slow wire can never queue frames in the OS
+    # buffer; a buffer that does not drain within write_timeout_s is a port failure.
+    class Backlogged(PacedPort):
+        backlog = 0
+
+        @property
+        def out_waiting(self) -> int:
+            return self.backlog
+
+    port = Backlogged("A", 0.0)
+    device = SerialDevice(layout1d, [port], RealClock(),
+                          SerialOptions(check_battery=False, refresh_s=0.0, write_timeout_s=0.2))
+    device.open()
+    try:
+        device.send(np.zeros(7))
+        assert device.wait_sent(1.0) and len(port.writes) == 1
+        port.backlog = OUT_WAITING_LOW_BYTES + 1  # the wire is behind: nothing more is written
+        for k in range(1, 4):
+            device.send(np.full(7, float(k)))  # merged while the writer waits
+        time.sleep(0.1)
+        assert len(port.writes) == 1
+        port.backlog = OUT_WAITING_LOW_BYTES  # drained: the newest frame goes, once
+        assert device.wait_sent(1.0) and len(port.writes) == 2
+        assert codec.decode_all(bytes(port.data))[0][-1].message.positions[0] == (1, 1333)
+        port.backlog = 100  # stuck (flow control held, a wedged adapter)
+        device.send(np.full(7, 4.0))
+        time.sleep(0.5)
+        with pytest.raises(DeviceError, match=r"controller A on A: port failed: output not "
+                           r"draining: 100 bytes still waiting after 0\.2\d s"):
+            device.send(np.full(7, 5.0))
+    finally:
+        device.close()
+    assert len(port.writes) == 3  # the neutral pose was still attempted, directly
 
 
 def test_ctrl_c_inside_a_session_still_sends_neutral_and_releases(layout1d, boards):

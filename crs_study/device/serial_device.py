@@ -21,9 +21,14 @@ Writing (see :mod:`~crs_study.device.schedule` for the model)
     last sent by more than the dead-band; a frame handed over while a previous one still waits
     replaces it (merged, never queued), so latency never grows. Every ``refresh_s`` the next
     frame carries every channel (a frame the board lost or garbled is repaired). The wire is
-    free when the bytes already written have had their time at ``10 / baud`` s a byte
-    (``pace``); writing no faster than that keeps the OS and USB buffers from holding old
-    frames.
+    free when the bytes already written have had their time at ``10 / baud`` s a byte *and*
+    the port's output buffer (``out_waiting``) holds at most :data:`OUT_WAITING_LOW_BYTES`
+    (``pace``). The model alone is not enough: on a wire slower than nominal (an adapter's
+    baud error, gaps between bytes) bytes would pile up in the OS buffer and latency grow
+    without bound; ``out_waiting`` alone is not either (a USB adapter's chip FIFO is not
+    counted). A port without ``out_waiting`` (AttributeError, NotImplementedError) is paced
+    by the model; one whose buffer does not drain within ``write_timeout_s`` has failed.
+    Linux ptys report 0 (:mod:`~crs_study.device.virtual_pty` has a port that counts).
 
 Balance: the device file fixes which channel is on which controller; :meth:`SerialDevice.open`
 warns (:class:`DeviceWarning`) when the busiest controller's full frame is more than 10 %
@@ -65,6 +70,10 @@ from crs_study.device.codec import (
 from crs_study.device.schedule import DEFAULT_DEADBAND_US, ChannelSplit, channel_balance
 from crs_study.errors import DeviceError
 from crs_study.layout import Layout
+
+#: The writer writes once the port's output buffer (``out_waiting``) holds at most this many
+#: bytes (about 4 ms at 9600 baud: the next frame follows without a gap, never behind a queue).
+OUT_WAITING_LOW_BYTES = 4
 
 #: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell); the
 #: same threshold as the simulated device. 0 turns the check off.
@@ -171,6 +180,7 @@ class _Port:
         self.force_full = False
         self.last_sent: np.ndarray | None = None  # this controller's channels
         self.free_at = -math.inf  # clock time the bytes written so far have left
+        self.reports_backlog = True  # until out_waiting proves unsupported
         self.last_full_at = -math.inf
         self.writing_since: float | None = None
         self.error: BaseException | None = None
@@ -240,6 +250,7 @@ class _Port:
         device = self.device
         clock, options, split = device.clock, device.options, device.split
         byte_s = BITS_PER_BYTE / options.baud
+        draining_since: float | None = None  # real time the backlog was first seen too long
         while True:
             with self.cond:
                 while not self.stopping and self.error is None and not self._due(clock.now()):
@@ -253,6 +264,22 @@ class _Port:
             if wait > 0:
                 clock.sleep(min(wait, 0.05))
                 continue
+            # the model says the wire is free; the port may know better (a wire slower than
+            # nominal): wait for its output buffer to drain, the wanted frame merging meanwhile
+            backlog = self._backlog() if options.pace else 0
+            if backlog > OUT_WAITING_LOW_BYTES:
+                if draining_since is None:
+                    draining_since = time.monotonic()
+                elif time.monotonic() - draining_since > options.write_timeout_s:
+                    with self.cond:
+                        self.error = TimeoutError(
+                            f"output not draining: {backlog} bytes still waiting after "
+                            f"{time.monotonic() - draining_since:.2f} s (write_timeout_s)")
+                        self.cond.notify_all()
+                    return
+                clock.sleep(min(max((backlog - OUT_WAITING_LOW_BYTES) * byte_s, 1e-3), 0.02))
+                continue
+            draining_since = None
             with self.cond:
                 now = clock.now()
                 full = (self.force_full or self.last_sent is None
@@ -288,6 +315,18 @@ class _Port:
                 self.frames_written += 1
                 self.bytes_written += len(data)
                 self.cond.notify_all()
+
+    def _backlog(self) -> int:
+        """Bytes the port still holds for the wire (``out_waiting``); 0 where it cannot say."""
+        if not self.reports_backlog:
+            return 0
+        try:
+            return int(self.serial.out_waiting)
+        except (AttributeError, NotImplementedError):
+            self.reports_backlog = False  # e.g. socket://: pace by the model alone
+            return 0
+        except Exception:  # noqa: BLE001 - a failing port: the write that follows says why
+            return 0
 
     def _read_loop(self) -> None:
         while True:

@@ -10,8 +10,19 @@ pyserial's own tests use ptys (hardware.md, "Testing serial code without hardwar
         device = open_device(f"serial://{bridge.port}", layout)
 
 A pty moves bytes at memory speed. With ``baud`` set, the thread drains the pty no faster than
-``baud / 10`` bytes a second, so the writer sees the backlog (``out_waiting``) of a real UART
-at that rate; with ``baud=None`` bytes reach the board as fast as the kernel passes them.
+``baud / 10`` bytes a second (in chunks of at most 64 bytes, each delivered when its last byte
+has had its wire time), so bytes back up in the pty as they would in a real UART's output
+buffer; with ``baud=None`` bytes reach the board as fast as the kernel passes them. A
+``baud`` below the writer's (9000 against 9600) plays a wire slower than nominal (a USB
+adapter's baud error, gaps between bytes).
+
+The backlog: Linux reports 0 for ``TIOCOUTQ`` (pyserial's ``out_waiting``) on a pty slave
+whatever waits in it, unlike a USB serial adapter's driver. :meth:`VirtualControllerPty.backlog`
+counts what a UART would (bytes not yet read by the board's side, ``FIONREAD`` on the master,
+plus the chunk still on the wire), and :meth:`VirtualControllerPty.open_serial` opens the
+slave as a pyserial port whose ``out_waiting`` is that backlog::
+
+    device = SerialDevice(layout, [a.open_serial(), b.open_serial()], clock)
 
 :meth:`vanish` closes the master side: the slave's writes then fail with EIO, as when a USB
 serial adapter is pulled out mid-stream.
@@ -19,12 +30,17 @@ serial adapter is pulled out mid-stream.
 
 from __future__ import annotations
 
+import fcntl
+import math
 import os
 import pty
 import select
+import struct
+import termios
 import threading
 import time
 import tty
+from typing import Any
 
 from crs_study.device.virtual_controller import VirtualController
 
@@ -46,6 +62,8 @@ class VirtualControllerPty:
         self._lock = threading.Lock()  # guards the board against readers in other threads
         self._stop = threading.Event()
         self._master_open = True
+        self._byte_s = 10.0 / baud if baud else 0.0
+        self._on_wire_until = 0.0  # when the chunk read last has had its wire time
         self._thread = threading.Thread(target=self._serve, name=f"lsc-pty-{self.port}",
                                         daemon=True)
         self._thread.start()
@@ -53,7 +71,7 @@ class VirtualControllerPty:
     # -- the board's side ---------------------------------------------------------------------
 
     def _serve(self) -> None:
-        byte_s = 10.0 / self.baud if self.baud else 0.0
+        byte_s = self._byte_s
         wire_free = time.monotonic()
         try:
             while not self._stop.is_set():
@@ -71,7 +89,7 @@ class VirtualControllerPty:
                 arrived = now
                 if byte_s:
                     wire_free = max(wire_free, now) + len(data) * byte_s
-                    arrived = wire_free
+                    arrived = self._on_wire_until = wire_free
                     self._stop.wait(max(0.0, wire_free - time.monotonic()))
                 with self._lock:
                     self.bytes_received += len(data)
@@ -93,6 +111,37 @@ class VirtualControllerPty:
                     return True
             time.sleep(0.002)
         return False
+
+    def backlog(self) -> int:
+        """Bytes written to the slave that have not reached the board: what a UART's
+        ``TIOCOUTQ`` counts (its buffer and the byte being shifted out)."""
+        if not self._master_open:
+            return 0
+        try:
+            waiting = struct.unpack("i", fcntl.ioctl(self.master, termios.FIONREAD,
+                                                     b"\0\0\0\0"))[0]
+        except OSError:
+            return 0
+        if self._byte_s:
+            waiting += max(0, math.ceil((self._on_wire_until - time.monotonic()) / self._byte_s))
+        return waiting
+
+    def open_serial(self, **settings: Any) -> Any:
+        """The slave as an open pyserial port whose ``out_waiting`` is :meth:`backlog`
+        (``settings`` go to :class:`serial.Serial`; default 9600 baud, 0.05 s read and 0.5 s
+        write timeouts, as :class:`~.serial_device.SerialDevice` opens its ports)."""
+        import serial
+
+        bridge = self
+
+        class PtySerial(serial.Serial):
+            @property
+            def out_waiting(self) -> int:
+                return bridge.backlog()
+
+        options: dict[str, Any] = {"baudrate": 9600, "timeout": 0.05, "write_timeout": 0.5}
+        options.update(settings)
+        return PtySerial(self.port, **options)
 
     def positions_us(self, t: float | None = None):
         """The board's servo pulse widths at ``t`` (default now), safely from any thread."""
