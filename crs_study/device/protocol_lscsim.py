@@ -20,6 +20,13 @@ Timing is real (``time.monotonic``): written bytes leave at ``baudrate / 10`` by
 board when its last byte does, and the board's replies arrive byte-timed too. ``read`` honours
 ``timeout``; ``write`` honours ``write_timeout`` when the wire is already more than that far
 behind. Nothing here starts a thread: the port catches up whenever it is used.
+
+Threads: every call that touches the wire (``write``, ``read``, ``in_waiting``,
+``out_waiting``, ``flush``, the resets) holds the port's lock while it delivers and queues, so
+one thread reading and another writing the same port (as
+:class:`~crs_study.device.serial_device.SerialDevice` does) hand frames to the board whole and
+in the order they were written, with arrival times that never go backwards. The lock is not
+held while ``read`` or ``flush`` waits.
 """
 
 from __future__ import annotations
@@ -73,6 +80,9 @@ class Serial(SerialBase):
         self._replies: deque[tuple[float, bytes]] = deque()
         self._wire_free = 0.0
         self._vanish_at = float("inf")
+        # one lock for the wire state above: a reader and a writer thread each pump the wire,
+        # and two pumps could otherwise pop two frames and hand them to the board swapped
+        self._wire_lock = threading.RLock()
         super().__init__(*args, **kwargs)
 
     # -- pyserial plumbing --------------------------------------------------------------------
@@ -86,11 +96,12 @@ class Serial(SerialBase):
         self.is_open = True
 
     def close(self) -> None:
-        if self.is_open:
-            try:
-                self._pump(float("inf") if self._vanish_at == float("inf") else self._vanish_at)
-            finally:
-                self.is_open = False
+        with self._wire_lock:
+            if self.is_open:
+                try:
+                    self._pump(self._vanish_at)  # what is on the wire still arrives
+                finally:
+                    self.is_open = False
         super().close()
 
     def _reconfigure_port(self) -> None:
@@ -135,10 +146,14 @@ class Serial(SerialBase):
 
     def vanish(self) -> None:
         """The port fails now (an adapter pulled out)."""
-        self._vanish_at = min(self._vanish_at, time.monotonic())
+        with self._wire_lock:
+            self._vanish_at = min(self._vanish_at, time.monotonic())
 
     def _pump(self, now: float | None = None) -> None:
-        """Deliver what has arrived at the board by ``now``; collect replies that have come."""
+        """Deliver what has arrived at the board by ``now``; collect replies that have come.
+
+        Callers hold ``_wire_lock``: popping a frame and handing it to the board is one step.
+        """
         now = time.monotonic() if now is None else now
         board = self.controller
         while self._outgoing and self._outgoing[0][0] <= min(now, self._vanish_at):
@@ -152,6 +167,7 @@ class Serial(SerialBase):
             self._outgoing.clear()
 
     def _check(self) -> None:
+        """Raise when the port is closed or has vanished; callers hold ``_wire_lock``."""
         if not self.is_open:
             raise PortNotOpenError()
         if time.monotonic() >= self._vanish_at:
@@ -159,61 +175,69 @@ class Serial(SerialBase):
             raise SerialException("write failed: [Errno 5] Input/output error (port vanished)")
 
     def write(self, data: bytes) -> int:
-        self._check()
         data = bytes(data)
-        now = time.monotonic()
-        self._pump(now)
-        start = max(now, self._wire_free)
-        if self._write_timeout is not None and start - now > self._write_timeout:
-            raise SerialTimeoutException("Write timeout")
-        if data:
-            self._wire_free = start + len(data) * self._byte_s
-            self._outgoing.append((self._wire_free, data))
+        with self._wire_lock:
+            self._check()
+            now = time.monotonic()
+            self._pump(now)
+            start = max(now, self._wire_free)
+            if self._write_timeout is not None and start - now > self._write_timeout:
+                raise SerialTimeoutException("Write timeout")
+            if data:
+                self._wire_free = start + len(data) * self._byte_s
+                self._outgoing.append((self._wire_free, data))
         return len(data)
 
     def flush(self) -> None:
-        if not self.is_open:  # io's close() flushes after we closed
-            return
-        self._check()
-        time.sleep(max(0.0, self._wire_free - time.monotonic()))
-        self._pump()
+        with self._wire_lock:
+            if not self.is_open:  # io's close() flushes after we closed
+                return
+            self._check()
+            wire_free = self._wire_free
+        time.sleep(max(0.0, wire_free - time.monotonic()))
+        with self._wire_lock:
+            if self.is_open:
+                self._pump()
 
     @property
     def out_waiting(self) -> int:
-        self._check()
-        now = time.monotonic()
-        self._pump(now)
-        return max(0, round((self._wire_free - now) / self._byte_s))
+        with self._wire_lock:
+            self._check()
+            now = time.monotonic()
+            self._pump(now)
+            return max(0, round((self._wire_free - now) / self._byte_s))
 
     @property
     def in_waiting(self) -> int:
-        self._check()
-        self._pump()
-        return len(self._incoming)
+        with self._wire_lock:
+            self._check()
+            self._pump()
+            return len(self._incoming)
 
     def read(self, size: int = 1) -> bytes:
-        self._check()
         deadline = None if self._timeout is None else time.monotonic() + self._timeout
         while True:
-            self._pump()
-            if len(self._incoming) >= size or (deadline is not None
-                                               and time.monotonic() >= deadline):
-                break
+            with self._wire_lock:
+                self._check()
+                self._pump()
+                if len(self._incoming) >= size or (deadline is not None
+                                                   and time.monotonic() >= deadline):
+                    data = bytes(self._incoming[:size])
+                    del self._incoming[:size]
+                    return data
             time.sleep(0.0005)
-            self._check()
-        data = bytes(self._incoming[:size])
-        del self._incoming[:size]
-        return data
 
     def reset_input_buffer(self) -> None:
-        self._check()
-        self._pump()
-        self._incoming.clear()
+        with self._wire_lock:
+            self._check()
+            self._pump()
+            self._incoming.clear()
 
     def reset_output_buffer(self) -> None:
-        self._check()
-        self._outgoing.clear()
-        self._wire_free = time.monotonic()
+        with self._wire_lock:
+            self._check()
+            self._outgoing.clear()
+            self._wire_free = time.monotonic()
 
     def _update_rts_state(self) -> None:
         pass
