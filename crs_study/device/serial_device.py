@@ -19,16 +19,20 @@ Writing (see :mod:`~crs_study.device.schedule` for the model)
     them as the port's *latest wanted pulses* and returns at once. The writer sends, when the
     port's wire is free, one SERVO_MOVE of the channels whose wanted pulse differs from the
     last sent by more than the dead-band; a frame handed over while a previous one still waits
-    replaces it (merged, never queued), so latency never grows. Every ``refresh_s`` the next
-    frame carries every channel (a frame the board lost or garbled is repaired). The wire is
-    free when the bytes already written have had their time at ``10 / baud`` s a byte *and*
-    the port's output buffer (``out_waiting``) holds at most :data:`OUT_WAITING_LOW_BYTES`
-    (``pace``). The model alone is not enough: on a wire slower than nominal (an adapter's
-    baud error, gaps between bytes) bytes would pile up in the OS buffer and latency grow
-    without bound; ``out_waiting`` alone is not either (a USB adapter's chip FIFO is not
-    counted). A port without ``out_waiting`` (AttributeError, NotImplementedError) is paced
-    by the model; one whose buffer does not drain within ``write_timeout_s`` has failed.
-    Linux ptys report 0 (:mod:`~crs_study.device.virtual_pty` has a port that counts).
+    replaces it (merged, never queued), so latency never grows. When ``refresh_s`` has passed
+    since the last full frame, the next frame carries every channel, and one is written even
+    if nothing changed (a frame the board lost or garbled is repaired). With ``pace`` (the
+    default) the writer writes once the wire is free: the bytes already written have had
+    their time at ``10 / baud`` s a byte (less ``lead_s``, so the next frame follows without
+    a gap despite wake-up jitter) *and* the port's output buffer (``out_waiting``) holds at
+    most :data:`OUT_WAITING_LOW_BYTES`. The model alone is not enough: on a wire slower than
+    nominal (an adapter's baud error, gaps between bytes) bytes would pile up in the OS
+    buffer and latency grow without bound; ``out_waiting`` alone is not either (a USB
+    adapter's chip FIFO is not counted). A port without ``out_waiting`` (AttributeError,
+    NotImplementedError) is paced by the model; one whose buffer does not drain within
+    ``write_timeout_s`` has failed. Linux ptys report 0 (:mod:`~crs_study.device.virtual_pty`
+    has a port that counts). Without ``pace`` the writer writes as soon as a frame is
+    handed over and relies on the port's own blocking (for ports that throttle themselves).
 
 Balance: the device file fixes which channel is on which controller; :meth:`SerialDevice.open`
 warns (:class:`DeviceWarning`) when the busiest controller's full frame is more than 10 %
