@@ -305,3 +305,148 @@ def test_serial_flags_reach_the_simulator_or_are_refused_never_ignored(flags, me
     assert main(["device", "check", "--device", "sim://", "--layout", "crs1d", *flags]) == 2
     err = capsys.readouterr().err
     assert re.search(message, err) and err.count("\n") == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# SIGTERM and SIGHUP (a kill, a closed terminal) end an action as Ctrl-C does
+
+
+def _neutral_pulses(layout_name: str) -> tuple[tuple[int, int], ...]:
+    from crs_study.device.calibration import PulseMap
+
+    layout = load_layout(layout_name)
+    pulses = PulseMap.from_layout(layout).neutral_pulses(layout)
+    return tuple((a.channel, int(p)) for a, p in zip(layout.actuators, pulses, strict=True))
+
+
+def _terminate_here() -> None:
+    """Deliver SIGTERM to this process now; only ever where the command handles it (the
+    default action would end the test run)."""
+    import signal
+
+    assert threading.current_thread() is threading.main_thread()
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, signal.SIG_IGN, None):
+        pytest.fail("SIGTERM is not handled here")
+    signal.raise_signal(signal.SIGTERM)
+
+
+def _released(path: str) -> bool:
+    """The port can be opened exclusively again (the command let go of its flock)."""
+    import serial
+
+    try:
+        serial.serial_for_url(path, exclusive=True).close()
+    except serial.SerialException:
+        return False
+    return True
+
+
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGHUP"])
+def test_a_signal_during_a_sweep_ends_in_neutral_with_exit_130(boards, signum):
+    # a real process on a real pty, killed mid-sweep: the last frame on the wire is the slow
+    # neutral move of close(), not wherever the sweep was
+    import signal
+    import subprocess
+    import sys
+
+    (board,) = boards(1)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "crs_study", "device", "sweep", "--device", url_of([board]),
+         "--layout", "crs1d", "--seconds", "60", "--frame-rate", "10"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(m.time_ms == 100 for m in board.moves()):  # the sweep's frames, 100 ms
+            assert time.monotonic() < deadline and process.poll() is None, "sweep never began"
+            time.sleep(0.01)
+        process.send_signal(getattr(signal, signum))
+        _, err = process.communicate(timeout=30)
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 130, err
+    assert err == "crs-study device: interrupted\n"  # one line, no traceback
+    last = board.wait_for(len(board.moves()))[-1]
+    assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
+
+
+@pytest.mark.parametrize("action", ["neutral", "sweep", "calibrate", "check"])
+def test_sigterm_in_every_action_sends_neutral_and_releases_the_port(action, boards, tmp_path,
+                                                                     monkeypatch, capsys):
+    from crs_study.clock import RealClock
+    from crs_study.device.serial_device import SerialDevice
+
+    (board,) = boards(1)
+    hooks = {"neutral": (SerialDevice, "wait_sent"), "sweep": (RealClock, "sleep_until"),
+             "check": (SerialDevice, "battery_mv")}
+    if action == "calibrate":
+        monkeypatch.setattr("builtins.input", lambda prompt="": _terminate_here())
+    else:
+        owner, name = hooks[action]
+        real = getattr(owner, name)
+
+        def hooked(self, *args, **kwargs):
+            if threading.current_thread() is threading.main_thread():
+                _terminate_here()
+            return real(self, *args, **kwargs)
+
+        monkeypatch.setattr(owner, name, hooked)
+    extra = {"sweep": ["--seconds", "30"], "calibrate": ["--output", str(tmp_path / "c.toml")]}
+    assert main(["device", action, "--device", url_of([board]), "--layout", "crs1d",
+                 *extra.get(action, [])]) == 130
+    assert capsys.readouterr().err == "crs-study device: interrupted\n"
+    last = board.wait_for(2)[-1]
+    assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
+    assert _released(board.path)
+    assert not (tmp_path / "c.toml").exists()
+
+
+def test_monitor_stopped_by_sigterm_reports_and_exits_0(monkeypatch, capsys):
+    class Port:
+        in_waiting = 0
+        closed = False
+
+        def __init__(self) -> None:
+            self.chunks = [codec.servo_move({1: 2000}, 1000)]
+
+        def read(self, n: int) -> bytes:
+            if self.chunks:
+                return self.chunks.pop(0)
+            _terminate_here()
+            return b""
+
+        def close(self) -> None:
+            self.closed = True
+
+    port = Port()
+    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
+                        lambda spec, **kw: port)
+    assert main(["device", "monitor", "--port", "loop://"]) == 0
+    out = capsys.readouterr().out
+    assert "stopped (SIGTERM)" in out and "1 frame(s), 0 byte(s) skipped" in out
+    assert port.closed
+
+
+def test_a_second_signal_while_closing_waits_for_the_neutral_pose(boards, monkeypatch, capsys):
+    # the first SIGTERM starts the way out of a sweep; another one (an impatient kill) arrives
+    # as the neutral pose is about to be written: it is held until the pose is out
+    from crs_study.clock import RealClock
+    from crs_study.device.serial_device import SerialDevice
+
+    (board,) = boards(1)
+    real_neutral = SerialDevice._neutral_on_close
+
+    def sleep_until(self, deadline):
+        if threading.current_thread() is threading.main_thread():
+            _terminate_here()
+
+    def neutral_on_close(self):
+        _terminate_here()
+        return real_neutral(self)
+
+    monkeypatch.setattr(RealClock, "sleep_until", sleep_until)
+    monkeypatch.setattr(SerialDevice, "_neutral_on_close", neutral_on_close)
+    assert main(["device", "sweep", "--device", url_of([board]), "--layout", "crs1d"]) == 130
+    last = board.wait_for(2)[-1]
+    assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
+    assert _released(board.path)

@@ -5,6 +5,10 @@ PORT is a path like /dev/ttyUSB0 or any pyserial URL such as spy:///dev/ttyUSB0 
 or ``sim://[?options]`` (the simulated device). --deadband-us and --refresh-s apply to both;
 --min-battery-mv, --battery-timeout-s and --no-battery-check to serial:// only (refused with
 sim://). A ``lscsim://NAME`` port is a virtual board (a dry run of the serial path).
+
+Ctrl-C, SIGTERM and SIGHUP end every action alike: the actuators go to the neutral pose, the
+ports are released, and the command exits 130 (monitor, which is meant to be stopped that
+way, reports what it saw and exits 0).
 """
 
 from __future__ import annotations
@@ -84,8 +88,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from crs_study.device.serial_device import DeviceWarning
+    from crs_study.signals import terminate_as_interrupt
 
-    with warnings.catch_warnings(record=True) as caught:
+    # SIGTERM and SIGHUP (a kill, a closed terminal) end an action as Ctrl-C does: the device
+    # goes to neutral and the ports are released on the way out, never left mid-move
+    with warnings.catch_warnings(record=True) as caught, terminate_as_interrupt():
         warnings.simplefilter("always", DeviceWarning)
         try:
             return _ACTIONS[args.action](args)
@@ -128,19 +135,24 @@ def _open(args: argparse.Namespace, layout=None):
 
 @contextmanager
 def _session(device):
-    """Open ``device``; on the way out (success, error or Ctrl-C) close it, which sends the
-    neutral pose. A neutral pose that could not be confirmed is never reported as success: it
-    is a one-line DeviceError, or, when another error is already on its way, a warning."""
+    """Open ``device``; on the way out (success, error, Ctrl-C, SIGTERM or SIGHUP) close it,
+    which sends the neutral pose; a second interrupt waits until that is done. A neutral pose
+    that could not be confirmed is never reported as success: it is a one-line DeviceError,
+    or, when another error is already on its way, a warning."""
     from crs_study.errors import DeviceError
+    from crs_study.signals import deferred
 
     device.open()
     try:
         yield device
     except BaseException:
-        for fault in _close(device):
+        with deferred():
+            faults = _close(device)
+        for fault in faults:
             print(f"crs-study device: warning: {fault}", file=sys.stderr)
         raise
-    faults = _close(device)
+    with deferred():
+        faults = _close(device)
     if faults:
         raise DeviceError(f"closing the device: {faults[0]}"
                           + (f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""))
@@ -388,6 +400,7 @@ def _monitor(args: argparse.Namespace) -> int:
     from crs_study.device.codec import FrameDecoder
     from crs_study.device.serial_device import parse_serial_url, serial_for_spec
     from crs_study.errors import DeviceError
+    from crs_study.signals import describe
 
     spec = args.port
     if spec.startswith("serial://"):
@@ -423,9 +436,10 @@ def _monitor(args: argparse.Namespace) -> int:
             frames += sum(1 for e in events if not e[1].startswith("skipped"))
             if args.max_frames is not None and frames >= args.max_frames:
                 break
-    except KeyboardInterrupt:
-        # Ctrl-C is how a monitor without --seconds is meant to end: report, exit 0
-        print("stopped (Ctrl-C)", flush=True)
+    except KeyboardInterrupt as interrupt:
+        # Ctrl-C (or SIGTERM, SIGHUP) is how a monitor without --seconds is meant to end:
+        # report, exit 0
+        print(f"stopped ({describe(interrupt)})", flush=True)
     finally:
         try:
             port.close()
