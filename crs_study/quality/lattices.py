@@ -84,6 +84,16 @@ def triangle_rule(triangles: np.ndarray, order: int) -> tuple[np.ndarray, np.nda
     return np.concatenate(points), np.concatenate(weights)
 
 
+def panel_edges(pitch: float, symmetric: bool, breaks: np.ndarray | None = None) -> np.ndarray:
+    """1D: the panel ends of the cell [-d/2, d/2] (or [0, d/2] when ``symmetric``), cut at the
+    pixel, at its ends and at the ``breaks`` inside it."""
+    lo = 0.0 if symmetric else -0.5 * pitch
+    cuts = [lo, 0.0, 0.5 * pitch]
+    if breaks is not None:
+        cuts += [b for b in breaks if lo < b < 0.5 * pitch]
+    return np.unique(np.round(cuts, 12))
+
+
 def cell_rule(lattice: LatticeName, pitch: float, order: int, symmetric: bool,
               breaks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Peak positions X (n, 2) relative to a pixel, and weights summing to 1: a rule for the
@@ -95,11 +105,7 @@ def cell_rule(lattice: LatticeName, pitch: float, order: int, symmetric: bool,
     for models and layouts with the lattice's point symmetry), each by :func:`triangle_rule`.
     """
     if lattice == "1d":
-        lo = 0.0 if symmetric else -0.5 * pitch
-        cuts = [lo, 0.0, 0.5 * pitch] if not symmetric else [0.0, 0.5 * pitch]
-        if breaks is not None:
-            cuts += [b for b in breaks if lo < b < 0.5 * pitch]
-        edges = np.unique(np.round(cuts, 12))
+        edges = panel_edges(pitch, symmetric, breaks)
         x, w = np.polynomial.legendre.leggauss(order)
         mids, halves = 0.5 * (edges[1:] + edges[:-1]), 0.5 * np.diff(edges)
         pts = (mids[:, None] + halves[:, None] * x).ravel()

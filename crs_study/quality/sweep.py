@@ -27,10 +27,6 @@ from crs_study.layout import load_layout
 DEFAULT_D_OVER_L = (0.1, 0.15, 0.2, 0.25, 0.3, 1 / 3, 0.4, 0.5)
 DEFAULT_MODELS = ("nearest", "linear", "spline", "beam")
 
-#: Lattices a model's point symmetry allows the fundamental cell on (besides SYMMETRIC_MODELS):
-#: beam networks on the periodic hexagonal patch carry beams on every lattice line, so the
-#: patch, the renderer's even split and the fabric share the lattice's D6 symmetry.
-NETWORK_SYMMETRIC = {"spline": {"hex", "1d"}, "beam": {"hex", "1d"}, "reference": {"hex", "1d"}}
 
 
 @dataclass(frozen=True)
@@ -83,9 +79,9 @@ def default_cache_dir() -> Path:
 
 def compute_point(model: str, lattice: str, d_over_l: float, settings: Settings) -> Point:
     """One point; known failures become a note."""
-    from crs_study.quality.criteria import SYMMETRIC_MODELS, distortion
+    from crs_study.quality.criteria import distortion, symmetric_by_default
 
-    symmetric = lattice in SYMMETRIC_MODELS.get(model, set()) | NETWORK_SYMMETRIC.get(model, set())
+    symmetric = symmetric_by_default(model, lattice)
     order = settings.order if lattice == "1d" or symmetric else max(2, settings.order // 2)
     try:
         template = load_layout(settings.device) if settings.device else None
