@@ -450,3 +450,21 @@ def test_a_second_signal_while_closing_waits_for_the_neutral_pose(boards, monkey
     last = board.wait_for(2)[-1]
     assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
     assert _released(board.path)
+
+
+def test_check_plans_the_protocol_with_the_devices_refresh(capsys):
+    # the full refresh (every --refresh-s, default 1 s) is on the wire in the plan too: some
+    # frame in every second carries every channel, so 15 frames/s is the bound (hardware.md:
+    # 64 bytes, 66.7 ms on A)
+    budgets = {}
+    for extra in ([], ["--refresh-s", "0"]):
+        assert main(["device", "check", "--device", "sim://", "--protocol",
+                     "protocols/pilot.toml", "--json", *extra]) == 0
+        budgets[tuple(extra)] = json.loads(capsys.readouterr().out)["protocol"]["crs"]
+    on, off = budgets[()], budgets[("--refresh-s", "0")]
+    assert on["refresh_s"] == 1.0 and off["refresh_s"] == 0.0
+    assert on["rate_bound_hz"] == pytest.approx(15.0)
+    assert on["changed_only_rate_hz"] > 15.0
+    assert off["rate_bound_hz"] == off["changed_only_rate_hz"]
+    assert on["latency_ms_max"] == pytest.approx(64 * 10 / 9.6)  # a refresh frame: 66.7 ms
+    assert on["latency_ms_max"] > off["latency_ms_max"]

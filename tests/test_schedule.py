@@ -48,12 +48,19 @@ def test_full_frames_on_the_2d_device_match_the_published_table(layout2d):
 def test_one_changing_channel_costs_ten_bytes(layout1d):
     frames = np.zeros((6, layout1d.n_actuators))
     frames[:, 0] = np.arange(1, 7)  # pixel 0 moves by 1 mm (111 us) a frame
-    plan = wire_plan(layout1d, frames, 15.0)
+    plan = wire_plan(layout1d, frames, 15.0, refresh_s=0)
     assert plan.changed_bytes[:, 0].tolist() == [10] * 6  # 3 x 1 + 7
     assert plan.latency_changed_s == pytest.approx(np.full(6, 10 * BYTE_TIME_S))
     assert plan.latency_full_s == pytest.approx(np.full(6, 28 * BYTE_TIME_S))  # 7 channels
     assert plan.changed_only_rate_hz == pytest.approx(96.0)  # 9600 / 100 bits
-    assert max_frame_rate_hz(layout1d, frames) == pytest.approx(96.0)
+    assert max_frame_rate_hz(layout1d, frames, refresh_s=0) == pytest.approx(96.0)
+    # with the full refresh on (default 1 s), frame 0 carries every channel (28 bytes), and
+    # once a second some frame must: no rate above the full-frame bound 9600 / 280 bits fits
+    plan = wire_plan(layout1d, frames, 15.0)
+    assert plan.latency_changed_s == pytest.approx([28 * BYTE_TIME_S] + [10 * BYTE_TIME_S] * 5)
+    assert plan.changed_bytes[:, 0].tolist() == [10] * 6  # what changed, refresh aside
+    assert plan.refreshes == 1 and plan.rate_bound_hz == pytest.approx(9600 / 280)
+    assert max_frame_rate_hz(layout1d, frames) == pytest.approx(9600 / 280)
 
 
 def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout1d):
@@ -164,5 +171,120 @@ def test_initial_pose_decides_the_first_frame(layout1d):
     assert wire_plan(layout1d, frames, 10).changed_bytes[:, 0].tolist() == [28, 0]
     assert wire_plan(layout1d, frames, 10, initial_setpoints=frames[0]
                      ).changed_bytes[:, 0].tolist() == [0, 0]
-    assert max_frame_rate_hz(layout1d, frames) == math.inf
+    assert max_frame_rate_hz(layout1d, frames, refresh_s=0) == math.inf
+    assert max_frame_rate_hz(layout1d, frames) == pytest.approx(9600 / 280)  # the refresh
     assert PulseMap.from_layout(layout1d).to_pulses(frames[0])[0] == 1222
+
+
+# -- the full refresh ---------------------------------------------------------------------------
+
+
+def _one_channel_per_controller(layout, n_frames: int) -> np.ndarray:
+    """Only the first actuator of each controller moves, 1 mm a frame up and down."""
+    frames = np.zeros((n_frames, layout.n_actuators))
+    for name in {a.controller for a in layout.actuators}:
+        first = next(a.index for a in layout.actuators if a.controller == name)
+        frames[:, first] = 1.0 + (np.arange(n_frames) % 2)
+    return frames
+
+
+def test_a_refresh_goes_out_every_interval_at_full_length(layout1d):
+    # by hand: frames every 1/15 s; refresh_s = 0.95. Frame 0 is full (the last refresh is
+    # long past), then the first write at or after 0.95 s, frame 15 (1.0 s), then frame 30
+    # (2.0 s). Full: 7 channels, 28 bytes; otherwise one channel, 10 bytes.
+    frames = _one_channel_per_controller(layout1d, 40)
+    plan = wire_plan(layout1d, frames, 15.0, refresh_s=0.95)
+    full = {0, 15, 30}
+    expected = [(28 if k in full else 10) * BYTE_TIME_S for k in range(40)]
+    assert plan.latency_changed_s == pytest.approx(expected)
+    assert plan.refreshes == 3 and plan.merged_changed == 0
+    # a refresh 0.52 s before frame 0: frame 0 is changed-only, the next full write is the
+    # first at or after 0.43 s, frame 7 (0.467 s), then frame 22 (1.467 s)
+    plan = wire_plan(layout1d, frames, 15.0, refresh_s=0.95, last_refresh_s=-0.52)
+    full = {7, 22, 37}
+    expected = [(28 if k in full else 10) * BYTE_TIME_S for k in range(40)]
+    assert plan.latency_changed_s == pytest.approx(expected)
+    assert wire_plan(layout1d, frames, 15.0, refresh_s=0).refreshes == 0
+
+
+def test_a_refresh_longer_than_the_period_delays_the_next_frame(layout2d):
+    # 20 frames/s (50 ms), one channel a controller changing: 10 bytes, 10.4 ms. The refresh at
+    # frame 0 takes 64 bytes (66.7 ms) on A: frame 1 (50 ms) waits for it and ends at
+    # 66.7 + 10.4 ms, a latency of 27.1 ms; frame 2 finds the wire free again.
+    frames = _one_channel_per_controller(layout2d, 6)
+    plan = wire_plan(layout2d, frames, 20.0)
+    w = BYTE_TIME_S
+    assert plan.latency_changed_s == pytest.approx([64 * w, 64 * w + 10 * w - 0.05]
+                                                   + [10 * w] * 4)
+    assert plan.changed_only_rate_hz == pytest.approx(96.0)  # 10-byte frames, refresh aside
+    assert plan.rate_bound_hz == pytest.approx(15.0) and not plan.within_changed_bound
+    no_refresh = wire_plan(layout2d, frames, 20.0, refresh_s=0, last_refresh_s=0)
+    assert no_refresh.rate_bound_hz == pytest.approx(96.0) and no_refresh.within_changed_bound
+    assert no_refresh.summary()["refreshes"] == 0 and plan.summary()["refreshes"] == 1
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"refresh_s": -1.0}, r"refresh interval: expected a number of seconds >= 0 .* got -1\.0"),
+    ({"refresh_s": math.nan}, r"refresh interval: .* got nan"),
+    ({"last_refresh_s": 0.5}, r"last refresh: expected a time <= 0 s .* got 0\.5")])
+def test_bad_refresh_arguments_are_errors(layout1d, kwargs, message):
+    with pytest.raises(DeviceError, match=message):
+        wire_plan(layout1d, np.zeros((2, layout1d.n_actuators)), 10.0, **kwargs)
+
+
+@pytest.mark.parametrize(("rate", "refresh_s"), [(14.3, 0.37), (23.7, 0.37), (41.9, 0.61),
+                                                 (23.7, 0.0)])
+def test_the_model_matches_a_simulated_run(layout2d, rate, refresh_s):
+    """The plan's per-frame latency, refreshes included, against the boards of a
+    SimulatedDevice fed the same frames on a virtual clock: the latency of frame k is the end
+    of the first write on each board that started at or after frame k was handed over.
+
+    The device gets the resting channels' pose (a full frame) 0.2 s before frame 0, which the
+    plan is told (``initial_setpoints``, ``last_refresh_s=-0.2``). The rates are not whole
+    numbers of byte times a frame, so no frame arrives at the very instant a wire frees (which
+    of the two goes first is then a matter of float rounding, in the model as on the clock).
+    """
+    from crs_study.clock import VirtualClock
+    from crs_study.device.base import open_device
+
+    rng = np.random.default_rng(3)
+    n = 90
+    frames = np.full((n, layout2d.n_actuators), 3.0)
+    moving = rng.random(layout2d.n_actuators) < 0.5  # about half the channels change
+    for name in ("A", "B"):  # and at least one on each controller, so every frame is written
+        moving[next(a.index for a in layout2d.actuators if a.controller == name)] = True
+    frames[:, moving] = rng.uniform(0.5, 8.5, (n, int(moving.sum())))
+    rest = np.full(layout2d.n_actuators, 3.0)
+    plan = wire_plan(layout2d, frames, rate, initial_setpoints=rest, refresh_s=refresh_s,
+                     last_refresh_s=-0.2)
+
+    device = open_device(f"sim://?refresh_s={refresh_s}", layout2d, VirtualClock(),
+                         record=True)
+    device.open()
+    start = device.clock.now() + 0.3
+    device.clock.sleep_until(start - 0.2)
+    device.send(rest)
+    for k, setpoints in enumerate(frames):
+        device.clock.sleep_until(start + k / rate)
+        device.send(setpoints)
+    device.displayed_setpoints(start + n / rate + 1.0)  # everything waiting is delivered
+    latency = np.zeros(n)
+    full_writes = 0
+    for board, members in zip(device.boards, ChannelSplit(layout2d).members, strict=True):
+        moves = [r for r in board.received if isinstance(r.message, codec.ServoMove)]
+        ends = np.array([r.t for r in moves])
+        starts = ends - np.array([3 * len(r.message.positions) + 7 for r in moves]) * BYTE_TIME_S
+        ours = starts >= start - 1e-9  # the stimulus's writes, not the pose before it
+        full_writes = max(full_writes, sum(len(r.message.positions) == len(members)
+                                           for r, mine in zip(moves, ours, strict=True) if mine))
+        for k in range(n):
+            first = np.flatnonzero(starts >= start + k / rate - 1e-9)[0]
+            latency[k] = max(latency[k], ends[first] - (start + k / rate))
+    device.close()
+    assert latency == pytest.approx(plan.latency_changed_s, abs=1e-9)
+    assert full_writes == plan.refreshes
+    if refresh_s:
+        # the refresh is what the model added: without it, the figures differ
+        assert plan.refreshes >= 2
+        assert not np.allclose(wire_plan(layout2d, frames, rate, initial_setpoints=rest,
+                                         refresh_s=0).latency_changed_s, latency)

@@ -186,7 +186,7 @@ def _check(args: argparse.Namespace) -> int:
         "full_frame_rate_hz": full_frame_rate_hz(layout),
     }
     if args.protocol:
-        report["protocol"] = _protocol_budget(args.protocol, layout)
+        report["protocol"] = _protocol_budget(args.protocol, layout, device.options)
     if args.json:
         print(json.dumps(report, indent=1))
         return 0
@@ -200,14 +200,19 @@ def _check(args: argparse.Namespace) -> int:
     print(f"wire: a full frame takes {report['full_frame_ms']:.1f} ms on the busiest controller; "
           f"at most {report['full_frame_rate_hz']:.1f} frames/s with every channel changing")
     for condition, p in report.get("protocol", {}).items():
+        refresh = (f" ({p['rate_bound_hz']:.1f}/s with the full refresh every "
+                   f"{p['refresh_s']:g} s)" if p["refresh_s"] else "")
         print(f"  {condition}: {p['frames']} frames at {p['frame_rate_hz']:g}/s, changed-only "
-              f"bound {p['changed_only_rate_hz']:.1f}/s, latency median "
-              f"{p['latency_ms_median']:.1f} ms (max {p['latency_ms_max']:.1f}), sending "
-              f"everything {p['latency_full_ms_median']:.1f} ms")
+              f"bound {p['changed_only_rate_hz']:.1f}/s{refresh}, latency median "
+              f"{p['latency_ms_median']:.1f} ms "
+              f"(max {p['latency_ms_max']:.1f}), sending everything "
+              f"{p['latency_full_ms_median']:.1f} ms")
     return 0
 
 
-def _protocol_budget(path: str, layout) -> dict:
+def _protocol_budget(path: str, layout, options) -> dict:
+    """The protocol's digit stimuli on the wire, with the device's dead-band and refresh
+    (each stimulus starts after an idle inter-trial interval: its first frame is full)."""
     import numpy as np
 
     from crs_study.device.schedule import wire_plan
@@ -220,12 +225,15 @@ def _protocol_budget(path: str, layout) -> dict:
     for condition in protocol.conditions:
         renderer = Renderer(layout, condition)
         plans = [wire_plan(layout, render_frames(make_stimulus(protocol, layout, d), renderer),
-                           protocol.frame_rate_hz) for d in protocol.stimulus.digits]
+                           protocol.frame_rate_hz, deadband_us=options.deadband_us,
+                           refresh_s=options.refresh_s) for d in protocol.stimulus.digits]
         latency = np.concatenate([p.latency_changed_s for p in plans])
         full = np.concatenate([p.latency_full_s for p in plans])
         out[condition] = {
             "frame_rate_hz": protocol.frame_rate_hz, "frames": int(latency.size),
+            "deadband_us": options.deadband_us, "refresh_s": options.refresh_s,
             "changed_only_rate_hz": min(p.changed_only_rate_hz for p in plans),
+            "rate_bound_hz": min(p.rate_bound_hz for p in plans),
             "latency_ms_median": float(np.median(latency)) * 1e3,
             "latency_ms_max": float(np.max(latency)) * 1e3,
             "latency_full_ms_median": float(np.median(full)) * 1e3,

@@ -17,6 +17,19 @@ stimulus time ``t_k = k / f`` to the last byte of the write that carries it (or 
 that superseded it), the worst over controllers. Latency therefore stays bounded (about two
 writes) however fast frames come.
 
+Full refresh: every ``refresh_s`` (default :data:`DEFAULT_REFRESH_S`, 0: never) a write
+carries every channel, whatever changed, so a frame the board lost or garbled is repaired. The
+model does what :class:`~crs_study.device.simulated.SimulatedDevice` does: a write that starts
+``refresh_s`` or more after the port's last full write is full. By default the last full write
+is long past, so frame 0 is full, as the first frame after the device opens or has been idle
+for ``refresh_s`` (between trials). A refresh frame takes the full frame's wire time, so with
+the refresh on, the frame rate at which every frame fits its period
+(:attr:`WirePlan.rate_bound_hz`) is never above the full-frame bound, and the frames after a
+refresh that overran its period wait: the latencies count them. (SerialDevice's writer sends a
+due refresh as soon as it is due, also between frames, rather than with the next frame; the
+next frame may then wait for it, by at most one full frame's wire time once a refresh
+interval.)
+
 Balance: the device file fixes which channel is on which controller, so software cannot move
 channels; :func:`channel_balance` reports how evenly the file spreads them (the full frame is
 bounded by the busiest controller) and :class:`~.serial_device.SerialDevice` warns when the
@@ -42,6 +55,9 @@ from crs_study.layout import Layout
 #: (typically a boundary servo's feed, sub-micron per frame) from costing 3 bytes every frame;
 #: the full refresh puts the exact value on the wire at its interval.
 DEFAULT_DEADBAND_US = 1
+
+#: Default full-refresh interval (s): every channel is sent at least this often (0: never).
+DEFAULT_REFRESH_S = 1.0
 
 #: A busiest controller whose full frame is this much longer than an even split's is reported.
 IMBALANCE_WARN = 0.10
@@ -126,15 +142,17 @@ class WirePlan:
 
     frame_rate_hz: float
     deadband_us: int
+    refresh_s: float  # full-refresh interval (0: none)
     controllers: tuple[str, ...]
     full_bytes: tuple[int, ...]  # every channel, per controller
     changed_bytes: np.ndarray  # (n_frames, n_controllers): each frame's changed channels
     full_frame_rate_hz: float  # wire bound, every channel in every frame
-    changed_only_rate_hz: float  # highest rate at which frames 1.. fit their period
-    latency_changed_s: np.ndarray  # (n_frames,) changed-only, merging
+    changed_only_rate_hz: float  # highest rate at which frames 1.. fit, refresh aside
+    latency_changed_s: np.ndarray  # (n_frames,) changed-only with the refresh, merging
     latency_full_s: np.ndarray  # (n_frames,) send-everything, merging
     merged_changed: int  # frames superseded before they reached the wire
     merged_full: int
+    refreshes: int  # full refresh writes in the changed-only run (busiest port)
 
     @property
     def n_frames(self) -> int:
@@ -162,8 +180,18 @@ class WirePlan:
         return self.frame_rate_hz <= self.full_frame_rate_hz * (1 + 1e-9)
 
     @property
+    def rate_bound_hz(self) -> float:
+        """Highest frame rate at which every frame after the first fits its period, the full
+        refresh included: with it on, some frame of every refresh interval carries every
+        channel, so the bound is the lower of the changed-only and the full-frame bounds."""
+        if self.refresh_s > 0:
+            return min(self.changed_only_rate_hz, self.full_frame_rate_hz)
+        return self.changed_only_rate_hz
+
+    @property
     def within_changed_bound(self) -> bool:
-        return self.frame_rate_hz <= self.changed_only_rate_hz * (1 + 1e-9)
+        """Every frame fits its period with changed-only frames, the refresh included."""
+        return self.frame_rate_hz <= self.rate_bound_hz * (1 + 1e-9)
 
     def summary(self) -> dict:
         """Plain numbers (ms, frames/s, bytes) for printing or JSON."""
@@ -172,9 +200,12 @@ class WirePlan:
             "frame_rate_hz": self.frame_rate_hz,
             "frames": self.n_frames,
             "deadband_us": self.deadband_us,
+            "refresh_s": self.refresh_s,
             "full_frame_bytes": dict(zip(self.controllers, self.full_bytes, strict=True)),
             "full_frame_rate_hz": self.full_frame_rate_hz,
             "changed_only_rate_hz": self.changed_only_rate_hz,
+            "rate_bound_hz": self.rate_bound_hz,
+            "refreshes": self.refreshes,
             "changed_bytes_busiest_median": float(np.median(busiest)) if len(busiest) else 0.0,
             "changed_bytes_busiest_max": int(busiest.max()) if len(busiest) else 0,
             "latency_changed_ms": {"median": self.median_latency_s * 1e3,
@@ -212,20 +243,22 @@ def changed_bytes_per_frame(pulses: np.ndarray, split: ChannelSplit,
 
 
 def _simulate_port(pulses: np.ndarray, times: np.ndarray, last: np.ndarray | None,
-                   deadband_us: int, send_all: bool) -> tuple[np.ndarray, int]:
-    """Latency per frame and merged count on one port (see module docstring)."""
+                   deadband_us: int, send_all: bool, refresh_s: float = 0.0,
+                   last_full_at: float = -math.inf) -> tuple[np.ndarray, int, int]:
+    """Latency per frame, merged count and full refreshes on one port (module docstring)."""
     n = len(times)
     latency = np.zeros(n)
     free_at = -math.inf
     waiting: list[int] = []
-    merged = 0
+    merged = refreshes = 0
     last = None if last is None else last.copy()
-
     def write(start: float) -> float:
-        nonlocal last
+        nonlocal last, last_full_at, refreshes
         wanted = pulses[waiting[-1]]
-        if send_all or last is None:
+        if send_all or last is None or (refresh_s > 0 and start - last_full_at >= refresh_s):
             changed = np.arange(len(wanted))
+            last_full_at = start
+            refreshes += not send_all
         else:
             changed = np.flatnonzero(np.abs(wanted - last) > deadband_us)
         done = start + servo_move_bytes(len(changed)) * BYTE_TIME_S if len(changed) else start
@@ -247,20 +280,30 @@ def _simulate_port(pulses: np.ndarray, times: np.ndarray, last: np.ndarray | Non
             free_at = write(times[k])
     if waiting:
         write(free_at)
-    return latency, merged
+    return latency, merged, refreshes
 
 
 def wire_plan(layout: Layout, setpoints_sequence: np.ndarray, frame_rate_hz: float,
               deadband_us: int = DEFAULT_DEADBAND_US,
-              initial_setpoints: np.ndarray | None = None) -> WirePlan:
+              initial_setpoints: np.ndarray | None = None,
+              refresh_s: float = DEFAULT_REFRESH_S, last_refresh_s: float = -math.inf
+              ) -> WirePlan:
     """Wire use and latency of a stimulus (n_frames x n_actuators, mm) at ``frame_rate_hz``.
 
     Frame k is due at ``k / frame_rate_hz``. ``initial_setpoints`` is the pose before frame 0
-    (default: neutral, as between trials). Setpoints outside calibrated limits raise
-    :class:`DeviceError` (they could never be sent).
+    (default: neutral, as between trials). ``refresh_s`` is the full-refresh interval (0:
+    none) and ``last_refresh_s`` the time of the last full write before frame 0 (frame 0 at
+    0 s; default: long before, so frame 0 is full; module docstring). Setpoints outside
+    calibrated limits raise :class:`DeviceError` (they could never be sent).
     """
     if not (math.isfinite(frame_rate_hz) and frame_rate_hz > 0):
         raise DeviceError(f"frame rate: expected a number > 0 frames/s, got {frame_rate_hz!r}")
+    if not (math.isfinite(refresh_s) and refresh_s >= 0):
+        raise DeviceError(f"refresh interval: expected a number of seconds >= 0 (0: none), "
+                          f"got {refresh_s!r}")
+    if math.isnan(last_refresh_s) or last_refresh_s > 0:
+        raise DeviceError(f"last refresh: expected a time <= 0 s (frame 0 is at 0 s), "
+                          f"got {last_refresh_s!r}")
     pulse_map = PulseMap.from_layout(layout)
     pulses = pulse_map.to_pulses(np.asarray(setpoints_sequence, dtype=float).reshape(
         -1, layout.n_actuators))
@@ -271,35 +314,40 @@ def wire_plan(layout: Layout, setpoints_sequence: np.ndarray, frame_rate_hz: flo
     times = np.arange(len(pulses)) / frame_rate_hz
     lat_changed = np.zeros(len(pulses))
     lat_full = np.zeros(len(pulses))
-    merged_changed = merged_full = 0
+    merged_changed = merged_full = refreshes = 0
     for members in split.members:
         mine = pulses[:, members]
-        lc, mc = _simulate_port(mine, times, initial[members], deadband_us, send_all=False)
-        lf, mf = _simulate_port(mine, times, initial[members], deadband_us, send_all=True)
+        lc, mc, rc = _simulate_port(mine, times, initial[members], deadband_us, False,
+                                    refresh_s, last_refresh_s)
+        lf, mf, _ = _simulate_port(mine, times, initial[members], deadband_us, True)
         lat_changed = np.maximum(lat_changed, lc)
         lat_full = np.maximum(lat_full, lf)
         merged_changed = max(merged_changed, mc)
         merged_full = max(merged_full, mf)
+        refreshes = max(refreshes, rc)
     steady = changed[1:].max() if len(changed) > 1 else 0
     return WirePlan(
         frame_rate_hz=float(frame_rate_hz), deadband_us=int(deadband_us),
-        controllers=split.names,
+        refresh_s=float(refresh_s), controllers=split.names,
         full_bytes=tuple(servo_move_bytes(len(m)) if len(m) else 0 for m in split.members),
         changed_bytes=changed, full_frame_rate_hz=full_frame_rate_hz(layout),
         changed_only_rate_hz=1.0 / (steady * BYTE_TIME_S) if steady else math.inf,
         latency_changed_s=lat_changed, latency_full_s=lat_full,
-        merged_changed=merged_changed, merged_full=merged_full,
+        merged_changed=merged_changed, merged_full=merged_full, refreshes=refreshes,
     )
 
 
 def max_frame_rate_hz(layout: Layout, setpoints_sequence: np.ndarray,
                       deadband_us: int = DEFAULT_DEADBAND_US,
-                      initial_setpoints: np.ndarray | None = None) -> float:
+                      initial_setpoints: np.ndarray | None = None,
+                      refresh_s: float = DEFAULT_REFRESH_S) -> float:
     """Highest frame rate at which every frame after the first fits its period on the wire.
 
-    1 / (largest changed-only SERVO_MOVE over frames 1.. and controllers x 1.0417 ms). The
-    first frame (onset from ``initial_setpoints``) may take longer; it merges, never queues.
-    Infinite when nothing changes after the first frame.
+    1 / (largest changed-only SERVO_MOVE over frames 1.. and controllers x 1.0417 ms), and
+    with the full refresh on (``refresh_s`` > 0) at most the full-frame bound
+    (:attr:`WirePlan.rate_bound_hz`). The first frame (onset from ``initial_setpoints``) may
+    take longer; it merges, never queues. Infinite when nothing changes after the first frame
+    and there is no refresh.
     """
-    return wire_plan(layout, setpoints_sequence, 1.0, deadband_us,
-                     initial_setpoints).changed_only_rate_hz
+    return wire_plan(layout, setpoints_sequence, 1.0, deadband_us, initial_setpoints,
+                     refresh_s).rate_bound_hz

@@ -76,7 +76,7 @@ from crs_study.device.base import (
 )
 from crs_study.device.calibration import PulseMap
 from crs_study.device.codec import FrameDecoder, get_battery_voltage, servo_move_arrays
-from crs_study.device.schedule import DEFAULT_DEADBAND_US, ChannelSplit
+from crs_study.device.schedule import DEFAULT_DEADBAND_US, DEFAULT_REFRESH_S, ChannelSplit
 from crs_study.device.virtual_controller import (
     NORMAL_BATTERY_MV,
     ServoBank,
@@ -101,7 +101,7 @@ class SimOptions:
     baud: int = BAUD_RATE
     move_ms: int | None = None  # None: one full frame's wire time (SerialDevice's default)
     neutral_move_ms: int = 500
-    refresh_s: float = 1.0
+    refresh_s: float = DEFAULT_REFRESH_S
     deadband_us: int = DEFAULT_DEADBAND_US
     battery_mv: int = NORMAL_BATTERY_MV
     seed: int = 0
