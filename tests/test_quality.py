@@ -12,7 +12,7 @@ import crs_study.display  # noqa: F401, I001  (registers every model present)
 from crs_study.display.base import MODELS, DisplayModel
 from crs_study.errors import CollapseError, DisplayModelError, RenderError
 from crs_study.layout import load_layout
-from crs_study.quality import cell_rule, distortion, periodic_layout
+from crs_study.quality import cell_rule, distortion, hull_distortion, periodic_layout
 from crs_study.quality.criteria import _Evaluator
 from crs_study.quality.mechanics import (
     check_no_collapse,
@@ -227,6 +227,25 @@ def test_crs_2d_halves_the_distortions_of_hexagonal_pixels_on_the_published_devi
     pixel = distortion("nearest", "hex", 1 / 3)
     assert beam.D_P <= pixel.D_P / 2
     assert beam.D_S <= pixel.D_S / 2
+
+
+def test_hull_average_of_pixel_only_matches_the_central_cell():
+    # Pixel-only D_P depends only on the offset to the nearest pixel, which is the same in
+    # every cell of the hull: the Monte Carlo mean agrees with the cell's exact 0.3510 d/l.
+    result, refused = hull_distortion("nearest", load_layout("crs2d"), samples=200, seed=3,
+                                      condition="pixel-only")
+    assert refused == 0 and result.positions == 200
+    assert abs(result.D_P - 0.3510 / 3) < 3 * result.error["D_P"]
+
+
+@needs_beam
+def test_the_device_edges_cost_the_beam_display_shape_fidelity():
+    # README, "How far to trust the criteria": on the finite 19-pixel device a bump near the
+    # edge meets beam ends at their clamps, so the hull's D_S exceeds the central cell's.
+    layout = load_layout("crs2d")
+    hull, _ = hull_distortion("beam", layout, samples=120, seed=7)
+    cell = distortion("beam", "hex", 1 / 3, layout=layout, symmetric=True, order=2)
+    assert hull.D_S > cell.D_S + 3 * hull.error["D_S"]
 
 
 # ---- mechanics ----

@@ -75,7 +75,9 @@ def test_points_a_model_cannot_compute_are_reported(tmp_path, capsys):
     assert code == 0
     captured = capsys.readouterr()
     assert [json.loads(line)["layout"] for line in captured.out.splitlines()] == ["hex"]
-    assert "quality: square nearest d/l=0.8: d/l = 0.8 is outside [0.02, 0.7071]" in captured.err
+    assert ("quality: square nearest   n/a at d/l = 0.8: d/l = 0.8 is outside [0.02, 0.7071]"
+            in captured.err)
+    assert len(captured.err.splitlines()) == 1  # one line per distinct failure, not per point
 
 
 @pytest.mark.parametrize(("argv", "message"), [
@@ -150,3 +152,26 @@ def test_device_option_computes_that_devices_lattice_with_its_section(tmp_path, 
     assert {r["layout"] for r in [*shipped.values(), *custom.values()]} == {"1d"}
     assert custom["nearest"] == shipped["nearest"]
     assert custom["beam"]["D_S"] != shipped["beam"]["D_S"]
+
+
+def test_chart_marks_collapse_and_missing_models_and_labels_every_panel():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from crs_study.quality.report import plot_quality
+    from crs_study.quality.sweep import Point
+
+    points = [Point("hex", "nearest", x, 0.351 * x, 1.3 * x, 1) for x in (0.1, 0.3)]
+    points += [Point("hex", "beam", 0.1, 0.01, 0.007, 1),
+               Point("hex", "beam", 0.3, note="beam 1: ... the beam collapses; reduce ...")]
+    points += [Point("square", "nearest", 0.1, 0.038, 0.15, 1),
+               Point("square", "beam", 0.1, note="beam: lattice 'square' not supported")]
+    axes = plot_quality(points)
+    for ax in axes.ravel():
+        assert ax.get_legend() is not None
+    hex_labels = [line.get_label() for line in axes[0, 1].get_lines()]
+    assert "beam: collapses (uncapped feed)" in hex_labels
+    assert "paper nearest: 0.351 (d/l)" in hex_labels
+    square = axes[0, 0]
+    assert [t.get_text() for t in square.texts] == ["no beam model on this lattice"]
+    assert not any("collapses" in line.get_label() for line in square.get_lines())

@@ -27,25 +27,30 @@ z_f = 4 mm, l = 90 mm; time per surface, RMS / max error against ``reference``)
     nearest   0.008 ms, 0.60 / 1.9 mm          0.24 ms, 0.32 / 1.9 mm
     linear    0.010 ms, 0.34 / 1.1 mm          0.067 ms, 0.16 / 1.4 mm
     spline    0.11 ms, 0.15 / 0.49 mm          0.24 ms, 0.068 / 0.49 mm
-    beam      0.25 ms, 0.0008 / 0.0028 mm      0.50 ms, 0.0002 / 0.0024 mm
+    beam      0.25 ms, 0.0008 / 0.0028 mm      0.50 ms, 0.0017 / 0.018 mm
     reference 54 ms (the yardstick)            246 ms
     ========= ================================ ================================
 
-* Runner and simulated observer, CRS condition: ``beam``. It is the only model of the
-  compressed skeleton accurate enough: within 0.07 % of the bump height of the reference
-  (max 0.0028 mm of 4 mm), while ``spline``, ``linear`` and ``nearest`` miss by 12-48 % of
-  the height (they have no boundary feed), at any speed. Cost: ``beam_profiles`` 0.26 ms a
-  2D frame (0.14 ms 1D), 0.48 ms with the surface on the observer's 361 points: a 15
-  frames/s session runs ~140x faster than real time (~260x for profiles alone); a repeated
-  frame is a memo hit (microseconds). Pixel-only condition: ``nearest`` (it *is* the pixel
-  display; 0.06 ms on 361 points).
-* Quality criteria (D_P, D_S over many peak positions and large patches): ``beam``; the
-  default ``crs-study quality`` sweep takes ~4 s from an empty cache. ``reference`` agrees
-  with it to 0.07 % of the height but costs 200-500x more per surface.
-* Validation (of ``beam`` and of the other models): ``reference``, the independent FE energy
-  minimisation with the exact arc-length constraint.
-* When a frame only needs the beams (peak along a beam, contact on a beam line), call
-  ``BeamModel.beam_profiles`` and skip the fabric.
+Per use, the cheapest model accurate enough:
+
+    ================================== ============ =========================================
+    use                                model        why
+    ================================== ============ =========================================
+    observer, CRS condition            ``beam``     the only model of the compressed skeleton
+                                                    (others miss by 12-48 % of the height)
+    observer, pixel-only condition     ``linear``   the fabric sewn to the pixel tips drapes
+                                                    between them (a tent); ``nearest`` is the
+                                                    paper's theory, a staircase no skin shows
+    the paper's pixel-only theory      ``nearest``  D_P = 0.25, 0.383, 0.351 d/l exactly
+    quality criteria of the CRS        ``beam``     the default sweep in ~12 s cold
+    validating any model               ``reference`` independent FE minimisation, 100-500x
+                                                    the cost of ``beam``
+    peak or contact along a beam only  ``BeamModel.beam_profiles`` (skips the fabric)
+    ================================== ============ =========================================
+
+``beam`` is within 0.07 % (1D) and 0.45 % (2D, the fabric meshed 4x coarser than the
+reference's) of the 4 mm bump height of the reference. A repeated frame is a memo hit
+(microseconds).
 """
 
 from __future__ import annotations

@@ -120,10 +120,10 @@ def run(args: argparse.Namespace) -> int:
         for p in points:
             if p.D_P is not None:
                 print(json.dumps(p.row()))
-        for p in points:
-            if p.note:
-                print(f"quality: {p.layout} {p.model} d/l={p.d_over_l:.4g}: {p.note}",
-                      file=sys.stderr)
+        from crs_study.quality.report import failure_lines
+
+        for line in failure_lines(points):
+            print(f"quality: {line}", file=sys.stderr)
         return 0
     from crs_study.quality.report import summary_lines
 

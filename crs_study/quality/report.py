@@ -66,7 +66,9 @@ def plot_quality(points: Sequence[Point], axes: np.ndarray | None = None) -> np.
     """D_P (top row) and D_S (bottom row) against d/l, one column per lattice; returns axes.
 
     Each model is a solid line with markers; the paper's lines (pixel-only for every lattice,
-    the linear connection in 1D) are dashed in the colour of their model.
+    the linear connection in 1D) are dashed in the colour of their model; every panel has its
+    legend. A d/l where a model failed (the beam collapsing under the paper's uncapped feed)
+    is an x on the axis; models with no rule for a lattice are named in the panel's corner.
     """
     import matplotlib.pyplot as plt
 
@@ -98,9 +100,26 @@ def plot_quality(points: Sequence[Point], axes: np.ndarray | None = None) -> np.
             ax.set_ylabel(quantity)
             ax.set_xlim(left=0)
             ax.set_ylim(bottom=0)
+            for model in models:  # where the model gave no value, say why on the chart
+                failed = [p for p in points if p.layout == lattice and p.model == model
+                          and p.note]
+                if failed and len(failed) == sum(p.layout == lattice and p.model == model
+                                                 for p in points):
+                    continue  # the model has no rule for this lattice: nothing to mark
+                if failed:
+                    why = "collapses" if any("collapse" in p.note for p in failed) else "n/a"
+                    ax.plot([p.d_over_l for p in failed], [0.0] * len(failed), "x", ms=7,
+                            mew=2, color=colours[model], clip_on=False,
+                            label=f"{model}: {why} (uncapped feed)"
+                            if why == "collapses" else f"{model}: n/a")
+            absent = [m for m in models if not any(p.layout == lattice and p.model == m
+                                                   and not p.note for p in points)]
+            if absent:
+                ax.text(0.98, 0.02, f"no {' or '.join(absent)} model on this lattice",
+                        transform=ax.transAxes, ha="right", va="bottom", fontsize=7,
+                        color="0.4")
             ax.grid(alpha=0.3)
-            if row == 0 and col == 0 or row == 1 and col == 0:
-                ax.legend(fontsize=7)
+            ax.legend(fontsize=7)
     return axes
 
 
@@ -108,6 +127,12 @@ def summary_lines(points: Sequence[Point]) -> list[str]:
     """Human-readable lines: the values at d/l = 1/3, then each distinct failure once."""
     out = [f"{p.layout:6s} {p.model:9s} d/l=1/3  D_P={p.D_P:.4f}  D_S={p.D_S:.4f}"
            for p in points if not p.note and math.isclose(p.d_over_l, 1 / 3)]
+    return out + failure_lines(points)
+
+
+def failure_lines(points: Sequence[Point]) -> list[str]:
+    """Each distinct failure once, with the d/l values it hit."""
+    out = []
     failures: dict[tuple[str, str, str], list[float]] = {}
     for p in points:
         if p.note:
