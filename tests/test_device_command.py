@@ -54,6 +54,30 @@ def test_check_json(boards, capsys):
     assert report["full_frame_ms"] == pytest.approx(28 * 10 / 9.6)  # 7 channels: 28 bytes
 
 
+def test_check_without_a_protocol_plans_the_default_one_and_says_so(tmp_path, monkeypatch,
+                                                                     capsys):
+    from crs_study.commands.demo import DEFAULT_PROTOCOL
+    from crs_study.paths import shipped_file
+
+    monkeypatch.chdir(tmp_path)  # found beside the package, not only from the checkout's root
+    assert main(["device", "check", "--device", "sim://"]) == 0
+    out = capsys.readouterr().out
+    default = shipped_file(DEFAULT_PROTOCOL)
+    assert default.name == "digit_identification.toml"
+    assert (f"protocol {default} (the default protocol; --protocol FILE plans another): digit "
+            f"stimuli on the wire") in out
+    assert re.search(r"  crs: \d+ frames at 15/s", out)
+    assert main(["device", "check", "--device", "sim://", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["protocol_file"] == str(default) and report["protocol_is_default"]
+    assert set(report["protocol"]) == {"pixel-only", "crs"}
+    # a protocol named on the command line is planned instead, and not called the default
+    assert main(["device", "check", "--device", "sim://", "--json", "--protocol",
+                 str(shipped_file("protocols/pilot.toml"))]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["protocol_file"].endswith("pilot.toml") and not report["protocol_is_default"]
+
+
 def test_sweep_moves_one_channel_through_its_range(boards):
     (board,) = boards(1)
     assert main(["device", "sweep", "--device", url_of([board]), "--layout", "crs1d",

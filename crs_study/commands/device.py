@@ -20,6 +20,7 @@ import warnings
 from contextlib import contextmanager
 
 from crs_study.commands import HelpFormatter
+from crs_study.commands.demo import DEFAULT_PROTOCOL
 
 NAME = "device"
 #: ``sweep`` limits: the LSC move time is 0..30000 ms (hardware.md), one frame period a frame.
@@ -55,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     check = add("check", "open the ports, read batteries, show the channel map and wire budget")
     check.add_argument("--protocol", default=None, metavar="FILE",
-                       help="also plan this protocol's digit stimuli on the wire")
+                       help="plan this protocol's digit stimuli on the wire (default: the "
+                            f"default protocol, {DEFAULT_PROTOCOL})")
     check.add_argument("--json", action="store_true", help="print one JSON object")
 
     add("neutral", "move every actuator to the neutral (safe) pose")
@@ -170,6 +172,7 @@ def _check(args: argparse.Namespace) -> int:
 
     from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
     from crs_study.device.schedule import channel_balance
+    from crs_study.paths import shipped_file
 
     device = _open(args)
     layout = device.layout
@@ -185,8 +188,10 @@ def _check(args: argparse.Namespace) -> int:
         "full_frame_ms": full_frame_wire_time_s(layout) * 1e3,
         "full_frame_rate_hz": full_frame_rate_hz(layout),
     }
-    if args.protocol:
-        report["protocol"] = _protocol_budget(args.protocol, layout, device.options)
+    # the wire budget of the protocol to be run; the default one unless told otherwise
+    report["protocol_file"] = str(shipped_file(args.protocol or DEFAULT_PROTOCOL))
+    report["protocol_is_default"] = args.protocol is None
+    report["protocol"] = _protocol_budget(report["protocol_file"], layout, device.options)
     if args.json:
         print(json.dumps(report, indent=1))
         return 0
@@ -199,7 +204,10 @@ def _check(args: argparse.Namespace) -> int:
         print(f"  {name}: " + ", ".join(channels))
     print(f"wire: a full frame takes {report['full_frame_ms']:.1f} ms on the busiest controller; "
           f"at most {report['full_frame_rate_hz']:.1f} frames/s with every channel changing")
-    for condition, p in report.get("protocol", {}).items():
+    print(f"protocol {report['protocol_file']}"
+          + (" (the default protocol; --protocol FILE plans another)"
+             if report["protocol_is_default"] else "") + ": digit stimuli on the wire")
+    for condition, p in report["protocol"].items():
         refresh = (f" ({p['rate_bound_hz']:.1f}/s with the full refresh every "
                    f"{p['refresh_s']:g} s)" if p["refresh_s"] else "")
         print(f"  {condition}: {p['frames']} frames at {p['frame_rate_hz']:g}/s, changed-only "
