@@ -24,6 +24,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from crs_study._toml import Section
 from crs_study.errors import ConfigError, ConsentError, CrsStudyError, ProtocolError
 from crs_study.layout import BUILTIN_DEVICES, Layout, load_layout
@@ -251,7 +253,7 @@ def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ProtocolError(f"{source}: not valid TOML: {_one_line(exc)}") from None
+        raise ProtocolError(toml_syntax_message(source, exc, text)) from None
     try:
         protocol = protocol_from_dict(data, path, text, hashlib.sha256(raw).hexdigest())
         if check_device:
@@ -396,6 +398,23 @@ def _levels(table: Section) -> LevelSpec:
     return LevelSpec(parameter, floats, ratio)
 
 
+def _check_strokes_file(table: Section, strokes_file: str, digits: list[int]) -> None:
+    """Read a protocol's own strokes file now: its errors (``FILE:LINE: key: ...``) come
+    under ``stimulus.strokes_file``, and every digit shown must be defined there."""
+    from crs_study.digits import load_digits
+
+    try:
+        defined = load_digits(strokes_file)
+    except ProtocolError as exc:
+        raise table.fail("strokes_file", _one_line(exc)) from None
+    missing = [d for d in digits if d not in defined]
+    if missing:
+        raise table.fail("strokes_file", f"{strokes_file} defines no strokes for "
+                         f"{'digit' if len(missing) == 1 else 'digits'} "
+                         f"{', '.join(map(str, missing))} of stimulus.digits; expected every "
+                         f"digit shown, got digits {sorted(defined)}")
+
+
 def _spec_at(spec: StimulusSpec, levels: LevelSpec, level: float) -> StimulusSpec:
     """``spec`` with the varied parameter set to ``level`` (width follows a varied height)."""
     from dataclasses import replace
@@ -423,6 +442,7 @@ def _stimulus(table: Section, path: Path, levels: LevelSpec | None = None) -> St
             raise table.fail("strokes_file", f"expected a strokes file, got {value!r} "
                              f"(no file at {candidate})")
         strokes_file = str(candidate)
+        _check_strokes_file(table, strokes_file, digits)
     else:
         table.raw("strokes_file", None)
 
@@ -541,6 +561,7 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
 
     if protocol.levels is None:
         try:
+            _check_shape_keys(protocol.stimulus, protocol.conditions, layout, sized=True)
             passed += device_limits(protocol.stimulus, protocol.conditions, layout)
         except CrsStudyError as exc:
             message = _one_line(exc)
@@ -554,8 +575,10 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
     per_level: list[list[str]] = []
     for i, value in enumerate(levels.values):
         try:
-            per_level.append(device_limits(protocol.stimulus_at(value), protocol.conditions,
-                                           layout))
+            spec = protocol.stimulus_at(value)
+            _check_shape_keys(spec, protocol.conditions, layout,
+                              sized=levels.parameter != "digit_height_pitch")
+            per_level.append(device_limits(spec, protocol.conditions, layout))
         except CrsStudyError as exc:
             message = _one_line(exc)
             if message.startswith(source):
@@ -568,6 +591,70 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
         passed += [f"{levels.parameter} = {value:g}: {line}" for line in lines
                    if line not in shared]
     return tuple(passed)
+
+
+def _check_shape_keys(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layout,
+                      sized: bool) -> None:
+    """Two device checks whose failure depends on two keys at once, made here so that the
+    message names the key at fault (:func:`crs_study.stimulus.device_limits` makes them as
+    well, naming one key whichever is at fault):
+
+    * the bump's curvature 2 pi^2 z_f / l^2 against the beam's yield curvature (with a
+      skeleton condition): both ``bump_height_mm`` and ``bump_diameter_mm`` are named, with
+      the bound each would have to meet given the other;
+    * the bump centre's path inside the pixel area: ``offset_mm`` when the same digits drawn
+      at the display centre fit, else ``digit_width_pitch`` when the digits' horizontal
+      extent alone leaves the area, else ``digit_height_pitch`` (its vertical extent alone,
+      or both together at a corner). ``sized=False`` (the size is a ``[levels]`` value,
+      named by the caller) always names ``digit_height_pitch``.
+
+    Devices other than 2D hexagonal ones are left to ``device_limits`` (digits need 2D).
+    """
+    if layout.lattice != "hex":
+        return
+    from crs_study.stimulus import display_centre, inside_convex_hull, stimulus_for
+    from crs_study.targets import Bump
+
+    if any(c != "pixel-only" for c in conditions) and layout.beams:
+        limit = layout.beam_section.yield_curvature_per_mm
+        z_f, l_mm = spec.bump_height_mm, spec.bump_diameter_mm
+        curvature = Bump((0.0, 0.0), l_mm, z_f).curvature_max()
+        if curvature > limit:
+            raise ProtocolError(
+                f"stimulus.bump_height_mm: the bump's curvature {curvature:.4f}/mm "
+                f"(2 pi^2 z_f / l^2 with z_f = stimulus.bump_height_mm = {z_f!r} and "
+                f"l = stimulus.bump_diameter_mm = {l_mm!r}) exceeds the beam's yield "
+                f"curvature {limit:.4f}/mm; expected bump_height_mm <= "
+                f"{limit * l_mm ** 2 / (2 * math.pi ** 2):.3g} at this diameter or "
+                f"bump_diameter_mm >= {math.sqrt(2 * math.pi ** 2 * z_f / limit):.3g} at this "
+                "height")
+
+    centre = display_centre(layout)
+    placed = (centre[0] + spec.offset_mm[0], centre[1] + spec.offset_mm[1])
+    paths = [stimulus_for(spec, layout.pitch_mm, placed, d) for d in spec.digits]
+    drawn = np.concatenate([s.centres_mm[s.drawn] for s in paths]) - np.asarray(placed)
+    inside, margin = inside_convex_hull(drawn + np.asarray(placed), layout.pixel_xy)
+    if inside.all():
+        return
+    worst = drawn[np.argmin(inside)] + np.asarray(placed)
+    where = (f"the bump centre leaves the pixel area (by {-margin:.1f} mm at "
+             f"({worst[0]:.1f}, {worst[1]:.1f}) mm); expected the digit inside the display")
+    if spec.placement == "offset" and inside_convex_hull(
+            drawn + np.asarray(centre), layout.pixel_xy)[0].all():
+        raise ProtocolError(f"stimulus.offset_mm: {where}, got {list(spec.offset_mm)!r} (the "
+                            "digits fit at the display centre)")
+    if not sized:
+        raise ProtocolError(f"stimulus.digit_height_pitch: {where}")
+    across = np.column_stack([drawn[:, 0], np.zeros(len(drawn))]) + np.asarray(centre)
+    if not inside_convex_hull(across, layout.pixel_xy)[0].all():
+        raise ProtocolError(f"stimulus.digit_width_pitch: {where}, got "
+                            f"{spec.digit_width_pitch!r} (the digits' width alone leaves it)")
+    upright = np.column_stack([np.zeros(len(drawn)), drawn[:, 1]]) + np.asarray(centre)
+    alone = "height alone leaves it" if not inside_convex_hull(
+        upright, layout.pixel_xy)[0].all() else \
+        f"a corner leaves it: height and width {spec.digit_width_pitch!r} together"
+    raise ProtocolError(f"stimulus.digit_height_pitch: {where}, got "
+                        f"{spec.digit_height_pitch!r} (the digits' {alone})")
 
 
 def consent_form_path(protocol: Protocol) -> Path:
@@ -607,13 +694,36 @@ def analysis_plan_path(protocol: Protocol) -> Path | None:
 
 
 # --------------------------------------------------------------------------------------------
-# Line numbers for messages
+# Line numbers for messages (protocols, strokes files)
 
 _KEY_PATH = r"[A-Za-z0-9_\-]+(?:\[\d+\])*(?:\.[A-Za-z0-9_\-]+(?:\[\d+\])*)*"
 
 
-def _locate_message(message: str, source: str, text: str) -> str:
-    """Insert the TOML line of the key a message names: ``file:LINE: key: ...``."""
+def toml_syntax_message(source: str | Path, error: Exception, text: str = "") -> str:
+    """``SOURCE:LINE: not valid TOML: ...`` for a :class:`tomllib.TOMLDecodeError` (the last
+    line of ``text`` for an error at the end of the document)."""
+    reason = _one_line(error)
+    match = re.search(r"\(at line (\d+), column \d+\)$", reason)
+    if match:
+        line: int | None = int(match.group(1))
+    elif reason.endswith("(at end of document)") and text:
+        line = max(1, len(text.splitlines()))
+    else:
+        line = None
+    where = f"{source}:{line}" if line else f"{source}"
+    return f"{where}: not valid TOML: {reason}"
+
+
+def locate_message(message: str, source: str | Path, text: str) -> str:
+    """Insert the TOML line of the key a message names: ``file:LINE: key: ...``.
+
+    ``message`` starts with ``source: `` then a key path (``design.repetitions: ...``,
+    ``digits.3.strokes[0][2]: ...``, ``stimulus: missing required key 'digits'``,
+    ``design: unknown key 'x'``); the line is that of the key, of the array element the
+    indices name, or else of the key's table (:func:`find_line`). Other messages are
+    returned unchanged.
+    """
+    source = str(source)
     prefix = f"{source}: "
     if not message.startswith(prefix):
         return message
@@ -634,26 +744,130 @@ def _locate_message(message: str, source: str, text: str) -> str:
     return f"{source}:{line}: {rest}" if line else message
 
 
+_locate_message = locate_message  # the name used before it was shared with digits.py
+
+
 def find_line(text: str, key_path: str) -> int | None:
-    """1-based line of ``key_path`` (``design.repetitions``, ``stimulus.digits[2]``) in a TOML
-    text: the key's own line, else its table's header, else None."""
+    """1-based line of ``key_path`` (``design.repetitions``, ``stimulus.digits[2]``,
+    ``digits.3.strokes[0][5]``) in a TOML text: the line where the indexed array element
+    starts (for a path ending in indices), else the key's own line, else its table's
+    header, else None. Keys may be bare, quoted or dotted (``a.b = 1``); values spanning
+    several lines (arrays, strings) are skipped whole, so their contents never pass for
+    keys or headers."""
+    trailing = re.search(r"((?:\[\d+\])+)$", key_path)
+    indices = [int(i) for i in re.findall(r"\[(\d+)\]", trailing.group(1))] if trailing else []
     parts = re.sub(r"\[\d+\]", "", key_path).split(".")
     table: list[str] = []
     best: int | None = None
-    for number, line in enumerate(text.splitlines(), start=1):
-        stripped = line.strip()
-        header = re.match(r"^\[\[?\s*([^\]]+?)\s*\]\]?", stripped)
+    position = 0
+    while True:
+        position = _skip_blank(text, position)
+        if position >= len(text):
+            return best
+        number = text.count("\n", 0, position) + 1
+        end = text.find("\n", position)
+        end = len(text) if end < 0 else end
+        header = _HEADER.match(text, position, end)
         if header:
-            table = [p.strip().strip('"') for p in header.group(1).split(".")]
+            table = _key_names(header.group(1))
             if table == parts:
                 return number
-            if best is None and table == parts[: len(table)]:
-                best = number
+            if best is None and (table == parts[: len(table)]
+                                 or table[: len(parts)] == parts):
+                best = number  # the key's table, or the first table inside it
+            position = end
             continue
-        key = re.match(r'^("?)([A-Za-z0-9_\-]+)\1\s*=', stripped)
-        if key and table + [key.group(2)] == parts:
-            return number
-        inline = len(parts) > len(table) + 1
-        if key and inline and table + [key.group(2)] == parts[: len(table) + 1]:
+        key = _KEY.match(text, position, end)
+        if not key:
+            position = end  # not a key line (a TOML error elsewhere): go on
+            continue
+        names = table + _key_names(key.group(1))
+        if names == parts:
+            element = _element_line(text, key.end(), indices) if indices else None
+            return element or number
+        if len(parts) > len(names) and names == parts[: len(names)]:
             best = number  # a key inside an inline table
-    return best
+        position = _skip_value(text, _skip_blank(text, key.end()))
+
+
+_NAME = r"""(?:"[^"\n]*"|'[^'\n]*'|[A-Za-z0-9_\-]+)"""
+_DOTTED = rf"{_NAME}(?:[ \t]*\.[ \t]*{_NAME})*"
+_HEADER = re.compile(rf"\[\[?[ \t]*({_DOTTED})[ \t]*\]\]?")
+_KEY = re.compile(rf"({_DOTTED})[ \t]*=")
+
+
+def _key_names(dotted: str) -> list[str]:
+    return [n.strip("\"'") for n in re.findall(_NAME, dotted)]
+
+
+def _element_line(text: str, position: int, indices: list[int]) -> int | None:
+    """Line where the array element ``value[i][j]..`` starts, the value beginning at
+    ``position`` (just after ``=``); None when the value has no such element."""
+    for index in indices:
+        position = _skip_blank(text, position)
+        if position >= len(text) or text[position] != "[":
+            return None
+        position += 1
+        for _ in range(index):
+            position = _skip_blank(text, position)
+            if position >= len(text) or text[position] == "]":
+                return None
+            position = _skip_blank(text, _skip_value(text, position))
+            if position >= len(text) or text[position] != ",":
+                return None
+            position += 1
+        position = _skip_blank(text, position)
+        if position >= len(text) or text[position] == "]":
+            return None
+    return text.count("\n", 0, position) + 1
+
+
+def _skip_blank(text: str, position: int) -> int:
+    """Past spaces, newlines and comments."""
+    while position < len(text):
+        char = text[position]
+        if char in " \t\r\n":
+            position += 1
+        elif char == "#":
+            end = text.find("\n", position)
+            position = len(text) if end < 0 else end + 1
+        else:
+            break
+    return position
+
+
+def _skip_value(text: str, position: int) -> int:
+    """Past one TOML value (an array or inline table with everything inside, a string, or a
+    bare token) starting at ``position``."""
+    depth = 0
+    while position < len(text):
+        char = text[position]
+        if char in "\"'":
+            quote = text[position:position + 3] if text[position:position + 3] in \
+                ('"""', "'''") else char
+            position += len(quote)
+            while position < len(text) and not text.startswith(quote, position):
+                position += 2 if char == '"' and text[position] == "\\" else 1
+            position += len(quote)
+            if depth == 0:
+                return position
+            continue
+        if char == "#":
+            if depth == 0:
+                return position
+            position = _skip_blank(text, position)
+            continue
+        if char in "[{":
+            depth += 1
+        elif char in "]}":
+            if depth == 0:
+                return position
+            depth -= 1
+            if depth == 0:
+                return position + 1
+        elif char == "," and depth == 0:
+            return position
+        elif char == "\n" and depth == 0:
+            return position
+        position += 1
+    return position

@@ -24,7 +24,7 @@ def shipped_data() -> dict:
 
 
 def _key(k: str) -> str:
-    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)
+    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else _value(k)
 
 
 def _value(v) -> str:
@@ -33,7 +33,8 @@ def _value(v) -> str:
     if isinstance(v, int | float):
         return repr(v)
     if isinstance(v, str):
-        return json.dumps(v)
+        # raw non-ASCII (json's \uXXXX surrogate pairs are no TOML escape); DEL escaped
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
     if isinstance(v, list):
         return "[" + ", ".join(_value(x) for x in v) + "]"
     if isinstance(v, dict):
@@ -199,10 +200,39 @@ def test_find_line():
     assert find_line(text, "nowhere") is None
 
 
+def test_find_line_points_at_array_elements_and_skips_values_spanning_lines():
+    text = ('[d.3]\n'
+            '# a comment = 1\n'
+            'strokes = [\n'                       # 3
+            '  [[0, 0], [0.5, "a"]],  # x, [y]\n'  # 4: strokes[0]
+            '  [ # comment ]\n'                   # 5: strokes[1]
+            '    [0, 1],\n'
+            '    [1, 1],\n'                       # 7: strokes[1][1]
+            '  ],\n'
+            ']\n'
+            'v.w = [1,\n'                         # 10: a dotted key
+            '  2, "x,]", 3]\n'                    # 11
+            's = """\n'
+            '[fake]\n'                            # inside a string: not a table
+            'q = 1\n'
+            '"""\n'
+            'after = 2  # end\n')                # 16
+    assert find_line(text, "d.3.strokes[0]") == 4
+    assert find_line(text, "d.3.strokes[0][1]") == 4
+    assert find_line(text, "d.3.strokes[1]") == 5
+    assert find_line(text, "d.3.strokes[1][1]") == 7
+    assert find_line(text, "d.3.strokes[2]") == 3  # no such element: the key's line
+    assert find_line(text, "d.3.v.w") == 10
+    assert find_line(text, "d.3.v.w[3]") == 11
+    assert find_line(text, "d.3.after") == 16
+    assert find_line(text, "fake.q") is None
+    assert find_line(text, "d") == 1  # a table made by its first sub-table
+
+
 def test_syntax_error_and_missing_file(tmp_path):
     path = tmp_path / "p.toml"
     path.write_text("[study\nid = 1\n")
-    with pytest.raises(ProtocolError, match=r"p.toml: not valid TOML: .*line 1"):
+    with pytest.raises(ProtocolError, match=r"p.toml:1: not valid TOML: .*line 1, column 7"):
         load_protocol(path)
     with pytest.raises(ProtocolError, match=r"no such protocol file"):
         load_protocol(tmp_path / "absent.toml")
@@ -240,11 +270,28 @@ def test_optional_keys_take_their_documented_defaults(tmp_path):
                  r"stimulus.stroke_speed_mm_s: digit 0 would take \d+ s to draw; expected at "
                  r"most 120 s", id="too-slow"),
     pytest.param({"stimulus__digit_height_pitch": 4.5}, r"stimulus.digit_height_pitch: the "
-                 r"bump centre leaves the pixel area", id="outside"),
+                 r"bump centre leaves the pixel area.*got 4.5 \(the digits' height alone",
+                 id="outside"),
+    # the key at fault is named, not the other size key (the width was blamed on the height)
+    pytest.param({"stimulus__digit_width_pitch": 4.0}, r"stimulus.digit_width_pitch: the "
+                 r"bump centre leaves the pixel area.*got 4.0 \(the digits' width alone",
+                 id="outside-width"),
+    pytest.param({"stimulus__digit_width_pitch": 2.3, "stimulus__digit_height_pitch": 2.6},
+                 r"stimulus.digit_height_pitch: the bump centre leaves .* a corner leaves it: "
+                 r"height and width 2.3 together", id="outside-corner"),
     pytest.param({"stimulus__placement": "offset", "stimulus__offset_mm": [50.0, 0.0]},
-                 r"stimulus.offset_mm: the bump centre leaves the pixel area", id="offset"),
+                 r"stimulus.offset_mm: the bump centre leaves the pixel area.*got \[50.0, 0.0\] "
+                 r"\(the digits fit at the display centre\)", id="offset"),
+    pytest.param({"stimulus__placement": "offset", "stimulus__offset_mm": [1.0, 0.0],
+                  "stimulus__digit_width_pitch": 4.0},
+                 r"stimulus.digit_width_pitch: the bump centre leaves", id="offset-but-width"),
+    # z_f and l set the curvature together: both named, each with the bound it must meet
+    # (l^2 kappa_y / (2 pi^2) = 400 * 0.0667 / 19.74 = 1.35 mm; sqrt(2 pi^2 5 / 0.0667) =
+    # 38.5 mm)
     pytest.param({"stimulus__bump_diameter_mm": 20.0}, r"stimulus.bump_height_mm: the bump's "
-                 r"curvature 0.2467/mm .* exceeds the beam's yield curvature 0.0667", id="yield"),
+                 r"curvature 0.2467/mm .*stimulus.bump_diameter_mm = 20.0\) exceeds the beam's "
+                 r"yield curvature 0.0667/mm; expected bump_height_mm <= 1.35 at this diameter or "
+                 r"bump_diameter_mm >= 38.\d at this height", id="yield"),
     pytest.param({"study__consent_form_version": "2.0"}, r"study.consent_form_version: expected "
                  r"the form's version '1.0'.* got '2.0'", id="consent-version"),
     pytest.param({"study__consent_form": "consent/none.md"}, r"study.consent_form: .*no such",
@@ -311,7 +358,8 @@ def test_own_strokes_file_relative_to_the_protocol(tmp_path):
                   responses__keys=["1", "7"])
     p = load_protocol(write(tmp_path, data))
     assert p.stimulus.strokes_file == str(tmp_path / "mine.toml")
-    with pytest.raises(ProtocolError, match=r"digit 0 has no strokes in .*mine.toml"):
+    with pytest.raises(ProtocolError, match=r":\d+: stimulus.strokes_file: .*mine.toml defines no "
+                       r"strokes for digits 0, 2, 3, 4, 5, 6, 8, 9 of stimulus.digits"):
         load_protocol(write(tmp_path, edited(stimulus__strokes_file="mine.toml"), "b.toml"))
     with pytest.raises(ProtocolError, match=r"stimulus.strokes_file: expected a strokes file"):
         load_protocol(write(tmp_path, edited(stimulus__strokes_file="none.toml"), "c.toml"))

@@ -5,6 +5,11 @@ required key or table, add an unknown key, give a key a value of the wrong type 
 its range, or break the TOML syntax. Every example goes through the loader; one in ten also
 goes through the command line (``crs_study.cli.main(["validate", path])``), which must exit 2
 with exactly one line on stderr and no traceback.
+
+Each message must also say where the fault is (:func:`where_expected`): the deleted key with
+its table, the unknown key with its table and its line, the mutated key's full path and line
+(for a value that breaks a device limit set by two keys, such as the bump's curvature, the
+mutated key among those named), or the line of a syntax error.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ import contextlib
 import copy
 import io
 import math
+import re
 import tomllib
 
 from hypothesis import HealthCheck, given, settings
@@ -87,33 +93,78 @@ def wrong_type_values(value):
 
 @st.composite
 def malformed(draw):
+    """(kind, protocol text, what the message must name: see :func:`where_expected`)."""
     kind = draw(st.sampled_from(["delete", "delete-table", "unknown", "wrong-type",
                                  "out-of-range", "syntax"]))
     data = copy.deepcopy(BASE)
     if kind == "delete":
         table, key = draw(st.sampled_from(REQUIRED))
         del data[table][key]
+        fault = (table, key)
     elif kind == "delete-table":
-        del data[draw(st.sampled_from(sorted(t for t in BASE if t != "conditions")))]
+        table = draw(st.sampled_from(sorted(t for t in BASE if t != "conditions")))
+        del data[table]
+        fault = (None, table)
     elif kind == "unknown":
         name = draw(st.from_regex(r"[a-z][a-z0-9_]{0,12}", fullmatch=True))
         where = draw(st.sampled_from([None, *BASE]))
         target = data if where is None else data[where]
         if name in target:
             name += "_x"
-        target[name] = draw(st.one_of(st.integers(), st.text(max_size=5), st.booleans()))
+        # text without lone surrogates, which no TOML file can hold (that would be a syntax
+        # error, not the stray key this example is about)
+        value = st.text(st.characters(exclude_categories=("Cs",)), max_size=5)
+        target[name] = draw(st.one_of(st.integers(), value, st.booleans()))
+        fault = (where, name)
     elif kind == "wrong-type":
         table, key = draw(st.sampled_from(LEAVES))
         data[table][key] = draw(st.sampled_from(wrong_type_values(BASE[table][key])))
+        fault = (table, key)
     elif kind == "out-of-range":
         table, key = draw(st.sampled_from(sorted(OUT_OF_RANGE)))
         data[table][key] = draw(st.sampled_from(OUT_OF_RANGE[table, key]))
+        fault = (table, key)
     if kind == "syntax":
         lines = BASE_TEXT.splitlines()
         at = draw(st.integers(0, len(lines)))
         lines.insert(at, draw(st.sampled_from(SYNTAX_BREAKERS)))
-        return kind, "\n".join(lines) + "\n"
-    return kind, dump_toml(data)
+        return kind, "\n".join(lines) + "\n", (None, at + 1)
+    return kind, dump_toml(data), fault
+
+
+def where_expected(kind: str, fault: tuple, path, text: str, message: str) -> None:
+    """Assert that ``message`` says where the fault of a malformed example is."""
+    source = re.escape(str(path))
+    table, key = fault
+    if kind == "syntax":
+        # tomllib reports the line where parsing failed: the inserted line or one after it
+        # (an unclosed array or string swallows the lines that follow it). A breaker that
+        # happens to be valid TOML (``digits = 1`` in another table) is a stray key, named
+        # at its line.
+        match = re.match(rf"^{source}:(\d+): ", message)
+        assert match and int(match.group(1)) >= key, message
+        return
+    if kind == "delete-table":
+        assert re.match(rf"^{source}: missing required key '{key}'$", message), message
+        return
+    line = r":\d+" if kind != "delete" else r"(:\d+)?"
+    located = re.match(rf"^{source}{line}: ", message)
+    assert located, message
+    if kind == "delete":
+        assert f"{table}: missing required key '{key}'" in message, message
+        return
+    if kind == "unknown":
+        prefix = f"{table}: " if table else ""
+        assert f": {prefix}unknown key '{key}'" in message, message
+    else:  # wrong-type, out-of-range: the key path, first or among the keys named
+        assert f"{table}.{key}" in message, message
+    number = int(re.match(rf"^{source}:(\d+): ", message).group(1))
+    named = text.splitlines()[number - 1]
+    # the line is the mutated key's own, or (a fault involving several keys) a key it names
+    keys = set(re.findall(r"^\s*([A-Za-z0-9_\-]+)\s*=", named))  # key = value
+    keys |= set(re.findall(r"^\[[\w.\-]*?([\w\-]+)\]$", named))  # [table.key] (a dict value)
+    assert keys & {key} or keys & set(re.findall(r"[a-z]+\.([A-Za-z0-9_\-]+)", message)), \
+        (message, named)
 
 
 def test_500_malformed_protocols_are_refused_in_one_line(tmp_path_factory):
@@ -124,7 +175,7 @@ def test_500_malformed_protocols_are_refused_in_one_line(tmp_path_factory):
               suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
     @given(malformed())
     def refuse(example):
-        kind, text = example
+        kind, text, fault = example
         path = folder / f"p{len(seen)}.toml"
         path.write_text(text)
         seen.append(kind)
@@ -133,6 +184,7 @@ def test_500_malformed_protocols_are_refused_in_one_line(tmp_path_factory):
         except ProtocolError as exc:
             message = str(exc)
             assert "\n" not in message and message.startswith(str(path)), message
+            where_expected(kind, fault, path, text, message)
         else:
             raise AssertionError(f"{kind}: accepted a malformed protocol:\n{text}")
         if len(seen) % 10 == 0:
