@@ -2,8 +2,20 @@
 
 The shipped strokes are in ``crs_study/data/digits.toml`` (documented there: unit box, x right,
 y up, strokes in drawing order); a protocol may name its own file. Loading is strict: every
-problem is a one-line :class:`~crs_study.errors.ProtocolError` naming the file, the key and
-the value.
+problem is a one-line :class:`~crs_study.errors.ProtocolError` naming the file, the line of
+the offending key or array element (``my_digits.toml:42: digits.3.strokes[0][5]: ...``), the
+key path and the value.
+
+Size: a protocol's ``digit_width_pitch`` x ``digit_height_pitch`` (w x h) is the *average*
+bounding box of the digits of the strokes file. Digit k's bounding box in the unit box is
+W_k x H_k (the extents of all its stroke points); the file's mean extents are
+W = mean_k W_k and H = mean_k H_k (over every digit the file defines: the ten of the shipped
+file, whichever of them a protocol shows). :meth:`Digit.scaled` maps
+x -> cx + (x - 1/2) w / W and y -> cy + (y - 1/2) h / H, so the drawn digits' bounding boxes
+average exactly w x h (the paper's 0.81 x 0.49 pitch are averages over its digits), each
+digit keeps its shape and its size relative to the others (a 1 stays narrow), and the
+centre of the unit box goes to the placement point. The shipped digits have
+W = 0.8913 and H = 0.9958 (:func:`mean_extent`).
 
 Motion: a stroke is a polyline P_0 .. P_m. Its arc-length parameter is the cumulative chord
 length s_0 = 0, s_j = s_{j-1} + |P_j - P_{j-1}|, and the point at arc length s is the linear
@@ -22,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crs_study._toml import Section, read_toml
+from crs_study._toml import Section
 from crs_study.errors import ProtocolError
 
 #: Format number of the strokes file this module reads.
@@ -36,21 +48,40 @@ def shipped_strokes_path() -> Path:
 
 @dataclass(frozen=True, eq=False)
 class Digit:
-    """One digit: its strokes in the unit box (each an (m, 2) read-only array)."""
+    """One digit: its strokes in the unit box (each an (m, 2) read-only array).
+
+    ``mean_extent`` is (W, H), the mean bounding-box width and height of the digits of the
+    file this digit came from (module docstring); :meth:`scaled` divides by it.
+    """
 
     value: int
     strokes: tuple[np.ndarray, ...]
+    mean_extent: tuple[float, float] = (1.0, 1.0)
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """(W_k, H_k): the bounding box of every stroke point, in the unit box."""
+        points = np.concatenate(self.strokes)
+        return float(np.ptp(points[:, 0])), float(np.ptp(points[:, 1]))
 
     def scaled(self, width_mm: float, height_mm: float,
                centre_mm: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, ...]:
-        """Strokes in millimetres: x -> cx + (x - 1/2) w, y -> cy + (y - 1/2) h."""
-        scale = np.array([width_mm, height_mm], dtype=float)
+        """Strokes in millimetres, sized so that the file's digits average ``width_mm`` x
+        ``height_mm``: x -> cx + (x - 1/2) w / W, y -> cy + (y - 1/2) h / H."""
+        scale = np.array([width_mm / self.mean_extent[0], height_mm / self.mean_extent[1]],
+                         dtype=float)
         offset = np.asarray(centre_mm, dtype=float)
         return tuple((s - 0.5) * scale + offset for s in self.strokes)
 
     def length_mm(self, width_mm: float, height_mm: float) -> float:
         """Total drawn length (sum of stroke arc lengths) at the given size."""
         return float(sum(arc_lengths(s)[-1] for s in self.scaled(width_mm, height_mm)))
+
+
+def mean_extent(digits: dict[int, Digit]) -> tuple[float, float]:
+    """(W, H): the mean over ``digits`` of each digit's bounding-box width and height."""
+    extents = np.array([d.extent for d in digits.values()], dtype=float)
+    return float(extents[:, 0].mean()), float(extents[:, 1].mean())
 
 
 def arc_lengths(points: np.ndarray) -> np.ndarray:
@@ -93,13 +124,32 @@ def resample_by_arc_length(points: np.ndarray, n: int) -> np.ndarray:
 
 @lru_cache(maxsize=16)
 def _load_cached(path: str, mtime_ns: int) -> dict[int, Digit]:
-    return _parse(read_toml(path, ProtocolError), path)
+    import tomllib
+
+    try:
+        text = Path(path).read_bytes().decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"{path}: cannot read the strokes file: "
+                            f"{' '.join(str(exc).split())}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        from crs_study.protocol import toml_syntax_message
+
+        raise ProtocolError(toml_syntax_message(path, exc, text)) from None
+    try:
+        return _parse(data, path)
+    except ProtocolError as exc:
+        from crs_study.protocol import locate_message
+
+        raise ProtocolError(locate_message(str(exc), path, text)) from None
 
 
 def load_digits(path: str | Path | None = None) -> dict[int, Digit]:
     """Read a strokes file (the shipped one when ``path`` is None), strictly.
 
-    Returns a dict digit -> :class:`Digit`. Cached per file and modification time.
+    Returns a dict digit -> :class:`Digit`. Cached per file and modification time. Errors
+    name the file and the line: ``PATH:LINE: digits.3.strokes[0][5]: expected ...``.
     """
     path = Path(path) if path is not None else shipped_strokes_path()
     try:
@@ -108,17 +158,19 @@ def load_digits(path: str | Path | None = None) -> dict[int, Digit]:
         raise ProtocolError(f"{path}: no such strokes file") from None
     except OSError as exc:
         raise ProtocolError(f"{path}: cannot read the strokes file: {exc}") from None
+    if not path.is_file():
+        raise ProtocolError(f"{path}: expected a strokes file, got a directory")
     return _load_cached(str(path), mtime)
 
 
 def _parse(data: dict, source: str) -> dict[int, Digit]:
-    root = Section(data, Path(source).name, error=ProtocolError)
+    root = Section(data, source, error=ProtocolError)
     version = root.integer("format")
     if version != STROKES_FORMAT:
         raise root.fail("format", f"expected {STROKES_FORMAT}, got {version!r}")
     table = root.table("digits")
     root.done()
-    digits: dict[int, Digit] = {}
+    strokes_of: dict[int, tuple[np.ndarray, ...]] = {}
     for key in list(table.data):
         if key not in {str(d) for d in range(10)}:
             raise table.fail(key, f"expected a digit 0 to 9 as the key, got {key!r}")
@@ -127,14 +179,21 @@ def _parse(data: dict, source: str) -> dict[int, Digit]:
         entry.done()
         if not raw_strokes:
             raise entry.fail("strokes", "expected at least one stroke, got []")
-        strokes = tuple(
+        strokes_of[int(key)] = tuple(
             _parse_stroke(stroke, entry, f"strokes[{i}]") for i, stroke in enumerate(raw_strokes)
         )
-        digits[int(key)] = Digit(int(key), strokes)
     table.done()
-    if not digits:
+    if not strokes_of:
         raise root.fail("digits", "expected at least one digit, got none")
-    return dict(sorted(digits.items()))
+    digits = {k: Digit(k, v) for k, v in sorted(strokes_of.items())}
+    width, height = mean_extent(digits)
+    # The size of a protocol is the mean extent (module docstring): it must not be zero.
+    if width <= 0.0 or height <= 0.0:
+        flat = "width" if width <= 0.0 else "height"
+        raise root.fail("digits", f"expected digits whose mean bounding-box {flat} is > 0 "
+                        f"(the protocol's digit size is that mean), got {flat} 0 for digits "
+                        f"{sorted(digits)}")
+    return {k: Digit(k, d.strokes, (width, height)) for k, d in digits.items()}
 
 
 def _parse_stroke(raw: object, entry: Section, key: str) -> np.ndarray:

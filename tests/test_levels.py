@@ -58,7 +58,7 @@ def test_shipped_psychometric_protocol_varies_digit_height():
     protocol = load_protocol(PSYCHOMETRIC)
     assert protocol.levels.parameter == "digit_height_pitch"
     assert protocol.levels.column == "digit_height" and protocol.levels.units == "pitch"
-    assert protocol.level_values == (0.3, 0.5, 0.81, 1.2, 1.6)
+    assert protocol.level_values == (0.3, 0.5, 0.81, 1.2, 1.5)
     spec = protocol.stimulus_at(1.2)
     assert spec.digit_height_pitch == 1.2
     assert spec.digit_width_pitch == pytest.approx(1.2 * 0.605)
@@ -172,7 +172,7 @@ def test_malformed_level_values_are_refused_in_one_line(tmp_path, parameter, goo
 def test_valid_height_levels_parse_and_fit_the_display(tmp_path, values, ratio):
     """Heights up to 1.2 pitch (36 mm) at width ratios 0.5-0.7 fit crs2d: accepted, each
     level's spec has the value and the width follows it. (Larger digits reach the CRS
-    limits: at 1.75 pitch x 0.5 the beams would collapse on the digit 2, and the device
+    limits: at 1.75 pitch x 0.5 the beams would collapse on the digit 0, and the device
     check refuses it, as it must.)"""
     data = copy.deepcopy(BASE)
     data["levels"] = {"parameter": "digit_height_pitch", "values": values,
@@ -211,7 +211,7 @@ def test_plan_with_levels_is_deterministic_and_hashed(tmp_path):
     assert make_plan(protocol, "p2", 1, 1).sha256() != one.sha256()
     # the same trials with other level values: a different fingerprint
     data = copy.deepcopy(BASE)
-    data["levels"]["values"] = [0.3, 0.5, 0.81, 1.2, 1.5]
+    data["levels"]["values"] = [0.3, 0.5, 0.81, 1.2, 1.4]
     other = make_plan(load(tmp_path, data), "p1", 1, 1)
     assert other.seed == one.seed
     assert [(t.condition, t.digit) for t in other.trials] == \
@@ -223,12 +223,12 @@ def test_plan_with_levels_is_deterministic_and_hashed(tmp_path):
 
 def test_stimulus_per_digit_and_level(layout2d):
     protocol = load_protocol(PSYCHOMETRIC)
-    small, large = (make_stimulus(protocol, layout2d, 3, v) for v in (0.5, 1.6))
+    small, large = (make_stimulus(protocol, layout2d, 3, v) for v in (0.5, 1.5))
     assert small is make_stimulus(protocol, layout2d, 3, 0.5)  # cached
     extent = [np.ptp(s.centres_mm[s.drawn], axis=0) for s in (small, large)]
-    # the shipped 3 spans its whole box: extents in proportion to the heights (1.6 / 0.5)
+    # the digit keeps its shape: extents in proportion to the heights (1.5 / 0.5)
     # (within 2 %: the path is sampled at whole frames, so its end points move a little)
-    assert extent[1] == pytest.approx(extent[0] * 1.6 / 0.5, rel=0.02)
+    assert extent[1] == pytest.approx(extent[0] * 1.5 / 0.5, rel=0.02)
     assert large.n_frames > small.n_frames  # same speed, longer path
 
 
@@ -245,8 +245,12 @@ def test_observer_templates_are_per_level(layout2d):
                                                - observer.template(b, v)) ** 2, axis=1)))
                        for a in range(10) for b in range(a)]) for v in (0.5, 1.2)]
     assert spread[1] > 2 * spread[0]
-    # the sensing window holds the largest digit (1.6 x 0.97 pitch: half-diagonal 28 mm)
-    assert observer._gx.max() - observer._gx.mean() >= 28.0
+    # the sensing window holds every drawn path: at 1.5 pitch the 7 spans 1.02 x 1.51 pitch
+    # (its box, 0.605 x 1.5 / W by 1.5 / H with W = 0.8913, H = 0.9958; crs_study/digits.py),
+    # a half-diagonal of 27 mm
+    reach = max(np.hypot(*make_stimulus(protocol, layout2d, d, v).centres_mm.T).max()
+                for d in protocol.digits for v in protocol.level_values)
+    assert observer._gx.max() - observer._gx.mean() >= reach
 
 
 # --- dataset, end to end ----------------------------------------------------------------------
@@ -302,7 +306,7 @@ def test_validate_prints_levels_and_counts(capsys):
 
     assert main(["validate", str(PSYCHOMETRIC)]) == 0
     out = capsys.readouterr().out
-    assert "levels: digit_height_pitch = 0.3, 0.5, 0.81, 1.2, 1.6 (pitch; dataset column " \
+    assert "levels: digit_height_pitch = 0.3, 0.5, 0.81, 1.2, 1.5 (pitch; dataset column " \
         "digit_height; width = 0.605 x height)" in out
     assert "  digit_height_pitch = 0.81: pixel-only 1 practice + 10 test, crs 1 practice + " \
         "10 test; frames per trial" in out

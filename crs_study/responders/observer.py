@@ -332,11 +332,20 @@ class PerceptualObserver(Responder):
 
 
 def _largest_half_diagonal(protocol: Any, layout: Any) -> float:
-    """Half the diagonal (mm) of the largest digit box over the protocol's levels."""
-    specs = [protocol.stimulus_at(v) for v in getattr(protocol, "level_values", (None,))] \
-        if hasattr(protocol, "stimulus_at") else [protocol.stimulus]
-    return max(0.5 * layout.pitch_mm * float(np.hypot(s.digit_width_pitch,
-                                                      s.digit_height_pitch)) for s in specs)
+    """How far (mm) the drawn bump centre gets from the placement point, over the protocol's
+    digits and levels: the drawn paths themselves, so the window holds the widest digit
+    whatever the strokes (a box of digit_width x digit_height pitch is the digits' *average*
+    size, crs_study/digits.py, and the widest digits exceed it)."""
+    from crs_study.stimulus import make_stimulus, placement_centre
+
+    centre = np.asarray(placement_centre(protocol.stimulus, layout), dtype=float)
+    reach = 0.0
+    for level in getattr(protocol, "level_values", (None,)):
+        for digit in protocol.digits:
+            stim = make_stimulus(protocol, layout, digit, level)
+            drawn = stim.centres_mm[stim.drawn] - centre
+            reach = max(reach, float(np.hypot(drawn[:, 0], drawn[:, 1]).max(initial=0.0)))
+    return reach
 
 
 def _normalise(path: np.ndarray, points: int) -> np.ndarray:
