@@ -201,10 +201,9 @@ def inside_convex_hull(points: np.ndarray, polygon_xy: np.ndarray) -> tuple[np.n
 
 def collapse_delta(layout: Layout) -> float:
     """The no-collapse number of Eq. 4 for a device (inf when the skin has no stiffness)."""
-    from crs_study.display.beam import no_collapse_number
+    from crs_study.quality.mechanics import layout_delta
 
-    return no_collapse_number(layout.beam_section.bending_stiffness,
-                              layout.foundation_stiffness, layout.pitch_mm)
+    return layout_delta(layout)
 
 
 def device_limits(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layout
@@ -234,6 +233,7 @@ class _LayoutBox:
 def _device_limits(spec: StimulusSpec, conditions: tuple[str, ...], key: tuple,
                    box: _LayoutBox) -> tuple[str, ...]:
     from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
+    from crs_study.quality.mechanics import stimulus_limits
     from crs_study.render import Renderer
 
     layout = box.layout
@@ -241,11 +241,13 @@ def _device_limits(spec: StimulusSpec, conditions: tuple[str, ...], key: tuple,
     if layout.lattice != "hex":
         raise ProtocolError(f"study.device: digits need a 2D display, got {layout.name!r} "
                             f"with a {layout.lattice!r} lattice")
-    if spec.bump_height_mm > layout.travel_mm:
+    limits = stimulus_limits(layout, Bump((0.0, 0.0), spec.bump_diameter_mm,
+                                          spec.bump_height_mm))
+    problems = limits.problems()
+    if "height" in problems:
         raise ProtocolError(f"stimulus.bump_height_mm: expected at most the pixel travel "
-                            f"{layout.travel_mm:g} mm, got {spec.bump_height_mm!r}")
-    passed.append(f"bump height {spec.bump_height_mm:g} mm <= pixel travel "
-                  f"{layout.travel_mm:g} mm")
+                            f"{limits.travel:g} mm, got {spec.bump_height_mm!r}")
+    passed.append(f"bump height {limits.height:g} mm <= pixel travel {limits.travel:g} mm")
 
     wire_rate = full_frame_rate_hz(layout)
     if spec.frame_rate_hz > wire_rate * (1 + 1e-9):
@@ -271,15 +273,11 @@ def _device_limits(spec: StimulusSpec, conditions: tuple[str, ...], key: tuple,
 
     beams = [c for c in conditions if c != "pixel-only"]
     if beams:
-        section = layout.beam_section
-        curvature = Bump((0.0, 0.0), spec.bump_diameter_mm, spec.bump_height_mm).curvature_max()
-        if curvature > section.yield_curvature_per_mm:
-            raise ProtocolError(
-                f"stimulus.bump_height_mm: the bump's curvature {curvature:.4f}/mm "
-                f"(2 pi^2 z_f / l^2) exceeds the beam's yield curvature "
-                f"{section.yield_curvature_per_mm:.4f}/mm, got {spec.bump_height_mm!r}")
-        passed.append(f"curvature {curvature:.4f}/mm <= yield "
-                      f"{section.yield_curvature_per_mm:.4f}/mm")
+        if "curvature" in problems:
+            raise ProtocolError(f"stimulus.bump_height_mm: {problems['curvature']}, got "
+                                f"{spec.bump_height_mm!r}")
+        passed.append(f"curvature {limits.curvature:.4f}/mm <= yield "
+                      f"{limits.yield_curvature:.4f}/mm")
         delta = collapse_delta(layout)
         if delta < 1.0:
             raise ProtocolError(f"conditions.names: the beams collapse on this device "

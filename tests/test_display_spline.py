@@ -98,3 +98,27 @@ def test_design_md_spline_check_values():
     assert spline_max(np.arange(5) * 30.0, "natural") == pytest.approx(0.881, abs=1e-3)
     assert spline_max(np.array([0.0, 30, 60, 90]), "clamped") == pytest.approx(15 / 16)
     assert min(ours, lattice) > 0.77 + 0.1
+
+
+def test_yield_check_never_lets_a_curvature_beyond_yield_through():
+    # The check bounds kappa = |y''| / (1 + y'^2)^1.5 by the knots' |y''|; scale a random shape
+    # until scipy's spline, sampled densely, just exceeds the yield curvature: it must raise.
+    from scipy.optimize import brentq
+
+    layout = load_layout("crs1d").with_pitch(30.0)
+    limit = layout.beam_section.yield_curvature_per_mm
+    model = get_model("spline", layout, check_yield_curvature=False)
+    checked = get_model("spline", layout)
+    rng = np.random.default_rng(11)
+    for _ in range(10):
+        base = np.zeros(layout.n_actuators)
+        base[: layout.n_pixels] = rng.uniform(0, 1, layout.n_pixels)
+
+        def dense_max_curvature(scale, base=base):
+            spline = model.splines(scale * base)[0]
+            s = np.linspace(0.0, model.spans[0], 4001)
+            return float(np.max(np.abs(spline(s, 2)) / (1 + spline(s, 1) ** 2) ** 1.5))
+
+        scale = brentq(lambda k: dense_max_curvature(k) - limit, 1e-6, 100.0)
+        with pytest.raises(DisplayModelError, match="plastic"):
+            checked.surface(1.0001 * scale * base, np.zeros((1, 2)))

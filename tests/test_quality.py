@@ -297,7 +297,8 @@ def test_stimulus_limits():
     assert 0 < fine.feed < fine.boundary_travel
     with pytest.raises(RenderError, match=r"height 10 mm exceeds the pixel travel 9 mm"):
         check_stimulus(layout, Bump((0.0, 0.0), 90.0, 10.0))
-    with pytest.raises(RenderError, match=r"curvature 0.1974 /mm exceeds the beam's yield"):
+    with pytest.raises(RenderError,
+                       match=r"curvature 0.1974 /mm \(2 pi\^2 z_f / l\^2\) exceeds the beam"):
         check_stimulus(layout, Bump((0.0, 0.0), 30.0, 9.0))
     narrow = stimulus_limits(replace(layout, boundary_travel_mm=0.5), Bump((0.0, 0.0), 90.0, 9.0))
     assert narrow.violations() == [f"boundary feed {narrow.feed:.4g} mm exceeds the boundary "

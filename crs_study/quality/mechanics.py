@@ -85,17 +85,23 @@ class StimulusLimits:
     feed: float  # the largest length one boundary servo feeds (even split)
     boundary_travel: float
 
-    def violations(self) -> list[str]:
-        out = []
+    def problems(self) -> dict[str, str]:
+        """The limits broken, by name (``"curvature"``, ``"height"``, ``"feed"``): what was
+        asked against the limit. The protocol check (:mod:`crs_study.stimulus`) words its
+        errors from these too."""
+        out = {}
         if self.curvature > self.yield_curvature:
-            out.append(f"curvature {self.curvature:.4g} /mm exceeds the beam's yield curvature "
-                       f"{self.yield_curvature:.4g} /mm")
+            out["curvature"] = (f"curvature {self.curvature:.4g} /mm (2 pi^2 z_f / l^2) exceeds "
+                                f"the beam's yield curvature {self.yield_curvature:.4g} /mm")
         if self.height > self.travel:
-            out.append(f"height {self.height:g} mm exceeds the pixel travel {self.travel:g} mm")
+            out["height"] = f"height {self.height:g} mm exceeds the pixel travel {self.travel:g} mm"
         if self.feed > self.boundary_travel:
-            out.append(f"boundary feed {self.feed:.4g} mm exceeds the boundary travel "
-                       f"{self.boundary_travel:g} mm")
+            out["feed"] = (f"boundary feed {self.feed:.4g} mm exceeds the boundary travel "
+                           f"{self.boundary_travel:g} mm")
         return out
+
+    def violations(self) -> list[str]:
+        return list(self.problems().values())
 
     @property
     def ok(self) -> bool:
