@@ -22,12 +22,13 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import warnings
 from collections.abc import Sequence
 from types import ModuleType
 
 from crs_study import __version__
 from crs_study.commands import HelpFormatter
-from crs_study.errors import CrsStudyError
+from crs_study.errors import CrsStudyError, CrsStudyWarning
 
 #: Exit status for a known error (bad input, device fault, refused consent, ...).
 EXIT_KNOWN_ERROR = 2
@@ -83,6 +84,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return EXIT_KNOWN_ERROR
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, CrsStudyWarning):
+            print(f"crs-study {args.command}: warning: {message}", file=sys.stderr)
+        else:
+            default_show(message, category, filename, lineno, file, line)
+
+    default_show = warnings.showwarning
+    warnings.showwarning = show
     try:
         return int(args._run(args) or 0)
     except CrsStudyError as error:
@@ -95,6 +104,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"crs-study {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        warnings.showwarning = default_show
 
 
 if __name__ == "__main__":  # pragma: no cover

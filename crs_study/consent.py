@@ -34,7 +34,9 @@ import re
 import secrets
 import shutil
 import signal
+import stat
 import string
+import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -42,7 +44,7 @@ from pathlib import Path
 from crs_study._files import append_durably, fsync_dir, os_errors, sha256_bytes, write_atomically
 from crs_study.dataset import WITHDRAWAL_JOURNAL, Dataset, utc_now
 from crs_study.dataset import check_label as dataset_check_label
-from crs_study.errors import ConsentError, SessionError
+from crs_study.errors import ConsentError, CrsStudyWarning, SessionError
 
 REGISTER_ENV = "CRS_STUDY_CONSENT_DIR"
 REGISTER_FILE = "register.jsonl"
@@ -178,10 +180,30 @@ class Register:
             if new:
                 fsync_dir(path.parent)
 
+    def _restore_privacy(self) -> None:
+        """Owner-only permissions back on the register (0700) and its files (0600), with a
+        warning that names what others could read: a copy restored from a backup or a chmod
+        must not leave names readable by the group."""
+        for path, mode in ((self.directory, 0o700), (self.path, 0o600),
+                           (self.audit_path, 0o600)):
+            try:
+                current = stat.S_IMODE(path.stat().st_mode)
+            except FileNotFoundError:
+                continue
+            if current & 0o077:
+                try:
+                    os.chmod(path, mode)
+                except OSError as exc:
+                    raise ConsentError(f"{path}: readable by others (mode {current:o}) and "
+                                       f"cannot be made owner-only: {exc}") from None
+                warnings.warn(f"{path} was readable by others (mode {current:o}); made "
+                              f"owner-only ({mode:o}) again", CrsStudyWarning, stacklevel=3)
+
     def events(self) -> list[dict]:
         self._check_outside_datasets()
         if not self.path.exists():
             return []
+        self._restore_privacy()
         events = []
         try:
             text = self.path.read_text(encoding="utf-8")
@@ -400,11 +422,24 @@ def pending_withdrawal(dataset: str | Path) -> dict | None:
                            ) from None
 
 
+def _remove_stale_temporaries(dataset: Path) -> None:
+    """Delete what a withdrawal killed inside an atomic write leaves: the temporary copies
+    of the journal (it names the participant) and of participants.tsv. Call under the
+    dataset lock, where no other writer of these files can be at work."""
+    for name in (JOURNAL_FILE, "participants.tsv"):
+        temporary = dataset / f".{name}.tmp"
+        if temporary.exists():
+            temporary.unlink()
+            fsync_dir(dataset)
+
+
 def recover_withdrawal(dataset: str | Path) -> dict | None:
     """Finish an interrupted withdrawal from its journal; returns the audit entry or None."""
     dataset = Path(dataset)
     journal = pending_withdrawal(dataset)
     if journal is None:
+        with Dataset(dataset).locked():
+            _remove_stale_temporaries(dataset)
         return None
     return _complete(dataset, journal)
 
@@ -421,6 +456,7 @@ def _begin(dataset: Path, participant: str, register: Register) -> dict:
     """Write the journal under the dataset lock, once no session of the participant runs."""
     with Dataset(dataset).locked():
         _check_not_running(dataset, participant)
+        _remove_stale_temporaries(dataset)
         participants = dataset / "participants.tsv"
         listed = participants.exists() and any(
             map(_participant_row(participant),
@@ -469,8 +505,10 @@ def _complete(dataset: Path, journal: dict) -> dict:
     }
     register.audit(entry)
     _checkpoint()
-    (dataset / JOURNAL_FILE).unlink()
-    fsync_dir(dataset)
+    with Dataset(dataset).locked():
+        _remove_stale_temporaries(dataset)
+        (dataset / JOURNAL_FILE).unlink()
+        fsync_dir(dataset)
     return entry
 
 

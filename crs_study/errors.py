@@ -73,3 +73,7 @@ class AnalysisError(CrsStudyError):
 
 class ConsentError(CrsStudyError):
     """Consent is missing, mismatched or malformed, or a withdrawal failed."""
+
+
+class CrsStudyWarning(UserWarning):
+    """Something odd but not wrong, which the command line prints as one line."""

@@ -8,6 +8,7 @@ import os
 import stat
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -17,7 +18,7 @@ from hypothesis import strategies as st
 from crs_study import consent
 from crs_study.cli import main
 from crs_study.dataset import DATASET_LOCK
-from crs_study.errors import ConsentError
+from crs_study.errors import ConsentError, CrsStudyWarning
 from crs_study.paths import shipped_file
 
 FORM = shipped_file("consent/consent_form.md")
@@ -123,6 +124,7 @@ def test_bad_experimenter_initials_refused(tmp_path, initials):
 
 def test_corrupt_register_line_is_a_one_line_error(tmp_path):
     (tmp_path / consent.REGISTER_FILE).write_text('{"event": "consent"\n', encoding="utf-8")
+    os.chmod(tmp_path / consent.REGISTER_FILE, 0o600)
     with pytest.raises(ConsentError, match=r"register.jsonl:1: not a consent register line"):
         consent.Register(tmp_path).records()
 
@@ -475,3 +477,41 @@ def test_withdrawal_waits_for_the_dataset_lock(tmp_path):
         assert "sub-a1\t0\n" in (dataset / "participants.tsv").read_text()
     worker.join(10)
     assert done.is_set() and "sub-a1\t" not in (dataset / "participants.tsv").read_text()
+
+
+def test_a_register_opened_up_by_hand_is_made_owner_only_again_with_a_warning(tmp_path,
+                                                                               capsys):
+    register = consent.Register(tmp_path / "reg")
+    register.record(consent.read_form(FORM), "AB", "a1", name="Ada Lovelace")
+    os.chmod(register.directory, 0o755)
+    os.chmod(register.path, 0o644)
+    with pytest.warns(CrsStudyWarning, match="readable by others"):
+        assert "a1" in register.records()
+    assert stat.S_IMODE(os.stat(register.directory).st_mode) == 0o700
+    assert stat.S_IMODE(os.stat(register.path).st_mode) == 0o600
+    os.chmod(register.path, 0o640)  # the command line says so in one line per file
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", CrsStudyWarning)  # as outside pytest's "error"
+        assert main(["consent", "list", "--register", str(register.directory)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("crs-study consent: warning: ")
+    assert stat.S_IMODE(os.stat(register.path).st_mode) == 0o600
+
+
+def test_temporaries_left_by_a_kill_inside_an_atomic_write_are_removed(tmp_path):
+    # A SIGKILL between write_atomically's temporary file and its rename leaves
+    # '.<name>.tmp' beside the file; the journal's copy names the participant.
+    reference = make_dataset(tmp_path / "reference")
+    consent.withdraw("a1", [reference], tmp_path / "reg-ref")
+    whole = snapshot(reference)
+
+    dataset = make_dataset(tmp_path / "ds")
+    stale = [dataset / f".{consent.JOURNAL_FILE}.tmp", dataset / ".participants.tsv.tmp"]
+    for path in stale:
+        path.write_text('{"participant": "a1"}')
+    assert consent.recover_withdrawal(dataset) is None  # nothing pending: only the debris goes
+    assert not any(path.exists() for path in stale)
+    for path in stale:
+        path.write_text('{"participant": "a1"}')
+    consent.withdraw("a1", [dataset], tmp_path / "reg")
+    assert snapshot(dataset) == whole
