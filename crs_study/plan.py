@@ -150,6 +150,26 @@ def block_order(protocol: Protocol, counterbalance: int) -> tuple[str, ...]:
     return tuple(base[i] for i in rows[counterbalance % len(rows)])
 
 
+def counterbalance_cycle(protocol: Protocol) -> int:
+    """P: counterbalance indices k and k + P always get the same block order.
+
+    1 for ``none`` and interleaved designs, 2 for ``alternate`` and ``abba``, the number of
+    rows of the Williams square for ``latin`` (n conditions, 2n when n is odd).
+    """
+    scheme = protocol.design.counterbalancing
+    if protocol.design.ordering == "interleaved" or scheme == "none":
+        return 1
+    if scheme in ("alternate", "abba"):
+        return 2
+    return len(williams_square(len(protocol.conditions)))
+
+
+def block_orders(protocol: Protocol) -> tuple[tuple[str, ...], ...]:
+    """The block order of counterbalance index k = 0 .. P - 1 (:func:`counterbalance_cycle`);
+    index k gets ``block_orders(protocol)[k % P]``."""
+    return tuple(block_order(protocol, k) for k in range(counterbalance_cycle(protocol)))
+
+
 class _Draw:
     """Choices from ``Generator.random()`` doubles only (see the module docstring)."""
 

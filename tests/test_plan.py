@@ -16,7 +16,9 @@ from crs_study.paths import shipped_file
 from crs_study.plan import (
     _Draw,
     block_order,
+    block_orders,
     constrained_order,
+    counterbalance_cycle,
     make_plan,
     plan_seed,
     williams_square,
@@ -164,6 +166,36 @@ def test_latin_with_three_registered_conditions(full, monkeypatch):
     orders = [block_order(protocol, k) for k in range(6)]
     assert len(set(orders)) == 6 and block_order(protocol, 6) == orders[0]
     check_plan(protocol, make_plan(protocol, "p01", 1, 4))
+
+
+@pytest.mark.parametrize("scheme, ordering, cycle", [
+    pytest.param("none", "blocked", 1, id="none"),
+    pytest.param("alternate", "blocked", 2, id="alternate"),
+    pytest.param("abba", "blocked", 2, id="abba"),
+    pytest.param("latin", "blocked", 2, id="latin-2"),  # Williams: n rows for even n
+    pytest.param("none", "interleaved", 1, id="interleaved"),
+])
+def test_block_orders_repeat_with_the_counterbalance_cycle(full, scheme, ordering, cycle):
+    protocol = with_design(full, counterbalancing=scheme, ordering=ordering)
+    assert counterbalance_cycle(protocol) == cycle
+    orders = block_orders(protocol)
+    assert len(orders) == cycle
+    for k in range(24):  # index k gets the order of k mod P
+        assert block_order(protocol, k) == orders[k % cycle]
+
+
+def test_block_orders_of_three_conditions_latin(full, monkeypatch):
+    from crs_study import render
+
+    monkeypatch.setitem(render.CONDITIONS, "crs-b", render.render_crs)
+    protocol = with_design(replace(full, conditions=("pixel-only", "crs", "crs-b")),
+                           counterbalancing="latin")
+    assert counterbalance_cycle(protocol) == 6  # 2n rows for odd n (Williams 1949)
+    # Williams' first row 0 1 n-1 (0 1 2 for n = 3), row i adds i; then the rows reversed
+    assert block_orders(protocol) == (
+        ("pixel-only", "crs", "crs-b"), ("crs", "crs-b", "pixel-only"),
+        ("crs-b", "pixel-only", "crs"), ("crs-b", "crs", "pixel-only"),
+        ("pixel-only", "crs-b", "crs"), ("crs", "pixel-only", "crs-b"))
 
 
 def test_interleaved_mixes_conditions_in_one_block(full):

@@ -22,7 +22,10 @@ def test_text_summary(capsys):
     assert "valid (digitid 1.0.0, device crs2d" in out
     assert "trials: 120 (20 practice, 100 test) in 2 blocks" in out
     assert "pixel-only: 10 practice, 50 test" in out
-    assert "block orders (alternate): crs pixel-only | pixel-only crs" in out
+    # which participant gets which order: by counterbalance index k (order of arrival)
+    assert "block orders (alternate) by counterbalance index k" in out
+    assert "  k mod 2 = 0 (k = 0, 2, 4, ...): pixel-only crs\n" in out
+    assert "  k mod 2 = 1 (k = 1, 3, 5, ...): crs pixel-only\n" in out
     assert "frames per trial:" in out and "expected duration:" in out
     assert "wire, full frames: 125 bytes/frame" in out  # 3*19+7 + 3*18+7 (hardware.md)
     assert "ok  no collapse" in out
@@ -52,6 +55,25 @@ def test_json_summary_is_consistent_with_the_plan(capsys):
         assert 0 < changed["mean_bytes_per_frame"] < wire["full_frame_bytes"]
         assert changed["max_rate_hz"] >= protocol.frame_rate_hz
     assert summary["checks"] == list(protocol.checks)
+
+
+def test_block_orders_by_counterbalance_index_match_the_plans(tmp_path, capsys):
+    """The orders validate lists are those make_plan gives each counterbalance index."""
+    text = shipped_file("protocols/pilot.toml").read_text()
+    path = tmp_path / "abba.toml"
+    path.write_text(text.replace('counterbalancing = "alternate"', 'counterbalancing = "abba"')
+                    .replace("repetitions = 1", "repetitions = 2"))
+    assert main(["validate", str(path), "--json"]) == 0
+    orders = json.loads(capsys.readouterr().out)["block_orders"]
+    assert orders["counterbalancing"] == "abba" and orders["cycle"] == 2
+    protocol = load_protocol(path)
+    for k in range(6):
+        row = orders["by_counterbalance"][k % 2]
+        assert row["k_mod_cycle"] == k % 2
+        assert tuple(row["order"]) == make_plan(protocol, "p01", 1, k).block_conditions
+    assert main(["validate", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "  k mod 2 = 1 (k = 1, 3, 5, ...): crs pixel-only pixel-only crs\n" in out
 
 
 def test_list_prints_every_trial(capsys):

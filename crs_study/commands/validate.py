@@ -42,7 +42,7 @@ def summarise(protocol, participant: str = "example", session: int = 1,
         full_frame_wire_time_s,
         servo_move_bytes,
     )
-    from crs_study.plan import block_order, make_plan
+    from crs_study.plan import block_orders, make_plan
     from crs_study.protocol import analysis_plan_path
     from crs_study.render import Renderer
     from crs_study.stimulus import make_stimulus, render_frames
@@ -96,7 +96,8 @@ def summarise(protocol, participant: str = "example", session: int = 1,
     counts = {c: {"practice": plan.count("practice", c), "test": plan.count("test", c)}
               for c in protocol.conditions}
     schemes = protocol.design.counterbalancing
-    orders = sorted({block_order(protocol, k) for k in range(12)})
+    by_index = block_orders(protocol)
+    orders = sorted(set(by_index))
     plan_file = analysis_plan_path(protocol)
     level_summary = None
     if protocol.levels is not None:
@@ -124,7 +125,10 @@ def summarise(protocol, participant: str = "example", session: int = 1,
                    "test": plan.count("test"), "per_condition": counts,
                    "blocks": len(plan.block_conditions), "breaks": breaks,
                    "experimenter_prompts": prompts},
-        "block_orders": {"counterbalancing": schemes, "orders": [list(o) for o in orders]},
+        "block_orders": {"counterbalancing": schemes, "cycle": len(by_index),
+                         "by_counterbalance": [{"k_mod_cycle": k, "order": list(o)}
+                                               for k, o in enumerate(by_index)],
+                         "orders": [list(o) for o in orders]},
         "expected_duration_s": seconds,
         "frames_per_trial": {"min": min(frames.values()), "max": max(frames.values()),
                              "mean": float(np.mean(list(frames.values()))),
@@ -199,8 +203,7 @@ def _text(s: dict) -> str:
             fr = entry["frames_per_trial"]
             lines.append(f"  {levels['parameter']} = {value}: {counts}; frames per trial "
                          f"{fr['min']} to {fr['max']} (mean {fr['mean']:.1f})")
-    orders = " | ".join(" ".join(o) for o in s["block_orders"]["orders"])
-    lines.append(f"block orders ({s['block_orders']['counterbalancing']}): {orders}")
+    lines += _block_order_lines(s["block_orders"])
     f = s["frames_per_trial"]
     lines.append(f"frames per trial: {f['min']} to {f['max']} (mean {f['mean']:.1f}) at "
                  f"{s['frame_rate_hz']:g} frames/s")
@@ -224,3 +227,20 @@ def _text(s: dict) -> str:
     state = "found" if plan["found"] else "NOT FOUND: declare it before the first real session"
     lines.append(f"analysis plan {plan['path']}: {state}")
     return "\n".join(lines)
+
+
+def _block_order_lines(orders: dict) -> list[str]:
+    """Which participant gets which block order: counterbalance index k (the order of arrival
+    in the dataset from 0, or ``run --counterbalance K``) modulo the scheme's cycle P."""
+    cycle = orders["cycle"]
+    rows = orders["by_counterbalance"]
+    head = (f"block orders ({orders['counterbalancing']}) by counterbalance index k (order of "
+            "arrival from 0, or --counterbalance K):")
+    if cycle == 1:
+        return [head, f"  every k: {' '.join(rows[0]['order'])}"]
+    lines = [head]
+    for row in rows:
+        i = row["k_mod_cycle"]
+        examples = ", ".join(str(i + j * cycle) for j in range(3))
+        lines.append(f"  k mod {cycle} = {i} (k = {examples}, ...): {' '.join(row['order'])}")
+    return lines
