@@ -146,7 +146,7 @@ def test_simulated_participants_differ_in_ability(protocol):
     assert len(temperatures) == 20
     ratio = max(temperatures) / min(temperatures)
     assert 1.3 < ratio < 10  # ability_sd 0.25: a spread, not a different species
-    assert PerceptualObserver(layout, protocol, 3, ability_sd=0).temperature_mm == 1.6
+    assert PerceptualObserver(layout, protocol, 3, ability_sd=0).temperature_mm == 1.9
 
 
 def test_response_time_advances_the_clock_from_onset(protocol, records):
