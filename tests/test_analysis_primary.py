@@ -6,9 +6,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crs_study.analysis import primary
+from crs_study.analysis import glmm, primary
+from crs_study.analysis.glmm import MAX_QUADRATURE, GlmmFitError
+from crs_study.analysis.plan import AnalysisPlan
 from crs_study.analysis.primary import design, primary_test
-from crs_study.errors import AnalysisError
+from crs_study.errors import AnalysisError, PlanError
 
 
 def _trials(n_participants=12, n_per_cell=40, accuracy=None, seed=0, sd=0.5):
@@ -62,7 +64,7 @@ def test_a_single_condition_gives_no_comparison_but_a_warning():
 
 def test_a_failing_model_falls_back_to_fisher_with_a_warning(monkeypatch):
     def broken(*args, **kwargs):
-        raise AnalysisError("singular design")
+        raise GlmmFitError("singular design")
 
     monkeypatch.setattr(primary, "_fit", broken)
     trials = _trials(seed=3)
@@ -102,3 +104,43 @@ def test_agq_with_crossed_effects_falls_back_to_laplace_with_a_warning():
                           random_effects=("participant", "digit"), method="agq")
     assert "(Laplace" in result.comparisons[0].method
     assert "fitted with the Laplace approximation instead" in result.warnings[0]
+
+
+def test_a_numerical_failure_inside_the_fit_reaches_the_fisher_fallback(monkeypatch):
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(glmm, "optimise", singular)
+    trials = _trials(seed=3)
+    with pytest.raises(GlmmFitError, match=r"numerical failure .*LinAlgError: Singular matrix"):
+        glmm.fit_glmm(trials, "correct", "C(condition)", "participant_id")
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    assert result.comparisons[0].method.startswith("Fisher's exact test")
+    assert "LinAlgError: Singular matrix" in result.warnings[0]
+
+
+@pytest.mark.parametrize("n_quadrature", [0, MAX_QUADRATURE + 1])
+def test_a_configuration_error_surfaces_instead_of_the_fisher_fallback(n_quadrature):
+    trials = _trials(n_participants=6, n_per_cell=10, seed=3)
+    with pytest.raises(AnalysisError, match=rf"n_quadrature must be an integer in "
+                       rf"1\.\.{MAX_QUADRATURE}, got {n_quadrature}$") as info:
+        primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq",
+                     n_quadrature=n_quadrature)
+    assert not isinstance(info.value, GlmmFitError)
+
+
+def test_the_plan_and_the_glmm_share_one_quadrature_limit():
+    plan = AnalysisPlan.from_dict({"plan": {"name": "x"}, "primary": {
+        "method": "agq", "n_quadrature": MAX_QUADRATURE}}, "p.toml")
+    assert plan.primary.n_quadrature == MAX_QUADRATURE
+    with pytest.raises(PlanError, match=rf"primary\.n_quadrature: expected .*{MAX_QUADRATURE}"
+                       ) as info:
+        AnalysisPlan.from_dict({"plan": {"name": "x"}, "primary": {
+            "method": "agq", "n_quadrature": MAX_QUADRATURE + 1}}, "p.toml")
+    assert "\n" not in str(info.value)
+    # what the plan accepts, the fit accepts: the largest rule runs (and agrees with 25 points)
+    trials = _trials(n_participants=6, n_per_cell=10, seed=3)
+    top = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq",
+                       n_quadrature=MAX_QUADRATURE)
+    usual = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq")
+    assert top.comparisons[0].log_odds == pytest.approx(usual.comparisons[0].log_odds, abs=1e-6)

@@ -38,18 +38,33 @@ import pandas as pd
 from scipy import optimize, stats
 from scipy.special import gammaln
 
-from crs_study.analysis.glmm_core import BinomialData, CrossedFactors, NoRandom, SingleFactor
+from crs_study.analysis.glmm_core import (
+    MAX_QUADRATURE,
+    BinomialData,
+    CrossedFactors,
+    NoRandom,
+    SingleFactor,
+)
 from crs_study.analysis.glmm_fit import fit_glm, optimise, profile_interval
 from crs_study.analysis.glmm_result import P_FLOOR, GlmmResult, LrtResult, format_pvalue
 from crs_study.errors import AnalysisError
 
 __all__ = ["fit_glmm", "lrt", "profile_conf_int", "GlmmResult", "LrtResult", "format_pvalue",
-           "PRIOR_SD_INTERCEPT", "PRIOR_SD_COEFFICIENT"]
+           "GlmmFitError", "MAX_QUADRATURE", "PRIOR_SD_INTERCEPT", "PRIOR_SD_COEFFICIENT"]
 
 #: Prior standard deviations used against separation (Gelman et al. 2008 scales, normal form).
 PRIOR_SD_INTERCEPT = 10.0
 PRIOR_SD_COEFFICIENT = 2.5
-_MAX_QUADRATURE = 50
+
+#: Failures of the arithmetic, not of the request: what a caller may answer with a simpler
+#: method. Anything else ``fit_glmm`` raises (an unknown method, a missing column, an
+#: out-of-range ``n_quadrature``) is a plain :class:`AnalysisError` about how it was called.
+_NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError,
+                     OverflowError, ValueError)
+
+
+class GlmmFitError(AnalysisError):
+    """The likelihood could not be evaluated or maximised (a numerical failure)."""
 
 
 @dataclass(frozen=True)
@@ -130,22 +145,26 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
                      f"{separated!r} is infinite (a condition at 100 % or 0 % correct?); fitted "
                      f"instead with {penalty} (posterior mode); treat p-values as approximate")
     fixed_text = fixed if isinstance(fixed, str) else "<design matrix>"
-    if not kept and prior_sd is None:
-        return fit_glm(X, y, m, names, user_constant, len(data), response, fixed_text,
-                        tuple(group_list), notes)
-    binomial = _pool(X, y, m, codes) if aggregate else _unpooled(X, y, m, codes)
-    if not kept:
-        model = NoRandom(binomial)
-    elif len(kept) == 1:
-        model = SingleFactor(binomial, n_quadrature if method == "agq" else 1)
-    else:
-        model = CrossedFactors(binomial)
-    problem = _Problem(model, names, tuple(kept), prior_sd, user_constant)
-    return optimise(problem, len(data), response, fixed_text, tuple(group_list),
-                     "glm" if not kept else method,
-                     n_quadrature if method == "agq" and kept else (1 if kept else 0),
-                     {g: int(c.max()) + 1 for g, c in zip(kept, codes, strict=True)},
-                     penalty, notes)
+    try:
+        if not kept and prior_sd is None:
+            return fit_glm(X, y, m, names, user_constant, len(data), response, fixed_text,
+                           tuple(group_list), notes)
+        binomial = _pool(X, y, m, codes) if aggregate else _unpooled(X, y, m, codes)
+        if not kept:
+            model = NoRandom(binomial)
+        elif len(kept) == 1:
+            model = SingleFactor(binomial, n_quadrature if method == "agq" else 1)
+        else:
+            model = CrossedFactors(binomial)
+        problem = _Problem(model, names, tuple(kept), prior_sd, user_constant)
+        return optimise(problem, len(data), response, fixed_text, tuple(group_list),
+                        "glm" if not kept else method,
+                        n_quadrature if method == "agq" and kept else (1 if kept else 0),
+                        {g: int(c.max()) + 1 for g, c in zip(kept, codes, strict=True)},
+                        penalty, notes)
+    except _NUMERICAL_ERRORS as exc:
+        raise GlmmFitError(f"numerical failure while maximising the likelihood "
+                           f"({type(exc).__name__}: {exc})") from exc
 
 
 # ----------------------------------------------------------------------------- preparation
@@ -159,8 +178,9 @@ def _check_arguments(data, response, trials, group_list, method, n_quadrature) -
                                 f"{list(data.columns)!r}")
     if method not in ("laplace", "agq"):
         raise AnalysisError(f"method must be 'laplace' or 'agq', got {method!r}")
-    if not isinstance(n_quadrature, int | np.integer) or not 1 <= n_quadrature <= _MAX_QUADRATURE:
-        raise AnalysisError(f"n_quadrature must be an integer in 1..{_MAX_QUADRATURE}, "
+    if (isinstance(n_quadrature, bool) or not isinstance(n_quadrature, int | np.integer)
+            or not 1 <= n_quadrature <= MAX_QUADRATURE):
+        raise AnalysisError(f"n_quadrature must be an integer in 1..{MAX_QUADRATURE}, "
                             f"got {n_quadrature!r}")
     if len(data) == 0:
         raise AnalysisError("no rows to fit: the data frame is empty")

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from crs_study._toml import Section, read_toml
+from crs_study.analysis.glmm_core import MAX_QUADRATURE
 from crs_study.errors import PlanError
 
 TIMEOUT_POLICIES = ("exclude", "count_as_error")
@@ -183,7 +184,7 @@ def _primary(section: Section, conditions: tuple[str, ...]) -> PrimaryTest:
     outcome = section.string("outcome", "correct", choices=("correct",))
     test = section.string("test", "glmm", choices=("glmm",))
     method = section.string("method", "laplace", choices=GLMM_METHODS)
-    n_quadrature = section.integer("n_quadrature", 25, minimum=1, maximum=100)
+    n_quadrature = section.integer("n_quadrature", 25, minimum=1, maximum=MAX_QUADRATURE)
     effects = _strings(section, "random_effects", ("participant",), choices=RANDOM_EFFECTS,
                        unique=True)
     if "participant" not in effects:

@@ -11,8 +11,10 @@ the Wald p-value ``2 Phi(-|b/se|)`` and the likelihood-ratio p-value of dropping
 coefficient (chi2 with 1 df); ``p_value`` is the likelihood-ratio one, which is the more
 accurate for logistic models (Agresti 2013, Categorical Data Analysis, 3rd ed., sec. 1.3.3).
 With more than two conditions an omnibus likelihood-ratio test of condition (k - 1 df) is
-reported too. When the model cannot be fitted at all, Fisher's exact test on the pooled 2 x 2
-table is reported instead, with a warning saying so.
+reported too. When the model cannot be fitted for numerical reasons (:class:`GlmmFitError`),
+Fisher's exact test on the pooled 2 x 2 table is reported instead, with a warning saying so;
+a wrong request (an unknown method, ``n_quadrature`` out of range) raises
+:class:`~crs_study.errors.AnalysisError` instead of hiding behind that fallback.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import pandas as pd
 from scipy import stats
 
 from crs_study.analysis.accuracy import floor_p
-from crs_study.errors import AnalysisError
+from crs_study.analysis.glmm import GlmmFitError
 
 GROUP_COLUMNS = {"participant": "participant_id", "digit": "digit"}
 
@@ -101,7 +103,7 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
     full_design = design(data, conditions, reference)
     try:
         full = _fit(data, full_design, groups, method, n_quadrature)
-    except (AnalysisError, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+    except GlmmFitError as exc:  # numerical only: a wrong method or n_quadrature raises
         warnings.append(f"the mixed model could not be fitted ({exc}); reported Fisher's exact "
                         "test on the pooled 2 x 2 table of each condition against the reference "
                         "instead, which ignores the repeated measures")
@@ -124,7 +126,16 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
             warnings.append(f"GLMM dropped the coefficient of {condition!r} (no trials or "
                             "aliased): no comparison for it")
             continue
-        reduced = _fit(data, full_design.drop(columns=column), groups, method, n_quadrature)
+        try:
+            reduced = _fit(data, full_design.drop(columns=column), groups, method,
+                           n_quadrature)
+        except GlmmFitError as exc:
+            warnings.append(f"GLMM likelihood-ratio test of {condition!r} not available: the "
+                            f"model without it could not be fitted ({exc}); p_value is the "
+                            "Wald p")
+            comparisons.append(_comparison(condition, reference, label, full, column, odds,
+                                           wald[column], None))
+            continue
         test = _lrt(full, reduced)
         for note in test.warnings:   # the fits' own notes are reported once, above
             core = note.split(": ", 1)[1] if note.startswith(("full model: ",
@@ -132,21 +143,34 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
             if core not in seen:
                 seen.add(core)
                 warnings.append(f"GLMM likelihood-ratio test of {condition!r}: {note}")
-        comparisons.append(Comparison(
-            condition=condition, reference=reference, method=label,
-            estimate=float(odds.loc[column, "odds_ratio"]),
-            ci95=(float(odds.loc[column, "ci_low"]), float(odds.loc[column, "ci_high"])),
-            p_value=floor_p(test.pvalue), p_wald=floor_p(wald[column]),
-            p_lr=floor_p(test.pvalue), log_odds=float(full.params[column]),
-            std_error=float(full.bse[column])))
+        comparisons.append(_comparison(condition, reference, label, full, column, odds,
+                                       wald[column], test.pvalue))
     omnibus = None
     if len(comparisons) > 1:
-        null = _fit(data, full_design[["Intercept"]], groups, method, n_quadrature)
-        test = _lrt(full, null)
-        omnibus = {"method": "likelihood-ratio test of condition", "statistic":
-                   float(test.statistic), "df": int(test.df), "p_value": floor_p(test.pvalue)}
+        try:
+            null = _fit(data, full_design[["Intercept"]], groups, method, n_quadrature)
+        except GlmmFitError as exc:
+            warnings.append(f"GLMM omnibus likelihood-ratio test not available: the model "
+                            f"without condition could not be fitted ({exc})")
+        else:
+            test = _lrt(full, null)
+            omnibus = {"method": "likelihood-ratio test of condition",
+                       "statistic": float(test.statistic), "df": int(test.df),
+                       "p_value": floor_p(test.pvalue)}
     model = full.to_dict(level) if hasattr(full, "to_dict") else None
     return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings))
+
+
+def _comparison(condition: str, reference: str, label: str, full, column: str,
+                odds: pd.DataFrame, p_wald: float, p_lr: float | None) -> Comparison:
+    """One GLMM comparison; ``p_value`` is the likelihood-ratio p, else the Wald p."""
+    return Comparison(
+        condition=condition, reference=reference, method=label,
+        estimate=float(odds.loc[column, "odds_ratio"]),
+        ci95=(float(odds.loc[column, "ci_low"]), float(odds.loc[column, "ci_high"])),
+        p_value=floor_p(p_wald if p_lr is None else p_lr), p_wald=floor_p(p_wald),
+        p_lr=None if p_lr is None else floor_p(p_lr), log_odds=float(full.params[column]),
+        std_error=float(full.bse[column]))
 
 
 def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, groups: list[str], method: str,
