@@ -13,6 +13,7 @@ from crs_study.analysis.secondary import (
     mcnemar_test,
     paired_t,
     paired_table,
+    participant_differences,
     per_digit,
     secondary_tests,
     wilcoxon_signed_rank,
@@ -92,6 +93,28 @@ def test_wilcoxon_matches_scipy_and_rank_biserial_by_hand():
     assert (result.extra["t_plus"], result.extra["t_minus"]) == (32.0, 4.0)
     assert result.effect_size == pytest.approx((32 - 4) / 36)        # Kerby 2014
     assert result.note == ""
+
+
+def test_wilcoxon_treats_differences_equal_in_exact_arithmetic_as_ties():
+    # Accuracies out of 10 trials (reference, condition). In floats 0.7 - 0.4 and 0.8 - 0.5
+    # are 0.29999999999999993 and 0.30000000000000004, and 0.3 - 0.2 is 0.09999999999999998:
+    # without rounding the tied |0.3| and |0.1| groups get distinct ranks (T = 12, p = 0.242).
+    pairs = [(0.4, 0.7), (0.5, 0.8), (0.3, 0.0), (0.9, 0.8), (0.1, 0.2), (0.6, 0.7),
+             (0.0, 0.3), (0.2, 0.6), (0.5, 0.3), (0.4, 0.4)]
+    rows = [{"participant_id": f"p{i}", "condition": name, "accuracy": value}
+            for i, pair in enumerate(pairs)
+            for name, value in zip(("ref", "crs"), pair, strict=True)]
+    diffs = participant_differences(pd.DataFrame(rows), "crs", "ref")
+    assert len(set(diffs.abs())) == 5                       # 0, 0.1, 0.2, 0.3, 0.4
+    result = wilcoxon_signed_rank(diffs, "crs", "ref")
+    # the same test on the exact differences in tenths (integers, no rounding issue):
+    # scipy.stats.wilcoxon([3, 3, -3, -1, 1, 1, 3, 4, -2]) -> statistic 12.5, p 0.265625
+    exact = stats.wilcoxon([3, 3, -3, -1, 1, 1, 3, 4, -2])
+    assert (exact.statistic, exact.pvalue) == (12.5, pytest.approx(0.265625))
+    assert result.statistic == 12.5 and result.p_value == pytest.approx(exact.pvalue)
+    # midranks: |1| x3 -> 2, |2| -> 4, |3| x4 -> 6.5, |4| -> 9; T- = 6.5 + 2 + 4 = 12.5
+    assert (result.extra["t_plus"], result.extra["t_minus"]) == (32.5, 12.5)
+    assert "1 zero difference(s) dropped" in result.note      # 0.4 - 0.4 is a zero
 
 
 def test_wilcoxon_with_five_participants_warns_it_cannot_reject():

@@ -2,8 +2,9 @@
 
 * **Paired t-test** on participant accuracies (``scipy.stats.ttest_rel``), effect size Cohen's
   ``d_z = mean(diff) / sd(diff)`` (Cohen 1988; Lakens 2013, Front. Psychol. 4:863, Eq. 6).
-* **Wilcoxon signed-rank test** on the same differences (``scipy.stats.wilcoxon``, zero
-  differences dropped, exact null distribution when small), effect size the matched-pairs
+* **Wilcoxon signed-rank test** on the same differences, rounded to 12 decimals so that
+  differences equal in exact arithmetic are tied (``scipy.stats.wilcoxon``, zero differences
+  dropped, exact null distribution when small and untied), effect size the matched-pairs
   rank-biserial correlation ``r = (T+ - T-) / (T+ + T-)`` (Kerby 2014, Compr. Psychol. 3:11).
 * **Exact McNemar test** on trials paired by participant, session, digit and repetition, with
   the mid-p value ``2 [P(X <= min(b, c)) - P(X = min(b, c)) / 2]``, ``X ~ Bin(b + c, 1/2)``
@@ -31,6 +32,14 @@ from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
 
 PAIR_KEYS = ("participant_id", "session", "digit", "repetition")
+#: Participant differences are rounded to this many decimals before any test. Accuracies are
+#: ratios k / n, so a difference that is one number in exact arithmetic can come out of the
+#: subtraction as several floats (0.7 - 0.4 = 0.29999999999999993, 0.8 - 0.5 =
+#: 0.30000000000000004): the Wilcoxon ranks would split a tie. Rounding error is ~1e-16 here,
+#: while two different differences of proportions with up to 1000 trials each are at least
+#: 1e-12 apart (their denominators are at most 1000^4), so 12 decimals merge exactly the
+#: values that are equal.
+DIFFERENCE_DECIMALS = 12
 
 
 @dataclass(frozen=True)
@@ -62,11 +71,13 @@ class TestResult:
 
 def participant_differences(by_participant: pd.DataFrame, condition: str,
                             reference: str) -> pd.Series:
-    """Accuracy(condition) - accuracy(reference) per participant having both conditions."""
+    """Accuracy(condition) - accuracy(reference) per participant having both conditions,
+    rounded to :data:`DIFFERENCE_DECIMALS` so that equal differences are equal floats (ties
+    and zeros for the Wilcoxon test)."""
     wide = by_participant.pivot(index="participant_id", columns="condition", values="accuracy")
     if condition not in wide or reference not in wide:
         return pd.Series(dtype=float)
-    return (wide[condition] - wide[reference]).dropna()
+    return (wide[condition] - wide[reference]).dropna().round(DIFFERENCE_DECIMALS) + 0.0
 
 
 def paired_t(diffs: pd.Series, condition: str, reference: str, alpha: float = 0.05) -> TestResult:
