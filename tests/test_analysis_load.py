@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import shutil
 
 import numpy as np
 import pandas as pd
@@ -151,6 +152,32 @@ def test_several_datasets_keep_participants_apart(tmp_path):
     trials = load_datasets([a, b]).trials
     assert trials["participant_id"].nunique() == 4       # both have sub-01 and sub-02
     assert trials["dataset"].nunique() == 2
+
+
+def test_a_dataset_named_twice_is_refused_in_one_line(tmp_path, monkeypatch):
+    root = dataset(tmp_path / "ds", n_participants=2, repetitions=1)
+    (tmp_path / "link").symlink_to(root, target_is_directory=True)
+    monkeypatch.chdir(tmp_path)
+    for second in (root, tmp_path / "ds" / ".", "ds", tmp_path / "link"):
+        with pytest.raises(DatasetError, match=r"the same dataset as .*ds \(given twice\)"
+                           ) as info:
+            load_datasets([root, second])
+        assert "\n" not in str(info.value)
+
+
+def test_a_copy_of_a_dataset_is_refused_not_counted_twice(tmp_path):
+    root = dataset(tmp_path / "ds", n_participants=2, repetitions=1)
+    shutil.copytree(root, tmp_path / "backup")
+    with pytest.raises(DatasetError, match=r"the same session \(sub-01 ses-1, identical trial "
+                       r"file\) is also in .*ds: the datasets are copies") as info:
+        load_datasets([root, tmp_path / "backup"])
+    assert "\n" not in str(info.value)
+    # one participant's session copied into another dataset is caught as well
+    other = dataset(tmp_path / "other", n_participants=2, repetitions=1, seed=9)
+    shutil.rmtree(other / "sub-02")
+    shutil.copytree(root / "sub-02", other / "sub-02")
+    with pytest.raises(DatasetError, match=r"sub-02 ses-1"):
+        load_datasets([root, other])
 
 
 @settings(max_examples=40, deadline=None,

@@ -227,6 +227,16 @@ def test_cli_tampering_is_loud_and_strict_fails(tmp_path, capsys):
     assert "error:" in err and "TAMPERED?" in err and len(err.strip().splitlines()) == 1
 
 
+def test_cli_refuses_a_dataset_given_twice_in_one_line(tmp_path, capsys):
+    root = dataset(tmp_path / "ds", n_participants=2, repetitions=1)
+    plan = write_plan(tmp_path / "p.toml")
+    assert main(["analyze", str(root), str(root) + "/", "--plan", str(plan),
+                 "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "(given twice)" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o" / "results.json").exists()
+
+
 def test_cli_bad_plan_is_one_line(tmp_path, capsys):
     root = dataset(tmp_path / "ds", n_participants=2, repetitions=1)
     plan = write_plan(tmp_path / "p.toml", '[plan]\nname = "x"\nalpha = 2\n')

@@ -77,21 +77,31 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
                   strict: bool = False) -> LoadedData:
     """Load the datasets under ``paths``, check them, and apply ``exclusions`` (none if None).
 
-    Raises :class:`DatasetError` for a missing or unreadable dataset, and with ``strict`` for
-    any failed integrity check (otherwise each failure is a warning).
+    Raises :class:`DatasetError` for a missing or unreadable dataset, for a dataset named twice
+    (by any path) or datasets holding the same session (a copy: its trials would count twice),
+    and with ``strict`` for any failed integrity check (otherwise each failure is a warning).
     """
     if isinstance(paths, str | Path):
         paths = [paths]
     if not paths:
         raise DatasetError("no dataset given: expected at least one dataset directory")
+    _refuse_repeated_datasets([Path(p) for p in paths])
     warnings: list[str] = []
     frames, sessions, files = [], [], []
     names = [_dataset_name(Path(p)) for p in paths]
     if len(set(names)) < len(names):
         names = [str(Path(p)) for p in paths]
+    seen: dict[tuple[str, str, str], Path] = {}   # (participant, session, sha256) -> dataset
     for path, name in zip(paths, names, strict=True):
         for tsv in _session_files(Path(path)):
             table, meta, problems = _read_session(tsv, name, len(files))
+            key = (meta["participant"], meta["session"], meta.pop("_sha256"))
+            if key in seen and seen[key] != Path(path):
+                raise DatasetError(
+                    f"{tsv}: the same session (sub-{key[0]} ses-{key[1]}, identical trial "
+                    f"file) is also in {seen[key]}: the datasets are copies of each other, "
+                    "and analysing both would count its trials twice; give one of them")
+            seen.setdefault(key, Path(path))
             files.append(tsv)
             warnings += _raise_if_strict(problems, strict)
             frames.append(table)
@@ -108,6 +118,27 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
     else:
         trials, counts = apply_exclusions(trials, exclusions)
     return LoadedData(trials, pd.DataFrame(sessions), tuple(warnings), counts)
+
+
+def _refuse_repeated_datasets(paths: list[Path]) -> None:
+    """One dataset named twice (``D D``, ``D ./D/``, a symlink to ``D``) is an error.
+
+    Refused rather than deduplicated: each trial must count once, and a command line that
+    names a dataset twice is a mistake whose intent (a typo for another dataset?) only the
+    user knows; silently dropping one would also make ``results.json`` list other datasets
+    than the command asked for.
+    """
+    first: dict[tuple[int, int], Path] = {}
+    for path in paths:
+        try:
+            stat = path.stat()
+        except OSError:
+            continue    # reported as missing by _session_files, with the path as given
+        identity = (stat.st_dev, stat.st_ino)
+        if identity in first:
+            raise DatasetError(f"{path}: the same dataset as {first[identity]} (given twice); "
+                               "each dataset may be analysed once")
+        first[identity] = path
 
 
 def _raise_if_strict(problems: list[str], strict: bool) -> list[str]:
@@ -232,6 +263,7 @@ def _read_session(tsv: Path, dataset: str, file_number: int
                                            "EndTime", "ConsentFormVersion", "DeviceURL",
                                            "Clock", "ProtocolPath", "TrialsSha256")}}
     summary["Protocol"] = meta.get("Protocol")
+    summary["_sha256"] = sha256_bytes(data)   # for the copy check; popped by load_datasets
     return raw, summary, problems
 
 
