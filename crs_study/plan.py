@@ -170,6 +170,33 @@ def block_orders(protocol: Protocol) -> tuple[tuple[str, ...], ...]:
     return tuple(block_order(protocol, k) for k in range(counterbalance_cycle(protocol)))
 
 
+def trial_seconds(protocol: Protocol, plan: TrialPlan, layout: object | None = None
+                  ) -> list[float]:
+    """Expected duration of each trial of ``plan`` (s): its stimulus, the expected response
+    time from offset (``responses.expected_response_s``), the inter-trial interval, and the
+    break before it when it has one (``design.break_duration_s``). The experimenter's block
+    changes (mounting the skeleton) are not counted."""
+    from crs_study.stimulus import make_stimulus
+
+    layout = layout if layout is not None else protocol.layout()
+    durations: dict[tuple[int, float | None], float] = {}
+    seconds = []
+    for trial in plan.trials:
+        key = (trial.digit, trial.level)
+        if key not in durations:
+            durations[key] = make_stimulus(protocol, layout, *key).duration_s
+        seconds.append(durations[key] + protocol.responses.expected_response_s
+                       + protocol.inter_trial_interval_s
+                       + (protocol.design.break_duration_s if trial.break_before else 0.0))
+    return seconds
+
+
+def expected_duration_s(protocol: Protocol, plan: TrialPlan, layout: object | None = None
+                        ) -> float:
+    """The session's expected duration (s): the sum of :func:`trial_seconds`."""
+    return float(sum(trial_seconds(protocol, plan, layout)))
+
+
 class _Draw:
     """Choices from ``Generator.random()`` doubles only (see the module docstring)."""
 

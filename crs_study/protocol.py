@@ -58,6 +58,22 @@ OPTIONAL_KEYS: dict[str, object] = {
 MIN_FRAME_RATE_HZ = 1.0
 MIN_STROKE_SPEED_MM_S = 1.0
 
+#: Odd but legal values warn (STYLE rule 5; :func:`protocol_warnings`, protocols/README.md,
+#: "Warnings"). A session expected to last longer than this (s):
+WARN_SESSION_S = 90 * 60.0
+#: ... a stretch of a block longer than this without a break (s):
+WARN_UNBROKEN_S = 20 * 60.0
+#: ... a time limit longer than this (s, from stimulus offset):
+WARN_TIME_LIMIT_S = 60.0
+#: ... an inter-trial interval shorter than this (s; about a simple reaction time):
+WARN_ITI_S = 0.1
+#: ... a digit's stimulus lasting longer than this (s; the shipped 20 mm/s: 2 to 5 s):
+WARN_DRAWING_S = 15.0
+#: ... a stroke speed at which the device's latency lags the bump by more than this fraction
+#: of the digit's height; the latency is the paper's device's (crs-paper.md, Methods: 75 ms).
+WARN_LAG_FRACTION = 0.25
+PAPER_LATENCY_S = 0.075
+
 #: Stimulus parameters a ``[levels]`` table may vary: key -> (dataset column, units, min, max).
 #: The dataset column names are those the analysis looks for
 #: (``crs_study.analysis.plan.KNOWN_LEVEL_COLUMNS``); the ranges are those of ``[stimulus]``.
@@ -160,6 +176,8 @@ class Protocol:
     responses: ResponseSpec
     levels: LevelSpec | None = None  # None: every trial shows the [stimulus] values
     checks: tuple[str, ...] = field(default=(), compare=False)  # what check_on_device passed
+    #: odd but legal values, one line each (``FILE:LINE: key: ...``; :func:`protocol_warnings`)
+    warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @property
     def level_values(self) -> tuple[float | None, ...]:
@@ -258,7 +276,7 @@ def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:
         protocol = protocol_from_dict(data, path, text, hashlib.sha256(raw).hexdigest())
         if check_device:
             checks = check_on_device(protocol)
-            protocol = _replace(protocol, checks=checks)
+            protocol = _replace(protocol, checks=checks, warnings=protocol_warnings(protocol))
     except ConfigError as exc:
         raise ProtocolError(_locate_message(str(exc), source, text)) from None
     return protocol
@@ -655,6 +673,94 @@ def _check_shape_keys(spec: StimulusSpec, conditions: tuple[str, ...], layout: L
         f"a corner leaves it: height and width {spec.digit_width_pitch!r} together"
     raise ProtocolError(f"stimulus.digit_height_pitch: {where}, got "
                         f"{spec.digit_height_pitch!r} (the digits' {alone})")
+
+
+def protocol_warnings(protocol: Protocol) -> tuple[str, ...]:
+    """Odd but legal values of a checked protocol, one line each: ``FILE:LINE: key: ...``.
+
+    Each names the key, the value and why it is odd (thresholds ``WARN_*`` above):
+
+    * ``design.repetitions``: the session is expected to last over 1.5 h
+      (:func:`crs_study.plan.expected_duration_s`, what ``validate`` prints);
+    * ``design.break_every``: a block runs over 20 min without a break;
+    * ``responses.time_limit_s``: over 60 s;
+    * ``design.inter_trial_interval_s``: under 0.1 s (0 included);
+    * ``stimulus.stroke_speed_mm_s`` (or ``levels.values[i]`` when varied): so slow that a
+      digit's stimulus lasts over 15 s, or so fast that the device's 75 ms latency lags the bump
+      by over a quarter of the digit's height.
+    """
+    from crs_study.plan import make_plan, trial_seconds
+    from crs_study.stimulus import make_stimulus
+
+    layout = protocol.layout()
+    found: list[tuple[str, str]] = []  # (key path, message)
+    plan = make_plan(protocol, "example", 1, 0)  # durations do not depend on who or which
+    seconds = trial_seconds(protocol, plan, layout)
+    total = sum(seconds)
+    if total > WARN_SESSION_S:
+        found.append(("design.repetitions", f"the session is expected to take "
+                      f"{total / 3600:.1f} h ({len(plan)} trials at repetitions = "
+                      f"{protocol.design.repetitions}; crs-study validate's estimate), over "
+                      f"{WARN_SESSION_S / 3600:g} h: attention and touch sensitivity fade; fewer "
+                      "repetitions, or the study split over sessions (--session N)"))
+    stretch, longest, block = 0.0, (0.0, 0), None
+    for trial, s in zip(plan.trials, seconds, strict=True):
+        if trial.block != block or trial.break_before:
+            stretch, block = 0.0, trial.block
+        stretch += s
+        if stretch > longest[0]:
+            longest = (stretch, trial.block)
+    if longest[0] > WARN_UNBROKEN_S:
+        every = protocol.design.break_every
+        found.append(("design.break_every", f"block {longest[1] + 1} runs "
+                      f"{longest[0] / 60:.0f} min without a break ("
+                      + ("break_every = 0: no breaks" if not every else
+                         f"a break every {every} trials") + f"), over "
+                      f"{WARN_UNBROKEN_S / 60:g} min; expected a rest at least that often"))
+    limit = protocol.responses.time_limit_s
+    if limit is not None and limit > WARN_TIME_LIMIT_S:
+        found.append(("responses.time_limit_s", f"{limit!r} s is a long time limit (over "
+                      f"{WARN_TIME_LIMIT_S:g} s): a missed digit holds the session that "
+                      "long; the shipped protocols use 10 s"))
+    iti = protocol.inter_trial_interval_s
+    if iti < WARN_ITI_S:
+        found.append(("design.inter_trial_interval_s", f"{iti!r} s: the next digit starts "
+                      f"less than {WARN_ITI_S:g} s (about a reaction time) after the answer, "
+                      "before the hand is back at rest; the shipped protocols use 1 s"))
+    for i, level in enumerate(protocol.level_values):
+        spec = protocol.stimulus_at(level)
+        key = "stimulus.stroke_speed_mm_s"
+        if protocol.levels is not None and protocol.levels.parameter == "stroke_speed_mm_s":
+            key = f"levels.values[{i}]"
+        at = "" if level is None else f"at {protocol.levels.parameter} = {level:g}: "
+        speed = spec.stroke_speed_mm_s
+        drawing = max(make_stimulus(protocol, layout, d, level).duration_s
+                      for d in protocol.digits)
+        height_mm = spec.digit_height_pitch * layout.pitch_mm
+        lag = speed * PAPER_LATENCY_S
+        if drawing > WARN_DRAWING_S:
+            found.append((key, f"{at}{speed!r} mm/s is slow: the longest digit takes "
+                          f"{drawing:.0f} s to draw, holds included (over {WARN_DRAWING_S:g} s; "
+                          "the shipped 20 mm/s: 2 to 5 s)"))
+        elif lag > WARN_LAG_FRACTION * height_mm:
+            found.append((key, f"{at}{speed!r} mm/s is fast: the device's "
+                          f"{PAPER_LATENCY_S * 1e3:g} ms latency (the paper's) lags the bump by "
+                          f"{lag:.1f} mm, over a quarter of the digit's {height_mm:.1f} mm "
+                          "height (the shipped 20 mm/s: 1.5 mm)"))
+    source = str(protocol.path)
+    return tuple(locate_message(f"{source}: {key}: {message}", source, protocol.text)
+                 for key, message in found)
+
+
+def emit_warnings(protocol: Protocol) -> None:
+    """Issue each of ``protocol.warnings`` as a :class:`~crs_study.errors.CrsStudyWarning`
+    (the command line prints ``crs-study COMMAND: warning: ...``)."""
+    import warnings
+
+    from crs_study.errors import CrsStudyWarning
+
+    for message in protocol.warnings:
+        warnings.warn(message, CrsStudyWarning, stacklevel=2)
 
 
 def consent_form_path(protocol: Protocol) -> Path:

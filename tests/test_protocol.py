@@ -380,3 +380,81 @@ def test_numeric_values_either_load_or_fail_in_one_line(tmp_path_factory, repeti
         assert "\n" not in str(exc) and str(exc).startswith(str(path))
     else:
         assert p.design.repetitions == repetitions and 0 < height <= 9 and 1 <= rate <= 15
+
+
+# --- odd but legal values warn (STYLE rule 5) ------------------------------------------------
+
+@pytest.mark.parametrize("changes, key, match", [
+    # 10 digits x 2 conditions x 40 + 20 practice = 820 trials of about 7.2 s and 32 breaks
+    # of 30 s: 1.8 h
+    pytest.param({"design__repetitions": 40}, "repetitions",
+                 r"design.repetitions: the session is expected to take 1.8 h \(820 trials at "
+                 r"repetitions = 40; .*\), over 1.5 h", id="long-session"),
+    # 210 trials a block with no break: 24 min (the session, 47 min, is not too long)
+    pytest.param({"design__repetitions": 20, "design__break_every": 0}, "break_every",
+                 r"design.break_every: block \d runs 2\d min without a break \(break_every = 0: "
+                 r"no breaks\), over 20 min", id="no-breaks"),
+    pytest.param({"responses__time_limit_s": 120.0}, "time_limit_s",
+                 r"responses.time_limit_s: 120.0 s is a long time limit \(over 60 s\)",
+                 id="time-limit"),
+    pytest.param({"design__inter_trial_interval_s": 0.0}, "inter_trial_interval_s",
+                 r"design.inter_trial_interval_s: 0.0 s: the next digit starts less than 0.1 s",
+                 id="iti-zero"),
+    pytest.param({"stimulus__stroke_speed_mm_s": 3.0}, "stroke_speed_mm_s",
+                 r"stimulus.stroke_speed_mm_s: 3.0 mm/s is slow: the longest digit takes \d\d s "
+                 r"to draw, holds included \(over 15 s", id="slow"),
+    # lag 120 mm/s x 75 ms = 9.0 mm > 24.3 mm / 4 (0.81 pitch of 30 mm)
+    pytest.param({"stimulus__stroke_speed_mm_s": 120.0}, "stroke_speed_mm_s",
+                 r"stimulus.stroke_speed_mm_s: 120.0 mm/s is fast: the device's 75 ms latency "
+                 r"\(the paper's\) lags the bump by 9.0 mm, over a quarter of the digit's "
+                 r"24.3 mm height", id="fast"),
+])
+def test_odd_values_warn_naming_file_line_key(tmp_path, changes, key, match):
+    path = write(tmp_path, edited(**changes))
+    protocol = load_protocol(path)  # legal: loaded, not refused
+    assert len(protocol.warnings) == 1, protocol.warnings
+    warning = protocol.warnings[0]
+    line = next(i for i, t in enumerate(path.read_text().splitlines(), 1)
+                if t.startswith(f"{key} ="))
+    assert warning.startswith(f"{path}:{line}: "), warning
+    assert re.search(match, warning), warning
+    assert "\n" not in warning
+
+
+@pytest.mark.parametrize("changes", [
+    pytest.param({}, id="shipped"),
+    pytest.param({"design__repetitions": 25}, id="1.1-hours"),
+    pytest.param({"design__break_every": 0}, id="7-minute-blocks-without-breaks"),
+    pytest.param({"responses__time_limit_s": 60.0}, id="time-limit-60"),
+    pytest.param({"design__inter_trial_interval_s": 0.1}, id="iti-0.1"),
+    pytest.param({"stimulus__stroke_speed_mm_s": 80.0}, id="lag-6.0-mm"),
+    pytest.param({"stimulus__stroke_speed_mm_s": 7.0}, id="slow-but-under-15-s"),
+])
+def test_ordinary_values_do_not_warn(tmp_path, changes):
+    assert load_protocol(write(tmp_path, edited(**changes))).warnings == ()
+
+
+def test_shipped_protocols_do_not_warn():
+    for name in ("digit_identification", "pilot", "digit_size_psychometric"):
+        assert load_protocol(shipped_file(f"protocols/{name}.toml")).warnings == ()
+
+
+def test_a_varied_speed_warns_at_its_level(tmp_path):
+    data = copy.deepcopy(shipped_data())
+    del data["stimulus"]["stroke_speed_mm_s"]
+    data["levels"] = {"parameter": "stroke_speed_mm_s", "values": [20.0, 160.0]}
+    path = write(tmp_path, data)
+    (warning,) = load_protocol(path).warnings
+    line = next(i for i, t in enumerate(path.read_text().splitlines(), 1)
+                if t.startswith("values ="))
+    assert warning.startswith(f"{path}:{line}: levels.values[1]: at stroke_speed_mm_s = 160: "
+                              "160.0 mm/s is fast"), warning
+
+
+def test_warnings_are_issued_as_crs_study_warnings(tmp_path):
+    from crs_study.errors import CrsStudyWarning
+    from crs_study.protocol import emit_warnings
+
+    protocol = load_protocol(write(tmp_path, edited(design__inter_trial_interval_s=0.0)))
+    with pytest.warns(CrsStudyWarning, match=r"design.inter_trial_interval_s: 0.0 s"):
+        emit_warnings(protocol)

@@ -159,6 +159,28 @@ def test_demo_writes_a_new_directory_and_reports(tmp_path, capsys):
     assert "exists and is not empty; the demo never overwrites" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", ["run", "dry-run"])
+def test_odd_protocol_values_are_printed_as_warnings_before_the_session(tmp_path, capsys,
+                                                                        command):
+    """STYLE rule 5: an odd but legal value is a one-line warning on stderr, once, and the
+    session runs."""
+    import warnings
+
+    from crs_study.errors import CrsStudyWarning
+
+    protocol = tiny_protocol(tmp_path, iti=0.0)
+    args = {"run": run_args(protocol, tmp_path / "ds", "--json"),
+            "dry-run": ["dry-run", str(protocol), "--participants", "2", "--out",
+                        str(tmp_path / "ds"), "--responder", "random", "--json"]}[command]
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", CrsStudyWarning)  # the suite makes warnings errors
+        assert main(args) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(f"crs-study {command}: warning: {protocol}:")
+    assert "design.inter_trial_interval_s: 0.0 s: the next digit starts" in err[0]
+
+
 def test_fresh_directories_never_collide(tmp_path):
     first = fresh_directory(tmp_path)
     first.mkdir(parents=True)

@@ -91,3 +91,24 @@ def test_bad_protocol_is_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1
     assert "bad.toml:" in err[0] and "stimulus.frame_rate_hz: expected at most 15.00" in err[0]
+
+
+def test_warnings_are_listed_in_text_and_json(tmp_path, capsys):
+    path = tmp_path / "odd.toml"
+    path.write_text(shipped_file("protocols/pilot.toml").read_text()
+                    .replace("inter_trial_interval_s = 1.0", "inter_trial_interval_s = 0.0")
+                    .replace("time_limit_s = 10.0", "time_limit_s = 300.0"))
+    assert main(["validate", str(path)]) == 0  # odd, not wrong
+    out = capsys.readouterr().out
+    assert "\nwarnings (odd but legal values" in out
+    lines = [line for line in out.splitlines() if line.startswith("  warning  ")]
+    assert len(lines) == 2
+    assert any(f"{path}:" in line and "responses.time_limit_s: 300.0 s is a long time limit"
+               in line for line in lines)
+    assert any("design.inter_trial_interval_s: 0.0 s" in line for line in lines)
+    assert main(["validate", str(path), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert [w.split(": ", 2)[1] for w in summary["warnings"]] == \
+        ["responses.time_limit_s", "design.inter_trial_interval_s"]
+    assert main(["validate", PILOT]) == 0
+    assert "warning" not in capsys.readouterr().out

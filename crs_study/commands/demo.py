@@ -57,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
     from crs_study.errors import SessionError
     from crs_study.paths import shipped_file
+    from crs_study.protocol import emit_warnings, load_protocol
     from crs_study.runner import dry_run
 
     out = args.out or fresh_directory()
@@ -64,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
         raise SessionError(f"--out {os.fspath(out)!r} exists and is not empty; the demo never "
                            "overwrites: choose a new directory")
     protocol = shipped_file(args.protocol)
+    emit_warnings(load_protocol(protocol))  # odd but legal values of a --protocol given
     show = stderr_progress(not args.json)
     results = dry_run(protocol, args.participants, out, jobs=args.jobs,
                       responder=args.responder, progress=show)

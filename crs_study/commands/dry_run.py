@@ -42,8 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
+    from crs_study.protocol import emit_warnings, load_protocol
     from crs_study.runner import dry_run
 
+    emit_warnings(load_protocol(args.protocol))  # odd but legal values, once, up front
     results = dry_run(args.protocol, args.participants, args.out, jobs=args.jobs,
                       responder=args.responder, device_url=args.device,
                       progress=stderr_progress(not args.json), durable=args.fsync)

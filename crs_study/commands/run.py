@@ -91,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
             for key, value in report.items():
                 print(f"{key}: {value}")
         return 0
+    from crs_study.protocol import emit_warnings, load_protocol
+
+    emit_warnings(load_protocol(spec.protocol))  # odd but legal values, before anything runs
     quiet = args.json
     show = stderr_progress(not quiet)
     result = run_session(spec, progress=show)

@@ -42,7 +42,7 @@ def summarise(protocol, participant: str = "example", session: int = 1,
         full_frame_wire_time_s,
         servo_move_bytes,
     )
-    from crs_study.plan import block_orders, make_plan
+    from crs_study.plan import block_orders, expected_duration_s, make_plan
     from crs_study.protocol import analysis_plan_path
     from crs_study.render import Renderer
     from crs_study.stimulus import make_stimulus, render_frames
@@ -59,13 +59,7 @@ def summarise(protocol, participant: str = "example", session: int = 1,
     frames = {label(d, v): s.n_frames for (d, v), s in stimuli.items()}
     period = 1.0 / protocol.frame_rate_hz
 
-    seconds = 0.0
-    for trial in plan.trials:
-        seconds += stimuli[(trial.digit, trial.level)].duration_s
-        seconds += protocol.responses.expected_response_s
-        seconds += protocol.inter_trial_interval_s
-        if trial.break_before:
-            seconds += protocol.design.break_duration_s
+    seconds = expected_duration_s(protocol, plan, layout)
     breaks = sum(t.break_before for t in plan.trials)
     prompts = sum(t.prompt_before is not None for t in plan.trials)
 
@@ -144,6 +138,7 @@ def summarise(protocol, participant: str = "example", session: int = 1,
             "changed_only": changed,
         },
         "checks": list(protocol.checks),
+        "warnings": list(protocol.warnings),
         "analysis_plan": {"path": protocol.analysis_plan, "found": plan_file is not None},
         "example_plan": {"participant": participant, "session": session,
                          "counterbalance": counterbalance, "seed": plan.seed,
@@ -223,6 +218,9 @@ def _text(s: dict) -> str:
                      f"{c['median_latency_ms']:.0f} ms")
     lines.append("checks passed:")
     lines += [f"  ok  {c}" for c in s["checks"]]
+    if s["warnings"]:
+        lines.append("warnings (odd but legal values; see protocols/README.md, \"Warnings\"):")
+        lines += [f"  warning  {w}" for w in s["warnings"]]
     plan = s["analysis_plan"]
     state = "found" if plan["found"] else "NOT FOUND: declare it before the first real session"
     lines.append(f"analysis plan {plan['path']}: {state}")
