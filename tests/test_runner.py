@@ -119,6 +119,63 @@ def test_a_session_runs_and_is_stored(tmp_path, devices):
     assert device.closed and np.all(device.current == 0)  # left neutral
 
 
+class _StartRecorder(RandomResponder):
+    """A random responder noting when each trial starts (just before its first frame)."""
+
+    def __init__(self, seed, events):
+        super().__init__(seed)
+        self.events = events
+
+    def begin_trial(self, trial, now, clock):
+        self.events.append(("start", trial.index))
+        super().begin_trial(trial, now, clock)
+
+
+def _record_tsv_fsyncs(monkeypatch, tsv, events):
+    """Wrap os.fsync: each fsync of the session's _beh.tsv is noted with the number of rows
+    the file holds at that moment (the rows written, and now made durable)."""
+    import os
+
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        if tsv.exists() and os.path.samestat(os.fstat(fd), os.stat(tsv)):
+            events.append(("fsync", tsv.read_bytes().count(b"\n") - 1))  # minus the header
+        return real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+
+
+def test_each_row_is_fsynced_before_the_next_trial_starts(tmp_path, devices, monkeypatch):
+    """Issue 4, item 6: each completed trial is appended to _beh.tsv and made durable (written,
+    then fsynced) before the next trial starts. The order of fsyncs of the TSV and trial
+    starts is recorded; before trial k starts, the TSV was fsynced holding its k rows."""
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path))
+    events: list[tuple[str, int]] = []
+    tsv = spec.dataset / "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
+    _record_tsv_fsyncs(monkeypatch, tsv, events)
+    result = run_session(spec, responder=_StartRecorder(5, events))
+    assert result.status == "complete" and result.trials_completed == 8
+    starts = [i for i, (kind, _) in enumerate(events) if kind == "start"]
+    assert [events[i][1] for i in starts] == list(range(8))
+    for k, at in enumerate(starts):
+        synced = [n for kind, n in events[:at] if kind == "fsync"]
+        assert synced and synced[-1] == k, (k, events[:at])  # rows 0..k-1 durable, no more
+    assert events[-1] == ("fsync", 8)  # and the last row before the session ends
+
+
+def test_the_durability_order_test_sees_a_missing_fsync(tmp_path, devices, monkeypatch):
+    """The check above fails when rows are not fsynced per trial: a dry-run's store
+    (durable=False) syncs only when the session stops."""
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path), durable=False)
+    events: list[tuple[str, int]] = []
+    tsv = spec.dataset / "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
+    _record_tsv_fsyncs(monkeypatch, tsv, events)
+    run_session(spec, responder=_StartRecorder(5, events))
+    synced = [n for kind, n in events if kind == "fsync"]
+    assert synced[-1] == 8 and not any(0 < n < 8 for n in synced)
+
+
 def test_a_complete_session_is_never_rewritten(tmp_path, devices):
     spec = spec_for(tmp_path, tiny_protocol(tmp_path))
     first = run_session(spec)
