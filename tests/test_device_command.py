@@ -492,3 +492,30 @@ def test_check_plans_the_protocol_with_the_devices_refresh(capsys):
     assert off["rate_bound_hz"] == off["changed_only_rate_hz"]
     assert on["latency_ms_max"] == pytest.approx(64 * 10 / 9.6)  # a refresh frame: 66.7 ms
     assert on["latency_ms_max"] > off["latency_ms_max"]
+
+
+def test_monitor_finds_a_reply_behind_a_false_header_once_the_line_is_quiet(monkeypatch,
+                                                                            capsys):
+    # 55 55 05 06 + the reply's first bytes would pass for a frame (codec, "False headers");
+    # the read that comes back empty (the line is quiet) decides for the real reply
+    class Port:
+        in_waiting = 0
+
+        def __init__(self) -> None:
+            self.chunks = [bytes.fromhex("55 55 05 06 55 55 04 0F 4C 1D"), b""]
+
+        def read(self, n: int) -> bytes:
+            if self.chunks:
+                return self.chunks.pop(0)
+            raise KeyboardInterrupt
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
+                        lambda spec, **kw: Port())
+    assert main(["device", "monitor", "--port", "loop://", "--direction", "board"]) == 0
+    out = capsys.readouterr().out
+    assert "@4       BatteryVoltage millivolts=7500" in out
+    assert "skipped 4 byte(s) (false header: not followed by a header" in out
+    assert "1 frame(s), 4 byte(s) skipped" in out

@@ -74,6 +74,16 @@ def test_battery_is_read_on_open_even_after_garbage(layout2d, boards):
         assert device.battery_mv() == [7400.0, 7400.0]
 
 
+@pytest.mark.parametrize("garbage", ["55 55 05 06", "00 55 55 04 0F 12", "55 55 0C 15"],
+                         ids=["eats-3-bytes", "eats-1-byte", "cut-off-by-silence"])
+def test_battery_is_read_on_open_after_a_false_header(layout1d, boards, garbage):
+    # garbage that starts a plausible frame which, glued to the reply, passes every check
+    # (codec module docstring, "False headers"): the reply is still found, not swallowed
+    (board,) = boards(1, battery_mv=7400, garbage=bytes.fromhex(garbage))
+    with SerialDevice.from_url(url_of([board]), layout1d, **FAST) as device:
+        assert device.battery_mv() == [7400.0]
+
+
 def test_silent_board_gives_none_and_a_warning(layout1d):
     # loop:// echoes our own request, which is not a battery reply
     device = SerialDevice.from_url("serial://loop://", layout1d, battery_timeout_s=0.05)

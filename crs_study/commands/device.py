@@ -440,7 +440,10 @@ def _monitor(args: argparse.Namespace) -> int:
                 data = port.read(max(1, port.in_waiting))
             except (serial.SerialException, OSError) as exc:
                 raise DeviceError(f"--port {spec}: read failed: {exc}") from None
-            events = [(f.offset, _describe(f.message)) for f in decoder.feed(data)]
+            # an empty read: the line was quiet for the read timeout; frames held back for
+            # the bytes after them (a possible false header) are decided now
+            events = [(f.offset, _describe(f.message))
+                      for f in (decoder.feed(data) if data else decoder.idle())]
             runs = _join([*held, *decoder.take_skipped()])
             # a run that reaches the end of what was read may go on in the next read
             held = [runs.pop()] if runs and runs[-1].offset + len(runs[-1].data) == \
@@ -461,7 +464,10 @@ def _monitor(args: argparse.Namespace) -> int:
             port.close()
         except (serial.SerialException, OSError):
             pass  # a vanished port may fail to close; the read error above says why
-        decoder.flush()
+        last = decoder.flush()
+        for f in last:
+            print(f"end of stream: @{f.offset} {_describe(f.message)}")
+        frames += len(last)
         for s in _join([*held, *decoder.take_skipped()]):
             print(f"end of stream: skipped {len(s.data)} byte(s) ({s.reason}): "
                   f"{s.data.hex(' ')}")

@@ -45,6 +45,19 @@ length, command and values; a candidate that fails is dropped one byte at a time
 decoder resynchronises on the next real header. For any input at all the decoder never raises,
 accounts for every byte (frames + skipped + pending = bytes fed) and gives the same result
 however the stream is cut into chunks.
+
+False headers (no checksum can expose them): garbage such as ``55 55 05 06`` right before the
+battery reply ``55 55 04 0F 4C 1D`` makes a candidate (action group running, group 0x55) that
+passes every check by taking the first three bytes of the real reply, which would be lost. So
+a valid candidate inside which another header starts (a *rival*) is taken only when the bytes
+decide for it: it is dropped (one byte, as above) when a rival is a valid frame that ends where
+the candidate ends, or when the candidate is not followed by a header and a rival is (a real
+frame is followed by the next frame's header, or by silence). The decoder waits for the bytes
+that decide; :meth:`FrameDecoder.idle` (the line went quiet: what has come is the end of a
+burst) and :meth:`FrameDecoder.flush` (end of stream) decide with what there is, silence
+counting as a boundary. A valid frame is lost only if it contains a header that starts another
+valid frame ending at a header or at silence, while it is itself followed by garbage: the
+bytes then cannot tell the two apart.
 """
 
 from __future__ import annotations
@@ -541,8 +554,10 @@ class FrameDecoder:
     """Streaming LSC decoder: ``feed(bytes) -> list[Frame]``; garbage goes to :attr:`skipped`.
 
     Adjacent skipped bytes are merged into one :class:`Skipped` run (the reason is the first
-    one's). :meth:`take_skipped` hands the runs over and forgets them; :meth:`flush` ends the
-    stream, reporting an unfinished frame as skipped ("truncated").
+    one's). :meth:`take_skipped` hands the runs over and forgets them. A reader that sees the
+    line go quiet (a read timed out empty) calls :meth:`idle`, which decides frames held back
+    for the bytes after them (false headers, module docstring); :meth:`flush` ends the stream,
+    returning those frames and reporting an unfinished frame as skipped ("truncated").
     """
 
     direction: Direction | str = Direction.HOST
@@ -572,9 +587,10 @@ class FrameDecoder:
 
     def feed(self, data: bytes) -> list[Frame]:
         if not self._buffer and len(data) >= 4 and data[2] + 2 == len(data) \
-                and data[:2] == HEADER:
-            # nothing held back and ``data`` is one candidate frame (the usual chunk): decode it
-            # directly; the general loop below gives the same result, only slower
+                and data[:2] == HEADER and data.find(HEADER, 2) < 0 and data[-1] != 0x55:
+            # nothing held back and ``data`` is one candidate frame (the usual chunk) with no
+            # header inside it: decode it directly; the general loop gives the same result,
+            # only slower
             try:
                 _check_length(self.direction, data[3], data[2])
                 message = _parse(self.direction, data[3], bytes(data[4:]))
@@ -586,6 +602,15 @@ class FrameDecoder:
                 self.frames_decoded += 1
                 return [frame]
         self._buffer += data
+        return self._scan(quiet=False)
+
+    def idle(self) -> list[Frame]:
+        """The line went quiet: frames held back for the bytes after them are decided now,
+        the silence counting as a frame boundary. An unfinished frame stays pending."""
+        return self._scan(quiet=True) if self._buffer else []
+
+    def _scan(self, quiet: bool) -> list[Frame]:
+        """Frame what the buffer holds; ``quiet``: no more bytes follow for now."""
         frames: list[Frame] = []
         buf = self._buffer
         pos = 0
@@ -610,11 +635,25 @@ class FrameDecoder:
                 continue
             end = pos + length + 2
             if len(buf) < end:
-                break
+                # unfinished: wait for the rest, unless the line is quiet and a frame that
+                # starts inside it is complete (a false header cut off the reply after it)
+                verdict = self._rivals(buf, pos, end, quiet) if quiet else None
+                if not verdict:
+                    break
+                self._skip(pos, pos + 1, verdict)
+                pos += 1
+                continue
             try:
                 message = _parse(self.direction, code, bytes(buf[pos + 4:end]))
             except _Invalid as exc:
                 self._skip(pos, pos + 1, str(exc))
+                pos += 1
+                continue
+            verdict = self._rivals(buf, pos, end, quiet)
+            if verdict is None:
+                break  # the bytes that decide have not come yet
+            if verdict:
+                self._skip(pos, pos + 1, verdict)
                 pos += 1
                 continue
             frames.append(Frame(self._offset + pos, bytes(buf[pos:end]), message))
@@ -625,11 +664,75 @@ class FrameDecoder:
         return frames
 
     def flush(self) -> list[Frame]:
-        """End of stream: whatever is pending can no longer complete; report it skipped."""
+        """End of stream: the frames still held back are decided (as by :meth:`idle`) and
+        returned; whatever else is pending can no longer complete and is reported skipped."""
+        frames = self.idle()
         self._skip(0, len(self._buffer), "truncated frame")
         self._offset += len(self._buffer)
         self._buffer.clear()
-        return []
+        return frames
+
+    # -- false headers (module docstring) ----------------------------------------------------
+
+    def _anchored(self, buf: bytearray, at: int, quiet: bool) -> bool | None:
+        """Whether a frame ending at ``at`` is followed by a header (None: not known yet)."""
+        if len(buf) >= at + 2:
+            return buf[at] == 0x55 and buf[at + 1] == 0x55
+        if len(buf) == at:
+            return True if quiet else None  # silence after it is a boundary
+        return None if buf[at] == 0x55 and not quiet else False
+
+    def _rival(self, buf: bytearray, j: int, quiet: bool) -> tuple[int, bool | None] | None:
+        """The frame a header at ``j`` would start: (its end, whether it is followed by a
+        header); None when it cannot be a valid frame; (-1, None) when not known yet."""
+        n = len(buf)
+        if j + 1 >= n or (buf[j + 1] == 0x55 and j + 4 > n):
+            return None if quiet else (-1, None)
+        if buf[j + 1] != 0x55:
+            return None
+        length, code = buf[j + 2], buf[j + 3]
+        try:
+            _check_length(self.direction, code, length)
+            end = j + length + 2
+            if end > n:
+                return None if quiet else (-1, None)
+            _parse(self.direction, code, bytes(buf[j + 4:end]))
+        except _Invalid:
+            return None
+        return end, self._anchored(buf, end, quiet)
+
+    def _rivals(self, buf: bytearray, pos: int, end: int, quiet: bool) -> str | None:
+        """Decide the valid candidate ``buf[pos:end]``: "" takes it, a reason drops its first
+        byte, None waits for more bytes (module docstring, "False headers"). A candidate not
+        complete yet (``end`` beyond the buffer) is only ever dropped or waited for."""
+        j = buf.find(b"\x55", pos + 2, end)
+        if j < 0:
+            return "" if end <= len(buf) else None  # no header inside: nothing to weigh
+        rivals = []
+        while j >= 0:
+            rival = self._rival(buf, j, quiet)
+            if rival is not None:
+                if rival[0] == end:
+                    return (f"false header: a frame at offset {self._offset + j} ends where "
+                            f"this one does")
+                rivals.append((j, rival))
+            j = buf.find(b"\x55", j + 1, end)
+        if end > len(buf):
+            anchored: bool | None = False if quiet else None  # cut off by the silence
+        elif not rivals:
+            return ""
+        else:
+            anchored = self._anchored(buf, end, quiet)
+        if anchored:
+            return ""
+        if anchored is False:
+            for j, (_, rival_anchored) in rivals:
+                if rival_anchored:
+                    return (f"false header: not followed by a header, unlike the frame at "
+                            f"offset {self._offset + j} inside it")
+        if end <= len(buf) and all(rival_anchored is False for _, (_, rival_anchored) in rivals):
+            return ""
+        return None
 
     def take_skipped(self) -> list[Skipped]:
         runs, self.skipped = self.skipped, []
@@ -653,5 +756,5 @@ def decode_all(data: bytes, direction: Direction | str = Direction.HOST
     """Decode a complete byte string: its frames, and every skipped run (tail included)."""
     decoder = FrameDecoder(direction)
     frames = decoder.feed(data)
-    decoder.flush()
+    frames += decoder.flush()
     return frames, decoder.skipped

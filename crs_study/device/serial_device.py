@@ -232,7 +232,9 @@ class _Port:
             deadline = time.monotonic() + options.battery_timeout_s
             while time.monotonic() < deadline:
                 data = self.serial.read(max(1, self.serial.in_waiting))
-                for frame in self.decoder.feed(data):
+                # a read that times out empty: the line is quiet, the reply (if any) is in;
+                # the decoder decides a frame it held back behind a possible false header
+                for frame in self.decoder.feed(data) if data else self.decoder.idle():
                     if isinstance(frame.message, BatteryVoltage):
                         return frame.message.millivolts
         except Exception as exc:  # noqa: BLE001 - pyserial raises several kinds
@@ -350,7 +352,7 @@ class _Port:
                         self.error = exc
                     self.cond.notify_all()
                 return
-            for frame in self.decoder.feed(data):
+            for frame in self.decoder.feed(data) if data else self.decoder.idle():
                 if isinstance(frame.message, BatteryVoltage):
                     self.battery_mv = frame.message.millivolts
 

@@ -334,8 +334,10 @@ class VirtualController:
         return replies
 
     def end_of_stream(self) -> None:
-        """The line went quiet for good: an unfinished frame is a bad frame."""
-        self.decoder.flush()
+        """The line went quiet for good: a frame the decoder held back for the bytes after it
+        is acted on (nobody hears a reply); an unfinished frame is a bad frame."""
+        for frame in self.decoder.flush():
+            self._act(self._plan(frame.message), self.last_time)
         if self.decoder.skipped:
             self._count_bad()
 
