@@ -55,9 +55,10 @@ the candidate ends, or when the candidate is not followed by a header and a riva
 frame is followed by the next frame's header, or by silence). The decoder waits for the bytes
 that decide; :meth:`FrameDecoder.idle` (the line went quiet: what has come is the end of a
 burst) and :meth:`FrameDecoder.flush` (end of stream) decide with what there is, silence
-counting as a boundary. A valid frame is lost only if it contains a header that starts another
-valid frame ending at a header or at silence, while it is itself followed by garbage: the
-bytes then cannot tell the two apart.
+counting as a boundary. What the bytes cannot decide is still lost, in two cases: a real
+frame followed by garbage (not by a header or silence) behind a false header that takes its
+first bytes, and a real frame followed by garbage that holds a header starting another valid
+frame which is followed by a header or silence.
 """
 
 from __future__ import annotations
