@@ -14,8 +14,31 @@ estimates") applied to each entropy of ``T = H(S) + H(R) - H(S, R)`` subtracts
 ``(m_SR - m_S - m_R + 1) / (2 N ln 2)``,
 
 ``m`` counting the non-empty cells of each distribution; this is the first-order bias of
-Panzeri & Treves 1996 (Network 7:87) with the "naive" count of relevant bins. The interval is
-a seeded percentile bootstrap that resamples participants (their trials together) or trials.
+Panzeri & Treves 1996 (Network 7:87) with the "naive" count of relevant bins.
+
+The interval is a seeded bootstrap that resamples participants (their trials together) or
+trials. A percentile interval around ``T`` inherits the upward bias twice over: the resampled
+matrices are sparser than the data, so their values sit above the estimate by about the bias
+the estimate itself has above the truth (measured: coverage 20-95 % across designs, 47 % with
+6 participants x 3 repetitions of 10 digits). The interval is therefore the *basic* (pivotal)
+bootstrap interval, whose pivot is the estimate minus the value of the resampled population,
+i.e. the plug-in ``T`` of the observed matrix (Davison & Hinkley 1997, Bootstrap Methods and
+their Application, sec. 5.2): ``[T_hat - (q_hi - T_plugin), T_hat - (q_lo - T_plugin)]``
+with ``q`` quantiles of the resampled (bias-corrected) values. With few participants a
+bootstrap spread is too narrow (by ``sqrt((n - 1) / n)``, and like a z instead of a t
+interval); the quantiles are taken at
+Hesterberg's expanded level ``Phi(-sqrt(n / (n - 1)) t_{n-1}(1 - alpha/2))`` instead of
+``alpha / 2`` (Hesterberg 2015, Am. Stat. 69:371, the "expanded percentile interval";
+``n`` the participants resampled, or the trials). The ends are kept within ``[0, H(stimulus)]``,
+the range of ``T``. Measured coverage of the 95 % interval
+(:mod:`crs_study.analysis.confusion_simulate`, 400 datasets a design): 84-98 % from 3
+participants x 3 repetitions up (90-97 % but for 6 participants whose accuracies vary widely,
+logit sd 1: 84 %), 90 % for one participant x 20 repetitions, against 20-95 % and 44 % for
+the percentile interval; BCa (``scipy.stats.bootstrap``) does worse than the percentile one
+(36-68 % below 10 participants: nearly every resample lies above the estimate, so its bias
+correction runs off the end of the distribution). With no more answered trials than cells in
+the matrix the bias correction itself falls short (55-85 % for one participant x 5-10
+repetitions of 10 digits) and a warning says so.
 """
 
 from __future__ import annotations
@@ -24,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from scipy import special, stats
 
 LN2 = np.log(2.0)
 
@@ -39,13 +63,18 @@ def confusion_counts(trials: pd.DataFrame, labels: list[int]) -> pd.DataFrame:
 
 
 def entropy_bits(counts: np.ndarray, axis: int | None = None) -> np.ndarray:
-    """Plug-in Shannon entropy (bits) of counts, over the last axes or all."""
+    """Plug-in Shannon entropy (bits) of counts over ``axis`` (all when None); 0 when empty.
+
+    ``H = log2 N - sum_i c_i log2 c_i / N``: the same as ``scipy.stats.entropy(counts,
+    base=2)``, in one pass over the counts (``scipy.special.xlogy`` gives ``0 log 0 = 0``),
+    which matters for the thousands of matrices of a bootstrap.
+    """
     counts = np.asarray(counts, dtype=float)
-    total = counts.sum(axis=axis, keepdims=True)
+    total = counts.sum(axis=axis)
     with np.errstate(divide="ignore", invalid="ignore"):
-        p = np.where(counts > 0, counts / total, 0.0)
-        terms = np.where(p > 0, -p * np.log2(np.where(p > 0, p, 1.0)), 0.0)
-    return terms.sum(axis=axis)
+        h = (special.xlogy(total, total) - special.xlogy(counts, counts).sum(axis=axis)) \
+            / (total * LN2)
+    return np.where(total > 0, np.maximum(h, 0.0), 0.0)
 
 
 def information_transfer(counts: np.ndarray, bias_correction: str = "miller-madow"
@@ -70,7 +99,7 @@ def information_transfer(counts: np.ndarray, bias_correction: str = "miller-mado
 @dataclass(frozen=True)
 class ConfusionResult:
     """Per condition: ``counts`` and row ``proportions`` (K x K), the transmitted information
-    ``bits`` (bias-corrected as named), ``bits_plugin``, ``ci95`` (bootstrap), the stimulus
+    ``bits`` (bias-corrected as named), ``bits_plugin``, ``ci95`` (basic bootstrap), the stimulus
     entropy ``stimulus_bits``, ``relative`` = bits / stimulus_bits, ``n_trials``,
     ``n_no_response`` (time-outs, not in the matrix)."""
 
@@ -134,7 +163,7 @@ def analyse_confusions(trials: pd.DataFrame, conditions: list[str],
 
 def _bootstrap(trials: pd.DataFrame, labels: list[int], bias_correction: str, n_boot: int,
                unit: str, rng: np.random.Generator, alpha: float):
-    """Percentile bootstrap of the transmitted information; returns (ci, info, note)."""
+    """Bootstrap interval of the transmitted information; returns (ci, info, note)."""
     if n_boot == 0:
         return None, {}, "no bootstrap interval (plan.confusion.bootstrap = 0)"
     answered = trials.loc[trials["response"].notna()]
@@ -144,27 +173,69 @@ def _bootstrap(trials: pd.DataFrame, labels: list[int], bias_correction: str, n_
     k = len(labels)
     cells = answered["digit"].map(index).to_numpy() * k + \
         answered["response"].astype("int64").map(index).to_numpy()
-    note = ""
+    notes = []
     participants = answered["participant_id"].to_numpy()
     units = pd.unique(participants)
     if unit == "participant" and len(units) < 2:
-        note = ("one participant only: resampled trials instead of participants (the interval "
-                "ignores differences between participants)")
+        notes.append("one participant only: resampled trials instead of participants (the "
+                     "interval ignores differences between participants)")
         unit = "trial"
+    codes = pd.Categorical(participants, categories=units).codes
+    per_unit = np.zeros((len(units), k * k))
+    np.add.at(per_unit, (codes, cells), 1.0)
+    ci, info = bootstrap_interval(per_unit.reshape(-1, k, k), bias_correction, n_boot, unit,
+                                  rng, alpha)
+    if len(answered) <= k * k:
+        notes.append(f"{len(answered)} answered trials for the {k * k} cells of a {k} x {k} "
+                     "matrix: too few for the bias correction, so the estimate and its "
+                     "interval tend to lie above the true value")
+    return ci, info, "; ".join(notes)
+
+
+def bootstrap_interval(per_unit: np.ndarray, bias_correction: str, n_boot: int, unit: str,
+                       rng: np.random.Generator, alpha: float = 0.05
+                       ) -> tuple[tuple[float, float], dict]:
+    """Expanded basic bootstrap interval of the transmitted information (module notes).
+
+    Parameters
+    ----------
+    per_unit : counts ``(n_units, K, K)``, one confusion matrix per participant.
+    bias_correction : ``"miller-madow"`` or ``"none"``, the estimator the interval is for.
+    n_boot : resamples.
+    unit : ``"participant"`` resamples the matrices (participants with all their trials);
+        ``"trial"`` resamples the pooled trials (a multinomial draw from the pooled matrix).
+    rng, alpha : the generator, and ``1 - level``.
+
+    Returns
+    -------
+    ``(low, high)`` and ``info``: ``method``, ``resamples``, ``unit``, ``n_units`` (the ``n``
+    of the expansion) and ``tail`` (the probability in each tail of the resamples used).
+    """
+    per_unit = np.asarray(per_unit, dtype=float)
+    k = per_unit.shape[-1]
+    flat = per_unit.reshape(len(per_unit), k * k)
+    observed = flat.sum(axis=0)
+    estimate = float(information_transfer(observed.reshape(k, k), bias_correction))
+    plugin = float(information_transfer(observed.reshape(k, k), "none"))
     if unit == "participant":
-        codes = pd.Categorical(participants, categories=units).codes
-        per_unit = np.zeros((len(units), k * k))
-        np.add.at(per_unit, (codes, cells), 1.0)
-        draws = rng.integers(0, len(units), size=(n_boot, len(units)))
-        # counts of each participant in each resample, times their matrices
-        weights = np.zeros((n_boot, len(units)))
-        np.add.at(weights, (np.repeat(np.arange(n_boot), len(units)), draws.ravel()), 1.0)
-        samples = weights @ per_unit
+        n = len(flat)
+        draws = rng.integers(0, n, size=(n_boot, n))
+        # each participant's count in each resample, times their matrices
+        weights = np.zeros((n_boot, n))
+        np.add.at(weights, (np.repeat(np.arange(n_boot), n), draws.ravel()), 1.0)
+        samples = weights @ flat
     else:
-        observed = np.bincount(cells, minlength=k * k).astype(float)
-        samples = rng.multinomial(int(observed.sum()), observed / observed.sum(),
-                                  size=n_boot).astype(float)
+        n = int(observed.sum())
+        samples = rng.multinomial(n, observed / observed.sum(), size=n_boot).astype(float)
     bits = information_transfer(samples.reshape(n_boot, k, k), bias_correction)
-    low, high = np.quantile(bits, [alpha / 2, 1 - alpha / 2])
-    info = {"method": "percentile", "resamples": n_boot, "unit": unit}
-    return (float(low), float(high)), info, note
+    # Hesterberg's expanded tail: sqrt(n / (n - 1)) t_{n-1} standard errors instead of z
+    tail = float(stats.norm.cdf(-np.sqrt(n / (n - 1)) * stats.t.ppf(1 - alpha / 2, n - 1))
+                 ) if n > 1 else alpha / 2
+    q_low, q_high = np.quantile(bits, [tail, 1.0 - tail])
+    top = float(entropy_bits(observed.reshape(k, k).sum(axis=1)))
+    low = min(max(estimate - (q_high - plugin), 0.0), top)
+    high = min(max(estimate - (q_low - plugin), 0.0), top)
+    info = {"method": "basic bootstrap around the plug-in value, expanded for the number "
+                      "resampled (Hesterberg 2015)", "resamples": n_boot, "unit": unit,
+            "n_units": n, "tail": tail}
+    return (low, high), info
