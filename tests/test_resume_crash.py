@@ -1,61 +1,195 @@
 """Crash safety: SIGKILL at random moments, then the same command, until the session is done.
 
-30 runs of ``crs-study run ... --device sim:// --clock virtual --responder random`` are each
-killed (SIGKILL, no clean-up) at a seeded random moment after they start playing or replaying
-trials; each is followed by the same command. When a session completes before the 30 kills
-are spent, the next session number continues. Every session must end byte-identical to an
-uninterrupted run of the same command: the trial file (every column: on a virtual clock no
-column depends on wall time) and the per-frame device log. Only the sidecar's wall-clock
-fields differ: StartTime, EndTime and Resumes (when the session was resumed).
+30 runs of ``crs-study run ... --device sim:// --clock virtual`` (15 with the perceptual
+observer, whose answers depend on the device's exact history, on sessions 1, 2, ..; 15 with
+the random responder on sessions 101, 102, ..; the two series run side by side) are each
+killed (SIGKILL, no clean-up) at a seeded random moment; each is followed by the same
+command. When a session completes, the next session number continues. Every session must end
+byte-identical to an uninterrupted run of the same command: the trial file (every column: on
+a virtual clock no column depends on wall time) and the per-frame device log; the sidecars
+differ only in their wall-clock fields (StartTime, EndTime, Resumes), and no temporary file
+is left behind.
+
+Where the kills land. The child is ``crs_study.cli.main`` behind a few wrappers (:data:`CHILD`)
+that append phase markers (monotonic time, phase) to a file: trial k begins, trial k's row is
+stored, a sidecar write begins and ends (``running`` after each trial, ``complete`` at the
+end), a replay of stored trials begins and ends. Each kill is classified by the last marker
+before it (:func:`phase_at`): start-up (interpreter, imports, protocol checks, the first
+sidecar), replay, mid-trial, between trials (the row stored, the sidecar not yet rewritten,
+the next trial not begun), the completion write, after completion. The moments are drawn
+from four kinds, each responder's 15 kills in a seeded random order (:func:`schedule`):
+
+* 3 start-up: uniform over the start-up of an uninterrupted run (measured on the series'
+  first reference run) plus half the trial time of the rows a resumed run replays;
+* 6 time: uniform over the trials this run has still to play, from its first trial;
+* 3 between trials: the child holds for ``HOLD_S`` just after storing the row of a trial
+  drawn from those still to run, and the kill falls at a uniform moment of the hold;
+* 3 completion write (once half the session is stored): the child holds for ``HOLD_S``
+  inside the final sidecar write (the temporary file written and fsynced, not yet renamed;
+  ``os.replace`` is where it waits), and the kill falls at a uniform moment from the start
+  of that write to the end of the hold.
+
+A run's wall time is about 1 s of start-up (mostly importing scipy) and half a second of
+trials, and a trial's sidecar write lasts about a millisecond, so kills uniform in time
+would mostly land in start-up and almost never between trials or in the completion write;
+the strata and the holds (which change nothing that is written) spread them over the whole
+session. The spread achieved is printed (``pytest -s``) and each of start-up, mid-trial,
+between trials and completion write must be hit.
 """
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
+import contextlib
 import csv
 import gzip
 import json
 import os
 import random
-import select
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from _session_helpers import tiny_protocol
 
 KILLS = 30
+HOLD_S = 0.25
 WALL_CLOCK_SIDECAR_KEYS = {"StartTime", "EndTime", "Resumes"}
 
+#: The child process: crs_study.cli.main with phase markers and the optional holds (module
+#: docstring). Environment: CRS_TEST_PHASES (marker file), CRS_TEST_HOLD_ROW (trial index),
+#: CRS_TEST_HOLD_COMPLETE (1), CRS_TEST_HOLD_S.
+CHILD = r"""
+import os, sys, time
 
-def command(protocol, dataset, session, responder):
-    return [sys.executable, "-m", "crs_study", "run", str(protocol), "--participant", "p01",
-            "--device", "sim://", "--out", str(dataset), "--responder", responder,
-            "--clock", "virtual", "--session", str(session)]
+PHASES = os.environ["CRS_TEST_PHASES"]
+HOLD_S = float(os.environ.get("CRS_TEST_HOLD_S", "0"))
+HOLD_ROW = int(os.environ.get("CRS_TEST_HOLD_ROW", "-1"))
+HOLD_COMPLETE = os.environ.get("CRS_TEST_HOLD_COMPLETE") == "1"
 
 
-def responders() -> list[str]:
-    """The responder of each half of the kills: the perceptual observer (its answers depend on
-    the displayed surface, so on the device's exact history) and the random responder."""
-    return ["observer", "random"]
+def mark(what):
+    fd = os.open(PHASES, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    os.write(fd, f"{time.monotonic():.6f} {what}\n".encode())
+    os.close(fd)
 
 
-def wait_for_trials(process, timeout=60.0) -> bool:
-    """Read the child's progress on stderr until it reports a trial (True) or exits (False)."""
+mark("process")
+import crs_study.dataset as dataset
+import crs_study.runner as runner
+from crs_study.cli import main
+
+mark("imported")
+real_run_trial, real_save, real_replay = runner._run_trial, runner._save, runner._replay
+real_append_row, real_replace = dataset.SessionStore.append_row, os.replace
+completing = False
+
+
+def run_trial(state, device, responder, clock, origin, cache, trial):
+    mark(f"trial {trial.index}")
+    real_run_trial(state, device, responder, clock, origin, cache, trial)
+
+
+def append_row(self, row):
+    real_append_row(self, row)
+    mark(f"row {row['trial_index']}")
+    if row["trial_index"] == HOLD_ROW:
+        mark(f"hold row {HOLD_ROW}")
+        time.sleep(HOLD_S)
+
+
+def save(state, status, final=False):
+    global completing
+    mark(f"save-begin {status}")
+    completing = status == "complete"
+    real_save(state, status, final)
+    completing = False
+    mark(f"save-end {status}")
+
+
+def replace(src, dst, *args, **kwargs):
+    if completing and HOLD_COMPLETE and str(dst).endswith("_beh.json"):
+        mark("hold complete")
+        time.sleep(HOLD_S)
+    return real_replace(src, dst, *args, **kwargs)
+
+
+def replay(*args):
+    mark("replay-begin")
+    real_replay(*args)
+    mark("replay-end")
+
+
+runner._run_trial, runner._save, runner._replay = run_trial, save, replay
+dataset.SessionStore.append_row = append_row
+os.replace = replace
+sys.exit(main(sys.argv[1:]))
+"""
+
+PHASE_NAMES = ("start-up", "replay", "mid-trial", "between trials", "completion write",
+               "after completion")
+
+
+def arguments(protocol, dataset, session, responder):
+    return ["run", str(protocol), "--participant", "p01", "--device", "sim://", "--out",
+            str(dataset), "--responder", responder, "--clock", "virtual", "--session",
+            str(session)]
+
+
+def start(protocol, dataset, session, responder, phases: Path, **holds) -> subprocess.Popen:
+    env = dict(os.environ, CRS_TEST_PHASES=str(phases), CRS_TEST_HOLD_S=str(HOLD_S))
+    env.update({f"CRS_TEST_HOLD_{k.upper()}": str(v) for k, v in holds.items()})
+    return subprocess.Popen([sys.executable, "-c", CHILD,
+                             *arguments(protocol, dataset, session, responder)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+
+
+def markers(phases: Path) -> list[tuple[float, str]]:
+    if not phases.exists():
+        return []
+    out = []
+    for line in phases.read_text().splitlines():
+        stamp, _, what = line.partition(" ")
+        out.append((float(stamp), what))
+    return out
+
+
+def phase_at(events: list[tuple[float, str]], moment: float) -> str:
+    """Where a process was at ``moment``: the phase its last marker before then opened."""
+    state = "start-up"
+    for stamp, what in events:
+        if stamp > moment:
+            break
+        kind = what.split()[0]
+        if kind == "replay-begin":
+            state = "replay"
+        elif kind == "replay-end":
+            state = "start-up"  # a resumed run after its replay, before its next trial
+        elif kind == "trial":
+            state = "mid-trial"
+        elif kind in ("row", "hold"):
+            state = "completion write" if what == "hold complete" else "between trials"
+        elif what == "save-begin complete":
+            state = "completion write"
+        elif what == "save-end complete":
+            state = "after completion"
+    return state
+
+
+def wait_for(phases: Path, what: str, process: subprocess.Popen, timeout=60.0) -> bool:
+    """Poll the marker file until ``what`` appears (True) or the process ends (False)."""
     deadline = time.monotonic() + timeout
-    seen = b""
-    fd = process.stderr.fileno()
     while time.monotonic() < deadline:
-        ready, _, _ = select.select([fd], [], [], 0.5)
-        if ready:
-            chunk = os.read(fd, 4096)
-            if not chunk:
-                return False
-            seen += chunk
-            if b"trial" in seen:
-                return True
-    raise AssertionError(f"no progress within {timeout} s: {seen!r}")
+        if any(w == what for _, w in markers(phases)):
+            return True
+        if process.poll() is not None:
+            return False
+        time.sleep(0.002)
+    raise AssertionError(f"{what!r} not reached within {timeout} s")
 
 
 def session_files(dataset, session):
@@ -65,59 +199,153 @@ def session_files(dataset, session):
     return beh.with_suffix(".tsv"), beh.with_suffix(".json"), frames
 
 
+def stored_rows(dataset, session) -> int:
+    """Whole rows in a session's TSV (a torn last line is rerun, so it does not count)."""
+    tsv = session_files(dataset, session)[0]
+    return max(0, tsv.read_bytes().count(b"\n") - 1) if tsv.exists() else 0
+
+
+def is_complete(dataset, session) -> bool:
+    sidecar = session_files(dataset, session)[1]
+    try:
+        return json.loads(sidecar.read_text())["Status"] == "complete"
+    except (FileNotFoundError, ValueError):
+        return False
+
+
+def schedule(rng: random.Random) -> list[str]:
+    """The kinds of one responder's kills, in a seeded random order."""
+    kinds = ["start-up"] * 3 + ["time"] * 6 + ["between trials"] * 3 + ["completion write"] * 3
+    rng.shuffle(kinds)
+    return kinds
+
+
 @pytest.mark.slow
 def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path):
-    protocol = tiny_protocol(tmp_path, digits=tuple(range(10)), repetitions=2)
+    protocol = tiny_protocol(tmp_path, digits=(1, 4, 7), repetitions=4)
+    planned = 26  # 3 digits x 2 conditions x 4 + 2 practice
     dataset = tmp_path / "killed"
-    rng = random.Random(20261122)
-    kills, session, sessions = 0, 0, []  # sessions: (number, responder)
-    for phase, responder in enumerate(responders()):
-        session += 1
-        while kills < KILLS // 2 * (phase + 1):
-            process = subprocess.Popen(command(protocol, dataset, session, responder),
-                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    references: dict[int, subprocess.Popen] = {}
+
+    def reference(number, responder, phases=None):
+        """The uninterrupted run of a session, in the background (compared at the end)."""
+        if number not in references:
+            references[number] = start(protocol, tmp_path / f"whole-{number}", number,
+                                       responder, phases or tmp_path / f"whole-{number}.log")
+
+    def kill_sessions(responder: str, session: int, rng: random.Random):
+        """15 kills of sessions session, session + 1, .. run with ``responder``.
+
+        Returns the kills (kind, phase hit, time from process start as a fraction of an
+        uninterrupted run's life), the sessions (number, responder) and the runs made.
+        """
+        # The first session's reference first: how long start-up and a trial take.
+        timing_log = tmp_path / f"timing-{session}.log"
+        reference(session, responder, timing_log)
+        assert references[session].wait(timeout=120) == 0, references[session].stderr.read()
+        timing = markers(timing_log)
+        begin = next(t for t, w in timing if w == "process")
+        first = next(t for t, w in timing if w == "trial 0")
+        end = next(t for t, w in timing if w == "save-end complete")
+        startup, per_trial, life = first - begin, (end - first) / planned, end - begin
+        kills: list[tuple[str, str, float]] = []
+        sessions, runs, plan = [], 0, schedule(rng)
+        while len(kills) < KILLS // 2:
+            rows = stored_rows(dataset, session)
+            feasible = {"start-up": True, "time": rows < planned,
+                        "between trials": rows < planned,
+                        # the session must get on first: a completion kill restarts no trial
+                        "completion write": rows >= planned // 2}
+            # none feasible: every row stored, only kills in trials left: the run finishes
+            kind = next((k for k in plan if feasible[k]), "finish")
+            holds = {"row": rng.randrange(rows, planned)} if kind == "between trials" else \
+                {"complete": 1} if kind == "completion write" else {}
+            runs += 1
+            phases = tmp_path / f"phases-{session}-{runs}.log"
+            process = start(protocol, dataset, session, responder, phases, **holds)
             try:
-                playing = wait_for_trials(process)
-                if playing:
-                    time.sleep(rng.uniform(0.0, 0.15))
+                if kind == "start-up":  # interpreter, imports, checks, replay of stored rows
+                    delay = rng.uniform(0.0, startup + rows * per_trial / 2)
+                    with contextlib.suppress(subprocess.TimeoutExpired):
+                        process.wait(timeout=delay)
+                elif kind == "time":  # a moment among the trials this run has to play
+                    delay = rng.uniform(0.0, (planned - rows) * per_trial)
+                    if wait_for(phases, f"trial {rows}", process):
+                        with contextlib.suppress(subprocess.TimeoutExpired):
+                            process.wait(timeout=delay)
+                elif kind != "finish":
+                    what = f"hold row {holds['row']}" if "row" in holds else \
+                        "save-begin complete"
+                    if wait_for(phases, what, process):
+                        time.sleep(rng.uniform(0.0, HOLD_S))
+                else:
+                    process.wait(timeout=60)
                 if process.poll() is None:
+                    moment = time.monotonic()
                     process.send_signal(signal.SIGKILL)
-                    kills += 1
+                    events = markers(phases)
+                    kills.append((kind, phase_at(events, moment),
+                                  (moment - events[0][0]) / life if events else 0.0))
+                    if kind in plan:
+                        plan.remove(kind)
                 process.wait(timeout=60)
             finally:
                 process.kill()
                 process.wait()
-                process.stdout.close()
                 process.stderr.close()
-            _, sidecar, _ = session_files(dataset, session)
-            if process.returncode == 0 and json.loads(sidecar.read_text())["Status"] == \
-                    "complete":
+            if is_complete(dataset, session):  # finished (or killed once it had)
                 sessions.append((session, responder))
                 session += 1
+                reference(session, responder)
         # the same command, once more, finishes the session in progress
-        finished = subprocess.run(command(protocol, dataset, session, responder),
+        finished = subprocess.run([sys.executable, "-m", "crs_study",
+                                   *arguments(protocol, dataset, session, responder)],
                                   capture_output=True, text=True, timeout=120)
         assert finished.returncode == 0, finished.stderr
         sessions.append((session, responder))
+        reference(session, responder)
+        return kills, sessions, runs
 
-    for number, responder in sessions:
-        reference = tmp_path / f"whole-{number}"
-        done = subprocess.run(command(protocol, reference, number, responder),
-                              capture_output=True, text=True, timeout=120)
-        assert done.returncode == 0, done.stderr
+    # The observer's sessions (1, 2, ..) and the random responder's (101, 102, ..) are killed
+    # at the same time, each from its own seeded generator: half the wall time on two cores.
+    started = time.monotonic()
+    with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
+        phases = [pool.submit(kill_sessions, responder, first, random.Random(seed))
+                  for responder, first, seed in (("observer", 1, 20261122),
+                                                 ("random", 101, 20261123))]
+        results = [future.result() for future in phases]
+    kills = [k for kills, _, _ in results for k in kills]
+    sessions = [s for _, sessions, _ in results for s in sessions]
+    runs = sum(runs for _, _, runs in results)
+
+    for number, _ in sessions:
+        done = references[number]
+        assert done.wait(timeout=120) == 0, done.stderr.read()
+        done.stderr.close()
         tsv, sidecar, frames = session_files(dataset, number)
-        ref_tsv, ref_sidecar, ref_frames = session_files(reference, number)
+        ref_tsv, ref_sidecar, ref_frames = session_files(tmp_path / f"whole-{number}", number)
         with open(tsv, newline="") as handle:
             rows = list(csv.DictReader(handle, delimiter="\t"))
         assert [int(r["trial_index"]) for r in rows] == list(range(len(rows)))  # order kept
         assert tsv.read_bytes() == ref_tsv.read_bytes()  # nothing lost, nothing duplicated
         assert gzip.decompress(frames.read_bytes()) == gzip.decompress(ref_frames.read_bytes())
         meta, ref_meta = json.loads(sidecar.read_text()), json.loads(ref_sidecar.read_text())
-        assert meta["Status"] == "complete" and meta["TrialsCompleted"] == len(rows)
+        assert meta["Status"] == "complete" and meta["TrialsCompleted"] == len(rows) == planned
         assert {k: v for k, v in meta.items() if k not in WALL_CLOCK_SIDECAR_KEYS} == \
             {k: v for k, v in ref_meta.items() if k not in WALL_CLOCK_SIDECAR_KEYS}
-    assert kills == KILLS
-    # the kills really landed inside sessions: some were resumed
+    # a kill inside an atomic write leaves its temporary file; the next write takes it over
+    assert not [p for p in dataset.rglob("*.tmp")]
+
+    assert len(kills) == KILLS == 2 * len(schedule(random.Random(0)))
+    hit = collections.Counter(where for _, where, _ in kills)
+    by_kind = collections.Counter(kind for kind, _, _ in kills)
+    fractions = sorted(round(f, 2) for _, _, f in kills)
     resumed = sum(len(json.loads(session_files(dataset, n)[1].read_text())["Resumes"])
                   for n, _ in sessions)
-    assert resumed >= KILLS // 2
+    print(f"\n{KILLS} kills in {runs} runs over {len(sessions)} sessions "
+          f"({time.monotonic() - started:.0f} s): kinds {dict(by_kind)}; phases hit "
+          f"{ {p: hit[p] for p in PHASE_NAMES if hit[p]} }; kill times as fractions of an "
+          f"uninterrupted run's life: {fractions}; {resumed} resumes")
+    for needed in ("start-up", "mid-trial", "between trials", "completion write"):
+        assert hit[needed] >= 1, (needed, kills)
+    assert resumed >= KILLS // 2  # the kills really landed inside sessions
