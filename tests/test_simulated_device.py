@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from crs_study.clock import RealClock, VirtualClock
 from crs_study.device import codec
-from crs_study.device.base import open_device
+from crs_study.device.base import DeviceWarning, open_device
 from crs_study.device.simulated import SimOptions, SimulatedDevice
 from crs_study.device.virtual_controller import BROWNOUT_BATTERY_MV
 from crs_study.errors import DeviceError
@@ -201,6 +201,56 @@ def test_low_battery_is_refused_on_open(layout2d):
 
 
 # -- URL options --------------------------------------------------------------------------------
+
+
+# -- the battery, over the wire ----------------------------------------------------------------
+
+
+def test_battery_is_asked_over_the_wire_and_takes_its_bytes_time(layout2d):
+    # hardware.md: GET_BATTERY_VOLTAGE is 55 55 02 0F (4 bytes), the reply 55 55 04 0F lo hi
+    # (6 bytes); the query waits for the frame already on the wire (64 bytes on A)
+    device = sim(layout2d, "sim://?battery_mv=7100", record=True)
+    for board in device.boards:
+        assert [type(r.message) for r in board.received] == [codec.GetBatteryVoltage]
+    device.send(np.full(layout2d.n_actuators, 2.0))
+    t = device.clock.now()
+    assert device.battery_mv() == [7100.0, 7100.0]
+    a, b = device.boards
+    asked = [r.t for r in a.received if isinstance(r.message, codec.GetBatteryVoltage)]
+    assert asked[-1] == pytest.approx(t + (64 + 4) * BYTE_S)  # after A's full frame
+    assert device.clock.now() == pytest.approx(t + (64 + 4 + 6) * BYTE_S)  # A's reply is in
+    device.close()
+    assert device.battery_mv() == [7100.0, 7100.0]  # after close: what was read last
+
+
+def test_the_battery_reading_is_the_reply_bytes_decoded_not_the_boards_state(layout2d,
+                                                                           monkeypatch):
+    # a board whose reply comes after a false header (55 55 05 06 would take the reply's
+    # first bytes for a frame) and reads one volt lower than the board's own state: the device
+    # reports what the bytes say
+    from crs_study.device import virtual_controller
+
+    monkeypatch.setattr(virtual_controller, "battery_voltage_reply",
+                        lambda mv: bytes.fromhex("55 55 05 06") + codec.battery_voltage_reply(
+                            mv - 1000))
+    device = sim(layout2d)
+    assert device.battery_mv() == [6400.0, 6400.0]
+    assert [b.battery_mv() for b in device.boards] == [7400, 7400]
+
+
+def test_a_battery_reply_lost_on_the_wire_is_a_warning_and_none(layout2d):
+    # every byte preceded by a random one (garbage_rate=1): no query or reply survives
+    device = open_device("sim://?garbage_rate=1&seed=2", layout2d, VirtualClock())
+    with pytest.warns(DeviceWarning, match=r"controller [AB]: no answer to GET_BATTERY_VOLTAGE; "
+                      r"battery unknown") as caught:
+        device.open()
+    assert len(caught) == 2  # both boards
+    assert device.battery_mv() == [None, None]
+    # a port that vanished at open gives no answer either; the other board does
+    device = open_device("sim://?disconnect_at=B@0", layout2d, VirtualClock())
+    with pytest.warns(DeviceWarning, match="controller B: no answer") as caught:
+        device.open()
+    assert len(caught) == 1 and device.battery_mv() == [7400.0, None]
 
 
 def test_url_options_parse(layout2d):

@@ -25,6 +25,10 @@ BITS_PER_BYTE = 10  # start + 8 data + stop
 BYTE_TIME_S = BITS_PER_BYTE / BAUD_RATE
 
 
+class DeviceWarning(UserWarning):
+    """Something odd but not fatal about the device (no battery answer, unbalanced channels)."""
+
+
 def servo_move_bytes(n_servos: int) -> int:
     """Bytes on the wire for a SERVO_MOVE frame of ``n_servos``: 3 n + 7 (hardware.md)."""
     return 3 * n_servos + 7

@@ -60,7 +60,13 @@ from typing import Any
 import numpy as np
 
 from crs_study.clock import Clock
-from crs_study.device.base import BITS_PER_BYTE, Device, FrameReport, servo_move_bytes
+from crs_study.device.base import (
+    BITS_PER_BYTE,
+    Device,
+    DeviceWarning,
+    FrameReport,
+    servo_move_bytes,
+)
 from crs_study.device.calibration import PulseMap
 from crs_study.device.codec import (
     MOVE_TIME_MAX_MS,
@@ -87,10 +93,6 @@ OUT_WAITING_LOW_BYTES = 4
 #: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell); the
 #: same threshold as the simulated device. 0 turns the check off.
 LOW_BATTERY_MV = 6000
-
-
-class DeviceWarning(UserWarning):
-    """Something odd but not fatal about the device (no battery answer, unbalanced channels)."""
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,14 @@ The wire (per controller port)
     therefore never exceeds two frame times. ``FrameReport.wire_done_at`` of a waiting frame
     is its predicted end.
 
+The battery
+    :meth:`SimulatedDevice.open` and :meth:`SimulatedDevice.battery_mv` ask every board as the
+    serial device does: GET_BATTERY_VOLTAGE goes on the wire once it is free, the board
+    answers bytes, which travel back (the wire's garbage and a vanished port apply both ways)
+    and the host's streaming decoder reads them, the line then going quiet. The clock waits
+    for the replies. No readable answer: None and a :class:`~.base.DeviceWarning` on open;
+    below :data:`LOW_BATTERY_MV`: a DeviceError.
+
 URL syntax (options may also be given as keyword arguments; keywords win)::
 
     sim://[?key=value[&key=value...]]
@@ -61,6 +69,7 @@ from __future__ import annotations
 
 import math
 import operator
+import warnings
 from dataclasses import dataclass, fields, replace
 from urllib.parse import parse_qsl, urlsplit
 
@@ -71,11 +80,18 @@ from crs_study.device.base import (
     BAUD_RATE,
     BITS_PER_BYTE,
     Device,
+    DeviceWarning,
     FrameReport,
     servo_move_bytes,
 )
 from crs_study.device.calibration import PulseMap
-from crs_study.device.codec import FrameDecoder, get_battery_voltage, servo_move_arrays
+from crs_study.device.codec import (
+    BatteryVoltage,
+    Direction,
+    FrameDecoder,
+    get_battery_voltage,
+    servo_move_arrays,
+)
 from crs_study.device.schedule import DEFAULT_DEADBAND_US, DEFAULT_REFRESH_S, ChannelSplit
 from crs_study.device.virtual_controller import (
     NORMAL_BATTERY_MV,
@@ -92,6 +108,8 @@ from crs_study.layout import Layout
 ENCODE_CACHE_SIZE = 1 << 15
 #: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell).
 LOW_BATTERY_MV = 6000
+#: The battery reply ``55 55 04 0F lo hi`` (hardware.md): how long the host waits for it.
+BATTERY_REPLY_BYTES = 6
 
 
 @dataclass(frozen=True)
@@ -282,6 +300,8 @@ class _Wire:
         self.force_full = False  # the next frame carries every channel (neutral on close)
         self.vanish_at = math.inf
         self.cut = False  # the port vanished
+        self.inbox: list[tuple[float, bytes]] = []  # the board's replies: (arrival, bytes)
+        self.decoder = FrameDecoder(Direction.BOARD)  # the host's end of the port
 
 
 class SimulatedDevice(Device):
@@ -315,6 +335,7 @@ class SimulatedDevice(Device):
              - layout.controllers[names.index(a.controller)].channel_base
              for a in layout.actuators], dtype=np.intp)
         self._fault_at = math.inf  # earliest scheduled disconnect or brown-out
+        self._battery: list[int | None] = [None] * len(layout.controllers)  # last read
 
     @classmethod
     def from_url(cls, url: str, layout: Layout, clock: Clock | None = None,
@@ -365,20 +386,63 @@ class SimulatedDevice(Device):
         self._check_batteries(t0)
 
     def _check_batteries(self, t: float) -> None:
-        """Ask every board for its battery voltage, as the serial device does on open."""
-        query = get_battery_voltage()
-        replied_at = t
-        for wire in self._wires:
-            wire.free_at = t + len(query) * self.byte_s
-            reply = wire.board.receive(query, wire.free_at)
-            replied_at = max(replied_at, wire.free_at + len(reply) * self.byte_s)
-            frames = FrameDecoder("board").feed(reply)
-            mv = frames[0].message.millivolts if frames else None
-            if mv is None or mv < LOW_BATTERY_MV:
+        """Ask every board for its battery voltage over the wire, as the serial device does on
+        open: a board that does not answer (a vanished port, garbage) gives a
+        :class:`DeviceWarning`; one below :data:`LOW_BATTERY_MV` is a DeviceError."""
+        for wire, mv in zip(self._wires, self._ask_batteries(), strict=True):
+            if mv is None:
+                warnings.warn(f"{self.url}: controller {wire.board.name}: no answer to "
+                              f"GET_BATTERY_VOLTAGE; battery unknown", DeviceWarning,
+                              stacklevel=3)
+            elif mv < LOW_BATTERY_MV:
                 raise DeviceError(f"{self.url}: controller {wire.board.name}: battery reads "
-                                  f"{mv!r} mV, below {LOW_BATTERY_MV} mV; charge or check it")
-        # the ports are written concurrently; open() returns once the last reply is in
-        self.clock.sleep_until(replied_at)
+                                  f"{mv} mV, below {LOW_BATTERY_MV} mV; charge or check it")
+
+    def _ask_batteries(self) -> list[int | None]:
+        """GET_BATTERY_VOLTAGE on every wire, the boards' reply bytes back, decoded.
+
+        Each query goes out once its wire is free (frames on it or waiting for it go first),
+        takes its bytes' time, and meets the wire's faults: garbage in both directions, a port
+        that vanishes. The host's decoder reads what came back; the clock waits, as a host
+        reading the ports would, until the last reply is in (or would have been). None where
+        no reply could be read.
+        """
+        t = self.clock.now()
+        self._advance(t)
+        query = get_battery_voltage()
+        answers: list[int | None] = []
+        waited_until = t
+        for k, wire in enumerate(self._wires):
+            while wire.flying or wire.waiting is not None:  # frames for the wire go first
+                self._advance_wire(k, wire, max(t, wire.free_at))
+            if wire.cut:
+                answers.append(None)
+                continue
+            start = max(t, wire.free_at)
+            wire.flying, wire.start_at = query, start
+            wire.free_at = start + len(query) * self.byte_s
+            self._advance_wire(k, wire, wire.free_at)  # delivered, unless the port vanished
+            expected = wire.free_at + BATTERY_REPLY_BYTES * self.byte_s
+            arrived = max([expected, *(at for at, _ in wire.inbox)])
+            waited_until = max(waited_until, arrived)
+            answers.append(self._read_battery(wire, arrived))
+        # the ports are asked concurrently; the answer is in once the slowest reply is
+        self.clock.sleep_until(waited_until)
+        self._battery = answers
+        return answers
+
+    @staticmethod
+    def _read_battery(wire: _Wire, until: float) -> int | None:
+        """The host reads the board's replies that arrived by ``until``; the line then goes
+        quiet. The last battery reply, or None."""
+        mv = None
+        arrived = [data for at, data in wire.inbox if at <= until]
+        wire.inbox = [(at, data) for at, data in wire.inbox if at > until]
+        frames = wire.decoder.feed(b"".join(arrived)) + wire.decoder.idle()
+        for frame in frames:
+            if isinstance(frame.message, BatteryVoltage):
+                mv = frame.message.millivolts
+        return mv
 
     def close(self) -> None:
         if self.closed or self.opened_at is None:
@@ -481,30 +545,40 @@ class SimulatedDevice(Device):
     def _advance(self, t: float) -> None:
         """Deliver every frame whose last byte has arrived by ``t``; start waiting frames."""
         for k, wire in enumerate(self._wires):
-            horizon = min(t, wire.vanish_at)
-            while wire.free_at <= horizon and (wire.flying or wire.waiting is not None):
-                if wire.flying:
-                    self._deliver(wire, wire.flying, wire.free_at)
-                    wire.flying = b""
-                if wire.waiting is not None:
-                    pulses, wire.waiting = wire.waiting, None
-                    self._start(k, wire, pulses, wire.waiting_move_ms, wire.free_at)
-            if t >= wire.vanish_at and not wire.cut:
-                wire.cut = True
-                wire.waiting = None
-                if wire.flying and wire.free_at > wire.vanish_at:
-                    arrived = int((wire.vanish_at - wire.start_at) / self.byte_s)
-                    if arrived > 0:
-                        self._deliver(wire, wire.flying[:arrived],
-                                      wire.start_at + arrived * self.byte_s)
+            self._advance_wire(k, wire, t)
+
+    def _advance_wire(self, k: int, wire: _Wire, t: float) -> None:
+        """:meth:`_advance` for wire ``k`` alone."""
+        horizon = min(t, wire.vanish_at)
+        while wire.free_at <= horizon and (wire.flying or wire.waiting is not None):
+            if wire.flying:
+                self._deliver(wire, wire.flying, wire.free_at)
                 wire.flying = b""
-                wire.free_at = wire.vanish_at
+            if wire.waiting is not None:
+                pulses, wire.waiting = wire.waiting, None
+                self._start(k, wire, pulses, wire.waiting_move_ms, wire.free_at)
+        if t >= wire.vanish_at and not wire.cut:
+            wire.cut = True
+            wire.waiting = None
+            if wire.flying and wire.free_at > wire.vanish_at:
+                arrived = int((wire.vanish_at - wire.start_at) / self.byte_s)
+                if arrived > 0:
+                    self._deliver(wire, wire.flying[:arrived],
+                                  wire.start_at + arrived * self.byte_s)
+            wire.flying = b""
+            wire.free_at = wire.vanish_at
 
     def _deliver(self, wire: _Wire, data: bytes, t: float) -> None:
+        """``data`` reaches the board at ``t`` (garbled on the way); its reply, if any, sets
+        off back at once, garbled too, and waits in the wire's inbox for the host."""
         rate = self.options.garbage_rate
         if rate > 0.0:
             data = self._garble(data, rate)
-        wire.board.receive(data, t)
+        reply = wire.board.receive(data, t)
+        if reply:
+            if rate > 0.0:
+                reply = self._garble(reply, rate)
+            wire.inbox.append((t + len(reply) * self.byte_s, reply))
 
     def _garble(self, data: bytes, rate: float) -> bytes:
         """Insert one random byte before each byte of ``data`` with probability ``rate``."""
@@ -566,7 +640,9 @@ class SimulatedDevice(Device):
         return (us - self.builder.zero) / self.builder.scale
 
     def battery_mv(self) -> list[float | None]:
-        if not self.boards:
-            return [None] * len(self.layout.controllers)
-        t = self.clock.now()
-        return [float(b.battery_mv(t)) for b in self.boards]
+        """Each board's voltage, asked over its wire now (:meth:`_ask_batteries`; the clock
+        waits for the replies); None where none could be read. Before open: None; after
+        close: what was read last."""
+        if self.opened_at is None or self.closed:
+            return [None if mv is None else float(mv) for mv in self._battery]
+        return [None if mv is None else float(mv) for mv in self._ask_batteries()]
