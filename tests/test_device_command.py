@@ -169,8 +169,15 @@ def test_lscsim_ports_work_from_the_command_line(lscsim_boards, capsys):
     ("flags", "message"),
     [(["--seconds", "inf"], r"--seconds: expected a time per channel in \(0, 600\] s, got inf"),
      (["--seconds", "0"], r"--seconds: .* got 0\.0"),
+     (["--seconds", "-1"], r"--seconds: .* got -1\.0"),
+     (["--seconds", "nan"], r"--seconds: .* got nan"),
+     (["--seconds", "1e9"], r"--seconds: .* got 1000000000\.0"),
      (["--frame-rate", "nan"], r"--frame-rate: expected 0\.0333\.\.100 frames/s .* got nan"),
-     (["--frame-rate", "0.001"], r"--frame-rate: .* got 0\.001")])
+     (["--frame-rate", "0.001"], r"--frame-rate: .* got 0\.001"),
+     (["--frame-rate", "0"], r"--frame-rate: .* got 0\.0"),
+     (["--frame-rate", "-10"], r"--frame-rate: .* got -10\.0"),
+     (["--frame-rate", "inf"], r"--frame-rate: .* got inf"),
+     (["--frame-rate", "1e308"], r"--frame-rate: .* got 1e\+308")])
 def test_sweep_refuses_bad_numbers_in_one_line_before_opening(flags, message, capsys):
     # a port that does not exist: the numbers are refused before any port is opened
     assert main(["device", "sweep", "--device", "serial:///nonexistent", "--layout", "crs1d",
@@ -519,3 +526,51 @@ def test_monitor_finds_a_reply_behind_a_false_header_once_the_line_is_quiet(monk
     assert "@4       BatteryVoltage millivolts=7500" in out
     assert "skipped 4 byte(s) (false header: not followed by a header" in out
     assert "1 frame(s), 4 byte(s) skipped" in out
+
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [(["--refresh-s", "1e308"], r"refresh_s: expected a number of seconds in \[0, 3600\], "
+                                r"got 1e\+308"),
+     (["--refresh-s", "-1"], r"refresh_s: .* got -1\.0"),
+     (["--refresh-s", "nan"], r"refresh_s: .* got nan"),
+     (["--battery-timeout-s", "1e300"], r"battery_timeout_s: expected a number of seconds in "
+                                        r"\(0, 60\], got 1e\+300"),
+     (["--battery-timeout-s", "0"], r"battery_timeout_s: .* got 0\.0"),
+     (["--battery-timeout-s", "inf"], r"battery_timeout_s: .* got inf"),
+     (["--deadband-us", "-1"], r"deadband_us: expected a whole number of us 0\.\.100, got -1"),
+     (["--deadband-us", "1000000000000"], r"deadband_us: .* got 1000000000000"),
+     (["--min-battery-mv", "-5"], r"min_battery_mv: expected a whole number of mV, got -5")])
+def test_serial_options_out_of_range_are_one_line_errors(lscsim_boards, flags, message,
+                                                         capsys):
+    # a refresh of 1e308 s once overflowed time_t in the writer thread (a traceback, then "I/O
+    # thread stopped"); a battery timeout of 1e300 s was accepted
+    (a, _), (board, _) = lscsim_boards
+    assert main(["device", "sweep", "--device", f"serial://lscsim://{a}", "--layout", "crs1d",
+                 "--seconds", "0.1", *flags]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and err.count("\n") == 1 and "Traceback" not in err, err
+    assert board.received == []  # refused before the port was opened
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [(["--seconds", "-1"], r"--seconds: expected a time in \(0, 86400\] s \(leave it out to "
+                           r"run until Ctrl-C\), got -1\.0"),
+     (["--seconds", "0"], r"--seconds: .* got 0\.0"),
+     (["--seconds", "nan"], r"--seconds: .* got nan"),
+     (["--seconds", "inf"], r"--seconds: .* got inf"),
+     (["--seconds", "1e12"], r"--seconds: .* got 1000000000000\.0"),
+     (["--max-frames", "0"], r"--max-frames: expected 1\.\.1000000000 frames, got 0"),
+     (["--max-frames", "-5"], r"--max-frames: .* got -5"),
+     (["--max-frames", "10000000000000"], r"--max-frames: .* got 10000000000000"),
+     (["--baud", "0"], r"--baud: expected 300\.\.4000000 \(the LSC boards use 9600\), got 0"),
+     (["--baud", "-9600"], r"--baud: .* got -9600"),
+     (["--baud", "100000000000000"], r"--baud: .* got 100000000000000")])
+def test_monitor_refuses_bad_numbers_in_one_line_before_opening(flags, message, capsys):
+    # a port that does not exist: the numbers are refused before it is opened (a negative or
+    # NaN --seconds used to end at once with exit 0; a huge --baud overflowed in pyserial)
+    assert main(["device", "monitor", "--port", "/dev/nonexistent-crs", *flags]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and err.count("\n") == 1 and "Traceback" not in err, err

@@ -27,6 +27,9 @@ NAME = "device"
 SWEEP_MIN_RATE_HZ = 1 / 30
 SWEEP_MAX_RATE_HZ = 100.0
 SWEEP_MAX_S = 600.0
+#: ``monitor`` limits: --seconds at most a day (none: until Ctrl-C), --max-frames at most 1e9.
+MONITOR_MAX_S = 86400.0
+MONITOR_MAX_FRAMES = 10**9
 HELP = "check the controllers, neutral pose, sweep, calibrate endpoints, monitor a port"
 
 
@@ -414,10 +417,27 @@ def _monitor(args: argparse.Namespace) -> int:
     import serial
 
     from crs_study.device.codec import FrameDecoder
-    from crs_study.device.serial_device import parse_serial_url, serial_for_spec
+    from crs_study.device.serial_device import (
+        MAX_BAUD,
+        MIN_BAUD,
+        parse_serial_url,
+        serial_for_spec,
+    )
     from crs_study.errors import DeviceError
     from crs_study.signals import describe
 
+    # refused before the port is opened, in one line (a negative or NaN --seconds used to end
+    # at once, reporting success; a huge --baud overflowed inside pyserial)
+    if args.seconds is not None and not (math.isfinite(args.seconds)
+                                         and 0 < args.seconds <= MONITOR_MAX_S):
+        raise DeviceError(f"--seconds: expected a time in (0, {MONITOR_MAX_S:g}] s (leave it "
+                          f"out to run until Ctrl-C), got {args.seconds!r}")
+    if args.max_frames is not None and not 1 <= args.max_frames <= MONITOR_MAX_FRAMES:
+        raise DeviceError(f"--max-frames: expected 1..{MONITOR_MAX_FRAMES} frames, got "
+                          f"{args.max_frames!r}")
+    if not MIN_BAUD <= args.baud <= MAX_BAUD:
+        raise DeviceError(f"--baud: expected {MIN_BAUD}..{MAX_BAUD} (the LSC boards use 9600), "
+                          f"got {args.baud!r}")
     spec = args.port
     if spec.startswith("serial://"):
         specs = parse_serial_url(spec)

@@ -94,6 +94,14 @@ OUT_WAITING_LOW_BYTES = 4
 #: same threshold as the simulated device. 0 turns the check off.
 LOW_BATTERY_MV = 6000
 
+#: Baud rates a port may be opened at (the LSC boards take 9600 only; hardware.md).
+MIN_BAUD, MAX_BAUD = 300, 4_000_000
+#: Longest full-refresh interval (s), as the simulated device's; longer is a typo, and a
+#: wait that long overflows the platform's time_t.
+MAX_REFRESH_S = 3600.0
+#: Longest read, write or battery timeout (s): a port silent for a minute has failed.
+MAX_TIMEOUT_S = 60.0
+
 
 @dataclass(frozen=True)
 class SerialOptions:
@@ -118,16 +126,21 @@ class SerialOptions:
                 raise DeviceError(f"serial option {name}: expected {expected}, "
                                   f"got {getattr(self, name)!r}")
 
-        for name in ("refresh_s", "lead_s"):
-            need(name, _finite(getattr(self, name)) and getattr(self, name) >= 0, "a number >= 0")
+        def within(name: str, low: float, high: float, open_low: bool = False) -> None:
+            x = getattr(self, name)
+            ok = _finite(x) and (low < x if open_low else low <= x) and x <= high
+            need(name, ok, f"a number of seconds in {'(' if open_low else '['}{low:g}, {high:g}]")
+
+        within("refresh_s", 0.0, MAX_REFRESH_S)
+        within("lead_s", 0.0, 1.0)
         for name in ("write_timeout_s", "read_timeout_s", "battery_timeout_s"):
-            need(name, _finite(getattr(self, name)) and getattr(self, name) > 0, "a number > 0")
+            within(name, 0.0, MAX_TIMEOUT_S, open_low=True)
         need("move_ms", self.move_ms is None or _whole(self.move_ms, 0, MOVE_TIME_MAX_MS),
              f"a whole number of ms 0..{MOVE_TIME_MAX_MS}")
         need("neutral_move_ms", _whole(self.neutral_move_ms, 0, MOVE_TIME_MAX_MS),
              f"a whole number of ms 0..{MOVE_TIME_MAX_MS}")
         need("deadband_us", _whole(self.deadband_us, 0, 100), "a whole number of us 0..100")
-        need("baud", _whole(self.baud, 300, 4_000_000), "a baud rate")
+        need("baud", _whole(self.baud, MIN_BAUD, MAX_BAUD), f"a baud rate {MIN_BAUD}..{MAX_BAUD}")
         need("min_battery_mv", _whole(self.min_battery_mv, 0, 65535), "a whole number of mV")
 
     @classmethod
