@@ -634,9 +634,11 @@ def _check_shape_keys(spec: StimulusSpec, conditions: tuple[str, ...], layout: L
     from crs_study.targets import Bump
 
     if any(c != "pixel-only" for c in conditions) and layout.beams:
-        limit = layout.beam_section.yield_curvature_per_mm
+        from crs_study.quality.mechanics import stimulus_limits
+
         z_f, l_mm = spec.bump_height_mm, spec.bump_diameter_mm
-        curvature = Bump((0.0, 0.0), l_mm, z_f).curvature_max()
+        limits = stimulus_limits(layout, Bump((0.0, 0.0), l_mm, z_f))  # one copy of Eq. 7's
+        curvature, limit = limits.curvature, limits.yield_curvature  # curvature and yield
         if curvature > limit:
             raise ProtocolError(
                 f"stimulus.bump_height_mm: the bump's curvature {curvature:.4f}/mm "
