@@ -6,8 +6,16 @@ import os
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+# Property tests are seeded like every other test: derandomize draws each test's examples from
+# a seed fixed by the test itself, so a failure in CI is the same failure on a laptop; no
+# example database carries state between runs. HYPOTHESIS_PROFILE=explore searches afresh.
+settings.register_profile("seeded", derandomize=True, database=None, print_blob=True)
+settings.register_profile("explore", database=None, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
 
 
 @pytest.fixture(scope="session")

@@ -16,8 +16,8 @@ tangent stiffness K - N G_0 stops being positive definite (banded Cholesky, bise
 here independently of the ``beam`` model's determinant search. Gauss-Legendre (6 points per
 element) for every integral. The same failure rules as ``beam``: collapse (N would reach
 margin N_cr, or Delta < 1 under compression) raises CollapseError; the tension case returns
-the N = 0 shape. It costs tens of milliseconds a beam: a yardstick, not a runtime model. In 2D its fabric is
-four times finer than the runtime models' (:data:`REFERENCE_FABRIC_SUBDIVISIONS`).
+the N = 0 shape. It costs tens of milliseconds a beam: a yardstick, not a runtime model. In 2D
+its fabric is four times finer than the runtime models' (:data:`REFERENCE_FABRIC_SUBDIVISIONS`).
 """
 
 from __future__ import annotations
