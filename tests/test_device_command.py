@@ -574,3 +574,70 @@ def test_monitor_refuses_bad_numbers_in_one_line_before_opening(flags, message, 
     assert main(["device", "monitor", "--port", "/dev/nonexistent-crs", *flags]) == 2
     err = capsys.readouterr().err
     assert re.search(message, err) and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+
+# ---------------------------------------------------------------------------------------------
+# which channel goes on which controller: pinned by the device file (serial_device docstring)
+
+
+def _lopsided_device_file(tmp_path):
+    """crs2d with pixels 10-14 wired to A:20..A:24 instead of B:1..B:5: 24 on A, 13 on B."""
+    text = device_file_path("crs2d").read_text()
+    for k in range(5):
+        text = text.replace(f'"B:{k + 1}",', f'"A:{20 + k}",', 1)
+    path = tmp_path / "lopsided.toml"
+    path.write_text(text.replace('name = "crs2d"', 'name = "lopsided"', 1))
+    return path
+
+
+def test_check_prints_the_pinned_map_and_how_to_rebalance_it(tmp_path, capsys):
+    path = _lopsided_device_file(tmp_path)
+    assert main(["device", "check", "--device", "sim://", "--layout", str(path)]) == 0
+    out, err = capsys.readouterr()
+    # the map in use is the file's, channel by channel: A drives pixels 10-14 on 20..24
+    assert "channel map (pinned by the device file; each channel is a servo's wire on a " \
+           "board):" in out
+    a_line = next(line for line in out.splitlines() if line.startswith("  A: "))
+    assert "20 pixel 10, 21 pixel 11, 22 pixel 12, 23 pixel 13, 24 pixel 14" in a_line
+    assert "channels per controller A: 24, B: 13 (unbalanced: A's full frame is 23% longer " \
+           "than an even split's; rewire channels (5 from A to B)" in out
+    # and opening it warns, once, in one line
+    assert err.count("crs-study device: warning: lopsided: channels per controller A: 24") == 1
+    assert main(["device", "check", "--device", "sim://", "--layout", str(path), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["channels_per_controller"] == {"A": 24, "B": 13} and not report["balanced"]
+    assert report["rewire"] == [{"from": "A", "to": "B", "channels": 5}]
+
+
+def test_frames_go_to_the_controller_the_file_names_even_when_unbalanced(tmp_path,
+                                                                         lscsim_boards):
+    # software never moves a channel to even the load: a frame for another board would move
+    # whatever servo is plugged in there. Both devices warn and keep the file's map.
+    import numpy as np
+
+    from crs_study.clock import VirtualClock
+    from crs_study.device.base import DeviceWarning, open_device
+
+    layout = load_layout(_lopsided_device_file(tmp_path))
+    expected = {c.name: {a.channel for a in layout.actuators if a.controller == c.name}
+                for c in layout.controllers}
+    assert len(expected["A"]) == 24 and len(expected["B"]) == 13
+    (a, b), boards = lscsim_boards
+    for url, clock in ((f"serial://lscsim://{a},lscsim://{b}", None), ("sim://", VirtualClock())):
+        device = open_device(url, layout, clock, **({"record": True} if clock else {}))
+        with pytest.warns(DeviceWarning, match=r"rewire channels \(5 from A to B\)"):
+            device.open()
+        try:
+            device.send(np.full(layout.n_actuators, 4.0))
+            if clock is None:
+                assert device.wait_sent(2.0)
+            else:
+                clock.advance(0.2)
+                device.displayed_setpoints()
+        finally:
+            device.close()
+        seen = boards if clock is None else device.boards
+        for board, name in zip(seen, ("A", "B"), strict=True):
+            moves = [r.message for r in board.received if isinstance(r.message, codec.ServoMove)]
+            assert moves and all({i for i, _ in m.positions} == expected[name] for m in moves)

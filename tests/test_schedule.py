@@ -155,6 +155,11 @@ def test_balance_of_the_shipped_file_and_of_a_lopsided_one(layout2d):
     assert lopsided.full_frame_bytes == 79 and lopsided.excess == pytest.approx(79 / 64 - 1)
     assert not lopsided.balanced and "unbalanced: A's full frame is 23% longer" in \
         lopsided.describe()
+    # what would even it: 19 / 18 again, five channels rewired from A to B
+    assert lopsided.moves == (("A", "B", 5),)
+    assert "rewire channels (5 from A to B) and record them in the device file" in \
+        lopsided.describe()
+    assert balance.moves == ()
 
 
 def test_setpoints_outside_limits_and_bad_rates_are_errors(layout2d):

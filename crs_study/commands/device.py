@@ -187,7 +187,9 @@ def _check(args: argparse.Namespace) -> int:
         "battery_mv": dict(zip([c.name for c in layout.controllers], battery, strict=True)),
         "channels": {c.name: [f"{a.channel} {a.name}" for a in layout.actuators
                               if a.controller == c.name] for c in layout.controllers},
-        "balance": balance.describe(),
+        "balance": balance.describe(), "balanced": balance.balanced,
+        "channels_per_controller": balance.counts,
+        "rewire": [{"from": a, "to": b, "channels": n} for a, b, n in balance.moves],
         "full_frame_ms": full_frame_wire_time_s(layout) * 1e3,
         "full_frame_rate_hz": full_frame_rate_hz(layout),
     }
@@ -202,9 +204,12 @@ def _check(args: argparse.Namespace) -> int:
     for name, mv in report["battery_mv"].items():
         print(f"  controller {name}: battery " + ("unknown (no answer)" if mv is None
                                                    else f"{mv / 1000:.2f} V"))
-    print(f"  {balance.describe()}")
+    # the map in use: pinned by the device file, never moved by software (serial_device,
+    # "Which channel goes on which controller")
+    print("channel map (pinned by the device file; each channel is a servo's wire on a board):")
     for name, channels in report["channels"].items():
         print(f"  {name}: " + ", ".join(channels))
+    print(f"  {balance.describe()}")
     print(f"wire: a full frame takes {report['full_frame_ms']:.1f} ms on the busiest controller; "
           f"at most {report['full_frame_rate_hz']:.1f} frames/s with every channel changing")
     print(f"protocol {report['protocol_file']}"

@@ -30,21 +30,29 @@ due refresh as soon as it is due, also between frames, rather than with the next
 next frame may then wait for it, by at most one full frame's wire time once a refresh
 interval.)
 
-Balance: the device file fixes which channel is on which controller, so software cannot move
-channels; :func:`channel_balance` reports how evenly the file spreads them (the full frame is
-bounded by the busiest controller) and :class:`~.serial_device.SerialDevice` warns when the
-busiest controller's full frame is more than 10 % longer than an even split's. The shipped
-2D device file is balanced, 19 channels on A and 18 on B.
+Balance: which channel is on which controller is pinned by the device file (the reasons are in
+:mod:`~crs_study.device.serial_device`, "Which channel goes on which controller"):
+:func:`channel_balance` reports how evenly the file spreads them (the full frame is bounded by
+the busiest controller) and how many to rewire where it does not, and both devices warn on
+open (:func:`warn_if_unbalanced`) when the busiest controller's full frame is more than 10 %
+longer than an even split's. The shipped 2D device file is balanced, 19 channels on A and 18
+on B.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from crs_study.device.base import BYTE_TIME_S, full_frame_rate_hz, servo_move_bytes
+from crs_study.device.base import (
+    BYTE_TIME_S,
+    DeviceWarning,
+    full_frame_rate_hz,
+    servo_move_bytes,
+)
 from crs_study.device.calibration import PulseMap
 from crs_study.device.codec import servo_move_arrays
 from crs_study.errors import DeviceError
@@ -109,6 +117,7 @@ class Balance:
     full_frame_bytes: int  # busiest controller, every channel
     even_split_bytes: int  # what an even split would need
     excess: float  # full_frame_bytes / even_split_bytes - 1
+    moves: tuple[tuple[str, str, int], ...] = ()  # (from, to, channels) that would even it
 
     @property
     def balanced(self) -> bool:
@@ -116,21 +125,49 @@ class Balance:
 
     def describe(self) -> str:
         counts = ", ".join(f"{name}: {n}" for name, n in self.counts.items())
+        moves = "; ".join(f"{n} from {a} to {b}" for a, b, n in self.moves)
         verdict = "balanced" if self.balanced else (
             f"unbalanced: {self.busiest}'s full frame is {self.excess:.0%} longer than an even "
-            f"split's; move channels to the other controller(s) in the device file")
+            f"split's; rewire channels ({moves}) and record them in the device file")
         return f"channels per controller {counts} ({verdict})"
 
 
 def channel_balance(layout: Layout) -> Balance:
+    """How evenly ``layout`` spreads its channels, and the fewest moves to an even split.
+
+    An even split puts at most ceil(n / controllers) channels on a board (the shipped 2D file:
+    37 on two, 19 and 18), within each board's channel count.
+    """
     counts = {c.name: 0 for c in layout.controllers}
     for a in layout.actuators:
         counts[a.controller] += 1
     busiest = max(counts, key=counts.__getitem__)
     even = math.ceil(layout.n_actuators / len(counts))
     full = servo_move_bytes(counts[busiest])
+    room = {c.name: min(even, c.channels) - counts[c.name] for c in layout.controllers}
+    moves = []
+    for name in sorted(counts, key=lambda n: -counts[n]):
+        surplus = counts[name] - even
+        for target in sorted(room, key=lambda n: -room[n]):
+            if surplus <= 0:
+                break
+            n = min(surplus, room[target])
+            if n > 0 and target != name:
+                moves.append((name, target, n))
+                room[target] -= n
+                surplus -= n
     return Balance(counts, busiest, full, servo_move_bytes(even),
-                   full / servo_move_bytes(even) - 1.0)
+                   full / servo_move_bytes(even) - 1.0, tuple(moves))
+
+
+def warn_if_unbalanced(layout: Layout, stacklevel: int = 3) -> Balance:
+    """:func:`channel_balance`, with a :class:`~.base.DeviceWarning` when it is unbalanced
+    (what both devices do on open)."""
+    balance = channel_balance(layout)
+    if not balance.balanced:
+        warnings.warn(f"{layout.name}: {balance.describe()}", DeviceWarning,
+                      stacklevel=stacklevel)
+    return balance
 
 
 @dataclass(frozen=True, eq=False)

@@ -34,9 +34,23 @@ Writing (see :mod:`~crs_study.device.schedule` for the model)
     has a port that counts). Without ``pace`` the writer writes as soon as a frame is
     handed over and relies on the port's own blocking (for ports that throttle themselves).
 
-Balance: the device file fixes which channel is on which controller; :meth:`SerialDevice.open`
-warns (:class:`DeviceWarning`) when the busiest controller's full frame is more than 10 %
-longer than an even split's (:func:`~crs_study.device.schedule.channel_balance`).
+Which channel goes on which controller (the decision, and why)
+    The device file pins every channel (``"A:3"``), and software never moves one: there is no
+    automatic balancing, in this device or the simulated one. A channel is a servo's lead
+    plugged into a pin of one board; a frame sent for it to another board would move whatever
+    is plugged in there, and PWM servos give no feedback to catch the mix-up. So the device
+    file is the record of the wiring, and balancing is a wiring decision made once, when the
+    servos are plugged in. What software does: it measures the balance
+    (:func:`~crs_study.device.schedule.channel_balance`), warns on open
+    (:class:`DeviceWarning`) when the busiest controller's full frame is more than 10 %
+    longer than an even split's, naming how many channels to rewire from which board to
+    which, and ``crs-study device check`` prints the map in use. What balancing buys, from
+    :func:`~crs_study.device.schedule.wire_plan` on the default protocol's CRS digits (no
+    refresh, ``crs-study bench device`` shows the same comparison): the even count is the
+    lever (the shipped 19/18 split: median 29.2 ms, max 51.0 ms; the lopsided 24/13: 35.4 and
+    60.4 ms); which channels make up an even split moves the tail a little and the median
+    hardly (an interleaved or a random 19/18 split: median 29.2 to 32.3 ms, max 47.9 to
+    51.0 ms), so no assignment is worth a rewiring for one stimulus.
 
 Safety: :meth:`SerialDevice.open` asks each board for its battery voltage (a board that does
 not answer gives None and a :class:`DeviceWarning`; one below ``min_battery_mv`` is a
@@ -82,6 +96,7 @@ from crs_study.device.schedule import (
     DEFAULT_REFRESH_S,
     ChannelSplit,
     channel_balance,
+    warn_if_unbalanced,
 )
 from crs_study.errors import DeviceError
 from crs_study.layout import Layout
@@ -450,9 +465,7 @@ class SerialDevice(Device):
         if self._state != "new":
             raise DeviceError(f"serial device: cannot open a device that is {self._state}")
         self._state = "opening"
-        if not self.balance.balanced:
-            warnings.warn(f"{self.layout.name}: {self.balance.describe()}", DeviceWarning,
-                          stacklevel=2)
+        warn_if_unbalanced(self.layout)
         try:
             for port in self.ports:
                 port.open()

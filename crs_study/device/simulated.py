@@ -92,7 +92,12 @@ from crs_study.device.codec import (
     get_battery_voltage,
     servo_move_arrays,
 )
-from crs_study.device.schedule import DEFAULT_DEADBAND_US, DEFAULT_REFRESH_S, ChannelSplit
+from crs_study.device.schedule import (
+    DEFAULT_DEADBAND_US,
+    DEFAULT_REFRESH_S,
+    ChannelSplit,
+    warn_if_unbalanced,
+)
 from crs_study.device.virtual_controller import (
     NORMAL_BATTERY_MV,
     ServoBank,
@@ -350,6 +355,7 @@ class SimulatedDevice(Device):
     def open(self) -> None:
         if self.opened_at is not None:
             return
+        warn_if_unbalanced(self.layout)  # as the serial device: channels are pinned
         t0 = self.clock.now()
         self.opened_at = t0
         opts = self.options
