@@ -10,8 +10,9 @@ Figures (baselines measured or computed in the same run):
    SERVO_MOVE), against the full frame's wire time, 66.7 ms. Target: ratio <= 0.01.
 3. Median wire latency of the default protocol's digit stimuli on the 2D device (bump of
    90 mm, 5 mm high, moving along the shipped digit strokes; CRS condition, the busier one),
-   changed-only channels with the default dead-band, against sending everything. Target:
-   <= 45 ms (the paper's device: 75 ms).
+   changed-only channels with the default dead-band and the devices' full refresh (every
+   channel once a second, the first frame of each stimulus full), against sending
+   everything. Target: <= 45 ms (the paper's device: 75 ms).
 4. The same with the channel map made lopsided (24 channels on A, 13 on B), against the
    shipped balanced map (19/18): what balancing saves.
 """
