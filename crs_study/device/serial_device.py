@@ -45,12 +45,12 @@ Which channel goes on which controller (the decision, and why)
     (:class:`DeviceWarning`) when the busiest controller's full frame is more than 10 %
     longer than an even split's, naming how many channels to rewire from which board to
     which, and ``crs-study device check`` prints the map in use. What balancing buys, from
-    :func:`~crs_study.device.schedule.wire_plan` on the default protocol's CRS digits (no
-    refresh, ``crs-study bench device`` shows the same comparison): the even count is the
-    lever (the shipped 19/18 split: median 29.2 ms, max 51.0 ms; the lopsided 24/13: 35.4 and
-    60.4 ms); which channels make up an even split moves the tail a little and the median
-    hardly (an interleaved or a random 19/18 split: median 29.2 to 32.3 ms, max 47.9 to
-    51.0 ms), so no assignment is worth a rewiring for one stimulus.
+    :func:`~crs_study.device.schedule.wire_plan` on the default protocol's CRS digits: the
+    even count is the lever (``crs-study bench device``: median latency 29.2 ms for the
+    shipped 19/18 split, 38.5 ms for a lopsided 24/13 one); which channels make up an even
+    split moves the tail a little and the median hardly (without the refresh: shipped median
+    29.2 ms, max 51.0 ms; an interleaved or a random 19/18 split median 29.2 to 32.3 ms, max
+    47.9 to 51.0 ms), so no assignment is worth a rewiring for one stimulus.
 
 Safety: :meth:`SerialDevice.open` asks each board for its battery voltage (a board that does
 not answer gives None and a :class:`DeviceWarning`; one below ``min_battery_mv`` is a
