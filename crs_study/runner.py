@@ -33,6 +33,7 @@ line; the trial is rerun on resume and its row then says ``device_fault = 1``.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import signal
@@ -289,12 +290,30 @@ def session_columns(protocol: Any) -> tuple[str, ...]:
     return schema.trial_columns(levels.column if levels is not None else None)
 
 
-def _fingerprints(protocol: Any, plan: Any, device_text: str) -> dict[str, Any]:
+def stimulus_sha256(protocol: Any, layout: Any) -> str:
+    """sha256 of every bump path the protocol shows on ``layout`` (each digit at each level:
+    frame times, centres, heights, diameter), so a resume under software that draws the
+    digits differently (another strokes scaling, say) is refused although the protocol file
+    is unchanged."""
+    from crs_study.stimulus import make_stimulus
+
+    digest = hashlib.sha256()
+    for level in protocol.level_values:
+        for digit in protocol.digits:
+            stimulus = make_stimulus(protocol, layout, digit, level)
+            for array in (stimulus.frame_times, stimulus.centres_mm, stimulus.heights_mm):
+                digest.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
+            digest.update(repr((digit, level, float(stimulus.diameter_mm))).encode())
+    return digest.hexdigest()
+
+
+def _fingerprints(protocol: Any, plan: Any, device_text: str, layout: Any) -> dict[str, Any]:
     """What a stored session must match to be resumed (see :func:`check_resume`)."""
     return {
         "ProtocolSha256": protocol.sha256, "Seed": int(plan.seed),
         "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
         "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
+        "StimulusSha256": stimulus_sha256(protocol, layout),
     }
 
 
@@ -302,7 +321,8 @@ def check_resume(stored: dict, expected: dict, sidecar: Path) -> None:
     """A stored session may only be resumed with the same plan: one line saying what differs."""
     for key, label in (("ProtocolSha256", "protocol file"), ("Seed", "seed"),
                        ("Counterbalance", "counterbalance"), ("PlanSha256", "trial plan"),
-                       ("DeviceFileSha256", "device file")):
+                       ("DeviceFileSha256", "device file"),
+                       ("StimulusSha256", "stimulus (the bump paths this software draws)")):
         if key in stored and stored[key] != expected[key]:
             raise SessionError(
                 f"{sidecar}: cannot resume: the {label} differs ({key} stored "
@@ -354,7 +374,7 @@ def seed_check(spec: SessionSpec) -> dict[str, Any]:
     protocol, layout, plan, dataset = prepare(spec)
     paths = dataset.session_paths(spec.participant, spec.session)
     device_text = _device_file_text(layout, protocol)
-    expected = _fingerprints(protocol, plan, device_text)
+    expected = _fingerprints(protocol, plan, device_text, layout)
     stored = SessionStore(paths, columns=session_columns(protocol)).read_sidecar()
     if stored is not None:
         check_resume(stored, expected, paths.sidecar)
@@ -401,7 +421,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
     paths = dataset.session_paths(spec.participant, spec.session)
     n_trials = len(plan.trials)
     device_text = _device_file_text(layout, protocol)
-    expected = _fingerprints(protocol, plan, device_text)
+    expected = _fingerprints(protocol, plan, device_text, layout)
     store = SessionStore(paths, columns=session_columns(protocol), durable=spec.durable)
     with store:
         stored = store.read_sidecar()
@@ -518,6 +538,7 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
         "Seed": int(plan.seed),
         "Counterbalance": int(plan.counterbalance),
         "PlanSha256": expected["PlanSha256"],
+        "StimulusSha256": expected["StimulusSha256"],
         "Participant": spec.participant,
         "Session": spec.session,
         "ConsentFormVersion": protocol.consent_form_version,

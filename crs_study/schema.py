@@ -88,6 +88,7 @@ SESSION_KEYS: tuple[str, ...] = (
     "TrialsCompleted",
     "TrialsSha256",        # sha256 of the _beh.tsv bytes when the session was last written
     "PlanSha256",          # sha256 of the trial plan (checked on resume)
+    "StimulusSha256",      # sha256 of every bump path shown (checked on resume)
     "Counterbalance",      # counterbalance index the plan was made with
     "Resumes",             # one per resume: Time (UTC), AtTrial, DeviceURL, SoftwareVersion
     "Faults",              # device faults: trial index, time, message

@@ -6,6 +6,7 @@ import csv
 import hashlib
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -245,6 +246,29 @@ def test_resume_refuses_a_changed_protocol(tmp_path, devices):
         run_session(spec)
     with pytest.raises(SessionError, match="protocol file differs"):
         seed_check(spec)
+
+
+def test_resume_refuses_software_that_draws_the_digits_differently(tmp_path, devices,
+                                                                   monkeypatch):
+    # The protocol file is unchanged, but the bump paths are not (as when an upgrade rescaled
+    # the strokes mid-study): finishing the session would mix two stimuli in one session.
+    import crs_study.stimulus as stimulus_module
+
+    protocol = tiny_protocol(tmp_path)
+    spec = spec_for(tmp_path, protocol)
+    run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=2))
+    sidecar = json.loads(spec.dataset.joinpath(
+        "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json").read_text())
+    assert len(sidecar["StimulusSha256"]) == 64
+    drawn = stimulus_module.make_stimulus
+
+    def wider(protocol, layout, digit, level=None):
+        original = drawn(protocol, layout, digit, level)
+        return replace(original, centres_mm=original.centres_mm * [1.01, 1.0])
+
+    monkeypatch.setattr(stimulus_module, "make_stimulus", wider)
+    with pytest.raises(SessionError, match=r"cannot resume: the stimulus \(the bump paths"):
+        run_session(spec)
 
 
 def test_resume_cuts_a_torn_row(tmp_path, devices):
