@@ -20,6 +20,7 @@ from crs_study.analysis.glmm import (
     format_pvalue,
     lrt,
     profile_conf_int,
+    profile_sd_conf_int,
 )
 from crs_study.analysis.glmm_core import BinomialData, CrossedFactors, SingleFactor
 from crs_study.analysis.glmm_reference import load_cbpp
@@ -316,6 +317,51 @@ def test_profile_interval_brackets_the_estimate(cbpp_laplace):
     assert high == pytest.approx(wald["ci_high"], abs=0.1)
     with pytest.raises(AnalysisError, match="unknown term 'period'"):
         profile_conf_int(cbpp_laplace, terms=["period"])
+
+
+def test_sd_profile_interval_on_cbpp(cbpp, cbpp_laplace):
+    # The herd SD (0.6423) with its profile interval: the ends are where the deviance of the
+    # model refitted at that SD exceeds the optimum's by chi2_1(0.95) = 3.8415, every other
+    # parameter re-maximised (checked here by refitting with the SD held, apart from the
+    # profiler's own search); 0 lies outside because the herd variance's likelihood-ratio
+    # statistic against the logistic regression (statsmodels GLM, sigma = 0) exceeds 3.8415.
+    table = profile_sd_conf_int(cbpp_laplace)
+    sd, low, high = table.loc["herd"]
+    assert sd == pytest.approx(np.sqrt(cbpp_laplace.variance_components["herd"]))
+    assert 0.2 < low < sd < high < 1.5
+    problem, theta_hat, _ = cbpp_laplace._model
+    from crs_study.analysis.glmm_fit import _minimise
+
+    for end in (low, high):
+        start = theta_hat.copy()
+        start[-1] = end
+        theta, _, _ = _minimise(problem, start, {4: end})
+        deviance = 2 * (problem.objective(theta_hat, grad=False)
+                        - problem.objective(theta, grad=False))
+        assert deviance == pytest.approx(stats.chi2.ppf(0.95, 1), abs=1e-3)
+    no_herd = fit_glmm(cbpp, "incidence", "C(period)", trials="size")     # statsmodels GLM
+    assert 2 * (cbpp_laplace.loglike - no_herd.loglike) > stats.chi2.ppf(0.95, 1)
+
+
+def test_sd_profile_lower_end_is_zero_within_the_cutoff():
+    # A small random-intercept variance: the profile at sigma = 0 (the logistic regression,
+    # by statsmodels) is within the cutoff, so the lower end is 0, not a root of the profile.
+    df = simulate_trials(np.random.default_rng(4), 10, 20, [0.0, 0.8], 0.05)
+    full = fit_glmm(df, "correct", "condition", "participant")
+    glm = fit_glmm(df, "correct", "condition")
+    statistic = 2 * (full.loglike - glm.loglike)
+    assert full.variance_components.iloc[0] > 0 and statistic < stats.chi2.ppf(0.95, 1)
+    sd, low, high = profile_sd_conf_int(full).iloc[0]
+    assert low == 0.0 and high > sd
+    # an estimate on the boundary: 0 with an interval [0, upper]
+    identical = pd.concat([pd.DataFrame({"participant": f"p{p}", "condition": "c1",
+                                         "correct": [1] * 7 + [0] * 3}) for p in range(6)])
+    boundary = fit_glmm(identical.reset_index(drop=True), "correct", "1", "participant")
+    assert boundary.boundary == ("participant",)
+    sd, low, high = profile_sd_conf_int(boundary).iloc[0]
+    assert sd == low == 0.0 and 0 < high < np.inf
+    # no random effect: no rows
+    assert profile_sd_conf_int(glm).empty
 
 
 @pytest.mark.parametrize(("p", "text"), [(0.0312, "0.0312"), (3e-17, "< 1e-16"),

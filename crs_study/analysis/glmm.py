@@ -45,12 +45,13 @@ from crs_study.analysis.glmm_core import (
     NoRandom,
     SingleFactor,
 )
-from crs_study.analysis.glmm_fit import fit_glm, optimise, profile_interval
+from crs_study.analysis.glmm_fit import fit_glm, optimise, profile_interval, profile_sd_interval
 from crs_study.analysis.glmm_result import P_FLOOR, GlmmResult, LrtResult, format_pvalue
 from crs_study.errors import AnalysisError
 
-__all__ = ["fit_glmm", "lrt", "profile_conf_int", "GlmmResult", "LrtResult", "format_pvalue",
-           "GlmmFitError", "MAX_QUADRATURE", "PRIOR_SD_INTERCEPT", "PRIOR_SD_COEFFICIENT"]
+__all__ = ["fit_glmm", "lrt", "profile_conf_int", "profile_sd_conf_int", "GlmmResult",
+           "LrtResult", "format_pvalue", "GlmmFitError", "MAX_QUADRATURE",
+           "PRIOR_SD_INTERCEPT", "PRIOR_SD_COEFFICIENT"]
 
 #: Prior standard deviations used against separation (Gelman et al. 2008 scales, normal form).
 PRIOR_SD_INTERCEPT = 10.0
@@ -147,8 +148,9 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     fixed_text = fixed if isinstance(fixed, str) else "<design matrix>"
     try:
         if not kept and prior_sd is None:
+            problem = _Problem(NoRandom(_pool(X, y, m, [])), names, (), None, user_constant)
             return fit_glm(X, y, m, names, user_constant, len(data), response, fixed_text,
-                           tuple(group_list), notes)
+                           tuple(group_list), notes, problem)
         binomial = _pool(X, y, m, codes) if aggregate else _unpooled(X, y, m, codes)
         if not kept:
             model = NoRandom(binomial)
@@ -400,15 +402,42 @@ def profile_conf_int(result: GlmmResult, level: float = 0.95,
     """Profile-likelihood intervals of fixed effects (lme4's ``confint(method = "profile")``).
 
     Columns ``ci_low``, ``ci_high`` (log-odds); an end is infinite when the profile does not
-    drop by ``chi2_1(level) / 2`` within 2^12 standard errors.
+    drop by ``chi2_1(level) / 2`` within 2^12 standard errors. A fit penalised against
+    separation is profiled on its penalised likelihood.
     """
-    if result.method == "glm" and result._model is None:
-        raise AnalysisError("profile intervals need a likelihood fitted here; this result is a "
-                            "statsmodels GLM (use its conf_int)")
+    _check_profilable(result)
     names = list(result.params.index) if terms is None else list(terms)
     unknown = [t for t in names if t not in result.params.index]
     if unknown:
         raise AnalysisError(f"unknown term {unknown[0]!r}; terms: {list(result.params.index)!r}")
-    rows = {t: profile_interval(result, list(result.params.index).index(t), level)
-            for t in names}
+    try:
+        rows = {t: profile_interval(result, list(result.params.index).index(t), level)
+                for t in names}
+    except _NUMERICAL_ERRORS as exc:
+        raise GlmmFitError(f"numerical failure while profiling the likelihood "
+                           f"({type(exc).__name__}: {exc})") from exc
     return pd.DataFrame.from_dict(rows, orient="index", columns=["ci_low", "ci_high"])
+
+
+def profile_sd_conf_int(result: GlmmResult, level: float = 0.95) -> pd.DataFrame:
+    """Profile-likelihood intervals of the random-intercept standard deviations.
+
+    lme4's ``confint(method = "profile")`` rows ``.sig01, ...``: one row per grouping factor
+    with columns ``sd`` (the estimate), ``ci_low``, ``ci_high``. The lower end is 0 when the
+    profile at 0 lies within the cutoff (the boundary, see ``glmm_fit.profile_sd_interval``);
+    empty when the model has no random effect.
+    """
+    _check_profilable(result)
+    try:
+        rows = {g: (float(np.sqrt(v)), *profile_sd_interval(result, k, level))
+                for k, (g, v) in enumerate(result.variance_components.items())}
+    except _NUMERICAL_ERRORS as exc:
+        raise GlmmFitError(f"numerical failure while profiling the likelihood "
+                           f"({type(exc).__name__}: {exc})") from exc
+    return pd.DataFrame.from_dict(rows, orient="index", columns=["sd", "ci_low", "ci_high"])
+
+
+def _check_profilable(result: GlmmResult) -> None:
+    if result._model is None:
+        raise AnalysisError("profile intervals need a likelihood fitted by fit_glmm; this "
+                            "result carries none")

@@ -166,8 +166,12 @@ def _fixed_covariance(information: np.ndarray, n_fixed: int, notes: list[str]) -
         return np.full((n_fixed, n_fixed), np.nan)
 
 
-def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes) -> GlmmResult:
-    """Fixed-effects logistic regression by statsmodels' GLM (no random effect estimable)."""
+def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes,
+            problem=None) -> GlmmResult:
+    """Fixed-effects logistic regression by statsmodels' GLM (no random effect estimable).
+
+    ``problem``, the same likelihood as our objective, lets the result be profiled.
+    """
     import statsmodels.api as sm
 
     with _warnings.catch_warnings(record=True) as caught:
@@ -186,36 +190,78 @@ def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes)
         converged=bool(fit.converged), n_function_evaluations=int(fit.fit_history["iteration"]),
         n_iterations=int(fit.fit_history["iteration"]), max_abs_gradient=float(np.max(np.abs(
             X.T @ (y - m / (1 + np.exp(-eta)))))), response=response, fixed=fixed,
-        groups=groups, penalty=None, warnings=tuple(notes))
+        groups=groups, penalty=None, warnings=tuple(notes),
+        _model=None if problem is None else (problem, np.asarray(fit.params, float), ()))
 
 
 def profile_interval(result: GlmmResult, index: int, level: float) -> tuple[float, float]:
     """Profile-likelihood interval of fixed effect ``index``: ``2 (l_max - l_prof(b)) = chi2``.
 
     Each profile point re-maximises over the other parameters (Venzon & Moolgavkar 1988 in
-    the plain bracketing form); the ends are found with Brent's method.
+    the plain bracketing form); the ends are found with Brent's method. A variance estimated
+    at 0 stays at 0 (the fit's own boundary), so with every variance at 0 this is the
+    logistic regression's profile interval.
     """
     problem, theta_hat, at_zero = result._model
-    target = stats.chi2.ppf(level, 1) / 2.0
-    top = problem.objective(theta_hat, grad=False)
     se = float(result.bse.iloc[index]) if np.isfinite(result.bse.iloc[index]) else 1.0
+    drop = _profile_drop(problem, theta_hat, index, {k: 0.0 for k in at_zero}, level)
+    low = _profile_end(drop, theta_hat[index], -2.0 * se)
+    high = _profile_end(drop, theta_hat[index], 2.0 * se)
+    problem.objective(theta_hat)  # restore the warm start at the optimum
+    return low, high
 
-    def drop(b: float) -> float:
-        fixed_values = {index: b, **{k: 0.0 for k in at_zero}}
-        theta, _, _ = _minimise(problem, theta_hat, fixed_values)
-        return top - problem.objective(theta, grad=False) - target
 
-    ends = []
-    for direction in (-1.0, 1.0):
-        width = 2.0 * se
-        for _ in range(12):
-            if drop(theta_hat[index] + direction * width) > 0:
-                break
-            width *= 2.0
-        else:
-            ends.append(direction * np.inf)
-            continue
-        a, b = sorted((theta_hat[index], theta_hat[index] + direction * width))
-        ends.append(optimize.brentq(drop, a, b, xtol=1e-6))
+def profile_sd_interval(result: GlmmResult, k: int, level: float) -> tuple[float, float]:
+    """Profile-likelihood interval of the ``k``-th random-intercept standard deviation.
+
+    As lme4's ``confint(method = "profile")`` for ``.sig0k``: the ends are where ``2 (l_max -
+    l_prof(sigma)) = chi2_1(level)``, every other parameter re-maximised. The standard
+    deviation cannot be negative: when the profile at ``sigma = 0`` is still within the cutoff
+    the lower end is 0 (always so when the estimate itself is 0); the upper end is infinite
+    when the profile never drops that far (a flat likelihood, e.g. two groups).
+    """
+    problem, theta_hat, at_zero = result._model
+    index = problem.n_fixed + k
+    others = {j: 0.0 for j in at_zero if j != index}
+    drop = _profile_drop(problem, theta_hat, index, others, level)
+    sigma = float(theta_hat[index])
+    low = 0.0 if drop(0.0) <= 0.0 else float(optimize.brentq(drop, 0.0, sigma, xtol=1e-5))
+    high = _profile_end(drop, sigma, max(0.5 * sigma, 0.25))
     problem.objective(theta_hat)
-    return ends[0], ends[1]
+    return low, high
+
+
+def _profile_drop(problem, theta_hat: np.ndarray, index: int, held: dict[int, float],
+                  level: float):
+    """``b -> sqrt(2 (l_max - l_prof(b))) - sqrt(chi2_1(level))``: negative inside the
+    interval. On this signed-root scale (lme4's ``zeta``) the profile is nearly linear, so
+    Brent's method needs few points."""
+    target = np.sqrt(stats.chi2.ppf(level, 1))
+    top = problem.objective(theta_hat, grad=False)
+
+    last = [theta_hat.copy()]   # warm start: the previous profile point's optimum
+    known = {float(theta_hat[index]): -target}   # Brent asks again for the bracket's ends
+
+    def drop(value: float) -> float:
+        if float(value) in known:
+            return known[float(value)]
+        start = last[0].copy()
+        start[index] = value
+        theta, _, _ = _minimise(problem, start, {**held, index: value})
+        last[0] = theta
+        known[float(value)] = float(np.sqrt(2.0 * max(
+            top - problem.objective(theta, grad=False), 0.0))) - target
+        return known[float(value)]
+
+    return drop
+
+
+def _profile_end(drop, estimate: float, step: float) -> float:
+    """The root of ``drop`` beyond ``estimate`` in the direction of ``step`` (doubled up to
+    12 times to bracket it); infinite when the profile never reaches the cutoff."""
+    for _ in range(12):
+        if drop(estimate + step) > 0:
+            a, b = sorted((estimate, estimate + step))
+            return float(optimize.brentq(drop, a, b, xtol=1e-5))
+        step *= 2.0
+    return float(np.copysign(np.inf, step))
