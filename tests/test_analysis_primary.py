@@ -144,3 +144,67 @@ def test_the_plan_and_the_glmm_share_one_quadrature_limit():
                        n_quadrature=MAX_QUADRATURE)
     usual = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq")
     assert top.comparisons[0].log_odds == pytest.approx(usual.comparisons[0].log_odds, abs=1e-6)
+
+
+def _statsmodels_profile_interval(y, x, level=0.95):
+    """Profile-likelihood interval of the slope of ``logit P(y) = a + b x``, computed apart
+    from our optimiser: statsmodels' GLM (IRLS) maximises over the intercept at each fixed b
+    (as an offset), Brent's method finds where 2 (l_max - l_prof(b)) = chi2_1(level)."""
+    import statsmodels.api as sm
+    from scipy import optimize, stats
+
+    ones = np.ones((len(y), 1))
+    full = sm.GLM(y, np.column_stack([ones, x]), family=sm.families.Binomial()).fit()
+    b_hat, se = full.params[1], full.bse[1]
+    cutoff = stats.chi2.ppf(level, 1)
+
+    def excess(b):
+        fit = sm.GLM(y, ones, family=sm.families.Binomial(), offset=b * x).fit()
+        return 2.0 * (full.llf - fit.llf) - cutoff
+
+    return (optimize.brentq(excess, b_hat - 5 * se, b_hat, xtol=1e-10),
+            optimize.brentq(excess, b_hat, b_hat + 5 * se, xtol=1e-10))
+
+
+def test_odds_ratio_interval_is_the_profile_likelihood_one_checked_at_variance_zero():
+    # Eight participants with identical results (14/20 correct with crs, 9/20 without): no
+    # variation between participants, so the participant variance is estimated at exactly 0
+    # and the model is the logistic regression; its profile interval must then equal the
+    # logistic regression's profile interval, computed here with statsmodels' GLM.
+    rows = []
+    for p in range(8):
+        for condition, k in (("pixel-only", 9), ("crs", 14)):
+            rows += [{"participant_id": f"p{p}", "condition": condition, "digit": i % 10,
+                      "correct": float(i < k)} for i in range(20)]
+    trials = pd.DataFrame(rows)
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    (comparison,) = result.comparisons
+    assert result.model["variance_components"]["participant_id"] == 0.0
+    y = trials["correct"].to_numpy()
+    x = (trials["condition"] == "crs").to_numpy(dtype=float)
+    low, high = _statsmodels_profile_interval(y, x)
+    assert np.log(comparison.ci95) == pytest.approx((low, high), abs=2e-5)
+    assert comparison.ci_method.startswith("profile likelihood")
+    # the Wald interval is kept, labelled, and differs: the profile is not symmetric in b
+    b, se = comparison.log_odds, comparison.std_error
+    assert np.log(comparison.ci95_wald) == pytest.approx((b - 1.959964 * se,
+                                                         b + 1.959964 * se), abs=1e-6)
+    assert abs((high - b) - (b - low)) > 1e-3
+    as_json = comparison.to_dict()
+    assert as_json["ci95"] == list(comparison.ci95)
+    assert as_json["ci95_wald"] == list(comparison.ci95_wald)
+    # the participant SD: estimate 0, profile interval from 0
+    sd = result.model["random_effects"]["participant"]
+    assert sd["sd"] == 0.0 and sd["sd_ci95"][0] == 0.0 and sd["sd_ci95"][1] > 0
+
+
+def test_profile_interval_without_random_effects_matches_statsmodels():
+    # a single participant: no variance is estimable, the model is the logistic regression
+    trials = _trials(n_participants=1, n_per_cell=60, seed=8)
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    (comparison,) = result.comparisons
+    y = trials["correct"].to_numpy()
+    x = (trials["condition"] == "crs").to_numpy(dtype=float)
+    assert np.log(comparison.ci95) == pytest.approx(_statsmodels_profile_interval(y, x),
+                                                    abs=2e-5)
+    assert result.model["random_effects"] == {}

@@ -6,10 +6,16 @@ Gauss-Hermite quadrature for a single random intercept). Conditions use treatmen
 against the plan's reference condition, so each coefficient is the log odds ratio of a
 condition against the reference, at the typical participant (and digit).
 
-Each comparison reports the odds ratio ``exp(b)`` with its Wald interval ``exp(b -/+ z se)``,
-the Wald p-value ``2 Phi(-|b/se|)`` and the likelihood-ratio p-value of dropping that
-coefficient (chi2 with 1 df); ``p_value`` is the likelihood-ratio one, which is the more
-accurate for logistic models (Agresti 2013, Categorical Data Analysis, 3rd ed., sec. 1.3.3).
+Each comparison reports the odds ratio ``exp(b)`` with its profile-likelihood interval as
+``ci95`` (as lme4's ``confint(method = "profile")``: the values of ``b`` where twice the drop
+of the likelihood, maximised over every other parameter, reaches ``chi2_1(level)``; it
+follows the skewness of the likelihood that a Wald interval ignores), the Wald interval
+``exp(b -/+ z se)`` as ``ci95_wald``, the Wald p-value ``2 Phi(-|b/se|)`` and the
+likelihood-ratio p-value of dropping that coefficient (chi2 with 1 df); ``p_value`` is the
+likelihood-ratio one, which is the more accurate for logistic models (Agresti 2013,
+Categorical Data Analysis, 3rd ed., sec. 1.3.3). Each random intercept's standard deviation
+gets its profile-likelihood interval too (``model.random_effects``), 0 as its lower end when
+the profile at 0 is within the cutoff.
 With more than two conditions an omnibus likelihood-ratio test of condition (k - 1 df) is
 reported too. When the model cannot be fitted for numerical reasons (:class:`GlmmFitError`),
 Fisher's exact test on the pooled 2 x 2 table is reported instead, with a warning saying so;
@@ -35,8 +41,10 @@ GROUP_COLUMNS = {"participant": "participant_id", "digit": "digit"}
 class Comparison:
     """One condition against the reference: ``estimate`` is an odds ratio (condition/reference).
 
-    ``ci95`` is the interval at the plan's level (95 % unless alpha differs); ``p_value`` the
-    method's p; ``p_wald`` and ``p_lr`` both when the GLMM gave them (else None).
+    ``ci95`` is the interval at the plan's level (95 % unless alpha differs), of the kind
+    ``ci_method`` names (profile likelihood for the GLMM); ``ci95_wald`` the Wald interval
+    when the GLMM gave one; ``p_value`` the method's p; ``p_wald`` and ``p_lr`` both when the
+    GLMM gave them (else None).
     """
 
     condition: str
@@ -49,10 +57,14 @@ class Comparison:
     p_lr: float | None = None
     log_odds: float | None = None
     std_error: float | None = None
+    ci_method: str = ""
+    ci95_wald: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
         return {"condition": self.condition, "reference": self.reference,
                 "method": self.method, "estimate": self.estimate, "ci95": list(self.ci95),
+                "ci_method": self.ci_method,
+                "ci95_wald": None if self.ci95_wald is None else list(self.ci95_wald),
                 "p_value": self.p_value, "p_wald": self.p_wald, "p_lr": self.p_lr,
                 "log_odds": self.log_odds, "std_error": self.std_error}
 
@@ -119,6 +131,8 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
     odds = full.odds_ratios(level)
     wald = full.pvalues
     label = _method_label(full)
+    columns = [c for c in full_design.columns[1:] if c in full.params.index]
+    profile = _profile_odds(full, columns, level, warnings)
     comparisons = []
     for column in full_design.columns[1:]:
         condition = column[len("condition["):-1]
@@ -134,7 +148,7 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                             f"model without it could not be fitted ({exc}); p_value is the "
                             "Wald p")
             comparisons.append(_comparison(condition, reference, label, full, column, odds,
-                                           wald[column], None))
+                                           profile, wald[column], None))
             continue
         test = _lrt(full, reduced)
         for note in test.warnings:   # the fits' own notes are reported once, above
@@ -144,7 +158,7 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                 seen.add(core)
                 warnings.append(f"GLMM likelihood-ratio test of {condition!r}: {note}")
         comparisons.append(_comparison(condition, reference, label, full, column, odds,
-                                       wald[column], test.pvalue))
+                                       profile, wald[column], test.pvalue))
     omnibus = None
     if len(comparisons) > 1:
         try:
@@ -158,19 +172,69 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                        "statistic": float(test.statistic), "df": int(test.df),
                        "p_value": floor_p(test.pvalue)}
     model = full.to_dict(level) if hasattr(full, "to_dict") else None
+    if model is not None:
+        model["random_effects"] = _random_effect_intervals(full, level, warnings)
     return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings))
 
 
+def _profile_odds(full, columns: list[str], level: float,
+                  warnings: list[str]) -> pd.DataFrame | None:
+    """Profile-likelihood intervals of the odds ratios, or None (Wald then) with a warning."""
+    from crs_study.analysis.glmm import profile_conf_int
+
+    try:
+        return np.exp(profile_conf_int(full, level, columns))
+    except GlmmFitError as exc:
+        warnings.append(f"GLMM: the profile-likelihood intervals could not be computed "
+                        f"({exc}); the odds ratios' ci95 are Wald intervals")
+        return None
+
+
+def _random_effect_intervals(full, level: float, warnings: list[str]) -> dict:
+    """Per random intercept: variance, sd and the profile-likelihood interval of the sd."""
+    from crs_study.analysis.glmm import profile_sd_conf_int
+
+    if not len(full.variance_components):
+        return {}
+    try:
+        table = profile_sd_conf_int(full, level)
+    except GlmmFitError as exc:
+        warnings.append(f"GLMM: no profile interval for the random-effect standard deviations "
+                        f"({exc})")
+        table = None
+    out = {}
+    for group, variance in full.variance_components.items():
+        name = group.removesuffix("_id")
+        entry = {"variance": float(variance), "sd": float(np.sqrt(variance)),
+                 "sd_ci95": None, "ci_method": "profile likelihood (lme4 confint 'profile')"}
+        if table is not None:
+            low, high = (float(v) for v in table.loc[group, ["ci_low", "ci_high"]])
+            entry["sd_ci95"] = [low, high if np.isfinite(high) else None]
+            if not np.isfinite(high):
+                warnings.append(f"GLMM: the {name} standard deviation has no finite upper "
+                                "profile limit (the likelihood stays flat: too few levels); "
+                                "its sd_ci95 upper end is null")
+        out[name] = entry
+    return out
+
+
 def _comparison(condition: str, reference: str, label: str, full, column: str,
-                odds: pd.DataFrame, p_wald: float, p_lr: float | None) -> Comparison:
+                odds: pd.DataFrame, profile: pd.DataFrame | None, p_wald: float,
+                p_lr: float | None) -> Comparison:
     """One GLMM comparison; ``p_value`` is the likelihood-ratio p, else the Wald p."""
+    wald_ci = (float(odds.loc[column, "ci_low"]), float(odds.loc[column, "ci_high"]))
+    if profile is None:
+        ci, how = wald_ci, "Wald (exp(b -/+ z se)); the profile failed"
+    else:
+        ci = (float(profile.loc[column, "ci_low"]), float(profile.loc[column, "ci_high"]))
+        how = ("profile likelihood (lme4 confint 'profile')"
+               + (", of the penalised likelihood" if full.penalty else ""))
     return Comparison(
         condition=condition, reference=reference, method=label,
-        estimate=float(odds.loc[column, "odds_ratio"]),
-        ci95=(float(odds.loc[column, "ci_low"]), float(odds.loc[column, "ci_high"])),
+        estimate=float(odds.loc[column, "odds_ratio"]), ci95=ci,
         p_value=floor_p(p_wald if p_lr is None else p_lr), p_wald=floor_p(p_wald),
         p_lr=None if p_lr is None else floor_p(p_lr), log_odds=float(full.params[column]),
-        std_error=float(full.bse[column]))
+        std_error=float(full.bse[column]), ci_method=how, ci95_wald=wald_ci)
 
 
 def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, groups: list[str], method: str,
@@ -216,5 +280,6 @@ def _fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: st
         out.append(Comparison(condition, reference, "Fisher's exact test, pooled 2 x 2 table "
                               "(odds ratio with Woolf interval)", float(np.exp(log_or)),
                               (float(np.exp(log_or - z * se)), float(np.exp(log_or + z * se))),
-                              floor_p(p), log_odds=float(log_or), std_error=se))
+                              floor_p(p), log_odds=float(log_or), std_error=se,
+                              ci_method="Woolf (Wald on the log odds ratio)"))
     return tuple(out)
