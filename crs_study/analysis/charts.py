@@ -86,7 +86,8 @@ def plot_confusion(result: ConfusionResult, ax: Axes | None = None) -> Axes:
 
 
 def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> Axes:
-    """Mean correct RT against accuracy: participants (small) and condition means with CIs."""
+    """Mean correct RT against accuracy: participants (small) and, per condition, the geometric
+    mean RT and pooled accuracy with their intervals (``summarise_efficiency``)."""
     ax = _axes(ax)
     for i, condition in enumerate(result.conditions):
         colour = COLOURS[i % len(COLOURS)]
@@ -107,7 +108,8 @@ def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> 
     ax.set_xlabel(f"mean correct {result.rt_column.replace('_', ' ')} (s)")
     ax.set_ylabel("correct (%)")
     ax.set_ylim(0, 100)
-    ax.legend(fontsize=8, title="condition (mean, 95 % CI)", title_fontsize=8)
+    ax.legend(fontsize=8, title="condition (geometric mean RT, pooled\naccuracy; 95 % CI)",
+              title_fontsize=8)
     ax.set_title("Speed against accuracy (dots: participants)", fontsize=9)
     return ax
 

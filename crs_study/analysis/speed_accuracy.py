@@ -7,7 +7,7 @@
   condition and bin: ``n_trials``, ``n_correct``, ``accuracy`` with Wilson ``ci_low``,
   ``ci_high``, and ``mean_rt`` (s).
 * ``efficiency`` per participant and condition, then ``efficiency_summary`` per condition
-  (mean and t interval across participants) of
+  of
 
   - inverse efficiency ``IES = mean correct RT / PC`` (Townsend & Ashby 1983; s),
   - rate-correct score ``RCS = n correct / sum of all RTs`` (Woltz & Was 2006, Eq. 1;
@@ -15,6 +15,18 @@
   - balanced integration score ``BIS = z(PC) - z(mean correct RT)`` with both z-scores taken
     across every participant x condition cell (Liesefeld & Janczyk 2019, Behav. Res.
     Methods 51:40, Eq. 1; unitless, higher is better).
+
+Summary estimates and intervals respect each measure's range (column ``<measure>_method``):
+
+- ``accuracy``: the pooled proportion correct with its Wilson interval (within [0, 1]);
+- ``mean_correct_rt``, ``ies``, ``rcs``: positive and right-skewed, so the geometric mean
+  across participants with the t interval of the mean log, exponentiated (never negative;
+  exact for log-normal scores). Response times counted from stimulus offset can be 0 or
+  negative: then the arithmetic mean with a t interval, as the method says;
+- ``bis``: unbounded, the mean with a t interval (``scipy.stats.t``).
+
+With one participant, or no spread, an interval collapses to the estimate (said in the
+warnings).
 """
 
 from __future__ import annotations
@@ -28,6 +40,8 @@ from scipy import stats
 from crs_study.analysis.accuracy import wilson_interval
 
 MEASURES = ("accuracy", "mean_correct_rt", "ies", "rcs", "bis")
+#: Measures summarised on the log scale when every participant's value is positive.
+POSITIVE_MEASURES = ("mean_correct_rt", "ies", "rcs")
 
 
 @dataclass(frozen=True)
@@ -105,12 +119,12 @@ def efficiency_scores(trials: pd.DataFrame, rt: str, conditions: list[str]
         pc = n_correct / len(correct)
         mean_correct_rt = float(times[correct == 1].mean()) if n_correct else None
         rows.append({"participant_id": participant, "condition": condition,
-                     "n_trials": len(correct), "accuracy": pc,
+                     "n_trials": len(correct), "n_correct": n_correct, "accuracy": pc,
                      "mean_correct_rt": mean_correct_rt,
                      "ies": mean_correct_rt / pc if n_correct else None,
                      "rcs": n_correct / float(times.sum()) if times.sum() > 0 else None})
-    table = pd.DataFrame(rows, columns=["participant_id", "condition", "n_trials", "accuracy",
-                                        "mean_correct_rt", "ies", "rcs"])
+    table = pd.DataFrame(rows, columns=["participant_id", "condition", "n_trials", "n_correct",
+                                        "accuracy", "mean_correct_rt", "ies", "rcs"])
     none_correct = table.loc[table["ies"].isna(), ["participant_id", "condition"]]
     if len(none_correct):
         warnings.append(f"{len(none_correct)} participant x condition cell(s) have no correct "
@@ -132,25 +146,45 @@ def _z(values: pd.Series) -> pd.Series:
 
 def summarise_efficiency(table: pd.DataFrame, conditions: list[str],
                          alpha: float = 0.05) -> pd.DataFrame:
-    """Mean and t interval across participants of each measure, per condition."""
+    """Per condition and measure: estimate, interval and method (see module docstring)."""
     rows = []
     for condition in conditions:
         subset = table.loc[table["condition"] == condition]
         row: dict[str, object] = {"condition": condition, "n_participants": len(subset)}
-        for measure in MEASURES:
+        n_trials, n_correct = int(subset["n_trials"].sum()), int(subset["n_correct"].sum())
+        if n_trials:
+            low, high = wilson_interval(n_correct, n_trials, alpha)
+            row["accuracy"] = n_correct / n_trials
+            row["accuracy_ci_low"], row["accuracy_ci_high"] = float(low), float(high)
+        else:
+            row["accuracy"] = row["accuracy_ci_low"] = row["accuracy_ci_high"] = None
+        row["accuracy_method"] = "pooled trials, Wilson interval"
+        for measure in MEASURES[1:]:
             values = subset[measure].dropna().astype(float).to_numpy()
-            mean = float(values.mean()) if len(values) else None
-            low = high = None
-            if len(values) >= 2 and values.std(ddof=1) > 0:
-                half = stats.t.ppf(1 - alpha / 2, len(values) - 1) * values.std(ddof=1) \
-                    / np.sqrt(len(values))
-                low, high = mean - half, mean + half
-            elif len(values):
-                low = high = mean
-            row[measure] = mean
-            row[f"{measure}_ci_low"], row[f"{measure}_ci_high"] = low, high
+            positive = measure in POSITIVE_MEASURES and len(values) and (values > 0).all()
+            estimate, low, high = _t_summary(np.log(values) if positive else values, alpha)
+            if positive:
+                estimate, low, high = (None if v is None else float(np.exp(v))
+                                       for v in (estimate, low, high))
+            row[measure], row[f"{measure}_ci_low"], row[f"{measure}_ci_high"] = \
+                estimate, low, high
+            row[f"{measure}_method"] = ("geometric mean, t interval on the log scale"
+                                        if positive else "mean, t interval")
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def _t_summary(values: np.ndarray, alpha: float
+               ) -> tuple[float | None, float | None, float | None]:
+    """Mean and t interval (``scipy.stats.t.interval``); a point without spread or n < 2."""
+    if not len(values):
+        return None, None, None
+    mean = float(values.mean())
+    if len(values) < 2 or values.std(ddof=1) == 0:
+        return mean, mean, mean
+    low, high = stats.t.interval(1 - alpha, len(values) - 1, loc=mean,
+                                 scale=stats.sem(values))
+    return mean, float(low), float(high)
 
 
 def analyse_speed_accuracy(trials: pd.DataFrame, conditions: list[str],
