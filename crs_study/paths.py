@@ -13,6 +13,8 @@ import crs_study
 from crs_study.errors import ConfigError
 
 REPO_ROOT = Path(crs_study.__file__).resolve().parents[1]
+#: The paper's experiment (``crs-study demo`` and ``device check`` use it when given none).
+DEFAULT_PROTOCOL = "protocols/digit_identification.toml"
 
 
 def shipped_file(relative: str | Path) -> Path:

@@ -37,9 +37,8 @@ import hashlib
 import json
 import math
 import signal
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +50,7 @@ from crs_study._files import sha256_bytes
 from crs_study.clock import RealClock, VirtualClock
 from crs_study.dataset import Dataset, SessionStore, utc_now
 from crs_study.errors import CrsStudyError, DeviceError, SessionError
+from crs_study.signals import deferred, handling, terminate_as_interrupt
 
 #: Session time spent before the first trial with the display neutral (settled and flat).
 SETTLE_S = 1.0
@@ -196,50 +196,9 @@ def _choose_clock(spec: SessionSpec, responder: Any) -> str:
     return spec.clock
 
 
-@contextlib.contextmanager
-def _signals(handler: Any, signums: tuple[int, ...]) -> Iterator[None]:
-    """Within the block ``handler`` serves ``signums``; restored after (main thread only)."""
-    old = {}
-    if threading.current_thread() is threading.main_thread():
-        for signum in signums:
-            old[signum] = signal.signal(signum, handler)
-    try:
-        yield
-    finally:
-        for signum, previous in old.items():
-            signal.signal(signum, previous)
-
-
-def _raise_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
-#: Signals that end a session as Ctrl-C does (a safe pause): a kill, a closed terminal or SSH.
-PAUSE_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-
-def _sigterm_as_interrupt() -> contextlib.AbstractContextManager[None]:
-    """Within the block, SIGTERM and SIGHUP raise KeyboardInterrupt (a safe pause)."""
-    return _signals(_raise_interrupt, PAUSE_SIGNALS[1:])
-
-
 def _ignore_interrupts() -> contextlib.AbstractContextManager[None]:
     """Ignore Ctrl-C while the session is being put safely to rest."""
-    return _signals(signal.SIG_IGN, (signal.SIGINT,))
-
-
-@contextlib.contextmanager
-def _defer_interrupts() -> Iterator[None]:
-    """Hold Ctrl-C, SIGTERM and SIGHUP back until the block ends, then pause.
-
-    Wraps the storing of a trial (frame log, row, in-memory rows, sidecar) so an interrupt
-    never falls between them: the trial is stored whole, then the session pauses.
-    """
-    caught: list[int] = []
-    with _signals(lambda signum, frame: caught.append(signum), PAUSE_SIGNALS):
-        yield
-    if caught:
-        raise KeyboardInterrupt
+    return handling(signal.SIG_IGN, (signal.SIGINT,))
 
 
 @dataclass
@@ -459,7 +418,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         status = "interrupted"
         origin = 0.0
         try:
-            with _sigterm_as_interrupt(), responder, open_device(
+            with terminate_as_interrupt(), responder, open_device(
                     spec.device_url, layout, clock, **(device_options or {})) as device:
                 device.neutral()
                 if clock_kind == "virtual":
@@ -706,7 +665,7 @@ def _run_trial(state: _Session, device: Any, responder: Any, clock: Any, origin:
     flat = "\t".join(f"{v:.4f}" for v in state.layout.neutral_setpoints().tolist())
     log.append(_frame_line("neutral", n, shown.neutral_due, shown.neutral, origin, flat))
     columns = FRAME_LOG_COLUMNS + tuple(f"a{j:02d}" for j in range(frames.shape[1]))
-    with _defer_interrupts():  # stored whole: frames, row, rows in memory, sidecar
+    with deferred():  # stored whole: frames, row, rows in memory, sidecar
         state.store.append_frames(trial.index, columns, log)
         state.store.append_row(row)
         state.rows.append({k: str(v) for k, v in row.items()})

@@ -56,8 +56,7 @@ def test_check_json(boards, capsys):
 
 def test_check_without_a_protocol_plans_the_default_one_and_says_so(tmp_path, monkeypatch,
                                                                      capsys):
-    from crs_study.commands.demo import DEFAULT_PROTOCOL
-    from crs_study.paths import shipped_file
+    from crs_study.paths import DEFAULT_PROTOCOL, shipped_file
 
     monkeypatch.chdir(tmp_path)  # found beside the package, not only from the checkout's root
     assert main(["device", "check", "--device", "sim://"]) == 0

@@ -18,10 +18,10 @@ from pathlib import Path
 
 from crs_study._files import os_errors
 from crs_study.errors import DatasetError
+from crs_study.paths import DEFAULT_PROTOCOL
 
 NAME = "demo"
 HELP = "dry-run the default protocol with simulated participants, analyse, print the headline"
-DEFAULT_PROTOCOL = "protocols/digit_identification.toml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

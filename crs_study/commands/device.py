@@ -20,7 +20,7 @@ import warnings
 from contextlib import contextmanager
 
 from crs_study.commands import HelpFormatter
-from crs_study.commands.demo import DEFAULT_PROTOCOL
+from crs_study.paths import DEFAULT_PROTOCOL
 
 NAME = "device"
 #: ``sweep`` limits: the LSC move time is 0..30000 ms (hardware.md), one frame period a frame.
