@@ -214,8 +214,8 @@ def _text(s: dict) -> str:
                      f"{c['mean_bytes_per_frame']:.1f} bytes/frame on average, busiest frame "
                      f"{c['busiest_frame_wire_ms']:.1f} ms = "
                      f"{c['busiest_frame_budget_percent']:.0f} % of the period (max "
-                     f"{c['max_rate_hz']:.1f} frames/s), median latency "
-                     f"{c['median_latency_ms']:.0f} ms")
+                     f"{c['max_rate_hz']:.1f} frames/s between full refreshes), median "
+                     f"latency {c['median_latency_ms']:.0f} ms (refreshes included)")
     lines.append("checks passed:")
     lines += [f"  ok  {c}" for c in s["checks"]]
     if s["warnings"]:
