@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 from analysis_fixtures import dataset, explicit_dataset, session_files, write_plan
+from scipy import stats
 
 from crs_study.analysis.report import analyze, analyze_dataset, format_p
 from crs_study.cli import main
@@ -57,7 +58,7 @@ def test_results_json_holds_the_promised_keys(full_run):
     assert glmm["method"].startswith("GLMM") and glmm["estimate"] > 1
     assert {"method", "estimate", "ci95", "p_value"} <= set(glmm)
     methods = [c["method"].split()[0] for c in saved["comparisons"]]
-    assert methods == ["GLMM", "paired", "Wilcoxon", "exact"]
+    assert methods == ["GLMM", "paired", "Wilcoxon", "McNemar"]
     assert set(saved["information_transfer"]) == set(CONDITIONS)
     assert saved["information_transfer"]["crs"]["ci95"] is not None
     assert isinstance(saved["warnings"], list) and saved["headline"] == result.headline
@@ -85,6 +86,35 @@ def test_headline_reads_like_the_paper(full_run):
     crs = result.results["conditions"]["crs"]
     assert result.headline.startswith(f"crs {100 * crs['accuracy']:.1f} % [")
     assert " vs pixel-only " in result.headline and "; GLMM odds ratio " in result.headline
+    assert "(95 % Wilson, pooled trials); GLMM" in result.headline
+    assert "penalised" not in result.headline
+
+
+def test_pooled_and_between_participant_accuracy_intervals(full_run):
+    _, _, result = full_run
+    crs = result.results["conditions"]["crs"]
+    assert crs["ci95_method"].startswith("Wilson score interval of the pooled trials")
+    per = [r["accuracy"] for r in result.results["accuracy_by_participant"]
+           if r["condition"] == "crs"]
+    between = crs["between_participants"]
+    low, high = stats.t.interval(0.95, len(per) - 1, loc=np.mean(per), scale=stats.sem(per))
+    assert between["mean"] == pytest.approx(np.mean(per))
+    assert between["ci95"] == pytest.approx([low, high])
+    assert between["method"] == "t interval on participant accuracies"
+    assert between["n_participants"] == len(per) == crs["n_participants"]
+    # participants differ, so the between-participant interval is the wider one
+    assert high - low > crs["ci95"][1] - crs["ci95"][0]
+    text = result.report_path.read_text()
+    assert "Pooled trials: `ci_low`, `ci_high` are the Wilson interval" in text
+    assert "Between participants: the mean of the participants' accuracies" in text
+
+
+def test_mcnemar_is_labelled_mid_p_with_the_exact_p_apart(full_run):
+    _, _, result = full_run
+    (mcnemar,) = [c for c in result.results["comparisons"] if "McNemar" in c["method"]]
+    assert mcnemar["method"].startswith("McNemar mid-p test (p_value the mid-p; p_exact the "
+                                        "exact conditional test)")
+    assert mcnemar["p_value"] == mcnemar["p_mid"] <= mcnemar["p_exact"]
 
 
 def test_reanalysis_gives_identical_results(full_run, tmp_path):
@@ -139,6 +169,12 @@ def test_separation_every_answer_right_in_one_condition(tmp_path):
     assert result.results["conditions"]["crs"]["accuracy"] == 1.0
     glmm = result.results["comparisons"][0]
     assert glmm["estimate"] > 1 and glmm["ci95"][1] < 1e6          # finite, penalised
+    assert "; GLMM odds ratio (penalised: a condition at 0 or 100 %, see warnings) " in \
+        result.headline
+    assert glmm["ci_method"].endswith("of the penalised likelihood")
+    # every participant at 100 %: the between-participant interval is the point 1
+    between = result.results["conditions"]["crs"]["between_participants"]
+    assert between["ci95"] == [1.0, 1.0] and "no spread" in between["method"]
     assert any("separation" in w and "fitted instead with normal priors" in w
                for w in result.warnings)
 
@@ -151,7 +187,11 @@ def test_separation_every_answer_wrong_in_one_condition(tmp_path):
 
 def test_single_participant(tmp_path):
     result = _run(tmp_path, _cells(1, {"pixel-only": 0.4, "crs": 0.7}, repetitions=4))
-    assert "GLMM" in result.headline
+    assert "GLMM odds ratio (logistic regression: no participant variance estimable)" in \
+        result.headline
+    between = result.results["conditions"]["crs"]["between_participants"]
+    assert between["ci95"] == [None, None] and between["method"] == \
+        "no interval: 1 participant(s)"
     assert any("a single participant" in w for w in result.warnings)
     assert any("random intercept was dropped" in w for w in result.warnings)
     t_test = result.results["comparisons"][1]
@@ -191,6 +231,14 @@ def test_five_or_fewer_participants_warn_about_wilcoxon(tmp_path):
     wilcoxon = result.results["comparisons"][2]
     assert wilcoxon["p_value"] == pytest.approx(0.0625)
     assert any("smallest attainable two-sided p is 0.0625" in w for w in result.warnings)
+
+
+def test_every_answer_wrong_draws_charts_without_matplotlib_warnings(tmp_path):
+    # No condition has a correct response, so the speed-accuracy chart has no condition mean
+    # to label: matplotlib warned "No artists with labels found to put in legend" (pytest
+    # runs with warnings as errors, so a warning fails this test).
+    result = _run(tmp_path, _cells(3, {"pixel-only": 0.0, "crs": 0.0}))
+    assert result.chart("speed_accuracy").exists() and result.chart("caf").exists()
 
 
 def test_format_p_never_prints_zero():

@@ -26,6 +26,13 @@ def _axes(ax: Axes | None, size: tuple[float, float] = (5.0, 4.0)) -> Axes:
     return Figure(figsize=size, layout="constrained").add_subplot()
 
 
+def _legend(ax: Axes, **options) -> None:
+    """A legend when something is labelled: matplotlib warns on an empty one (a condition
+    with no correct response has no mean to label, say)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**options)
+
+
 def save(ax: Axes, path: str | Path, dpi: int = 110) -> Path:
     """Write the axes' figure as PNG (metadata without dates, for identical reruns)."""
     path = Path(path)
@@ -108,8 +115,8 @@ def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> 
     ax.set_xlabel(f"mean correct {result.rt_column.replace('_', ' ')} (s)")
     ax.set_ylabel("correct (%)")
     ax.set_ylim(0, 100)
-    ax.legend(fontsize=8, title="condition (geometric mean RT, pooled\naccuracy; 95 % CI)",
-              title_fontsize=8)
+    _legend(ax, fontsize=8, title="condition (geometric mean RT, pooled\naccuracy; 95 % CI)",
+            title_fontsize=8)
     ax.set_title("Speed against accuracy (dots: participants)", fontsize=9)
     return ax
 
@@ -129,7 +136,7 @@ def plot_caf(result: SpeedAccuracyResult, ax: Axes | None = None) -> Axes:
     ax.set_xlabel(f"mean {result.rt_column.replace('_', ' ')} in bin (s)")
     ax.set_ylabel("correct (%)")
     ax.set_ylim(0, 100)
-    ax.legend(fontsize=8)
+    _legend(ax, fontsize=8)
     ax.set_title("Conditional accuracy functions (RT quantile bins)", fontsize=9)
     return ax
 
@@ -155,6 +162,6 @@ def plot_psychometric(result: PsychometricResult, ax: Axes | None = None) -> Axe
     ax.set_xlabel(str(result.level_column))
     ax.set_ylabel("correct (%)")
     ax.set_ylim(0, 100)
-    ax.legend(fontsize=8)
+    _legend(ax, fontsize=8)
     ax.set_title("Psychometric functions (shaded: threshold 95 % CI)", fontsize=9)
     return ax
