@@ -97,3 +97,18 @@ def test_chance_level_is_one_over_the_digits_shown():
     assert chance_level(trials, 0.5) == 0.5
     with pytest.raises(AnalysisError, match=r"chance level undefined: the trials show 1 digit"):
         chance_level(trials.iloc[:1])
+
+
+def test_between_participant_interval_is_scipy_t_and_stays_in_range():
+    from crs_study.analysis.accuracy import between_participant_table
+
+    table = pd.DataFrame({"participant_id": ["a", "b", "c", "a", "b", "c"],
+                          "condition": ["x"] * 3 + ["y"] * 3,
+                          "accuracy": [0.4, 0.5, 0.6, 0.9, 1.0, 1.0]})
+    out = between_participant_table(table, ("x", "y")).set_index("condition")
+    low, high = stats.t.interval(0.95, 2, loc=0.5, scale=stats.sem([0.4, 0.5, 0.6]))
+    assert (out.loc["x", "ci_low"], out.loc["x", "ci_high"]) == pytest.approx((low, high))
+    assert out.loc["x", "method"] == "t interval on participant accuracies"
+    # 0.9, 1, 1: the t interval reaches 1.11; reported up to 1, and said so
+    assert out.loc["y", "ci_high"] == 1.0 and out.loc["y", "ci_low"] < out.loc["y", "mean"]
+    assert out.loc["y", "method"].endswith("clipped to [0, 1]")

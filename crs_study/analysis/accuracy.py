@@ -5,6 +5,12 @@ ci_high, p_vs_chance``: ``accuracy = n_correct / n_trials``; ``ci_low, ci_high``
 score interval (Wilson 1927; recommended by Brown, Cai & DasGupta 2001, Statist. Sci. 16:101)
 at level ``1 - alpha``; ``p_vs_chance`` the exact two-sided binomial test of ``accuracy ==
 chance`` (``scipy.stats.binomtest``), never reported as 0 (see :func:`floor_p`).
+
+The Wilson interval of a condition treats its trials as independent: it is the interval of the
+pooled (trial-level) proportion, narrower than the uncertainty about the population of
+participants when participants differ. ``between_participants`` gives that second view: the
+mean of the participants' accuracies with the t interval across participants
+(``scipy.stats.t``; clipped to [0, 1] when it reaches past, and then said so).
 """
 
 from __future__ import annotations
@@ -92,6 +98,7 @@ class AccuracyResult:
     chance: float
     alpha: float
     warnings: tuple[str, ...] = field(default=())
+    between_participants: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     def to_frame(self) -> pd.DataFrame:
         return self.by_condition.copy()
@@ -120,4 +127,32 @@ def analyse_accuracy(trials: pd.DataFrame, conditions: tuple[str, ...], chance: 
         ["digit", "condition"], key=lambda s: s.map(order) if s.name == "condition"
         else s).reset_index(drop=True)
     return AccuracyResult(by_condition.reset_index(drop=True), by_participant, by_digit,
-                          conditions, chance, alpha, tuple(warnings))
+                          conditions, chance, alpha, tuple(warnings),
+                          between_participant_table(by_participant, conditions, alpha))
+
+
+def between_participant_table(by_participant: pd.DataFrame, conditions: tuple[str, ...],
+                              alpha: float = 0.05) -> pd.DataFrame:
+    """Mean participant accuracy per condition with the t interval across participants."""
+    rows = []
+    for condition in conditions:
+        values = by_participant.loc[by_participant["condition"] == condition,
+                                    "accuracy"].to_numpy(dtype=float)
+        row = {"condition": condition, "n_participants": len(values),
+               "mean": float(values.mean()) if len(values) else None,
+               "ci_low": None, "ci_high": None,
+               "method": "t interval on participant accuracies"}
+        if len(values) < 2:
+            row["method"] = f"no interval: {len(values)} participant(s)"
+        elif values.std(ddof=1) == 0:
+            row["ci_low"] = row["ci_high"] = row["mean"]
+            row["method"] += " (no spread: every participant equal)"
+        else:
+            low, high = stats.t.interval(1 - alpha, len(values) - 1, loc=values.mean(),
+                                         scale=stats.sem(values))
+            row["ci_low"], row["ci_high"] = max(float(low), 0.0), min(float(high), 1.0)
+            if low < 0 or high > 1:
+                row["method"] += ", clipped to [0, 1]"
+        rows.append(row)
+    return pd.DataFrame(rows, columns=["condition", "n_participants", "mean", "ci_low",
+                                       "ci_high", "method"])

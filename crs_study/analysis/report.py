@@ -205,6 +205,10 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
         psych_plan.lapse_max, psych_plan.threshold, psych_plan.bootstrap, plan.seed, alpha)
     warnings += psychometric.warnings
     by_participant = accuracy.by_participant
+    between = {r["condition"]: {"mean": r["mean"], "ci95": [r["ci_low"], r["ci_high"]],
+                                "n_participants": int(r["n_participants"]),
+                                "method": r["method"]}
+               for r in records(accuracy.between_participants)}
     results = {
         "alpha": alpha, "chance": chance, "reference": reference,
         "n_participants": int(n_participants),
@@ -215,8 +219,10 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
                 "n_trials": int(row["n_trials"]), "n_correct": int(row["n_correct"]),
                 "accuracy": float(row["accuracy"]),
                 "ci95": [float(row["ci_low"]), float(row["ci_high"])],
+                "ci95_method": POOLED_CI_METHOD,
                 "p_vs_chance": float(row["p_vs_chance"]),
                 "n_participants": int((by_participant["condition"] == row["condition"]).sum()),
+                "between_participants": between.get(row["condition"]),
             } for _, row in accuracy.by_condition.iterrows()},
         "accuracy_by_participant": records(by_participant),
         "accuracy_by_digit": records(accuracy.by_digit),
@@ -242,6 +248,11 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
     return results, parts
 
 
+#: What the ``ci95`` of a condition's accuracy is (results.json ``conditions.<c>.ci95_method``).
+POOLED_CI_METHOD = ("Wilson score interval of the pooled trials (trial level: ignores "
+                    "differences between participants; see between_participants)")
+
+
 def format_p(p: float | None) -> str:
     """``p = 0.0123``, ``p = 3.4e-07`` or ``p < 1e-16`` (never ``p = 0``)."""
     if p is None or not math.isfinite(p):
@@ -252,7 +263,8 @@ def format_p(p: float | None) -> str:
 
 
 def headline(results: dict) -> str:
-    """One line: each condition's accuracy and interval, then the primary comparison(s)."""
+    """One line: each condition's accuracy and pooled interval, then the primary comparison(s),
+    saying when the odds ratio comes from a penalised fit or has no participant variance."""
     parts = []
     reference = results["reference"]
     order = [c for c in results["conditions"] if c != reference] + [reference]
@@ -263,10 +275,19 @@ def headline(results: dict) -> str:
             parts.append(f"{condition} {100 * row['accuracy']:.1f} % "
                          f"[{100 * low:.1f}, {100 * high:.1f}]")
     text = " vs ".join(parts)
+    if parts:
+        text += f" ({100 * (1 - results['alpha']):g} % Wilson, pooled trials)"
     glmm = [c for c in results["comparisons"] if c["method"].startswith(("GLMM", "Fisher"))]
     for c in glmm:
         name = "GLMM odds ratio" if c["method"].startswith("GLMM") else "odds ratio (Fisher)"
-        who = f" ({c['condition']} vs {c['reference']})" if len(glmm) > 1 else ""
+        notes = []
+        if "penalised" in c["method"]:
+            notes.append("penalised: a condition at 0 or 100 %, see warnings")
+        if "no random effect estimable" in c["method"]:
+            notes.append("logistic regression: no participant variance estimable")
+        if len(glmm) > 1:
+            notes.insert(0, f"{c['condition']} vs {c['reference']}")
+        who = f" ({'; '.join(notes)})" if notes else ""
         text += (f"; {name}{who} {c['estimate']:.2f} [{c['ci95'][0]:.2f}, "
                  f"{c['ci95'][1]:.2f}], {format_p(c['p_value'])}")
     if not glmm:

@@ -74,7 +74,14 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
         blocks += [("p", "Exclusions declared in the plan (trials per condition):"),
                    ("table", _table(exclusions.reset_index()))]
     accuracy = parts["accuracy"]
-    blocks += [("h2", "Accuracy"), ("table", _table(accuracy.by_condition))]
+    blocks += [("h2", "Accuracy"),
+               ("p", "Pooled trials: `ci_low`, `ci_high` are the Wilson interval of all the "
+                     "condition's trials together (trial level; it ignores differences "
+                     "between participants)."),
+               ("table", _table(accuracy.by_condition)),
+               ("p", "Between participants: the mean of the participants' accuracies with "
+                     "the t interval across participants."),
+               ("table", _table(accuracy.between_participants))]
     if "accuracy" in images:
         blocks.append(("image", images["accuracy"]))
     blocks += [("h2", "Primary test"), ("p", "Mixed-effects logistic regression "
@@ -83,7 +90,14 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
     primary = parts["primary"].to_frame()
     if not primary.empty:
         blocks.append(("table", _table(primary[["condition", "reference", "estimate", "ci95",
-                                                "p_value", "p_wald", "p_lr"]])))
+                                                "ci_method", "ci95_wald", "p_value",
+                                                "p_wald", "p_lr"]])))
+    effects = (results["primary"]["model"] or {}).get("random_effects") or {}
+    if effects:
+        blocks.append(("p", "Random intercepts (standard deviation on the logit scale, "
+                            "profile-likelihood interval): " + "; ".join(
+                                f"{name} {_fmt(e['sd'])} {_fmt(e['sd_ci95'])}"
+                                for name, e in effects.items()) + "."))
     if results["primary"]["omnibus"]:
         omnibus = results["primary"]["omnibus"]
         blocks.append(("p", f"Omnibus likelihood-ratio test of condition: chi2({omnibus['df']})"

@@ -6,11 +6,14 @@
   differences equal in exact arithmetic are tied (``scipy.stats.wilcoxon``, zero differences
   dropped, exact null distribution when small and untied), effect size the matched-pairs
   rank-biserial correlation ``r = (T+ - T-) / (T+ + T-)`` (Kerby 2014, Compr. Psychol. 3:11).
-* **Exact McNemar test** on trials paired by participant, session, digit and repetition, with
-  the mid-p value ``2 [P(X <= min(b, c)) - P(X = min(b, c)) / 2]``, ``X ~ Bin(b + c, 1/2)``
-  (Fagerland, Lydersen & Laake 2013, BMC Med. Res. Methodol. 13:91); the conditional odds
-  ratio ``c / b`` with the interval from the exact (Clopper-Pearson) interval of ``c / (b +
-  c)`` mapped by ``p / (1 - p)`` (Breslow & Day 1980, sec. 7.2).
+* **McNemar mid-p test** on trials paired by participant, session, digit and repetition (and
+  stimulus level when one varies): ``p_value`` is the mid-p value ``2 [P(X <= min(b, c)) -
+  P(X = min(b, c)) / 2]``, ``X ~ Bin(b + c, 1/2)`` (Fagerland, Lydersen & Laake 2013, BMC
+  Med. Res. Methodol. 13:91). The mid-p test is not exact (its size may exceed alpha a
+  little) but is closer to nominal than the exact conditional test, whose p is kept as
+  ``p_exact``. The conditional odds ratio ``c / b`` has the interval from the exact
+  (Clopper-Pearson) interval of ``c / (b + c)`` mapped by ``p / (1 - p)`` (Breslow & Day
+  1980, sec. 7.2).
 * **Per-digit comparisons**: the McNemar mid-p test within each digit, corrected for the
   number of digits with ``statsmodels.stats.multitest.multipletests`` (Holm 1979 by default).
 
@@ -174,7 +177,8 @@ def paired_table(trials: pd.DataFrame, condition: str, reference: str) -> pd.Dat
 def mcnemar_test(pairs: pd.DataFrame, condition: str, reference: str,
                  alpha: float = 0.05) -> TestResult:
     """Exact McNemar with mid-p on matched trials; conditional odds ratio c / b."""
-    name = "exact McNemar test (mid-p) on trials paired by participant, digit and repetition"
+    name = ("McNemar mid-p test (p_value the mid-p; p_exact the exact conditional test) on "
+            "trials paired by participant, session, digit, repetition and level")
     ref, cond = pairs["ref"].to_numpy(), pairs["cond"].to_numpy()
     a = int(((ref == 1) & (cond == 1)).sum())
     b = int(((ref == 1) & (cond == 0)).sum())   # reference right, condition wrong
