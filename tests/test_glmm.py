@@ -69,10 +69,44 @@ def test_cbpp_laplace_matches_lme4(cbpp_laplace):
     assert list(r.params.index) == PERIOD
     np.testing.assert_allclose(r.params, [-1.39855, -0.99234, -1.12868, -1.58030], atol=1e-3)
     assert r.variance_components["herd"] == pytest.approx(0.412455, rel=0.01)
+    # logLik: ours -92.02628, lme4's -92.0266 (-92.02656639 as lme4 2.0.1 prints it): within
+    # 1e-3, but not a rounding of ours. The gap is not in the optimum (our Laplace value at
+    # lme4's own estimates is -92.026282 at the published ones and -92.026286 at 2.0.1's)
+    # nor in the binomial constant (185.4757, the same for both): it is lme4's evaluation of
+    # the Laplace approximation, lower by 3e-4. Independent implementations of the same
+    # Laplace likelihood agree with ours; see test_cbpp_laplace_matches_mixedmodels_jl.
     assert r.loglike == pytest.approx(-92.0266, abs=1e-3)
     assert (round(r.aic, 1), round(r.bic, 1), round(r.deviance, 1)) == (194.1, 204.2, 184.1)
     assert r.converged and r.method == "laplace" and r.warnings == ()
     assert r.n_groups == {"herd": 15} and r.nobs == 56
+
+
+def test_cbpp_laplace_matches_mixedmodels_jl(cbpp_laplace):
+    # Julia's MixedModels.jl (D. Bates, lme4's first author), test/pirls.jl, testset "cbpp":
+    # the same model fitted by its PIRLS Laplace: loglikelihood -92.02628186840045 and its
+    # parts, deviance(gm2, true) = 100.09585619892968 = sum(devresid) 73.47174762237978 +
+    # sum(abs2, u) 9.723054788538546 + logdet 16.90105378801136 (deviance relative to the
+    # saturated model; drmTMB 0.7.1's TMB Laplace gives -92.02628186 too). lme4 reports
+    # -92.0266: its own evaluation differs by 3e-4 (see test_cbpp_laplace_matches_lme4).
+    r = cbpp_laplace
+    assert r.loglike == pytest.approx(-92.02628186840045, abs=1e-6)
+    problem, theta, _ = r._model
+    model = problem.model
+    model.loglik(theta, grad=False)                       # modes u at the optimum
+    sigma = theta[-1]
+    eta = model.X @ theta[:-1] + sigma * model.u[model.codes]
+    mu = model.m * expit(eta)
+    y, m = model.y, model.m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        devresid = 2 * (np.where(y > 0, y * np.log(y / mu), 0.0)
+                        + np.where(m > y, (m - y) * np.log((m - y) / (m - mu)), 0.0))
+    weights = np.add.reduceat(m * expit(eta) * (1 - expit(eta)), model.starts)
+    logdet = np.log(1 + sigma**2 * weights).sum()
+    assert devresid.sum() == pytest.approx(73.47174762237978, abs=1e-3)
+    assert model.u @ model.u == pytest.approx(9.723054788538546, abs=1e-3)
+    assert logdet == pytest.approx(16.90105378801136, abs=1e-3)
+    assert devresid.sum() + model.u @ model.u + logdet == pytest.approx(100.09585619892968,
+                                                                       abs=1e-5)
 
 
 def test_cbpp_standard_errors_match_lme4(cbpp_laplace):
