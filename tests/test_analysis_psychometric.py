@@ -118,3 +118,38 @@ def test_level_effect_pvalue_matches_a_hand_likelihood_ratio():
     assert level_effect_pvalue(levels, n, np.zeros(4)) == 1.0
     separated = level_effect_pvalue(levels, n, np.array([0, 0, 30, 30]))
     assert 0.0 < separated < 1e-10
+
+
+@pytest.mark.parametrize(("k", "best"), [
+    pytest.param([6, 8, 9, 10, 7, 10], -24.7654, id="lapse-near-its-bound"),
+    pytest.param([1, 2, 9, 8, 10, 10], -18.8537, id="steep"),
+])
+def test_three_starts_reach_the_best_of_many(k, best):
+    # Weibull fits of 10 trials at each of six levels, guess 0.1, lapse <= 0.1: data where one
+    # start from the grid (at lapse 0.02) stopped in a local optimum with the lapse at 0,
+    # 0.23 and 0.52 log-likelihood units short, with L-BFGS-B as with TNC. The fit must reach
+    # the best of 36 starts spread over the parameter space.
+    levels, n = np.array([1.0, 1.5, 2.0, 2.5, 3.0, 4.0]), np.full(6, 10)
+    fitted = fit_counts(levels, n, np.array(k), "weibull", 0.1, 0.1)
+    reference = max(fit_counts(levels, n, np.array(k), "weibull", 0.1, 0.1,
+                               start=(a0, b0, lam0))[3]
+                    for a0 in (1.0, 2.5, 4.0) for b0 in (0.5, 2.0, 8.0, 20.0)
+                    for lam0 in (0.0, 0.05, 0.1))
+    assert fitted[3] == pytest.approx(best, abs=1e-4)
+    assert fitted[3] >= reference - 1e-6
+
+
+def test_a_lapse_rate_at_its_bound_is_warned_about():
+    # accuracy levels off at 80 %: the lapse rate wants 0.2, the plan allows 0.05
+    rows = [{"participant_id": "p", "condition": "crs", "digit_height": level,
+             "correct": float(i < round(150 * float(psi(np.array([level]), "logistic", 1.0,
+                                                        8.0, 0.1, 0.2)[0])))}
+            for level in (0.5, 0.75, 1.0, 1.25, 1.5, 2.0) for i in range(150)]
+    result = analyse_psychometric(pd.DataFrame(rows), ["crs"], 0.1, lapse_max=0.05,
+                                  n_bootstrap=0)
+    assert result.fits["crs"].lapse == pytest.approx(0.05, rel=1e-3)
+    assert any("the lapse rate sits at its upper bound 0.05" in w for w in result.warnings)
+    relaxed = analyse_psychometric(pd.DataFrame(rows), ["crs"], 0.1, lapse_max=0.3,
+                                   n_bootstrap=0)
+    assert relaxed.fits["crs"].lapse == pytest.approx(0.2, abs=0.03)
+    assert not any("upper bound" in w for w in relaxed.warnings)

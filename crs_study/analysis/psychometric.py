@@ -6,9 +6,12 @@ the lapse rate ``lambda`` free in ``[0, lapse_max]``; ``F`` is the logistic ``1 
 exp(-beta (x - alpha)))`` (``beta`` may be negative: accuracy falling with the level, as for
 stroke speed) or the Weibull ``1 - exp(-(x / alpha)^beta)`` (``x > 0``, rising). Parameters
 maximise the binomial likelihood of the counts per level (``scipy.optimize.minimize``,
-L-BFGS-B, several starts). The threshold is the level where ``F = threshold`` (0.5: half-way
-between guessing and ``1 - lambda``); its interval is a seeded percentile bootstrap that
-redraws the count at each level from its observed proportion (resampling the trials there).
+bounded truncated Newton ``"TNC"``, three starts from a grid). A lapse rate at its upper bound
+``lapse_max`` is warned about: the data ask for more lapses than the plan allows, which
+biases the slope and the threshold. The threshold is the level where ``F = threshold``
+(0.5: half-way between guessing and ``1 - lambda``); its interval is a seeded percentile
+bootstrap that redraws the count at each level from its observed proportion (resampling the
+trials there).
 
 A flat psychometric function has no threshold: when a binomial logistic regression of the
 counts on the level (statsmodels GLM) finds no slope (likelihood-ratio p >= alpha, chi2(1)),
@@ -27,6 +30,10 @@ from scipy import optimize, special, stats
 
 from crs_study.analysis.accuracy import wilson_interval
 from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
+
+#: A lapse rate within this fraction of ``lapse_max`` counts as at the bound (TNC stops a
+#: hair inside it).
+LAPSE_BOUND_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -123,8 +130,12 @@ def fit_counts(levels: np.ndarray, n: np.ndarray, k: np.ndarray, function: str, 
                ) -> tuple[float, float, float, float]:
     """Maximum-likelihood ``(alpha, beta, lapse, loglike)`` for counts ``k`` of ``n``.
 
-    A coarse grid over ``(alpha, beta)`` picks the start (unless ``start`` is given), then
-    L-BFGS-B with the analytic gradient refines it within the bounds.
+    Without ``start``, a coarse grid over ``(alpha, beta)`` at three lapse rates (0, half
+    and all of ``lapse_max``) gives three starts, the best grid point at each; from each,
+    ``scipy.optimize.minimize(method="TNC")`` (truncated Newton within the bounds, analytic
+    gradient) climbs, and the highest likelihood wins. One start from the grid left the
+    likelihood short by more than 0.001 (up to 0.52) in 5-8 % of simulated fits, whichever
+    method climbed (L-BFGS-B 8/150, TNC 5/150); three starts, 0/150 (see the tests).
     """
     levels, n, k = (np.asarray(v, dtype=float) for v in (levels, n, k))
     low, high = float(levels.min()), float(levels.max())
@@ -149,19 +160,26 @@ def fit_counts(levels: np.ndarray, n: np.ndarray, k: np.ndarray, function: str, 
         bounds = [(max(low, 1e-6) / 10, high * 10), (0.1, 50.0), (0.0, lapse_max)]
         alphas = np.geomspace(max(low, 1e-6), high, 25)
         betas = np.geomspace(0.3, 30, 20)
-    lapse0 = min(0.02, lapse_max)
-    if start is None:
+    if start is not None:
+        starts = [start]
+    else:
         grid_a, grid_b = np.meshgrid(alphas, betas, indexing="ij")
         f = sigmoid(levels[None, None, :], function, grid_a[..., None], grid_b[..., None])
-        p = np.clip(guess + (1 - guess - lapse0) * f, 1e-12, 1 - 1e-12)
-        ll = np.sum(k * np.log(p) + (n - k) * np.log1p(-p), axis=-1)
-        i, j = np.unravel_index(np.argmax(ll), ll.shape)
-        start = (grid_a[i, j], grid_b[i, j], lapse0)
-    x0 = np.clip(np.asarray(start, float), [b[0] for b in bounds], [b[1] for b in bounds])
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        result = optimize.minimize(nll, x0, jac=True, method="L-BFGS-B", bounds=bounds)
-    a, b, lam = result.x
-    return float(a), float(b), float(lam), -float(result.fun)
+        starts = []
+        for lapse0 in (0.0, 0.5 * lapse_max, lapse_max):
+            p = np.clip(guess + (1 - guess - lapse0) * f, 1e-12, 1 - 1e-12)
+            ll = np.sum(k * np.log(p) + (n - k) * np.log1p(-p), axis=-1)
+            i, j = np.unravel_index(np.argmax(ll), ll.shape)
+            starts.append((grid_a[i, j], grid_b[i, j], lapse0))
+    best = None
+    for x0 in starts:
+        x0 = np.clip(np.asarray(x0, float), [b[0] for b in bounds], [b[1] for b in bounds])
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            result = optimize.minimize(nll, x0, jac=True, method="TNC", bounds=bounds)
+        if best is None or result.fun < best.fun:
+            best = result
+    a, b, lam = best.x
+    return float(a), float(b), float(lam), -float(best.fun)
 
 
 def level_effect_pvalue(levels: np.ndarray, n: np.ndarray, k: np.ndarray) -> float:
@@ -221,6 +239,12 @@ def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: flo
         levels = table["level"].to_numpy(float)
         n, k = table["n_trials"].to_numpy(), table["n_correct"].to_numpy()
         a, b, lam, ll = fit_counts(levels, n, k, function, guess, lapse_max)
+        if lapse_max > 0 and lam >= lapse_max * (1.0 - LAPSE_BOUND_TOLERANCE):
+            warnings.append(f"psychometric function of {condition!r}: the lapse rate sits at "
+                            f"its upper bound {lapse_max:g} (psychometric.lapse_max): the "
+                            "data ask for more errors at the easiest levels than the bound "
+                            "allows, so the slope and threshold are biased; check the easiest "
+                            "levels or raise the bound")
         point = threshold_level(function, a, b, threshold)
         ci, note = None, ""
         p_level = level_effect_pvalue(levels, n, k)
