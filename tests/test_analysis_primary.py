@@ -77,6 +77,16 @@ def test_a_failing_model_falls_back_to_fisher_with_a_warning(monkeypatch):
     c, n0 = counts.loc["pixel-only"]
     assert comparison.estimate == pytest.approx(a * (n0 - c) / ((n1 - a) * c))
     assert 0 < comparison.p_value < 1
+    # a zero cell (crs always right): Haldane-Anscombe +0.5 on every cell, Woolf interval
+    # by hand: OR = (n1 + .5)(n0 - c + .5) / (.5 (c + .5)), se = sqrt(sum 1 / cell)
+    trials.loc[trials["condition"] == "crs", "correct"] = 1.0
+    (comparison,) = primary_test(trials, ["pixel-only", "crs"], "pixel-only").comparisons
+    cells = np.array([n1 + 0.5, 0.5, c + 0.5, n0 - c + 0.5])
+    log_or = np.log(cells[0] * cells[3] / (cells[1] * cells[2]))
+    se = np.sqrt((1 / cells).sum())
+    assert comparison.estimate == pytest.approx(np.exp(log_or))
+    assert comparison.ci95 == pytest.approx((np.exp(log_or - 1.959964 * se),
+                                             np.exp(log_or + 1.959964 * se)), rel=1e-6)
 
 
 def test_crossed_digit_effect_is_fitted_when_planned():

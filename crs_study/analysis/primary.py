@@ -263,23 +263,29 @@ def _method_label(model) -> str:
 
 def _fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: str,
                         alpha: float) -> tuple[Comparison, ...]:
-    """Pooled 2 x 2 tables: Haldane-Anscombe odds ratio (+0.5 when a cell is 0), Fisher p."""
+    """Pooled 2 x 2 tables: Fisher's exact p (``scipy.stats.fisher_exact``); the odds ratio
+    and its Woolf interval by ``statsmodels`` ``Table2x2``, after 0.5 is added to every cell
+    when one is 0 (Haldane-Anscombe). The correction is applied here: statsmodels 0.15's own
+    ``shift_zeros`` adds 0.5 to the empty cells only, not to all four as its documentation
+    says."""
+    from statsmodels.stats.contingency_tables import Table2x2
+
     out = []
-    z = stats.norm.ppf(1 - alpha / 2)
     ref = data.loc[data["condition"] == reference, "correct"]
     for condition in conditions:
         if condition == reference:
             continue
         other = data.loc[data["condition"] == condition, "correct"]
         table = np.array([[other.sum(), len(other) - other.sum()],
-                          [ref.sum(), len(ref) - ref.sum()]], dtype=float)
-        p = stats.fisher_exact(table.round().astype(int)).pvalue
-        cells = table + 0.5 if (table == 0).any() else table
-        log_or = np.log(cells[0, 0] * cells[1, 1] / (cells[0, 1] * cells[1, 0]))
-        se = float(np.sqrt((1.0 / cells).sum()))
+                          [ref.sum(), len(ref) - ref.sum()]], dtype=float).round()
+        p = stats.fisher_exact(table.astype(int)).pvalue
+        two_by_two = Table2x2(table + 0.5 if (table == 0).any() else table,
+                              shift_zeros=False)
+        low, high = two_by_two.oddsratio_confint(alpha=alpha, method="normal")
         out.append(Comparison(condition, reference, "Fisher's exact test, pooled 2 x 2 table "
-                              "(odds ratio with Woolf interval)", float(np.exp(log_or)),
-                              (float(np.exp(log_or - z * se)), float(np.exp(log_or + z * se))),
-                              floor_p(p), log_odds=float(log_or), std_error=se,
+                              "(odds ratio with Woolf interval)",
+                              float(two_by_two.oddsratio), (float(low), float(high)),
+                              floor_p(p), log_odds=float(two_by_two.log_oddsratio),
+                              std_error=float(two_by_two.log_oddsratio_se),
                               ci_method="Woolf (Wald on the log odds ratio)"))
     return tuple(out)

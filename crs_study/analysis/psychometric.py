@@ -197,11 +197,7 @@ def level_effect_pvalue(levels: np.ndarray, n: np.ndarray, k: np.ndarray) -> flo
     with np.errstate(over="ignore", divide="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # separation (0 % below a level, 100 % above): llf -> 0
         full = sm.GLM(endog, exog, family=sm.families.Binomial()).fit()
-    p_hat = k.sum() / n.sum()
-    constant = float(np.sum(k * np.log(p_hat) + (n - k) * np.log1p(-p_hat)))
-    constant += float(np.sum(special.gammaln(n + 1) - special.gammaln(k + 1)
-                             - special.gammaln(n - k + 1)))
-    statistic = max(2.0 * (float(full.llf) - constant), 0.0)
+    statistic = max(2.0 * (float(full.llf) - float(full.llnull)), 0.0)  # llnull: intercept only
     return float(stats.chi2.sf(statistic, 1))
 
 

@@ -1,6 +1,7 @@
 """Secondary tests of a condition against the reference, with effect sizes.
 
-* **Paired t-test** on participant accuracies (``scipy.stats.ttest_rel``), effect size Cohen's
+* **Paired t-test** on participant accuracies (``scipy.stats.ttest_1samp`` of the differences,
+  the same test as ``ttest_rel``), effect size Cohen's
   ``d_z = mean(diff) / sd(diff)`` (Cohen 1988; Lakens 2013, Front. Psychol. 4:863, Eq. 6).
 * **Wilcoxon signed-rank test** on the same differences, rounded to 12 decimals so that
   differences equal in exact arithmetic are tied (``scipy.stats.wilcoxon``, zero differences
