@@ -218,3 +218,25 @@ def test_profile_interval_without_random_effects_matches_statsmodels():
     assert np.log(comparison.ci95) == pytest.approx(_statsmodels_profile_interval(y, x),
                                                     abs=2e-5)
     assert result.model["random_effects"] == {}
+
+
+def test_a_profile_that_never_leaves_the_cutoff_gives_null_ends_not_overflow(monkeypatch):
+    # Seen on a 2-participant, 4-trial privacy-test dataset: the profile search ended at
+    # -/+2359 log-odds; exp() overflowed (a RuntimeWarning) and an infinite end would have
+    # failed results.json (allow_nan=False).
+    import json
+
+    columns_seen = []
+
+    def flat(full, level, columns):
+        columns_seen.extend(columns)
+        return pd.DataFrame({"ci_low": -2359.47, "ci_high": 2359.47}, index=columns)
+
+    monkeypatch.setattr(glmm, "profile_conf_int", flat)
+    trials = _trials(n_participants=6, n_per_cell=10, seed=3)
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    (comparison,) = result.comparisons
+    assert columns_seen == ["condition[crs]"]
+    assert comparison.ci95 == (None, None)
+    assert any("stays within the cutoff" in w for w in result.warnings)
+    json.dumps(comparison.to_dict(), allow_nan=False)

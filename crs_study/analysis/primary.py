@@ -51,7 +51,7 @@ class Comparison:
     reference: str
     method: str
     estimate: float
-    ci95: tuple[float, float]
+    ci95: tuple[float | None, float | None]  # None: the profile gives no finite end
     p_value: float
     p_wald: float | None = None
     p_lr: float | None = None
@@ -183,11 +183,19 @@ def _profile_odds(full, columns: list[str], level: float,
     from crs_study.analysis.glmm import profile_conf_int
 
     try:
-        return np.exp(profile_conf_int(full, level, columns))
+        limits = profile_conf_int(full, level, columns)
     except GlmmFitError as exc:
         warnings.append(f"GLMM: the profile-likelihood intervals could not be computed "
                         f"({exc}); the odds ratios' ci95 are Wald intervals")
         return None
+    with np.errstate(over="ignore"):  # a limit beyond ~709 log-odds is no limit: inf, then null
+        odds = np.exp(limits)
+    for column in columns:
+        if not np.isfinite(odds.loc[column]).all():
+            warnings.append(f"GLMM: the profile likelihood of {column!r} stays within the "
+                            "cutoff to one side (separation or too few trials): that end of its "
+                            "odds-ratio ci95 is null")
+    return odds
 
 
 def _random_effect_intervals(full, level: float, warnings: list[str]) -> dict:
@@ -226,7 +234,8 @@ def _comparison(condition: str, reference: str, label: str, full, column: str,
     if profile is None:
         ci, how = wald_ci, "Wald (exp(b -/+ z se)); the profile failed"
     else:
-        ci = (float(profile.loc[column, "ci_low"]), float(profile.loc[column, "ci_high"]))
+        ci = tuple(value if np.isfinite(value) and value > 0.0 else None for value in
+                   (float(profile.loc[column, "ci_low"]), float(profile.loc[column, "ci_high"])))
         how = ("profile likelihood (lme4 confint 'profile')"
                + (", of the penalised likelihood" if full.penalty else ""))
     return Comparison(

@@ -288,8 +288,9 @@ def headline(results: dict) -> str:
         if len(glmm) > 1:
             notes.insert(0, f"{c['condition']} vs {c['reference']}")
         who = f" ({'; '.join(notes)})" if notes else ""
-        text += (f"; {name}{who} {c['estimate']:.2f} [{c['ci95'][0]:.2f}, "
-                 f"{c['ci95'][1]:.2f}], {format_p(c['p_value'])}")
+        low, high = ("0" if v is None and k == 0 else "inf" if v is None else f"{v:.2f}"
+                     for k, v in enumerate(c["ci95"]))
+        text += f"; {name}{who} {c['estimate']:.2f} [{low}, {high}], {format_p(c['p_value'])}"
     if not glmm:
         text += "; no comparison of conditions (see warnings)"
     return text
