@@ -244,27 +244,34 @@ def test_calibrate_prints_the_endpoints_when_the_file_cannot_be_written(boards, 
     assert "No space left on device" in captured.err and not out.exists()
 
 
-def test_monitor_ends_cleanly_on_ctrl_c(monkeypatch, capsys):
-    class Port:
-        """Carries one frame, then the experimenter presses Ctrl-C during the next read."""
+class _ScriptedPort:
+    """A monitor's port: hands out ``chunks`` one read at a time, then calls ``at_end``."""
 
-        in_waiting = 0
+    in_waiting = 0
 
-        def __init__(self) -> None:
-            self.chunks = [codec.servo_move({1: 2000}, 1000), b"\x55"]
-            self.closed = False
+    def __init__(self, chunks: list[bytes], at_end) -> None:
+        self.chunks, self.at_end, self.closed = list(chunks), at_end, False
 
-        def read(self, n: int) -> bytes:
-            if self.chunks:
-                return self.chunks.pop(0)
-            raise KeyboardInterrupt
+    def read(self, n: int) -> bytes:
+        if self.chunks:
+            return self.chunks.pop(0)
+        return self.at_end()
 
-        def close(self) -> None:
-            self.closed = True
+    def close(self) -> None:
+        self.closed = True
 
-    port = Port()
+
+def _monitor_through(monkeypatch, port: _ScriptedPort) -> None:
     monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
                         lambda spec, **kw: port)
+
+
+def test_monitor_ends_cleanly_on_ctrl_c(monkeypatch, capsys):
+    def ctrl_c():  # the experimenter presses Ctrl-C during the read after the frame
+        raise KeyboardInterrupt
+
+    port = _ScriptedPort([codec.servo_move({1: 2000}, 1000), b"\x55"], ctrl_c)
+    _monitor_through(monkeypatch, port)
     assert main(["device", "monitor", "--port", "loop://"]) == 0
     out = capsys.readouterr().out
     assert "ServoMove [1] in 1000 ms: 1:2000" in out and "stopped (Ctrl-C)" in out
@@ -432,25 +439,12 @@ def test_sigterm_in_every_action_sends_neutral_and_releases_the_port(action, boa
 
 
 def test_monitor_stopped_by_sigterm_reports_and_exits_0(monkeypatch, capsys):
-    class Port:
-        in_waiting = 0
-        closed = False
+    def sigterm():
+        _terminate_here()
+        return b""
 
-        def __init__(self) -> None:
-            self.chunks = [codec.servo_move({1: 2000}, 1000)]
-
-        def read(self, n: int) -> bytes:
-            if self.chunks:
-                return self.chunks.pop(0)
-            _terminate_here()
-            return b""
-
-        def close(self) -> None:
-            self.closed = True
-
-    port = Port()
-    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
-                        lambda spec, **kw: port)
+    port = _ScriptedPort([codec.servo_move({1: 2000}, 1000)], sigterm)
+    _monitor_through(monkeypatch, port)
     assert main(["device", "monitor", "--port", "loop://"]) == 0
     out = capsys.readouterr().out
     assert "stopped (SIGTERM)" in out and "1 frame(s), 0 byte(s) skipped" in out
