@@ -436,6 +436,7 @@ def _remove_stale_temporaries(dataset: Path) -> None:
 def recover_withdrawal(dataset: str | Path) -> dict | None:
     """Finish an interrupted withdrawal from its journal; returns the audit entry or None."""
     dataset = Path(dataset)
+    _check_dataset(dataset)  # a mistyped path is an error, never a new folder with a lock
     journal = pending_withdrawal(dataset)
     if journal is None:
         with Dataset(dataset).locked():

@@ -278,7 +278,7 @@ def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:
             checks = check_on_device(protocol)
             protocol = _replace(protocol, checks=checks, warnings=protocol_warnings(protocol))
     except ConfigError as exc:
-        raise ProtocolError(_locate_message(str(exc), source, text)) from None
+        raise ProtocolError(locate_message(str(exc), source, text)) from None
     return protocol
 
 
@@ -852,7 +852,6 @@ def locate_message(message: str, source: str | Path, text: str) -> str:
     return f"{source}:{line}: {rest}" if line else message
 
 
-_locate_message = locate_message  # the name used before it was shared with digits.py
 
 
 def find_line(text: str, key_path: str) -> int | None:

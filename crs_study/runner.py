@@ -282,7 +282,7 @@ def check_resume(stored: dict, expected: dict, sidecar: Path) -> None:
                        ("Counterbalance", "counterbalance"), ("PlanSha256", "trial plan"),
                        ("DeviceFileSha256", "device file"),
                        ("StimulusSha256", "stimulus (the bump paths this software draws)")):
-        if key in stored and stored[key] != expected[key]:
+        if stored.get(key) is not None and stored[key] != expected[key]:
             raise SessionError(
                 f"{sidecar}: cannot resume: the {label} differs ({key} stored "
                 f"{stored[key]!r}, now {expected[key]!r}); use the original files or start "
@@ -497,7 +497,9 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
         "Seed": int(plan.seed),
         "Counterbalance": int(plan.counterbalance),
         "PlanSha256": expected["PlanSha256"],
-        "StimulusSha256": expected["StimulusSha256"],
+        # a session begun before the fingerprint existed cannot be vouched for: none recorded
+        "StimulusSha256": (expected["StimulusSha256"]
+                           if stored is None or "StimulusSha256" in stored else None),
         "Participant": spec.participant,
         "Session": spec.session,
         "ConsentFormVersion": protocol.consent_form_version,

@@ -515,3 +515,9 @@ def test_temporaries_left_by_a_kill_inside_an_atomic_write_are_removed(tmp_path)
         path.write_text('{"participant": "a1"}')
     consent.withdraw("a1", [dataset], tmp_path / "reg")
     assert snapshot(dataset) == whole
+
+
+def test_recover_on_a_mistyped_dataset_path_creates_nothing(tmp_path, capsys):
+    missing = tmp_path / "typo" / "study"
+    assert main(["consent", "recover", "--dataset", str(missing)]) == 2
+    assert "no such dataset" in capsys.readouterr().err and not (tmp_path / "typo").exists()

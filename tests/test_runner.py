@@ -271,6 +271,21 @@ def test_resume_refuses_software_that_draws_the_digits_differently(tmp_path, dev
         run_session(spec)
 
 
+def test_a_session_begun_before_the_stimulus_fingerprint_resumes_without_one(tmp_path,
+                                                                              devices):
+    # Its first trials were drawn by older software: the sidecar must not vouch for them.
+    protocol = tiny_protocol(tmp_path)
+    spec = spec_for(tmp_path, protocol)
+    run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=2))
+    path = spec.dataset.joinpath("sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json")
+    sidecar = json.loads(path.read_text())
+    del sidecar["StimulusSha256"]
+    path.write_text(json.dumps(sidecar))
+    run_session(spec)
+    sidecar = json.loads(path.read_text())
+    assert sidecar["Status"] == "complete" and sidecar["StimulusSha256"] is None
+
+
 def test_resume_cuts_a_torn_row(tmp_path, devices):
     protocol = tiny_protocol(tmp_path)
     whole = run_session(spec_for(tmp_path, protocol, "whole"))

@@ -239,16 +239,21 @@ def _profile_drop(problem, theta_hat: np.ndarray, index: int, held: dict[int, fl
     target = np.sqrt(stats.chi2.ppf(level, 1))
     top = problem.objective(theta_hat, grad=False)
 
-    last = [theta_hat.copy()]   # warm start: the previous profile point's optimum
-    known = {float(theta_hat[index]): -target}   # Brent asks again for the bracket's ends
+    centre = float(theta_hat[index])
+    optima = {centre: theta_hat.copy()}   # warm starts: profiled optima by held value
+    known = {centre: -target}   # Brent asks again for the bracket's ends
 
     def drop(value: float) -> float:
         if float(value) in known:
             return known[float(value)]
-        start = last[0].copy()
+        # start from the nearest optimum on the same side of the estimate, never from the
+        # other end's search (on a likelihood with several peaks that start could land lower
+        # and overstate the drop, placing the end too close)
+        side = [v for v in optima if (v - centre) * (value - centre) >= 0]
+        start = optima[min(side, key=lambda v: abs(v - value))].copy()
         start[index] = value
         theta, _, _ = _minimise(problem, start, {**held, index: value})
-        last[0] = theta
+        optima[float(value)] = theta
         known[float(value)] = float(np.sqrt(2.0 * max(
             top - problem.objective(theta, grad=False), 0.0))) - target
         return known[float(value)]

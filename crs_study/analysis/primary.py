@@ -191,7 +191,8 @@ def _profile_odds(full, columns: list[str], level: float,
     with np.errstate(over="ignore"):  # a limit beyond ~709 log-odds is no limit: inf, then null
         odds = np.exp(limits)
     for column in columns:
-        if not np.isfinite(odds.loc[column]).all():
+        ends = odds.loc[column]
+        if not (np.isfinite(ends).all() and (ends > 0.0).all()):  # exp(-inf) = 0: open too
             warnings.append(f"GLMM: the profile likelihood of {column!r} stays within the "
                             "cutoff to one side (separation or too few trials): that end of its "
                             "odds-ratio ci95 is null")

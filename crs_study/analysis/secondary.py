@@ -41,8 +41,9 @@ PAIR_KEYS = ("participant_id", "session", "digit", "repetition")
 #: subtraction as several floats (0.7 - 0.4 = 0.29999999999999993, 0.8 - 0.5 =
 #: 0.30000000000000004): the Wilcoxon ranks would split a tie. Rounding error is ~1e-16 here,
 #: while two different differences of proportions with up to 1000 trials each are at least
-#: 1e-12 apart (their denominators are at most 1000^4), so 12 decimals merge exactly the
-#: values that are equal.
+#: 1e-12 apart (their denominators are at most 1000^4), so 12 decimals merge the values
+#: that are equal, except in the rare case where the exact value lies half-way between two
+#: 12-decimal steps (e.g. m / 40960) and its float copies round to different sides.
 DIFFERENCE_DECIMALS = 12
 
 

@@ -58,7 +58,13 @@ burst) and :meth:`FrameDecoder.flush` (end of stream) decide with what there is,
 counting as a boundary. What the bytes cannot decide is still lost, in two cases: a real
 frame followed by garbage (not by a header or silence) behind a false header that takes its
 first bytes, and a real frame followed by garbage that holds a header starting another valid
-frame which is followed by a header or silence.
+frame which is followed by a header or silence. A third case is the mirror of the one the rule
+fixes: a real frame whose own payload holds ``55 55``, followed by garbage, where that inner
+header starts a valid frame followed by a header (e.g. ``ActionGroupRun(group=0x55,
+times=0x0555)``, then ``06 01 02 03``, then a battery reply: the rule keeps the inner
+``ActionGroupRun(1, 770)``). The traffic this project sends cannot hold ``55 55`` in a frame
+except a SERVO_MOVE whose move time is exactly 21845 ms (channels are <= 24, pulses <= 2500),
+and the boards' replies would need a battery of 21.845 V, so this case is left to the bytes.
 """
 
 from __future__ import annotations

@@ -27,7 +27,8 @@ Numerics, and their error
   surface calls per position: beam models solve their beams once per call.
 
 Measured change from the defaults (order 4, resolution 12) to order 8, resolution 24, at
-d/l = 0.1, 0.2, 0.3 and 1/3 (tests/test_quality.py holds these bounds):
+d/l = 0.1, 0.2, 0.3 and 1/3; tests/test_quality.py checks every row (hex: the beam) at one or
+two of these d/l, within the bound (D_P of 1D pixel-only within 1e-12):
 
 ==========================  =========  =========
 models                       D_P        D_S
