@@ -265,6 +265,17 @@ def test_a_frame_held_for_the_bytes_after_it_is_decided_by_silence_or_the_next_h
     assert decoder.idle() == [] and decoder.pending == b""
 
 
+def _decode_in_pieces(stream: bytes, cuts: list[int], direction, end: str
+                      ) -> tuple[list, FrameDecoder]:
+    """Feed ``stream`` cut at ``cuts`` to a fresh decoder, then end it by ``idle`` (the line
+    went quiet) or ``flush`` (end of stream); every frame it gave, and the decoder."""
+    decoder = FrameDecoder(direction)
+    frames = []
+    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
+        frames += decoder.feed(stream[a:b])
+    return frames + getattr(decoder, end)(), decoder
+
+
 def _no_inner_header(frame: bytes) -> bool:
     """No header starts inside ``frame``: one that did could make it the false one (the
     decoder's documented limit: the bytes cannot tell)."""
@@ -286,11 +297,7 @@ def test_a_false_header_never_swallows_the_frame_after_it(direction, data):
     tail = data.draw(st.one_of(st.just(b""), messages.map(lambda m: m.encode())))
     stream = noise + fake + real + tail
     cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=4)))
-    decoder = FrameDecoder(direction)
-    frames = []
-    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
-        frames += decoder.feed(stream[a:b])
-    frames += decoder.idle()
+    frames, _ = _decode_in_pieces(stream, cuts, direction, end="idle")
     offset = len(noise) + len(fake)
     assert (offset, real) in [(f.offset, f.raw) for f in frames]
 
@@ -355,11 +362,7 @@ def test_random_frames_with_noise_between_all_come_back(direction, data):
     stream += noises[-1]
 
     cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=5)))
-    decoder = FrameDecoder(direction)
-    frames = []
-    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
-        frames += decoder.feed(stream[a:b])
-    frames += decoder.flush()
+    frames, decoder = _decode_in_pieces(stream, cuts, direction, end="flush")
     assert [(f.offset, f.message) for f in frames] == expected_frames
     assert [(s.offset, s.data) for s in decoder.skipped] == expected_skips
 
