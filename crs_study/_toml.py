@@ -1,17 +1,45 @@
 """Strict reading of TOML configuration: unknown keys and wrong types are one-line errors.
 
-Shared by device files, protocols and analysis plans. Messages name the file, the key path and
-the value received, e.g. ``crs2d.toml: geometry.pitch_mm: expected a number > 0, got -3``.
+Shared by device files, protocols, strokes files and analysis plans. Messages name the file,
+the key path and the value received, e.g. ``crs2d.toml: geometry.pitch_mm: expected a number
+> 0, got -3``; the errors carry them as attributes (:class:`~crs_study.errors.ConfigError`:
+``source``, ``key_path``, ``line``). A :class:`Section` given the file's text puts the line of
+the key in its errors too (:mod:`crs_study._toml_lines`).
+
+A stray key is named with the valid ones and, when one is close (:func:`difflib.
+get_close_matches`), the key it was probably meant to be: ``design: unknown key 'repetiton'
+(valid keys: ...); did you mean 'repetitions'?``. A section that declares its keys up front
+(``keys=``) reports stray keys before anything else, so a misspelt required key is named as
+the stray key it is, not only as a missing one; a section that learns its keys as they are
+taken names the close stray key beside the missing one (``missing required key
+'repetitions'; is 'repetiton' a misspelling of it?``).
+
+The value checks (:func:`number_problem`, :func:`integer_problem`, :func:`string_problem`)
+are also what the protocol's dataclasses check their fields with, so a value refused in a file
+and the same value set from Python read alike.
 """
 
 from __future__ import annotations
 
+import difflib
+import math
 import tomllib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from crs_study._toml_lines import find_line
 from crs_study.errors import ConfigError
+
+#: How alike (difflib's ratio) a stray key and a valid one must be to suggest the valid one
+#: (difflib's own default).
+CLOSE_MATCH_CUTOFF = 0.6
+#: ... and a key present but not yet taken and a missing required key, both ways round, to ask
+#: whether the one is the other misspelt. Stricter: the key present may be a valid key read
+#: later, and valid keys are alike at times (bootstrap and bootstrap_unit: 0.78;
+#: practice_trials and practice_in: 0.77; digit_height_pitch and digit_width_pitch: 0.74, and
+#: 0.80 one way round). One edit of a key of 5 or more characters stays at 0.8 or above.
+MISSPELLING_CUTOFF = 0.8
 
 
 def read_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[str, Any]:
@@ -29,25 +57,102 @@ def read_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[
         raise error(f"{path}: not valid TOML: {exc}") from None
 
 
+def closest_key(key: str, candidates: Iterable[str]) -> str | None:
+    """The candidate ``key`` was most probably meant to be, or None when none is close."""
+    found = difflib.get_close_matches(key, sorted(candidates), n=1, cutoff=CLOSE_MATCH_CUTOFF)
+    return found[0] if found else None
+
+
+def misspelling_of(key: str, candidates: Iterable[str]) -> str | None:
+    """The candidate that may be ``key`` misspelt: alike both ways round (difflib's ratio is
+    not symmetric) at :data:`MISSPELLING_CUTOFF` or more; None when none is."""
+    def alike(other: str) -> float:
+        return min(difflib.SequenceMatcher(None, key, other).ratio(),
+                   difflib.SequenceMatcher(None, other, key).ratio())
+
+    scored = sorted((-alike(c), c) for c in candidates)
+    return scored[0][1] if scored and -scored[0][0] >= MISSPELLING_CUTOFF else None
+
+
+def unknown_key_reason(key: str, valid: Iterable[str]) -> str:
+    """``unknown key 'x' (valid keys: a, b); did you mean 'a'?`` (the last part when close)."""
+    valid = sorted(valid)
+    guess = closest_key(key, valid)
+    return (f"unknown key {key!r} (valid keys: {', '.join(valid)})"
+            + (f"; did you mean {guess!r}?" if guess else ""))
+
+
+def number_problem(value: Any, *, minimum: float | None = None, maximum: float | None = None,
+                   exclusive_minimum: bool = False) -> str | None:
+    """Why ``value`` is not a finite number in range (None when it is)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return f"expected a number, got {value!r}"
+    value = float(value)
+    if not math.isfinite(value):
+        return f"expected a finite number, got {value!r}"
+    if minimum is not None:
+        if exclusive_minimum and value <= minimum:
+            return f"expected a number > {minimum:g}, got {value!r}"
+        if not exclusive_minimum and value < minimum:
+            return f"expected a number >= {minimum:g}, got {value!r}"
+    if maximum is not None and value > maximum:
+        return f"expected a number <= {maximum:g}, got {value!r}"
+    return None
+
+
+def integer_problem(value: Any, *, minimum: int | None = None, maximum: int | None = None
+                    ) -> str | None:
+    """Why ``value`` is not a whole number in range (None when it is)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        return f"expected a whole number, got {value!r}"
+    if minimum is not None and value < minimum:
+        return f"expected a whole number >= {minimum}, got {value!r}"
+    if maximum is not None and value > maximum:
+        return f"expected a whole number <= {maximum}, got {value!r}"
+    return None
+
+
+def string_problem(value: Any, *, choices: Iterable[str] | None = None) -> str | None:
+    """Why ``value`` is not a string (among ``choices``, when given); None when it is."""
+    if not isinstance(value, str):
+        return f"expected a string, got {value!r}"
+    if choices is not None:
+        options = list(choices)
+        if value not in options:
+            return f"expected one of {options}, got {value!r}"
+    return None
+
+
 class Section:
     """A view of one TOML table that checks each key as it is taken and rejects leftovers.
 
     ``source`` names the file and ``path`` the table's dotted key path (empty for the root), so
     messages read ``protocol.toml: stimulus.speed_mm_s: expected ...``. Call :meth:`done` after
     taking every known key: any key left is reported with the list of valid ones.
+
+    ``keys``, when given, declares every key the table may hold: a key outside it is refused
+    at once, before any value is read. ``text`` is the file's text: errors then carry the line
+    of their key (sub-tables inherit it).
     """
 
     def __init__(
         self, data: Any, source: str | Path, path: str = "",
-        error: type[ConfigError] = ConfigError,
+        error: type[ConfigError] = ConfigError, *, keys: Iterable[str] | None = None,
+        text: str | None = None,
     ) -> None:
         self.source = str(source)
         self.path = path
         self.error = error
+        self.text = text
+        self.keys = None if keys is None else frozenset(keys)
         if not isinstance(data, Mapping):
-            raise error(f"{self.where}: expected a table, got {data!r}")
+            raise self._error(f"expected a table, got {data!r}", path or None)
         self.data = dict(data)
         self._taken: set[str] = set()
+        if self.keys is not None:
+            stray = sorted(set(self.data) - self.keys)
+            if stray:
+                raise self._unknown(stray[0], self.keys)
 
     @property
     def where(self) -> str:
@@ -56,9 +161,18 @@ class Section:
     def key_path(self, key: str) -> str:
         return f"{self.path}.{key}" if self.path else key
 
+    def _error(self, reason: str, key_path: str | None, shown_path: str | None = None
+               ) -> ConfigError:
+        line = find_line(self.text, key_path) if self.text is not None and key_path else None
+        return self.error(reason, source=self.source, line=line, key_path=key_path,
+                          shown_path=shown_path)
+
+    def _unknown(self, key: str, valid: Iterable[str]) -> ConfigError:
+        return self._error(unknown_key_reason(key, valid), self.key_path(key), self.path)
+
     def fail(self, key: str, message: str) -> ConfigError:
         """An error naming this section's ``key`` (to be raised by the caller)."""
-        return self.error(f"{self.source}: {self.key_path(key)}: {message}")
+        return self._error(message, self.key_path(key))
 
     def has(self, key: str) -> bool:
         return key in self.data
@@ -68,8 +182,18 @@ class Section:
         if key in self.data:
             return self.data[key]
         if default is ...:
-            raise self.error(f"{self.where}: missing required key {key!r}")
+            reason = f"missing required key {key!r}"
+            if self.keys is None:  # a stray key not yet known as one may be this key misspelt
+                guess = misspelling_of(key, set(self.data) - self._taken)
+                if guess is not None:
+                    reason += f"; is {guess!r} a misspelling of it?"
+            raise self._error(reason, self.key_path(key), self.path)
         return default
+
+    def _checked(self, key: str, value: Any, problem: str | None) -> Any:
+        if problem is not None:
+            raise self.fail(key, problem)
+        return value
 
     def number(
         self,
@@ -81,42 +205,21 @@ class Section:
         exclusive_minimum: bool = False,
     ) -> float:
         value = self.raw(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.fail(key, f"expected a number, got {value!r}")
-        value = float(value)
-        if value != value or value in (float("inf"), float("-inf")):
-            raise self.fail(key, f"expected a finite number, got {value!r}")
-        if minimum is not None:
-            if exclusive_minimum and value <= minimum:
-                raise self.fail(key, f"expected a number > {minimum:g}, got {value!r}")
-            if not exclusive_minimum and value < minimum:
-                raise self.fail(key, f"expected a number >= {minimum:g}, got {value!r}")
-        if maximum is not None and value > maximum:
-            raise self.fail(key, f"expected a number <= {maximum:g}, got {value!r}")
-        return value
+        problem = number_problem(value, minimum=minimum, maximum=maximum,
+                                 exclusive_minimum=exclusive_minimum)
+        return float(self._checked(key, value, problem))
 
     def integer(
         self, key: str, default: Any = ..., *, minimum: int | None = None,
         maximum: int | None = None,
     ) -> int:
         value = self.raw(key, default)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(key, f"expected a whole number, got {value!r}")
-        if minimum is not None and value < minimum:
-            raise self.fail(key, f"expected a whole number >= {minimum}, got {value!r}")
-        if maximum is not None and value > maximum:
-            raise self.fail(key, f"expected a whole number <= {maximum}, got {value!r}")
-        return value
+        return self._checked(key, value, integer_problem(value, minimum=minimum,
+                                                         maximum=maximum))
 
     def string(self, key: str, default: Any = ..., *, choices: Iterable[str] | None = None) -> str:
         value = self.raw(key, default)
-        if not isinstance(value, str):
-            raise self.fail(key, f"expected a string, got {value!r}")
-        if choices is not None:
-            options = list(choices)
-            if value not in options:
-                raise self.fail(key, f"expected one of {options}, got {value!r}")
-        return value
+        return self._checked(key, value, string_problem(value, choices=choices))
 
     def boolean(self, key: str, default: Any = ...) -> bool:
         value = self.raw(key, default)
@@ -130,15 +233,14 @@ class Section:
             raise self.fail(key, f"expected an array, got {value!r}")
         return value
 
-    def table(self, key: str, default: Any = ...) -> Section:
+    def table(self, key: str, default: Any = ..., *, keys: Iterable[str] | None = None
+              ) -> Section:
         value = self.raw(key, default)
-        return Section(value, self.source, self.key_path(key), self.error)
+        return Section(value, self.source, self.key_path(key), self.error, keys=keys,
+                       text=self.text)
 
     def done(self) -> None:
         """Raise if the table holds keys nobody took (a typo must never pass silently)."""
-        extra = sorted(set(self.data) - self._taken)
+        extra = sorted(set(self.data) - self._taken - (self.keys or set()))
         if extra:
-            valid = ", ".join(sorted(self._taken))
-            raise self.error(
-                f"{self.where}: unknown key {extra[0]!r} (valid keys: {valid})"
-            )
+            raise self._unknown(extra[0], self.keys or self._taken)

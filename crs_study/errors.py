@@ -28,7 +28,50 @@ class CrsStudyError(Exception):
 
 
 class ConfigError(CrsStudyError):
-    """A configuration file (device, protocol, analysis plan) is malformed."""
+    """A configuration file (device, protocol, analysis plan, strokes file) is malformed.
+
+    Raised with the bare ``reason`` and, where known, where it is: ``source`` (the file),
+    ``line`` (1-based, in that file) and ``key_path`` (the key at fault, e.g.
+    ``design.repetitions``, ``levels.values[2]``, or ``design.repetiton`` for a stray key).
+    ``shown_path`` is the key path printed before the reason: the key path itself, or for a
+    missing or unknown key the table holding it (``design: unknown key 'repetiton' ...``).
+    The message reads ``SOURCE:LINE: SHOWN_PATH: REASON``, each part left out when unknown;
+    a loader that learns the file or the line later sets the attribute (the message follows),
+    so nothing ever parses them back out of the text. An error made from one message string
+    alone (``ConfigError("crs2d.toml: beams: ...")``) keeps that string as its message.
+
+    Attributes
+    ----------
+    reason : str
+        What was expected and what was received, without the location.
+    source : str or None
+    line : int or None
+    key_path : str or None
+    shown_path : str or None
+    """
+
+    def __init__(self, reason: str, *, source: str | None = None, line: int | None = None,
+                 key_path: str | None = None, shown_path: str | None = None) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.source = None if source is None else str(source)
+        self.line = line
+        self.key_path = key_path
+        self.shown_path = key_path if shown_path is None else shown_path
+
+    @property
+    def detail(self) -> str:
+        """The message without the file and line: ``SHOWN_PATH: REASON`` (or the reason)."""
+        return f"{self.shown_path}: {self.reason}" if self.shown_path else self.reason
+
+    def __str__(self) -> str:
+        if self.source is None:
+            return self.detail
+        where = self.source if self.line is None else f"{self.source}:{self.line}"
+        return f"{where}: {self.detail}"
+
+    def __reduce__(self):  # keep the attributes through pickling (process pools, Dask)
+        return (self.__class__, (self.reason,), self.__dict__)
 
 
 class DeviceFileError(ConfigError):
