@@ -41,7 +41,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from crs_study._files import append_durably, fsync_dir, os_errors, sha256_bytes, write_atomically
+from crs_study._files import append_durably, fsync_dir, os_errors, write_atomically
+from crs_study.consent_form import ConsentForm, read_form  # noqa: F401  (re-exported)
 from crs_study.dataset import WITHDRAWAL_JOURNAL, Dataset, utc_now
 from crs_study.dataset import check_label as dataset_check_label
 from crs_study.errors import ConsentError, CrsStudyWarning, SessionError
@@ -54,8 +55,6 @@ STAGING_DIR = ".crs-study-withdrawal-staging"
 #: Test hook: kill the process at the n-th withdrawal checkpoint (simulates a power cut).
 CRASH_ENV = "CRS_STUDY_WITHDRAW_CRASH_AT"
 
-#: the version is the first word on its line ("Version: 1.0 (2026-11-22)"), never the next line's
-_VERSION_RE = re.compile(r"^Version:[ \t]*(\S*)", re.MULTILINE)
 _INITIALS_RE = re.compile(r"^[A-Za-z]{1,4}$")
 _LABEL_ALPHABET = string.ascii_lowercase + string.digits
 _TEXT_SUFFIXES = {".json", ".tsv", ".md", ".html", ".csv", ".txt", ".jsonl"}
@@ -90,42 +89,6 @@ def generate_label(existing: Iterable[str] = (), length: int = 7) -> str:
         label = "p" + "".join(secrets.choice(_LABEL_ALPHABET) for _ in range(length - 1))
         if label not in taken:
             return label
-
-
-@dataclass(frozen=True)
-class ConsentForm:
-    """A versioned consent form: Markdown with a title and a ``Version:`` line."""
-
-    path: Path
-    title: str
-    version: str
-    sha256: str
-
-
-def read_form(path: str | Path) -> ConsentForm:
-    """Read and check a consent form; malformed forms are one-line :class:`ConsentError` s."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-        text = data.decode("utf-8")
-    except FileNotFoundError:
-        raise ConsentError(f"{path}: no such consent form") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConsentError(f"{path}: cannot read the consent form: {exc}") from None
-    titles = [line[2:].strip() for line in text.splitlines() if line.startswith("# ")]
-    if not titles:
-        raise ConsentError(f"{path}: not a consent form: expected a '# Title' line")
-    versions = _VERSION_RE.findall(text)
-    if len(versions) != 1:
-        raise ConsentError(
-            f"{path}: expected exactly one 'Version: X' line, found {len(versions)}"
-        )
-    if not versions[0]:
-        raise ConsentError(f"{path}: the 'Version:' line gives no version; expected e.g. "
-                           "'Version: 1.0'")
-    if "- [ ]" not in text:
-        raise ConsentError(f"{path}: not a consent form: expected '- [ ]' consent statements")
-    return ConsentForm(path, titles[0], versions[0], sha256_bytes(data))
 
 
 @dataclass(frozen=True)
