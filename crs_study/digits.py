@@ -27,6 +27,8 @@ last frame is the first one that reaches the end (:func:`sample_stroke`).
 from __future__ import annotations
 
 import math
+import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
@@ -35,10 +37,13 @@ from pathlib import Path
 import numpy as np
 
 from crs_study._toml import Section
-from crs_study.errors import ProtocolError
+from crs_study._toml_lines import locate, one_line, syntax_error
+from crs_study.errors import ConfigError, ProtocolError
 
 #: Format number of the strokes file this module reads.
 STROKES_FORMAT = 1
+#: The names of the symbols a digit strokes file defines.
+DIGIT_NAMES = tuple(str(d) for d in range(10))
 
 
 def shipped_strokes_path() -> Path:
@@ -124,25 +129,18 @@ def resample_by_arc_length(points: np.ndarray, n: int) -> np.ndarray:
 
 @lru_cache(maxsize=16)
 def _load_cached(path: str, mtime_ns: int) -> dict[int, Digit]:
-    import tomllib
-
     try:
         text = Path(path).read_bytes().decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise ProtocolError(f"{path}: cannot read the strokes file: "
-                            f"{' '.join(str(exc).split())}") from None
+        raise ProtocolError(f"{path}: cannot read the strokes file: {one_line(exc)}") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        from crs_study.protocol import toml_syntax_message
-
-        raise ProtocolError(toml_syntax_message(path, exc, text)) from None
+        raise syntax_error(ProtocolError, path, exc, text) from None
     try:
-        return _parse(data, path)
-    except ProtocolError as exc:
-        from crs_study.protocol import locate_message
-
-        raise ProtocolError(locate_message(str(exc), path, text)) from None
+        return _parse(data, path, text)
+    except ConfigError as exc:
+        raise locate(exc, path, text) from None
 
 
 def load_digits(path: str | Path | None = None) -> dict[int, Digit]:
@@ -163,29 +161,16 @@ def load_digits(path: str | Path | None = None) -> dict[int, Digit]:
     return _load_cached(str(path), mtime)
 
 
-def _parse(data: dict, source: str) -> dict[int, Digit]:
-    root = Section(data, source, error=ProtocolError)
+def _parse(data: dict, source: str, text: str | None = None) -> dict[int, Digit]:
+    root = Section(data, source, error=ProtocolError, keys=("format", "digits"), text=text)
     version = root.integer("format")
     if version != STROKES_FORMAT:
         raise root.fail("format", f"expected {STROKES_FORMAT}, got {version!r}")
-    table = root.table("digits")
+    strokes_of = read_strokes(root.table("digits"), _digit_name)
     root.done()
-    strokes_of: dict[int, tuple[np.ndarray, ...]] = {}
-    for key in list(table.data):
-        if key not in {str(d) for d in range(10)}:
-            raise table.fail(key, f"expected a digit 0 to 9 as the key, got {key!r}")
-        entry = table.table(key)
-        raw_strokes = entry.array("strokes")
-        entry.done()
-        if not raw_strokes:
-            raise entry.fail("strokes", "expected at least one stroke, got []")
-        strokes_of[int(key)] = tuple(
-            _parse_stroke(stroke, entry, f"strokes[{i}]") for i, stroke in enumerate(raw_strokes)
-        )
-    table.done()
     if not strokes_of:
         raise root.fail("digits", "expected at least one digit, got none")
-    digits = {k: Digit(k, v) for k, v in sorted(strokes_of.items())}
+    digits = {int(k): Digit(int(k), v) for k, v in sorted(strokes_of.items())}
     width, height = mean_extent(digits)
     # The size of a protocol is the mean extent (module docstring): it must not be zero.
     if width <= 0.0 or height <= 0.0:
@@ -194,6 +179,36 @@ def _parse(data: dict, source: str) -> dict[int, Digit]:
                         f"(the protocol's digit size is that mean), got {flat} 0 for digits "
                         f"{sorted(digits)}")
     return {k: Digit(k, d.strokes, (width, height)) for k, d in digits.items()}
+
+
+def _digit_name(name: str) -> str | None:
+    """Why ``name`` names no digit (None when it does)."""
+    return None if name in DIGIT_NAMES else f"expected a digit 0 to 9 as the key, got {name!r}"
+
+
+def read_strokes(table: Section, check_name: Callable[[str], str | None]
+                 ) -> dict[str, tuple[np.ndarray, ...]]:
+    """The strokes of each symbol of a strokes table: ``[NAME] strokes = [[[x, y], ...], ...]``.
+
+    Generic over the symbols' names (digits here; letters or shapes would do):
+    ``check_name`` says why a name is refused, or None. Each stroke is an (m, 2) read-only
+    array of at least 2 points in the unit box with a length > 0 (:func:`_parse_stroke`).
+    """
+    strokes_of: dict[str, tuple[np.ndarray, ...]] = {}
+    for name in list(table.data):
+        problem = check_name(name)
+        if problem is not None:
+            raise table.fail(name, problem)
+        entry = table.table(name, keys=("strokes",))
+        raw_strokes = entry.array("strokes")
+        entry.done()
+        if not raw_strokes:
+            raise entry.fail("strokes", "expected at least one stroke, got []")
+        strokes_of[name] = tuple(
+            _parse_stroke(stroke, entry, f"strokes[{i}]") for i, stroke in enumerate(raw_strokes)
+        )
+    table.done()
+    return strokes_of
 
 
 def _parse_stroke(raw: object, entry: Section, key: str) -> np.ndarray:

@@ -11,12 +11,14 @@ frame rate. Frame k is shown at t_k = k / f from onset. The timeline of a digit:
    frame), during which the centre moves to the next stroke's first point;
 4. ``end_hold_s``: the bump rests at the last point. Then the runner returns to neutral.
 
-The stimulus of a digit is the same in every trial (no per-trial randomness), so its
-setpoints are rendered once per (digit, level, condition, device) and cached
-(:func:`render_frames`): a protocol with ``[levels]`` has one stimulus spec per level
-(:meth:`crs_study.protocol.Protocol.stimulus_at`), and the spec is part of every cache key.
-:func:`device_limits` renders every digit in every condition with ``policy="error"`` to
-check a protocol against its device.
+What is drawn is a :class:`StimulusSpec` (a protocol's ``[stimulus]`` table, checked on
+construction). The stimulus of a digit is the same in every trial (no per-trial randomness),
+so its setpoints are rendered once per (digit, level, condition, device) and cached
+(:func:`render_frames`, the one cache of rendered frames: the protocol's device checks, the
+runner, ``validate`` and ``device check`` all read it): a protocol with ``[levels]`` has one
+stimulus spec per level (:meth:`crs_study.protocol.Protocol.stimulus_at`), and the spec is
+part of every cache key. The checks of a protocol against its device are in
+:mod:`crs_study.protocol.feasibility`.
 """
 
 from __future__ import annotations
@@ -24,22 +26,139 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Literal, Protocol, get_args
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
+from crs_study._toml import number_problem
 from crs_study.digits import load_digits, sample_stroke
-from crs_study.errors import ProtocolError, RenderError
+from crs_study.errors import ProtocolError
 from crs_study.targets import Bump
 
 if TYPE_CHECKING:  # pragma: no cover
     from crs_study.layout import Layout
-    from crs_study.protocol import Protocol, StimulusSpec
-    from crs_study.render import Renderer
 
-
+Placement = Literal["centre", "offset"]
+#: Where the digits are drawn: the display centre, or that plus ``offset_mm``.
+PLACEMENTS: tuple[str, ...] = get_args(Placement)
+#: Slowest stroke speed accepted (mm/s): a 60 mm digit then takes a minute.
+MIN_STROKE_SPEED_MM_S = 1.0
+#: Slowest frame rate a protocol may ask for (frames/s). Below one frame a second a moving
+#: bump is a slide show, and the frame count of a stroke (L f / v) loses meaning as f -> 0
+#: (hypothesis found f = 5e-324).
+MIN_FRAME_RATE_HZ = 1.0
+#: The range of each number of ``[stimulus]``: key -> (minimum, maximum, minimum excluded).
+NUMBER_RANGES: dict[str, tuple[float, float, bool]] = {
+    "digit_height_pitch": (0.01, 20.0, False),
+    "digit_width_pitch": (0.01, 20.0, False),
+    "bump_diameter_mm": (0.0, 1000.0, True),
+    "bump_height_mm": (0.0, 100.0, True),
+    "stroke_speed_mm_s": (MIN_STROKE_SPEED_MM_S, 1000.0, False),
+    "frame_rate_hz": (MIN_FRAME_RATE_HZ, 1000.0, False),
+    "stroke_pause_s": (0.0, 10.0, False),
+    "start_hold_s": (0.0, 10.0, False),
+    "end_hold_s": (0.0, 10.0, False),
+}
 #: Longest time a digit may take to draw (s); longer is surely a typo in the protocol.
 MAX_DRAWING_S = 120.0
+
+
+@dataclass(frozen=True)
+class StimulusSpec:
+    """The ``[stimulus]`` table: what is drawn, how big, how fast. Lengths in mm, times in s.
+
+    Sizes are in pixel pitches (the digits' mean bounding box, :mod:`crs_study.digits`).
+    Every field is checked on construction (ranges :data:`NUMBER_RANGES`): a bad value is a
+    :class:`~crs_study.errors.ProtocolError` whose ``key_path`` is ``stimulus.<field>``, in
+    Python (``dataclasses.replace``) as in a protocol file. Numbers are stored as floats, the
+    digits and the offset as tuples.
+    """
+
+    digits: tuple[int, ...]
+    strokes_file: str | None  # resolved path, None for the shipped strokes
+    digit_height_pitch: float
+    digit_width_pitch: float
+    bump_diameter_mm: float
+    bump_height_mm: float
+    stroke_speed_mm_s: float
+    placement: Placement
+    offset_mm: tuple[float, float]
+    frame_rate_hz: float
+    stroke_pause_s: float
+    start_hold_s: float
+    end_hold_s: float
+
+    def __post_init__(self) -> None:
+        def fail(key: str, reason: str) -> ProtocolError:
+            return ProtocolError(reason, key_path=f"stimulus.{key}")
+
+        digits = self.digits
+        if not isinstance(digits, list | tuple):
+            raise fail("digits", f"expected an array, got {digits!r}")
+        for i, d in enumerate(digits):
+            if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= 9:
+                raise fail(f"digits[{i}]", f"expected a digit 0 to 9, got {d!r}")
+        if len(set(digits)) != len(digits):
+            raise fail("digits", f"a digit appears twice in {list(digits)!r}")
+        if len(digits) < 2:
+            raise fail("digits", f"expected at least 2 digits to choose from, got "
+                       f"{list(digits)!r}")
+        if self.strokes_file is not None and (not isinstance(self.strokes_file, str)
+                                              or not self.strokes_file.strip()):
+            raise fail("strokes_file", f"expected a strokes file, got {self.strokes_file!r}")
+        numbers: dict[str, Any] = {}
+        for key, (low, high, exclusive) in NUMBER_RANGES.items():
+            value = getattr(self, key)
+            problem = number_problem(value, minimum=low, maximum=high,
+                                     exclusive_minimum=exclusive)
+            if problem:
+                raise fail(key, problem)
+            numbers[key] = float(value)
+            if key == "stroke_speed_mm_s":  # the file's order: placement, offset, then rate
+                self._check_placement(fail)
+        set_field = object.__setattr__
+        set_field(self, "digits", tuple(digits))
+        set_field(self, "offset_mm", tuple(float(c) for c in self.offset_mm))
+        for key, value in numbers.items():
+            set_field(self, key, value)
+
+    def _check_placement(self, fail) -> None:
+        if self.placement not in PLACEMENTS:
+            raise fail("placement", f"expected one of {list(PLACEMENTS)}, got "
+                       f"{self.placement!r}")
+        offset = self.offset_mm
+        if (not isinstance(offset, list | tuple) or len(offset) != 2
+                or any(number_problem(c) for c in offset)):
+            raise fail("offset_mm", f"expected [x, y] in mm, got {offset!r}")
+        if self.placement != "offset" and tuple(offset) != (0.0, 0.0):
+            raise fail("offset_mm", f"only used with placement = \"offset\", got placement = "
+                       f"{self.placement!r}")
+
+
+class StimulusSource(Protocol):
+    """What :func:`make_stimulus` draws from: the stimulus spec of each level."""
+
+    def stimulus_at(self, level: float | None) -> StimulusSpec: ...
+
+
+class FrameRendering(Protocol):
+    """One rendered frame (:class:`crs_study.render.Rendering`)."""
+
+    setpoints: np.ndarray
+    clamped: tuple[str, ...]
+
+
+class FrameRenderer(Protocol):
+    """What :func:`render_frames` renders with (:class:`crs_study.render.Renderer`, a layer
+    above this one: the cache knows it by these attributes only)."""
+
+    layout: Layout
+    condition: str
+    policy: str
+    cap_feed: bool
+
+    def render(self, target: Bump) -> FrameRendering: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,9 +217,12 @@ def placement_centre(spec: StimulusSpec, layout: Layout) -> tuple[float, float]:
     return cx + spec.offset_mm[0], cy + spec.offset_mm[1]
 
 
-def make_stimulus(protocol: Protocol, layout: Layout, digit: int,
+def make_stimulus(protocol: StimulusSource, layout: Layout, digit: int,
                   level: float | None = None) -> Stimulus:
-    """The stimulus of ``digit`` at ``level`` (None: no [levels]) on ``layout`` (cached)."""
+    """The stimulus of ``digit`` at ``level`` (None: no [levels]) on ``layout`` (cached).
+
+    ``protocol`` is a :class:`~crs_study.protocol.Protocol` or anything else with a
+    ``stimulus_at(level)`` giving the :class:`StimulusSpec` of that level."""
     spec = protocol.stimulus_at(level)
     return stimulus_for(spec, layout.pitch_mm, placement_centre(spec, layout), digit)
 
@@ -111,17 +233,18 @@ def stimulus_for(spec: StimulusSpec, pitch_mm: float, centre_mm: tuple[float, fl
     """The stimulus of ``digit`` for a stimulus spec, pitch and placement (module docstring)."""
     digits = load_digits(spec.strokes_file)
     if digit not in digits:
-        raise ProtocolError(f"stimulus.digits: digit {digit!r} has no strokes in "
-                            f"{spec.strokes_file or 'the shipped digits.toml'}")
+        raise ProtocolError(f"digit {digit!r} has no strokes in "
+                            f"{spec.strokes_file or 'the shipped digits.toml'}",
+                            key_path="stimulus.digits")
     f = spec.frame_rate_hz
     width = spec.digit_width_pitch * pitch_mm
     height = spec.digit_height_pitch * pitch_mm
     strokes = digits[digit].scaled(width, height, centre_mm)
     drawing_s = digits[digit].length_mm(width, height) / spec.stroke_speed_mm_s
     if drawing_s > MAX_DRAWING_S:
-        raise ProtocolError(f"stimulus.stroke_speed_mm_s: digit {digit} would take "
-                            f"{drawing_s:.0f} s to draw; expected at most {MAX_DRAWING_S:g} s, "
-                            f"got {spec.stroke_speed_mm_s!r} mm/s")
+        raise ProtocolError(f"digit {digit} would take {drawing_s:.0f} s to draw; expected "
+                            f"at most {MAX_DRAWING_S:g} s, got {spec.stroke_speed_mm_s!r} mm/s",
+                            key_path="stimulus.stroke_speed_mm_s")
     centres: list[np.ndarray] = []
     heights: list[np.ndarray] = []
     index: list[np.ndarray] = []
@@ -153,7 +276,8 @@ def stimulus_for(spec: StimulusSpec, pitch_mm: float, centre_mm: tuple[float, fl
 # --------------------------------------------------------------------------------------------
 # Rendering cache
 
-_RENDERED: OrderedDict[tuple, np.ndarray] = OrderedDict()
+#: key -> (read-only frames, whether any frame was clipped or capped)
+_RENDERED: OrderedDict[tuple, tuple[np.ndarray, bool]] = OrderedDict()
 _RENDERED_MAX = 512
 
 
@@ -163,25 +287,31 @@ def layout_key(layout: Layout) -> tuple:
             layout.travel_mm, layout.boundary_travel_mm, layout.n_actuators)
 
 
-def render_frames(stimulus: Stimulus, renderer: Renderer) -> np.ndarray:
-    """Setpoints (n, n_actuators) of every frame, rendered once per stimulus, device and
-    condition and then served from a cache (read-only array)."""
-    key = (stimulus.key, layout_key(renderer.layout), renderer.condition, renderer.policy)
-    frames = _RENDERED.get(key)
-    if frames is not None:
+def render_frames(stimulus: Stimulus, renderer: FrameRenderer) -> np.ndarray:
+    """Setpoints (n, n_actuators) of every frame, rendered once per stimulus, device,
+    condition and feed cap and then served from a cache (read-only array).
+
+    The clamp policy is not part of the key: a stimulus that renders under ``"error"`` needs
+    no clip, so its frames are those ``"clip"`` gives, and the device check (``"error"``) and
+    the sessions (``"clip"``) share one rendering. Frames rendered under ``"clip"`` that had
+    to be clipped are rendered again under ``"error"``, which raises at the first such frame.
+    """
+    key = (stimulus.key, layout_key(renderer.layout), renderer.condition, renderer.cap_feed)
+    cached = _RENDERED.get(key)
+    if cached is not None and not (cached[1] and renderer.policy == "error"):
         _RENDERED.move_to_end(key)
-        return frames
-    frames = np.array([renderer.render(stimulus.target(k)).setpoints
-                       for k in range(stimulus.n_frames)])
+        return cached[0]
+    renderings = [renderer.render(stimulus.target(k)) for k in range(stimulus.n_frames)]
+    frames = np.array([r.setpoints for r in renderings])
     frames.setflags(write=False)
-    _RENDERED[key] = frames
+    _RENDERED[key] = (frames, any(r.clamped for r in renderings))
     if len(_RENDERED) > _RENDERED_MAX:
         _RENDERED.popitem(last=False)
     return frames
 
 
 # --------------------------------------------------------------------------------------------
-# Device checks
+# Geometry against the display
 
 
 def inside_convex_hull(points: np.ndarray, polygon_xy: np.ndarray) -> tuple[np.ndarray, float]:
@@ -190,115 +320,8 @@ def inside_convex_hull(points: np.ndarray, polygon_xy: np.ndarray) -> tuple[np.n
     The margin is min over points and hull edges of the signed distance to the edge line
     (positive inside); a negative margin means some point lies outside.
     """
-    from scipy.spatial import ConvexHull
-
     hull = ConvexHull(polygon_xy)
     # hull.equations: rows (a, b, c) with a x + b y + c <= 0 inside, (a, b) unit normals.
     signed = -(points @ hull.equations[:, :2].T + hull.equations[:, 2])
     margins = signed.min(axis=1)
     return margins >= -1e-9, float(margins.min())
-
-
-def collapse_delta(layout: Layout) -> float:
-    """The no-collapse number of Eq. 4 for a device (inf when the skin has no stiffness)."""
-    from crs_study.quality.mechanics import layout_delta
-
-    return layout_delta(layout)
-
-
-def device_limits(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layout
-                  ) -> list[str]:
-    """Check a stimulus against a device for every condition; one line per check passed.
-
-    Raises :class:`~crs_study.errors.ProtocolError` whose message starts with the protocol
-    key at fault (``stimulus.bump_height_mm: ...``). Cached per (spec, conditions, device).
-    """
-    return list(_device_limits(spec, conditions, layout_key(layout), _LayoutBox(layout)))
-
-
-class _LayoutBox:
-    """Carries a layout through lru_cache without hashing it (the key is layout_key)."""
-
-    def __init__(self, layout: Layout) -> None:
-        self.layout = layout
-
-    def __hash__(self) -> int:
-        return 0
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, _LayoutBox)
-
-
-@lru_cache(maxsize=64)
-def _device_limits(spec: StimulusSpec, conditions: tuple[str, ...], key: tuple,
-                   box: _LayoutBox) -> tuple[str, ...]:
-    from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
-    from crs_study.quality.mechanics import stimulus_limits
-    from crs_study.render import Renderer
-
-    layout = box.layout
-    passed: list[str] = []
-    if layout.lattice != "hex":
-        raise ProtocolError(f"study.device: digits need a 2D display, got {layout.name!r} "
-                            f"with a {layout.lattice!r} lattice")
-    limits = stimulus_limits(layout, Bump((0.0, 0.0), spec.bump_diameter_mm,
-                                          spec.bump_height_mm))
-    problems = limits.problems()
-    if "height" in problems:
-        raise ProtocolError(f"stimulus.bump_height_mm: expected at most the pixel travel "
-                            f"{limits.travel:g} mm, got {spec.bump_height_mm!r}")
-    passed.append(f"bump height {limits.height:g} mm <= pixel travel {limits.travel:g} mm")
-
-    wire_rate = full_frame_rate_hz(layout)
-    if spec.frame_rate_hz > wire_rate * (1 + 1e-9):
-        raise ProtocolError(
-            f"stimulus.frame_rate_hz: expected at most {wire_rate:.2f} frames/s (a full frame "
-            f"takes {full_frame_wire_time_s(layout) * 1e3:.1f} ms on the wire at 9600 baud), "
-            f"got {spec.frame_rate_hz!r}")
-    passed.append(f"frame rate {spec.frame_rate_hz:g}/s <= {wire_rate:.2f}/s (every channel "
-                  "of the busiest controller in every frame)")
-
-    centre = placement_centre(spec, layout)
-    stimuli = [stimulus_for(spec, layout.pitch_mm, centre, d) for d in spec.digits]
-    path = np.concatenate([s.centres_mm[s.drawn] for s in stimuli])
-    inside, margin = inside_convex_hull(path, layout.pixel_xy)
-    if not inside.all():
-        worst = path[np.argmin(inside)]
-        key_name = "stimulus.offset_mm" if spec.placement == "offset" else \
-            "stimulus.digit_height_pitch"
-        raise ProtocolError(
-            f"{key_name}: the bump centre leaves the pixel area (by {-margin:.1f} mm at "
-            f"({worst[0]:.1f}, {worst[1]:.1f}) mm); expected the digit inside the display")
-    passed.append(f"bump centre path inside the pixel area (margin {margin:.1f} mm)")
-
-    beams = [c for c in conditions if c != "pixel-only"]
-    if beams:
-        if "curvature" in problems:
-            raise ProtocolError(f"stimulus.bump_height_mm: {problems['curvature']}, got "
-                                f"{spec.bump_height_mm!r}")
-        passed.append(f"curvature {limits.curvature:.4f}/mm <= yield "
-                      f"{limits.yield_curvature:.4f}/mm")
-        delta = collapse_delta(layout)
-        if delta < 1.0:
-            raise ProtocolError(f"conditions.names: the beams collapse on this device "
-                                f"(Eq. 4: Delta = {delta:.2f} < 1); got conditions {beams!r}")
-        passed.append(f"no collapse: Delta = {delta:.2f} >= 1 (Eq. 4)")
-
-    for condition in conditions:
-        renderer = Renderer(layout, condition, policy="error")
-        peak_feed = 0.0
-        for stim in stimuli:
-            try:
-                frames = render_frames(stim, renderer)
-            except RenderError as exc:
-                raise ProtocolError(f"stimulus.bump_height_mm: digit {stim.digit} cannot be "
-                                    f"shown: {exc}") from None
-            if layout.boundary_actuators:
-                feeds = frames[:, layout.n_pixels:]
-                peak_feed = max(peak_feed, float(feeds.max()))
-        if condition != "pixel-only":
-            passed.append(f"{condition}: every frame within travel (largest boundary feed "
-                          f"{peak_feed:.2f} mm <= {layout.boundary_travel_mm:g} mm)")
-        else:
-            passed.append(f"{condition}: every frame within travel")
-    return tuple(passed)

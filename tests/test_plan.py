@@ -1,4 +1,4 @@
-"""Trial plans (crs_study/plan.py): the cross-machine contract, constraints, counterbalancing."""
+"""Trial plans (crs_study/protocol/plan.py): the cross-machine contract, counterbalancing."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 
 from crs_study.errors import ProtocolError
 from crs_study.paths import shipped_file
-from crs_study.plan import (
+from crs_study.protocol import load_protocol
+from crs_study.protocol.plan import (
     _Draw,
     block_order,
     block_orders,
@@ -23,7 +24,6 @@ from crs_study.plan import (
     plan_seed,
     williams_square,
 )
-from crs_study.protocol import load_protocol
 
 
 @pytest.fixture(scope="module")

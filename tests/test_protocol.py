@@ -458,3 +458,126 @@ def test_warnings_are_issued_as_crs_study_warnings(tmp_path):
     protocol = load_protocol(write(tmp_path, edited(design__inter_trial_interval_s=0.0)))
     with pytest.warns(CrsStudyWarning, match=r"design.inter_trial_interval_s: 0.0 s"):
         emit_warnings(protocol)
+
+
+# --- where an error is: attributes, not text (issue 15, points 4 and 6) ----------------------
+
+def test_errors_carry_the_file_the_line_and_the_key_path(tmp_path):
+    text = SHIPPED.read_text().replace("repetitions = 5", "repetitions = -5")
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    line = next(i for i, t in enumerate(text.splitlines(), 1) if t.startswith("repetitions"))
+    with pytest.raises(ProtocolError) as info:
+        load_protocol(path)
+    error = info.value
+    assert (error.source, error.line, error.key_path) == (str(path), line, "design.repetitions")
+    assert error.reason == "expected a whole number >= 1, got -5"
+    # a device check names its key as well, and the line of the array element at fault
+    data = copy.deepcopy(shipped_data())
+    data["levels"] = {"parameter": "digit_height_pitch", "values": [0.5, 3.4],
+                      "width_to_height": 0.605}
+    for key in ("digit_height_pitch", "digit_width_pitch"):
+        del data["stimulus"][key]
+    path = write(tmp_path, data, "levels.toml")
+    with pytest.raises(ProtocolError) as info:
+        load_protocol(path)
+    assert info.value.key_path == "levels.values[1]"
+    assert info.value.line == next(i for i, t in enumerate(path.read_text().splitlines(), 1)
+                                   if t.startswith("values ="))
+
+
+def test_a_misspelt_required_key_is_named_as_the_stray_key(tmp_path):
+    text = SHIPPED.read_text().replace("repetitions = 5", "repetiton = 5")
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    line = next(i for i, t in enumerate(text.splitlines(), 1) if t.startswith("repetiton"))
+    with pytest.raises(ProtocolError, match=rf"^{re.escape(str(path))}:{line}: design: unknown "
+                       r"key 'repetiton' \(valid keys: break_duration_s, .*\); did you mean "
+                       r"'repetitions'\?$") as info:
+        load_protocol(path)
+    assert info.value.key_path == "design.repetiton"
+
+
+def test_a_misspelt_table_is_named_as_the_stray_table(tmp_path):
+    path = tmp_path / "p.toml"
+    path.write_text(SHIPPED.read_text().replace("[design]", "[desing]"))
+    with pytest.raises(ProtocolError, match=r"p.toml:\d+: unknown key 'desing' \(valid keys: "
+                       r"conditions, design, levels, responses, stimulus, study\); did you mean "
+                       r"'design'\?$"):
+        load_protocol(path)
+
+
+# --- the model checks its fields, from a file or from Python ---------------------------------
+
+@pytest.mark.parametrize("table, changes, match", [
+    pytest.param("design", {"repetitions": 0}, r"^design.repetitions: expected a whole number "
+                 r">= 1, got 0$", id="repetitions"),
+    pytest.param("design", {"ordering": "random"}, r"^design.ordering: expected one of "
+                 r"\['blocked', 'interleaved'\], got 'random'$", id="ordering"),
+    pytest.param("design", {"ordering": "interleaved"}, r"^design.counterbalancing: "
+                 r"interleaved conditions have no block order", id="interleaved"),
+    pytest.param("stimulus", {"frame_rate_hz": 0.5}, r"^stimulus.frame_rate_hz: expected a "
+                 r"number >= 1, got 0.5$", id="frame-rate"),
+    pytest.param("stimulus", {"digits": (3,)}, r"^stimulus.digits: expected at least 2 digits",
+                 id="one-digit"),
+    pytest.param("stimulus", {"offset_mm": (5.0, 0.0)}, r"^stimulus.offset_mm: only used with "
+                 r"placement = \"offset\"", id="offset-at-centre"),
+    pytest.param("responses", {"keys": ("q",) + tuple("123456789")}, r"^responses.keys: 'q' "
+                 r"pauses the session", id="pause-key"),
+    pytest.param("responses", {"feedback": "always"}, r"^responses.feedback: expected one of",
+                 id="feedback"),
+    pytest.param("protocol", {"study_id": "my study"}, r"^study.id: expected letters",
+                 id="study-id"),
+    pytest.param("protocol", {"conditions": ("pixel-only", "crs", "crs")}, r"^conditions.names: "
+                 r"a condition appears twice", id="conditions"),
+])
+def test_the_model_checks_fields_set_from_python(table, changes, match):
+    from dataclasses import replace
+
+    protocol = load_protocol(PILOT)
+    target = protocol if table == "protocol" else getattr(protocol, table)
+    with pytest.raises(ProtocolError, match=match) as info:
+        replace(target, **changes)
+    # no file: the message is the key path and the reason, as a file's would be after FILE:LINE
+    assert info.value.source is None and info.value.line is None
+    assert str(info.value) == f"{info.value.key_path}: {info.value.reason}"
+
+
+#: keys whose every check is the model's: (table, key, dataclass field)
+MODEL_KEYS = [("design", k, k) for k in ("repetitions", "ordering", "counterbalancing",
+                                         "max_same_digit_run", "practice_trials", "practice_in",
+                                         "break_every", "break_duration_s",
+                                         "inter_trial_interval_s")] + \
+    [("stimulus", k, k) for k in ("digit_height_pitch", "digit_width_pitch",
+                                  "bump_diameter_mm", "bump_height_mm", "stroke_speed_mm_s",
+                                  "frame_rate_hz", "stroke_pause_s", "start_hold_s",
+                                  "end_hold_s")] + \
+    [("responses", k, k) for k in ("time_limit_s", "feedback", "expected_response_s")] + \
+    [("study", "id", "study_id"), ("study", "version", "version"), ("study", "title", "title")]
+
+ANY_VALUE = st.one_of(st.integers(-5, 2000), st.floats(-10, 5000), st.booleans(),
+                      st.sampled_from([float("nan"), float("inf"), "", " ", "x y", "none",
+                                       "blocked", "abba", "latin", "every-block", "all", "1.0"]))
+
+
+@settings(max_examples=120, deadline=None)
+@given(where=st.sampled_from(MODEL_KEYS), value=ANY_VALUE)
+def test_a_value_refused_in_a_file_and_from_python_reads_alike(tmp_path_factory, where, value):
+    from dataclasses import replace
+
+    table, key, name = where
+    data = copy.deepcopy(shipped_data())
+    data[table][key] = value
+    path = write(tmp_path_factory.mktemp("alike"), data)
+    base = load_protocol(PILOT, check_device=False)
+    target = base if table == "study" else getattr(base, table)
+    try:
+        loaded = load_protocol(path, check_device=False)
+    except ProtocolError as exc:
+        with pytest.raises(ProtocolError) as info:
+            replace(target, **{name: value})
+        assert info.value.detail == exc.detail and exc.line is not None
+    else:
+        built = replace(target, **{name: value})
+        stored = loaded if table == "study" else getattr(loaded, table)
+        assert getattr(built, name) == getattr(stored, name)

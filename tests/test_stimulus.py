@@ -10,9 +10,9 @@ import pytest
 from crs_study.digits import arc_lengths
 from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol
+from crs_study.protocol.feasibility import collapse_delta
 from crs_study.render import Renderer
 from crs_study.stimulus import (
-    collapse_delta,
     display_centre,
     inside_convex_hull,
     make_stimulus,
@@ -128,3 +128,33 @@ def test_collapse_delta_is_eq_4(layout2d):
     expected = 16 * math.pi**4 * 193e3 * (1.0 * 0.15**3 / 12) / (27 * 1e-3 * 30.0**4)
     assert collapse_delta(layout2d) == pytest.approx(expected)
     assert collapse_delta(layout2d) == pytest.approx(3.87, abs=0.01)
+
+
+def test_the_device_check_and_the_sessions_share_one_rendering(protocol, layout2d):
+    # a stimulus rendered within travel under policy="error" needs no clip: the sessions'
+    # policy="clip" is served the very same frames, never a second rendering
+    from dataclasses import replace
+
+    from crs_study.stimulus import placement_centre, stimulus_for
+
+    spec = replace(protocol.stimulus, bump_height_mm=4.321)  # rendered nowhere else
+    stim = stimulus_for(spec, layout2d.pitch_mm, placement_centre(spec, layout2d), 3)
+    checked = render_frames(stim, Renderer(layout2d, "crs", policy="error"))
+    assert render_frames(stim, Renderer(layout2d, "crs")) is checked
+    # the feed cap shapes the frames: not the same entry
+    assert render_frames(stim, Renderer(layout2d, "crs", cap_feed=False)) is not checked
+
+
+def test_clipped_frames_are_still_refused_under_the_error_policy(protocol, layout2d):
+    from dataclasses import replace
+
+    from crs_study.errors import RenderError
+    from crs_study.stimulus import placement_centre, stimulus_for
+
+    spec = replace(protocol.stimulus, bump_height_mm=9.5)  # above the 9 mm pixel travel
+    stim = stimulus_for(spec, layout2d.pitch_mm, placement_centre(spec, layout2d), 1)
+    clipped = render_frames(stim, Renderer(layout2d, "pixel-only"))
+    assert clipped[:, : layout2d.n_pixels].max() == pytest.approx(layout2d.travel_mm)
+    with pytest.raises(RenderError, match=r"pixel-only: setpoint out of range"):
+        render_frames(stim, Renderer(layout2d, "pixel-only", policy="error"))
+    assert render_frames(stim, Renderer(layout2d, "pixel-only")) is clipped

@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from crs_study.protocol import model as protocol_model
+
 if TYPE_CHECKING:  # pragma: no cover
     from crs_study.clock import Clock
     from crs_study.layout import Layout
@@ -65,8 +67,9 @@ class Response:
         return self.digit is None
 
 
-#: Keys that pause a session at the keypad (so never response keys): q, Q, Escape.
-PAUSE_KEYS = frozenset({"q", "Q", "\x1b"})
+#: Keys that pause a session at the keypad (so never response keys): q, Q, Escape. Defined by
+#: the protocol model, which refuses them as answer keys; re-exported for the keypad.
+PAUSE_KEYS = protocol_model.PAUSE_KEYS
 
 
 class Responder(ABC):

@@ -1,0 +1,264 @@
+"""Protocol files: TOML read strictly into the model, then checked on the device.
+
+A protocol is a TOML file with five tables (``protocols/README.md`` documents every key):
+``[study]`` (id, version, device, consent form, analysis plan), ``[stimulus]`` (digits, their
+size in pixel pitches, the bump, stroke speed, placement, frame rate), ``[conditions]``
+(registered display conditions and the experimenter's prompt for each), ``[design]``
+(repetitions, blocking, counterbalancing, run constraint, practice, breaks, inter-trial
+interval) and ``[responses]`` (keys, time limit, feedback). An optional ``[levels]`` table
+varies one stimulus parameter across trials (a psychometric study,
+:class:`~crs_study.protocol.model.LevelSpec`).
+
+Reading is strict (:mod:`crs_study._toml`): each table declares its keys
+(:data:`~crs_study.protocol.model.TABLE_KEYS`), so a stray key is refused first, named with
+the valid ones and the closest (``design: unknown key 'repetiton' (valid keys: ...); did you
+mean 'repetitions'?``); missing keys, wrong types and out-of-range values (checked by the
+model's dataclasses) are one-line :class:`~crs_study.errors.ProtocolError` s naming the file,
+the line where the key is found, the key path and the value. This module adds what needs the
+file's folder or two tables at once: the device file and strokes file the protocol names, a
+response key per digit, prompts only where blocks start. Then :func:`load_protocol` checks
+the protocol against its device (:mod:`crs_study.protocol.feasibility`) and notes odd but
+legal values (:mod:`crs_study.protocol.odd_values`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tomllib
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from crs_study._toml import Section
+from crs_study._toml_lines import locate, one_line, syntax_error
+from crs_study.digits import load_digits
+from crs_study.errors import ConfigError, ProtocolError
+from crs_study.layout import BUILTIN_DEVICES
+from crs_study.protocol.feasibility import check_on_device
+from crs_study.protocol.model import (
+    OPTIONAL_KEYS,
+    PLACEMENTS,
+    TABLE_KEYS,
+    DesignSpec,
+    LevelSpec,
+    Protocol,
+    ResponseSpec,
+    StimulusSpec,
+    one_line_problem,
+)
+from crs_study.protocol.odd_values import protocol_warnings
+
+
+def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:
+    """Read, validate and check a protocol file; every problem is a one-line ProtocolError.
+
+    ``check_device=False`` skips :func:`~crs_study.protocol.feasibility.check_on_device` and
+    the warnings (only for tools that inspect a protocol's keys; a runner must never skip
+    it).
+    """
+    path = Path(path)
+    source = str(path)
+    try:
+        raw = path.read_bytes()
+        text = raw.decode("utf-8")
+    except FileNotFoundError:
+        raise ProtocolError(f"{source}: no such protocol file") from None
+    except IsADirectoryError:
+        raise ProtocolError(f"{source}: expected a protocol file, got a directory") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"{source}: cannot read: {one_line(exc)}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise syntax_error(ProtocolError, source, exc, text) from None
+    try:
+        protocol = protocol_from_dict(data, path, text, hashlib.sha256(raw).hexdigest())
+        if check_device:
+            checks = check_on_device(protocol)
+            protocol = replace(protocol, checks=checks, warnings=protocol_warnings(protocol))
+    except ConfigError as exc:
+        raise as_protocol_error(exc, source, text) from None
+    return protocol
+
+
+def as_protocol_error(error: ConfigError, source: str, text: str) -> ProtocolError:
+    """``error`` as a :class:`ProtocolError` of the protocol ``source``: same reason, key
+    path and line; the file and the line of its key filled in when it names none."""
+    if not isinstance(error, ProtocolError):
+        error = ProtocolError(error.reason, source=error.source, line=error.line,
+                              key_path=error.key_path, shown_path=error.shown_path)
+    return locate(error, source, text)
+
+
+def protocol_from_dict(data: dict, path: Path, text: str = "", sha256: str = "") -> Protocol:
+    """Build a :class:`Protocol` from parsed TOML, checking every key (no device checks).
+
+    With the file's ``text`` the errors carry the line of their key."""
+    source = str(path)
+    try:
+        return _protocol(data, path, text, sha256)
+    except ConfigError as exc:
+        raise as_protocol_error(exc, source, text) from None
+
+
+def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
+    root = Section(data, str(path), error=ProtocolError, keys=TABLE_KEYS[""],
+                   text=text or None)
+
+    def table(name: str) -> Section:
+        return root.table(name, keys=TABLE_KEYS[name])
+
+    study = table("study")
+    conditions_table = table("conditions")
+    stimulus_table = table("stimulus")
+    design_table = table("design")
+    responses_table = table("responses")
+    levels_table = table("levels") if root.has("levels") else None
+    if levels_table is None:
+        root.raw("levels", None)
+    root.done()
+
+    fields: dict[str, Any] = {
+        "study_id": study.raw("id"), "version": study.raw("version"),
+        "title": study.raw("title", OPTIONAL_KEYS["study.title"]),
+        "device": _device(study, path), "consent_form": study.raw("consent_form"),
+        "consent_form_version": study.raw("consent_form_version"),
+        "analysis_plan": study.raw("analysis_plan"),
+    }
+    study.done()
+
+    names = conditions_table.raw("names")
+    prompts_table = conditions_table.table("prompts", OPTIONAL_KEYS["conditions.prompts"])
+    prompts = tuple((name, prompts_table.raw(name)) for name in list(prompts_table.data))
+    prompts_table.done()
+    conditions_table.done()
+    levels = _levels(levels_table) if levels_table is not None else None
+    stimulus = _stimulus(stimulus_table, path, levels)
+    design = _design(design_table)
+    if design.ordering == "interleaved" and prompts:
+        raise conditions_table.fail(
+            "prompts", "an interleaved design changes condition from trial to trial, so there "
+            "is no block start to prompt at (mount or remove the skeleton); drop "
+            "[conditions.prompts] or use ordering = \"blocked\"")
+    responses = _responses(responses_table, stimulus.digits)
+    return Protocol(path=path, text=text, sha256=sha256, conditions=names,
+                    condition_prompts=prompts, stimulus=stimulus, design=design,
+                    responses=responses, levels=levels, **fields)
+
+
+def _one_line(section: Section, key: str) -> str:
+    value = section.raw(key)
+    problem = one_line_problem(value)
+    if problem is not None:
+        raise section.fail(key, problem)
+    return value
+
+
+def _device(study: Section, path: Path) -> str:
+    value = _one_line(study, "device")
+    if value in BUILTIN_DEVICES:
+        return value
+    device_path = Path(value)
+    if not device_path.is_absolute():
+        device_path = path.parent / device_path
+    if not device_path.is_file():
+        raise study.fail("device", f"expected a built-in device ({', '.join(BUILTIN_DEVICES)}) "
+                         f"or a device file, got {value!r} (no file at {device_path})")
+    return str(device_path)
+
+
+def _levels(table: Section) -> LevelSpec:
+    """The ``[levels]`` table (see :class:`LevelSpec` and protocols/README.md)."""
+    parameter = table.raw("parameter")
+    values = table.raw("values")
+    # a varied height needs the digits' shape; with another parameter the key is refused
+    width = table.raw("width_to_height", ... if parameter == "digit_height_pitch" else None)
+    table.done()
+    return LevelSpec(parameter, values, width)
+
+
+def _check_strokes_file(table: Section, strokes_file: str, digits: tuple[int, ...]) -> None:
+    """Read a protocol's own strokes file now: its errors (``FILE:LINE: key: ...``) come
+    under ``stimulus.strokes_file``, and every digit shown must be defined there."""
+    try:
+        defined = load_digits(strokes_file)
+    except ProtocolError as exc:
+        raise table.fail("strokes_file", one_line(exc)) from None
+    missing = [d for d in digits if d not in defined]
+    if missing:
+        raise table.fail("strokes_file", f"{strokes_file} defines no strokes for "
+                         f"{'digit' if len(missing) == 1 else 'digits'} "
+                         f"{', '.join(map(str, missing))} of stimulus.digits; expected every "
+                         f"digit shown, got digits {sorted(defined)}")
+
+
+def _stimulus(table: Section, path: Path, levels: LevelSpec | None = None) -> StimulusSpec:
+    def optional(key: str) -> Any:
+        return table.raw(key, OPTIONAL_KEYS[f"stimulus.{key}"])
+
+    digits = table.raw("digits")
+    strokes_file = None
+    if table.has("strokes_file"):
+        value = _one_line(table, "strokes_file")
+        candidate = Path(value) if Path(value).is_absolute() else path.parent / value
+        if not candidate.is_file():
+            raise table.fail("strokes_file", f"expected a strokes file, got {value!r} "
+                             f"(no file at {candidate})")
+        strokes_file = str(candidate)
+    else:
+        optional("strokes_file")
+    varied = () if levels is None else (levels.parameter,) + (
+        ("digit_width_pitch",) if levels.parameter == "digit_height_pitch" else ())
+    for key in varied:
+        if table.has(key):
+            raise table.fail(key, f"set by [levels] (parameter = {levels.parameter!r}): "
+                             f"remove it from [stimulus], got {table.data[key]!r}")
+    if levels is not None and levels.parameter == "digit_height_pitch":
+        height = levels.values[0]  # the spec holds the first level; see Protocol.stimulus_at
+        width = height * float(levels.width_to_height or 1.0)
+    else:
+        height, width = table.raw("digit_height_pitch"), table.raw("digit_width_pitch")
+    speed = levels.values[0] if levels is not None and \
+        levels.parameter == "stroke_speed_mm_s" else table.raw("stroke_speed_mm_s")
+    placement = table.raw("placement")
+    if placement in PLACEMENTS:  # (another placement is the spec's to refuse)
+        if table.has("offset_mm") and placement != "offset":
+            raise table.fail("offset_mm", f"only used with placement = \"offset\", "
+                             f"got placement = {placement!r}")
+        if not table.has("offset_mm") and placement == "offset":
+            raise table.fail("offset_mm", "missing: placement = \"offset\" needs "
+                             "offset_mm = [x, y]")
+    spec = StimulusSpec(
+        digits, strokes_file, height, width, table.raw("bump_diameter_mm"),
+        table.raw("bump_height_mm"), speed, placement, optional("offset_mm"),
+        table.raw("frame_rate_hz"), optional("stroke_pause_s"), optional("start_hold_s"),
+        optional("end_hold_s"))
+    table.done()
+    if strokes_file is not None:
+        _check_strokes_file(table, strokes_file, spec.digits)
+    return spec
+
+
+def _design(table: Section) -> DesignSpec:
+    spec = DesignSpec(
+        table.raw("repetitions"), table.raw("ordering"), table.raw("counterbalancing"),
+        table.raw("max_same_digit_run"), table.raw("practice_trials"),
+        table.raw("practice_in", OPTIONAL_KEYS["design.practice_in"]),
+        table.raw("break_every"),
+        table.raw("break_duration_s", OPTIONAL_KEYS["design.break_duration_s"]),
+        table.raw("inter_trial_interval_s"))
+    table.done()
+    return spec
+
+
+def _responses(table: Section, digits: tuple[int, ...]) -> ResponseSpec:
+    keys = table.raw("keys")
+    if isinstance(keys, list) and len(keys) != len(digits):
+        raise table.fail("keys", f"expected {len(digits)} keys (one per digit of "
+                         f"stimulus.digits), got {keys!r}")
+    spec = ResponseSpec(
+        keys, table.raw("time_limit_s", OPTIONAL_KEYS["responses.time_limit_s"]),
+        table.raw("feedback"),
+        table.raw("expected_response_s", OPTIONAL_KEYS["responses.expected_response_s"]))
+    table.done()
+    return spec
