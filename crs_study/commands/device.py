@@ -227,34 +227,19 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _protocol_budget(path: str, layout, options) -> dict:
-    """The protocol's digit stimuli on the wire, with the device's dead-band and refresh
-    (each stimulus starts after an idle inter-trial interval: its first frame is full)."""
-    import numpy as np
+    """The protocol's stimuli on the wire, with the device's dead-band and refresh (each
+    stimulus starts after an idle inter-trial interval: its first frame is full)."""
+    from crs_study.protocol import load_protocol, wire_budget
 
-    from crs_study.device.schedule import wire_plan
-    from crs_study.protocol import load_protocol
-    from crs_study.render import Renderer
-    from crs_study.stimulus import make_stimulus, render_frames
-
-    protocol = load_protocol(path)
-    out = {}
-    for condition in protocol.conditions:
-        renderer = Renderer(layout, condition)
-        plans = [wire_plan(layout, render_frames(make_stimulus(protocol, layout, d), renderer),
-                           protocol.frame_rate_hz, deadband_us=options.deadband_us,
-                           refresh_s=options.refresh_s) for d in protocol.stimulus.digits]
-        latency = np.concatenate([p.latency_changed_s for p in plans])
-        full = np.concatenate([p.latency_full_s for p in plans])
-        out[condition] = {
-            "frame_rate_hz": protocol.frame_rate_hz, "frames": int(latency.size),
-            "deadband_us": options.deadband_us, "refresh_s": options.refresh_s,
-            "changed_only_rate_hz": min(p.changed_only_rate_hz for p in plans),
-            "rate_bound_hz": min(p.rate_bound_hz for p in plans),
-            "latency_ms_median": float(np.median(latency)) * 1e3,
-            "latency_ms_max": float(np.max(latency)) * 1e3,
-            "latency_full_ms_median": float(np.median(full)) * 1e3,
-        }
-    return out
+    budget = wire_budget(load_protocol(path), layout, deadband_us=options.deadband_us,
+                         refresh_s=options.refresh_s)
+    return {c.condition: {
+        "frame_rate_hz": budget.frame_rate_hz, "frames": c.frames,
+        "deadband_us": budget.deadband_us, "refresh_s": budget.refresh_s,
+        "changed_only_rate_hz": c.changed_only_rate_hz, "rate_bound_hz": c.rate_bound_hz,
+        "latency_ms_median": c.latency_ms_median, "latency_ms_max": c.latency_ms_max,
+        "latency_full_ms_median": c.latency_full_ms_median,
+    } for c in budget.conditions}
 
 
 def _neutral(args: argparse.Namespace) -> int:

@@ -35,17 +35,9 @@ def summarise(protocol, participant: str = "example", session: int = 1,
     """The plan summary :func:`run` prints, as plain data."""
     import numpy as np
 
-    from crs_study.device.base import (
-        BYTE_TIME_S,
-        channels_per_controller,
-        full_frame_rate_hz,
-        full_frame_wire_time_s,
-        servo_move_bytes,
-    )
-    from crs_study.plan import block_orders, expected_duration_s, make_plan
-    from crs_study.protocol import analysis_plan_path
-    from crs_study.render import Renderer
-    from crs_study.stimulus import make_stimulus, render_frames
+    from crs_study.protocol import analysis_plan_path, make_plan, wire_budget
+    from crs_study.protocol.plan import block_orders, expected_duration_s
+    from crs_study.stimulus import make_stimulus
 
     layout = protocol.layout()
     plan = make_plan(protocol, participant, session, counterbalance)
@@ -57,35 +49,19 @@ def summarise(protocol, participant: str = "example", session: int = 1,
         return str(d) if v is None else f"{d}@{v:g}"
 
     frames = {label(d, v): s.n_frames for (d, v), s in stimuli.items()}
-    period = 1.0 / protocol.frame_rate_hz
 
     seconds = expected_duration_s(protocol, plan, layout)
     breaks = sum(t.break_before for t in plan.trials)
     prompts = sum(t.prompt_before is not None for t in plan.trials)
 
-    per_controller = channels_per_controller(layout)
-    full_bytes = sum(servo_move_bytes(n) for n in per_controller.values() if n)
-    full_time = full_frame_wire_time_s(layout)
-    from crs_study.device.schedule import wire_plan
-
-    changed = {}
-    for condition in protocol.conditions:
-        renderer = Renderer(layout, condition)
-        total_bytes, busiest, n_frames, rate, latencies = 0, 0, 0, float("inf"), []
-        for stim in stimuli.values():
-            wire = wire_plan(layout, render_frames(stim, renderer), protocol.frame_rate_hz)
-            total_bytes += int(wire.changed_bytes.sum())
-            busiest = max(busiest, int(wire.changed_bytes[1:].max(initial=0)))
-            n_frames += wire.n_frames
-            rate = min(rate, wire.changed_only_rate_hz)
-            latencies.append(wire.latency_changed_s)
-        changed[condition] = {
-            "mean_bytes_per_frame": total_bytes / n_frames,
-            "busiest_frame_wire_ms": busiest * BYTE_TIME_S * 1e3,
-            "busiest_frame_budget_percent": 100.0 * busiest * BYTE_TIME_S / period,
-            "max_rate_hz": rate,
-            "median_latency_ms": float(np.median(np.concatenate(latencies))) * 1e3,
-        }
+    wire = wire_budget(protocol, layout)
+    changed = {c.condition: {
+        "mean_bytes_per_frame": c.mean_bytes_per_frame,
+        "busiest_frame_wire_ms": c.busiest_frame_wire_ms,
+        "busiest_frame_budget_percent": c.busiest_frame_budget_percent,
+        "max_rate_hz": c.changed_only_rate_hz,
+        "median_latency_ms": c.latency_ms_median,
+    } for c in wire.conditions}
 
     counts = {c: {"practice": plan.count("practice", c), "test": plan.count("test", c)}
               for c in protocol.conditions}
@@ -131,10 +107,10 @@ def summarise(protocol, participant: str = "example", session: int = 1,
         "levels": level_summary,
         "frame_rate_hz": protocol.frame_rate_hz,
         "wire": {
-            "full_frame_bytes": full_bytes,
-            "full_frame_busiest_controller_ms": full_time * 1e3,
-            "full_frame_budget_percent": 100.0 * full_time / period,
-            "full_frame_max_rate_hz": full_frame_rate_hz(layout),
+            "full_frame_bytes": wire.full_frame_bytes,
+            "full_frame_busiest_controller_ms": wire.full_frame_busiest_controller_ms,
+            "full_frame_budget_percent": wire.full_frame_budget_percent,
+            "full_frame_max_rate_hz": wire.full_frame_max_rate_hz,
             "changed_only": changed,
         },
         "checks": list(protocol.checks),
