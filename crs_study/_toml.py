@@ -28,7 +28,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from crs_study._toml_lines import find_line
+from crs_study._toml_lines import find_line, syntax_error
 from crs_study.errors import ConfigError
 
 #: How alike (difflib's ratio) a stray key and a valid one must be to suggest the valid one
@@ -55,6 +55,16 @@ def read_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+
+
+def parse_toml(text: str, source: str | Path, error: type[ConfigError] = ConfigError
+               ) -> dict[str, Any]:
+    """Parse TOML ``text`` read from ``source``; a syntax error raises ``error`` naming the
+    line (``SOURCE:LINE: not valid TOML: ...``)."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise syntax_error(error, source, exc, text) from None
 
 
 def closest_key(key: str, candidates: Iterable[str]) -> str | None:

@@ -27,7 +27,6 @@ last frame is the first one that reaches the end (:func:`sample_stroke`).
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -36,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crs_study._toml import Section
-from crs_study._toml_lines import locate, one_line, syntax_error
+from crs_study._toml import Section, parse_toml
+from crs_study._toml_lines import locate, one_line
 from crs_study.errors import ConfigError, ProtocolError
 
 #: Format number of the strokes file this module reads.
@@ -133,10 +132,7 @@ def _load_cached(path: str, mtime_ns: int) -> dict[int, Digit]:
         text = Path(path).read_bytes().decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ProtocolError(f"{path}: cannot read the strokes file: {one_line(exc)}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise syntax_error(ProtocolError, path, exc, text) from None
+    data = parse_toml(text, path, ProtocolError)
     try:
         return _parse(data, path, text)
     except ConfigError as exc:

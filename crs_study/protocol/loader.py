@@ -24,13 +24,12 @@ legal values (:mod:`crs_study.protocol.odd_values`).
 from __future__ import annotations
 
 import hashlib
-import tomllib
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from crs_study._toml import Section
-from crs_study._toml_lines import locate, one_line, syntax_error
+from crs_study._toml import Section, parse_toml
+from crs_study._toml_lines import locate, one_line
 from crs_study.digits import load_digits
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.layout import BUILTIN_DEVICES
@@ -67,10 +66,7 @@ def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:
         raise ProtocolError(f"{source}: expected a protocol file, got a directory") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ProtocolError(f"{source}: cannot read: {one_line(exc)}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise syntax_error(ProtocolError, source, exc, text) from None
+    data = parse_toml(text, source, ProtocolError)
     try:
         protocol = protocol_from_dict(data, path, text, hashlib.sha256(raw).hexdigest())
         if check_device:
