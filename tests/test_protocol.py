@@ -1,4 +1,4 @@
-"""Protocol files: strict reading, line numbers, checks on the device (crs_study/protocol.py)."""
+"""Protocol files: strict reading, line numbers, checks on the device (crs_study/protocol/)."""
 
 from __future__ import annotations
 

@@ -87,8 +87,8 @@ class StimulusLimits:
 
     def problems(self) -> dict[str, str]:
         """The limits broken, by name (``"curvature"``, ``"height"``, ``"feed"``): what was
-        asked against the limit. The protocol check (:mod:`crs_study.stimulus`) words its
-        errors from these too."""
+        asked against the limit. The protocol check (:mod:`crs_study.protocol.feasibility`)
+        words its errors from these too."""
         out = {}
         if self.curvature > self.yield_curvature:
             out["curvature"] = (f"curvature {self.curvature:.4g} /mm (2 pi^2 z_f / l^2) exceeds "
