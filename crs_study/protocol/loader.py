@@ -114,7 +114,7 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
         root.raw("levels", None)
     root.done()
 
-    fields: dict[str, Any] = {
+    study_fields: dict[str, Any] = {
         "study_id": study.raw("id"), "version": study.raw("version"),
         "title": study.raw("title", OPTIONAL_KEYS["study.title"]),
         "device": _device(study, path), "consent_form": study.raw("consent_form"),
@@ -139,7 +139,7 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     responses = _responses(responses_table, stimulus.digits)
     return Protocol(path=path, text=text, sha256=sha256, conditions=names,
                     condition_prompts=prompts, stimulus=stimulus, design=design,
-                    responses=responses, levels=levels, **fields)
+                    responses=responses, levels=levels, **study_fields)
 
 
 def _one_line(section: Section, key: str) -> str:
