@@ -1,14 +1,16 @@
 """The stored dataset: BIDS ``beh``, written trial by trial so that nothing is ever lost.
 
-Layout (DESIGN.md, "The stored dataset")::
+Layout (DESIGN.md, "The stored dataset"; every path is built by :mod:`crs_study.bids`)::
 
     DATASET/
       dataset_description.json, participants.tsv, participants.json, task-digitid_beh.json
       sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.tsv    one row per trial
       sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.json   session sidecar
       sub-<id>/ses-<n>/.sub-<id>_ses-<n>.lock                       the runner's lock
-      sourcedata/sub-<id>/ses-<n>/..._trial-<k>_frames.tsv.gz       per-frame device log
+      sourcedata/sub-<id>/ses-<n>/..._frames.tsv.gz                 per-frame device log
       sourcedata/sub-<id>/ses-<n>/..._beh-torn-<time>.bin           bytes cut from a torn tail
+
+The sidecar is a :class:`~crs_study.session_metadata.SessionMetadata`, read strictly.
 
 Durability (the order matters): a trial's frames are appended to the session's frame log as
 one gzip member with a single ``write`` and fsynced; then its row is appended to the
@@ -48,13 +50,12 @@ import math
 import os
 import re
 import zlib
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterator, Mapping, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from crs_study import __version__, schema
+from crs_study import __version__, bids, schema
 from crs_study._files import (  # noqa: F401  (re-exported: older imports)
     append_durably,
     fsync_dir,
@@ -64,7 +65,9 @@ from crs_study._files import (  # noqa: F401  (re-exported: older imports)
     sha256_bytes,
     write_atomically,
 )
+from crs_study.bids import SessionPaths  # noqa: F401  (re-exported: older imports)
 from crs_study.errors import DatasetError, SessionError
+from crs_study.session_metadata import SessionMetadata
 
 BIDS_VERSION = "1.10.0"
 DATASET_LOCK = ".crs-study.lock"
@@ -124,48 +127,6 @@ def tsv_line(values: Sequence[Any]) -> str:
 
 # --- the dataset -------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class SessionPaths:
-    """Where one session's files live."""
-
-    root: Path
-    participant: str
-    session: int
-
-    @property
-    def stem(self) -> str:
-        return f"sub-{self.participant}_ses-{self.session}_task-{schema.TASK}"
-
-    @property
-    def session_dir(self) -> Path:
-        return self.root / f"sub-{self.participant}" / f"ses-{self.session}"
-
-    @property
-    def beh_dir(self) -> Path:
-        return self.session_dir / "beh"
-
-    @property
-    def tsv(self) -> Path:
-        return self.beh_dir / f"{self.stem}_beh.tsv"
-
-    @property
-    def sidecar(self) -> Path:
-        return self.beh_dir / f"{self.stem}_beh.json"
-
-    @property
-    def lock(self) -> Path:
-        return self.session_dir / f".sub-{self.participant}_ses-{self.session}.lock"
-
-    @property
-    def source_dir(self) -> Path:
-        return (self.root / "sourcedata" / f"sub-{self.participant}"
-                / f"ses-{self.session}")
-
-    @property
-    def frame_log(self) -> Path:
-        return self.source_dir / f"{self.stem}_frames.tsv.gz"
-
-
 class Dataset:
     """A BIDS dataset directory: top-level files, participants, sessions."""
 
@@ -206,7 +167,7 @@ class Dataset:
         with self.locked():
             self.refuse_pending_withdrawal()
             files = {
-                "dataset_description.json": json_text({
+                bids.DATASET_DESCRIPTION: json_text({
                     "Name": self.name,
                     "BIDSVersion": BIDS_VERSION,
                     "DatasetType": "raw",
@@ -216,10 +177,10 @@ class Dataset:
                         "Description": "CRS haptic display digit-identification sessions",
                     }],
                 }),
-                "participants.json": json_text(PARTICIPANTS_SIDECAR),
-                f"task-{schema.TASK}_beh.json": json_text(column_dictionary()),
-                "participants.tsv": "\t".join(PARTICIPANT_COLUMNS) + "\n",
-                "README.md": DATASET_README,
+                bids.PARTICIPANTS_JSON: json_text(PARTICIPANTS_SIDECAR),
+                bids.task_sidecar_name(schema.TASK): json_text(column_dictionary()),
+                bids.PARTICIPANTS_TSV: "\t".join(PARTICIPANT_COLUMNS) + "\n",
+                bids.DATASET_README: DATASET_README,
             }
             for name, text in files.items():
                 if not (self.root / name).exists():
@@ -228,7 +189,7 @@ class Dataset:
 
     def participants(self) -> dict[str, int]:
         """Label -> counterbalance index, from ``participants.tsv``."""
-        path = self.root / "participants.tsv"
+        path = self.root / bids.PARTICIPANTS_TSV
         if not path.exists():
             return {}
         try:
@@ -266,8 +227,8 @@ class Dataset:
                 if counterbalance is not None and counterbalance != known[label]:
                     raise SessionError(
                         f"participant {label!r} has counterbalance {known[label]} in "
-                        f"{self.root / 'participants.tsv'}; --counterbalance {counterbalance} "
-                        "disagrees")
+                        f"{self.root / bids.PARTICIPANTS_TSV}; --counterbalance "
+                        f"{counterbalance} disagrees")
                 return known[label]
             index = len(known) if counterbalance is None else int(counterbalance)
             if index < 0:
@@ -275,8 +236,8 @@ class Dataset:
             known[label] = index
             lines = ["\t".join(PARTICIPANT_COLUMNS) + "\n"]
             lines += [tsv_line([f"sub-{k}", v]) for k, v in sorted(known.items())]
-            with os_errors(DatasetError, "write", self.root / "participants.tsv"):
-                write_atomically(self.root / "participants.tsv", "".join(lines))
+            with os_errors(DatasetError, "write", self.root / bids.PARTICIPANTS_TSV):
+                write_atomically(self.root / bids.PARTICIPANTS_TSV, "".join(lines))
             return index
 
     def session_paths(self, participant: str, session: int) -> SessionPaths:
@@ -287,13 +248,7 @@ class Dataset:
 
     def sessions(self, participant: str) -> list[int]:
         """Session numbers of a participant found in the dataset."""
-        base = self.root / f"sub-{check_label(participant)}"
-        found = []
-        for path in base.glob("ses-*"):
-            suffix = path.name.removeprefix("ses-")
-            if suffix.isdigit():
-                found.append(int(suffix))
-        return sorted(found)
+        return bids.session_numbers(self.root, check_label(participant))
 
 
 _LEVEL_TEXT = {
@@ -390,17 +345,11 @@ class SessionStore:
     def exists(self) -> bool:
         return self.paths.tsv.exists() or self.paths.sidecar.exists()
 
-    def read_sidecar(self) -> dict | None:
-        path = self.paths.sidecar
-        if not path.exists():
+    def read_sidecar(self) -> SessionMetadata | None:
+        """The stored sidecar (None before the first write); any problem is one line."""
+        if not self.paths.sidecar.exists():
             return None
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"{path}: not a readable session sidecar: {exc}") from None
-        if not isinstance(data, dict):
-            raise DatasetError(f"{path}: expected a JSON object, got {type(data).__name__}")
-        return data
+        return SessionMetadata.read(self.paths.sidecar)
 
     def recover_rows(self) -> list[dict[str, str]]:
         """The rows stored so far; a torn last line is cut off (backed up) first.
@@ -518,7 +467,7 @@ class SessionStore:
         truncation is fsynced), so a crash at any point keeps every byte somewhere.
         """
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
-        backup = self.paths.source_dir / f"{self.paths.stem}_{what}-torn-{stamp}.bin"
+        backup = self.paths.torn_backup(what, stamp)
         with os_errors(DatasetError, "cut the torn tail of", path):
             make_dirs(self.paths.source_dir)
             write_atomically(backup, data[keep:])
@@ -563,15 +512,20 @@ class SessionStore:
         """sha256 of the TSV bytes as written so far."""
         return self._hash.hexdigest()
 
-    def write_sidecar(self, metadata: dict[str, Any], final: bool = False) -> None:
+    def write_sidecar(self, metadata: SessionMetadata | Mapping[str, Any],
+                      final: bool = False) -> None:
         """Rewrite the sidecar atomically (fsynced when durable or ``final``).
 
-        On failure (disk full) the old sidecar stays whole and the error is one line.
+        ``metadata`` is the session's :class:`SessionMetadata` (a plain mapping is written
+        as given, for tools and tests). On failure (disk full) the old sidecar stays whole
+        and the error is one line.
         """
+        text = metadata.to_json() if isinstance(metadata, SessionMetadata) else \
+            json_text(dict(metadata))
         with os_errors(DatasetError, "write", self.paths.sidecar):
             make_dirs(self.paths.beh_dir)
-            write_atomically(self.paths.sidecar, json_text(metadata),
-                             durable=self.durable or final, sync_dir=final)
+            write_atomically(self.paths.sidecar, text, durable=self.durable or final,
+                             sync_dir=final)
 
     def append_frames(self, trial_index: int, columns: Sequence[str],
                       rows: Sequence[Sequence[Any] | str]) -> None:

@@ -39,7 +39,7 @@ import math
 import signal
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,8 +48,9 @@ import numpy as np
 from crs_study import __version__, schema
 from crs_study._files import sha256_bytes
 from crs_study.clock import RealClock, VirtualClock
-from crs_study.dataset import Dataset, SessionStore, utc_now
+from crs_study.dataset import Dataset, SessionStore
 from crs_study.errors import CrsStudyError, DeviceError, SessionError
+from crs_study.session_metadata import FINGERPRINTS, Fault, Resume, SessionMetadata, now_utc
 from crs_study.signals import deferred, handling, terminate_as_interrupt
 
 #: Session time spent before the first trial with the display neutral (settled and flat).
@@ -210,7 +211,7 @@ class _Session:
     layout: Any
     plan: Any
     store: SessionStore
-    metadata: dict[str, Any]
+    metadata: SessionMetadata
     rows: list[dict[str, str]]
     faults: set[int] = field(default_factory=set)
     late_frames: int = 0
@@ -276,16 +277,18 @@ def _fingerprints(protocol: Any, plan: Any, device_text: str, layout: Any) -> di
     }
 
 
-def check_resume(stored: dict, expected: dict, sidecar: Path) -> None:
-    """A stored session may only be resumed with the same plan: one line saying what differs."""
-    for key, label in (("ProtocolSha256", "protocol file"), ("Seed", "seed"),
-                       ("Counterbalance", "counterbalance"), ("PlanSha256", "trial plan"),
-                       ("DeviceFileSha256", "device file"),
-                       ("StimulusSha256", "stimulus (the bump paths this software draws)")):
-        if stored.get(key) is not None and stored[key] != expected[key]:
+def check_resume(stored: SessionMetadata, expected: dict, sidecar: Path) -> None:
+    """A stored session may only be resumed with the same plan: one line saying what differs.
+
+    A fingerprint the stored session lacks (``StimulusSha256`` of a session begun by older
+    software) is not compared.
+    """
+    recorded = stored.fingerprints()
+    for key, label in FINGERPRINTS.items():
+        if recorded[key] is not None and recorded[key] != expected[key]:
             raise SessionError(
                 f"{sidecar}: cannot resume: the {label} differs ({key} stored "
-                f"{stored[key]!r}, now {expected[key]!r}); use the original files or start "
+                f"{recorded[key]!r}, now {expected[key]!r}); use the original files or start "
                 "another --session")
 
 
@@ -293,18 +296,18 @@ def _device_kind(url: str) -> str:
     return "simulated" if url.startswith("sim://") else "real"
 
 
-def check_same_kind_of_run(stored: dict, spec: SessionSpec, responder_name: str,
+def check_same_kind_of_run(stored: SessionMetadata, spec: SessionSpec, responder_name: str,
                            clock_kind: str, sidecar: Path) -> None:
     """A session is finished as it began: by the same kind of responder, on the same kind of
     device and clock. Ports may differ (a board replugged as another ttyUSB), so only
     ``sim://`` against a real device counts, not the URL."""
     now = {"Responder": responder_name, "Clock": clock_kind,
            "Device": _device_kind(spec.device_url)}
-    then = {"Responder": stored.get("Responder"), "Clock": stored.get("Clock"),
-            "Device": _device_kind(str(stored.get("DeviceURL", spec.device_url)))}
+    then = {"Responder": stored.responder, "Clock": stored.clock,
+            "Device": "simulated" if stored.simulated_device else "real"}
     for key, option in (("Responder", "--responder"), ("Clock", "--clock"),
                         ("Device", "--device")):
-        if then[key] is not None and then[key] != now[key]:
+        if then[key] != now[key]:
             raise SessionError(
                 f"{sidecar}: cannot resume: the session began with {key.lower()} "
                 f"{then[key]!r}, now {now[key]!r}; resume with the same {option} or start "
@@ -343,8 +346,7 @@ def seed_check(spec: SessionSpec) -> dict[str, Any]:
         "trials": len(plan.trials), "plan_sha256": expected["PlanSha256"],
         "protocol_sha256": expected["ProtocolSha256"],
         "stored": "none" if stored is None else
-        f"{stored.get('Status')} ({stored.get('TrialsCompleted')}/"
-        f"{stored.get('TrialsPlanned')} trials), matches",
+        f"{stored.status} ({stored.trials_completed}/{stored.trials_planned} trials), matches",
     }
 
 
@@ -386,9 +388,9 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         stored = store.read_sidecar()
         if stored is not None:
             check_resume(stored, expected, paths.sidecar)
-        if stored is not None and stored.get("Status") == "complete":
+        if stored is not None and stored.is_complete:
             # Never rewritten: checked read-only (no torn-tail cut), then left alone.
-            rows = store.verify_complete(stored.get("TrialsSha256"))
+            rows = store.verify_complete(stored.trials_sha256)
             _check_rows(rows, plan, paths.tsv)
             if len(rows) != n_trials:
                 raise SessionError(
@@ -407,7 +409,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         _check_rows(rows, plan, paths.tsv)
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials)
-        faults = {int(f["trial"]) for f in metadata["Faults"]}
+        faults = {f.trial for f in metadata.faults}
         state = _Session(spec, protocol, layout, plan, store, metadata, rows, faults)
         resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
         clock: Any = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
@@ -448,8 +450,8 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             where = f"at trial {k + 1}/{n_trials}" if state.in_trial else \
                 f"before trial {k + 1}/{n_trials}"
             if state.in_trial:
-                state.metadata["Faults"].append({"trial": k, "time": utc_now(),
-                                                 "message": str(error)})
+                fault = Fault(k, now_utc(), str(error))
+                state.metadata = replace(state.metadata, faults=(*state.metadata.faults, fault))
             status = "fault"
             _save_after_failure(state)
             raise DeviceError(f"device fault {where}: {error}; the session is marked "
@@ -473,48 +475,50 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
 
 
 def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, expected: dict,
-              stored: dict | None, clock_kind: str, responder_name: str,
-              n_trials: int) -> dict[str, Any]:
-    previous = stored or {}
-    resumes = list(previous.get("Resumes", []))
+              stored: SessionMetadata | None, clock_kind: str, responder_name: str,
+              n_trials: int) -> SessionMetadata:
+    """The sidecar of a session beginning now, or resumed now from ``stored``."""
+    resumes: tuple[Resume, ...] = ()
+    faults: tuple[Fault, ...] = ()
     if stored is not None:
-        resumes.append({"Time": utc_now(), "AtTrial": int(previous.get("TrialsCompleted", 0)),
-                        "DeviceURL": spec.device_url, "SoftwareVersion": __version__})
-    return {
-        "TaskName": schema.TASK,
-        "TaskDescription": "Identify the digit drawn by a moving bump on the CRS display",
-        "Instructions": "Rest your fingertips on the display. A bump will draw a digit from "
-                        "0 to 9; press that digit's key as soon as you know it.",
-        "Protocol": protocol.text,
-        "ProtocolSha256": protocol.sha256,
-        "ProtocolPath": str(protocol.path),
-        "StudyId": protocol.study_id,
-        "StudyVersion": protocol.version,
-        "DeviceFile": device_text,
-        "DeviceFileSha256": expected["DeviceFileSha256"],
-        "DeviceURL": spec.device_url,
-        "SoftwareVersion": __version__,
-        "Seed": int(plan.seed),
-        "Counterbalance": int(plan.counterbalance),
-        "PlanSha256": expected["PlanSha256"],
+        resumes = (*stored.resumes, Resume(now_utc(), stored.trials_completed, spec.device_url,
+                                           __version__))
+        faults = stored.faults
+    return SessionMetadata(
+        task_name=schema.TASK,
+        task_description="Identify the digit drawn by a moving bump on the CRS display",
+        instructions="Rest your fingertips on the display. A bump will draw a digit from "
+                     "0 to 9; press that digit's key as soon as you know it.",
+        protocol_text=protocol.text,
+        protocol_sha256=protocol.sha256,
+        protocol_path=str(protocol.path),
+        study_id=protocol.study_id,
+        study_version=protocol.version,
+        device_file_text=device_text,
+        device_file_sha256=expected["DeviceFileSha256"],
+        device_url=spec.device_url,
+        software_version=__version__,
+        seed=int(plan.seed),
+        counterbalance=int(plan.counterbalance),
+        plan_sha256=expected["PlanSha256"],
         # a session begun before the fingerprint existed cannot be vouched for: none recorded
-        "StimulusSha256": (expected["StimulusSha256"]
-                           if stored is None or "StimulusSha256" in stored else None),
-        "Participant": spec.participant,
-        "Session": spec.session,
-        "ConsentFormVersion": protocol.consent_form_version,
-        "Responder": responder_name,
-        "Clock": clock_kind,
-        "FrameRateHz": float(protocol.frame_rate_hz),
-        "StartTime": previous.get("StartTime", utc_now()),
-        "EndTime": None,
-        "Status": "running",
-        "TrialsPlanned": n_trials,
-        "TrialsCompleted": 0,
-        "TrialsSha256": None,
-        "Resumes": resumes,
-        "Faults": list(previous.get("Faults", [])),
-    }
+        stimulus_sha256=(expected["StimulusSha256"]
+                         if stored is None or stored.stimulus_sha256 is not None else None),
+        participant=spec.participant,
+        session=spec.session,
+        consent_form_version=protocol.consent_form_version,
+        responder=responder_name,
+        clock=clock_kind,  # real or virtual (_choose_clock)
+        frame_rate_hz=float(protocol.frame_rate_hz),
+        start_time=stored.start_time if stored is not None else now_utc(),
+        end_time=None,
+        status="running",
+        trials_planned=n_trials,
+        trials_completed=0,
+        trials_sha256=None,
+        resumes=resumes,
+        faults=faults,
+    )
 
 
 def _resume_prompt(plan: Any, first: int) -> str:
@@ -547,12 +551,10 @@ def _save(state: _Session, status: str, final: bool = False) -> None:
     """Rewrite the sidecar; ``final`` (start, stop) also fsyncs the session's files."""
     if final:
         state.store.sync()
-    meta = state.metadata
-    meta["Status"] = status
-    meta["TrialsCompleted"] = len(state.rows)
-    meta["TrialsSha256"] = state.store.trials_sha256
-    meta["EndTime"] = utc_now() if status != "running" else None
-    state.store.write_sidecar(meta, final=final)
+    state.metadata = state.metadata.with_progress(
+        status, len(state.rows), state.store.trials_sha256,
+        now_utc() if status != "running" else None)
+    state.store.write_sidecar(state.metadata, final=final)
 
 
 def _digit_choices(protocol: Any) -> tuple[int, ...]:

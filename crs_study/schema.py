@@ -8,6 +8,8 @@ session's start, except response times (seconds from stimulus onset or offset).
 
 from __future__ import annotations
 
+from crs_study.session_metadata import SIDECAR_KEYS, STATUSES
+
 TASK = "digitid"
 MISSING = "n/a"
 
@@ -65,33 +67,7 @@ def trial_columns(level_column: str | None = None) -> tuple[str, ...]:
     return tuple(names)
 
 
-#: Session sidecar keys (``..._beh.json``) beyond the BIDS column descriptions.
-SESSION_KEYS: tuple[str, ...] = (
-    "TaskName",
-    "Protocol",            # the protocol file's full text
-    "ProtocolSha256",
-    "ProtocolPath",
-    "DeviceFile",          # the device file's full text
-    "DeviceFileSha256",
-    "DeviceURL",
-    "SoftwareVersion",
-    "Seed",
-    "Participant",
-    "Session",
-    "ConsentFormVersion",
-    "Responder",
-    "Clock",               # real or virtual
-    "StartTime",           # ISO 8601, UTC
-    "EndTime",
-    "Status",              # running, interrupted, complete
-    "TrialsPlanned",
-    "TrialsCompleted",
-    "TrialsSha256",        # sha256 of the _beh.tsv bytes when the session was last written
-    "PlanSha256",          # sha256 of the trial plan (checked on resume)
-    "StimulusSha256",      # sha256 of every bump path shown (checked on resume)
-    "Counterbalance",      # counterbalance index the plan was made with
-    "Resumes",             # one per resume: Time (UTC), AtTrial, DeviceURL, SoftwareVersion
-    "Faults",              # device faults: trial index, time, message
-)
-
-SESSION_STATUSES = ("running", "interrupted", "complete")
+#: Session sidecar keys (``..._beh.json``), in written order, and the statuses a session
+#: has: :class:`crs_study.session_metadata.SessionMetadata` owns the sidecar's format.
+SESSION_KEYS: tuple[str, ...] = SIDECAR_KEYS
+SESSION_STATUSES: tuple[str, ...] = STATUSES

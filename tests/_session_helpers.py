@@ -10,6 +10,7 @@ import numpy as np
 from crs_study.device.base import Device, FrameReport, full_frame_wire_time_s
 from crs_study.errors import DeviceError
 from crs_study.paths import shipped_file
+from crs_study.responders.random import RandomResponder
 
 
 def tiny_protocol(directory: Path, name: str = "tiny.toml", *, digits=(1, 4, 7),
@@ -63,3 +64,16 @@ class FakeDevice(Device):
 
     def displayed_setpoints(self, t=None) -> np.ndarray:
         return self.current.copy()
+
+
+class PauseAt(RandomResponder):
+    """The random responder that presses Ctrl-C when trial ``at`` asks for an answer."""
+
+    def __init__(self, seed: int, at: int) -> None:
+        super().__init__(seed)
+        self.at = at
+
+    def respond(self, trial, stimulus, clock, time_limit_s):
+        if trial.index == self.at:
+            raise KeyboardInterrupt
+        return super().respond(trial, stimulus, clock, time_limit_s)

@@ -271,9 +271,8 @@ def test_resume_refuses_software_that_draws_the_digits_differently(tmp_path, dev
         run_session(spec)
 
 
-def test_a_session_begun_before_the_stimulus_fingerprint_resumes_without_one(tmp_path,
-                                                                              devices):
-    # Its first trials were drawn by older software: the sidecar must not vouch for them.
+def _paused_before_the_stimulus_fingerprint(tmp_path):
+    """A session paused at trial 3 whose sidecar lacks StimulusSha256 (older software's)."""
     protocol = tiny_protocol(tmp_path)
     spec = spec_for(tmp_path, protocol)
     run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=2))
@@ -281,9 +280,27 @@ def test_a_session_begun_before_the_stimulus_fingerprint_resumes_without_one(tmp
     sidecar = json.loads(path.read_text())
     del sidecar["StimulusSha256"]
     path.write_text(json.dumps(sidecar))
+    return spec, path
+
+
+def test_a_session_begun_before_the_stimulus_fingerprint_resumes_without_one(tmp_path,
+                                                                              devices):
+    # Its first trials were drawn by older software: the sidecar must not vouch for them.
+    spec, path = _paused_before_the_stimulus_fingerprint(tmp_path)
     run_session(spec)
     sidecar = json.loads(path.read_text())
     assert sidecar["Status"] == "complete" and sidecar["StimulusSha256"] is None
+
+
+def test_a_second_resume_does_not_vouch_for_older_trials_either(tmp_path, devices):
+    # Once resumed, such a sidecar holds "StimulusSha256": null; the next resume used to take
+    # the key's presence for a fingerprint and record one for trials older software drew.
+    spec, path = _paused_before_the_stimulus_fingerprint(tmp_path)
+    run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=4))
+    assert json.loads(path.read_text())["StimulusSha256"] is None
+    assert run_session(spec).status == "complete"
+    sidecar = json.loads(path.read_text())
+    assert sidecar["StimulusSha256"] is None and len(sidecar["Resumes"]) == 2
 
 
 def test_resume_cuts_a_torn_row(tmp_path, devices):
