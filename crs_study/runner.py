@@ -50,6 +50,7 @@ from crs_study._files import sha256_bytes
 from crs_study.clock import RealClock, VirtualClock
 from crs_study.dataset import Dataset, SessionStore
 from crs_study.errors import CrsStudyError, DeviceError, SessionError
+from crs_study.paths import resolve_protocol
 from crs_study.session_metadata import FINGERPRINTS, Fault, Resume, SessionMetadata, now_utc
 from crs_study.signals import deferred, handling, terminate_as_interrupt
 
@@ -68,7 +69,7 @@ Progress = Callable[[str], None]
 class SessionSpec:
     """What ``crs-study run`` asks for."""
 
-    protocol: Path
+    protocol: Path  # the protocol file, or a shipped protocol's name (crs_study.paths)
     participant: str
     dataset: Path
     device_url: str = "sim://"
@@ -228,7 +229,7 @@ def prepare(spec: SessionSpec) -> tuple[Any, Any, Any, Dataset]:
                           "serial:///dev/ttyUSB0[,/dev/ttyUSB1] or sim://")
     dataset = Dataset(spec.dataset)
     dataset.session_paths(spec.participant, spec.session)  # checks label and session
-    protocol = load_protocol(spec.protocol)
+    protocol = load_protocol(resolve_protocol(spec.protocol))
     layout = protocol.layout()
     known = dataset.participants() if (spec.dataset / "participants.tsv").exists() else {}
     if spec.participant in known:
@@ -701,6 +702,8 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
             progress: Progress | None = None, durable: bool = False) -> list[SessionResult]:
     """Session 1 of ``participants`` simulated participants on a virtual clock.
 
+    ``protocol`` is a protocol file or a shipped protocol's name (``"pilot"``).
+
     Participant i (from 0) gets counterbalance index i, so the protocol's block orders are
     balanced across the N. With ``jobs > 1`` sessions run in that many worker processes (each
     session is written by one process; the dataset lock serialises ``participants.tsv``).
@@ -720,8 +723,9 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
         raise SessionError("a dry-run has no person at the keypad: use --responder observer, "
                            "random or scripted:FILE")
     labels = simulated_labels(participants, prefix)
+    protocol = resolve_protocol(protocol)  # a shipped protocol's name, or a path
     Dataset(dataset).ensure()
-    specs = [SessionSpec(Path(protocol), label, Path(dataset), device_url, 1, responder,
+    specs = [SessionSpec(protocol, label, Path(dataset), device_url, 1, responder,
                          "virtual", i, durable=durable) for i, label in enumerate(labels)]
     results: list[SessionResult] = []
 

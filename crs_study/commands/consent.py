@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     record.add_argument("--participant", metavar="ID",
                         help="pseudonymous label (letters and digits); generated when omitted")
     record.add_argument("--form", required=True, metavar="FILE",
-                        help="the consent form signed (Markdown with a 'Version:' line)")
+                        help="the consent form signed (Markdown with a 'Version:' line), or "
+                        "the shipped form's name, consent_form")
     record.add_argument("--experimenter", required=True, metavar="INITIALS",
                         help="initials of the experimenter taking consent")
     record.add_argument("--name", default=None,
@@ -64,7 +65,9 @@ def run(args: argparse.Namespace) -> int:
 
     register = consent.Register(args.register)
     if args.action == "record":
-        form = consent.read_form(args.form)
+        from crs_study.paths import resolve_consent_form
+
+        form = consent.read_form(resolve_consent_form(args.form))
         record = register.record(form, args.experimenter, args.participant, args.name)
         print(f"consent recorded: participant {record.participant}, form version "
               f"{record.form_version}, {record.time}, experimenter {record.experimenter}")

@@ -1,6 +1,6 @@
 """The main job on embedded defaults: rehearse the default protocol and analyse it.
 
-Dry-runs protocols/digit_identification.toml with simulated participants (perceptual
+Dry-runs the shipped digit_identification protocol with simulated participants (perceptual
 observers) on the simulated device and a virtual clock, analyses the dataset when the
 analysis is installed, and prints the headline (accuracy per condition with confidence
 intervals, the test, the chart) and where the dataset and the report were written. A new
@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--participants", type=int, default=12, metavar="N",
                         help="simulated participants")
     parser.add_argument("--protocol", default=DEFAULT_PROTOCOL, metavar="PROTOCOL",
-                        help="protocol file")
+                        help="protocol file, or a shipped protocol's name")
     parser.add_argument("--responder", default="observer", metavar="observer|random",
                         help="simulated participant")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="J",
@@ -56,7 +56,7 @@ def fresh_directory(base: Path | None = None) -> Path:
 def run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
     from crs_study.errors import SessionError
-    from crs_study.paths import shipped_file
+    from crs_study.paths import resolve_protocol
     from crs_study.protocol import emit_warnings, load_protocol
     from crs_study.runner import dry_run
 
@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()):
         raise SessionError(f"--out {os.fspath(out)!r} exists and is not empty; the demo never "
                            "overwrites: choose a new directory")
-    protocol = shipped_file(args.protocol)
+    protocol = resolve_protocol(args.protocol)
     emit_warnings(load_protocol(protocol))  # odd but legal values of a --protocol given
     show = stderr_progress(not args.json)
     results = dry_run(protocol, args.participants, out, jobs=args.jobs,

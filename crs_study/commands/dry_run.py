@@ -21,7 +21,9 @@ HELP = "rehearse a protocol: simulated device, simulated participants, virtual c
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("protocol", metavar="PROTOCOL", help="protocol file (TOML)")
+    parser.add_argument("protocol", metavar="PROTOCOL",
+                        help="protocol file (TOML), or a shipped protocol's name (pilot, "
+                        "digit_identification, ...)")
     parser.add_argument("--participants", type=int, required=True, metavar="N",
                         help="number of simulated participants")
     parser.add_argument("--out", required=True, type=Path, metavar="DATASET",
@@ -42,11 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
+    from crs_study.paths import resolve_protocol
     from crs_study.protocol import emit_warnings, load_protocol
     from crs_study.runner import dry_run
 
-    emit_warnings(load_protocol(args.protocol))  # odd but legal values, once, up front
-    results = dry_run(args.protocol, args.participants, args.out, jobs=args.jobs,
+    protocol = resolve_protocol(args.protocol)
+    emit_warnings(load_protocol(protocol))  # odd but legal values, once, up front
+    results = dry_run(protocol, args.participants, args.out, jobs=args.jobs,
                       responder=args.responder, device_url=args.device,
                       progress=stderr_progress(not args.json), durable=args.fsync)
     trials = sum(r.trials_completed for r in results)

@@ -24,7 +24,9 @@ EXIT_INTERRUPTED = 130
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("protocol", metavar="PROTOCOL", help="protocol file (TOML)")
+    parser.add_argument("protocol", metavar="PROTOCOL",
+                        help="protocol file (TOML), or a shipped protocol's name (pilot, "
+                        "digit_identification, ...)")
     parser.add_argument("--participant", required=True, metavar="ID",
                         help="participant label (letters and digits; never a name)")
     parser.add_argument("--device", required=True, metavar="URL",
@@ -91,9 +93,11 @@ def run(args: argparse.Namespace) -> int:
             for key, value in report.items():
                 print(f"{key}: {value}")
         return 0
+    from crs_study.paths import resolve_protocol
     from crs_study.protocol import emit_warnings, load_protocol
 
-    emit_warnings(load_protocol(spec.protocol))  # odd but legal values, before anything runs
+    # odd but legal values, before anything runs
+    emit_warnings(load_protocol(resolve_protocol(spec.protocol)))
     quiet = args.json
     show = stderr_progress(not quiet)
     result = run_session(spec, progress=show)

@@ -124,9 +124,10 @@ def summarise(protocol, participant: str = "example", session: int = 1,
 
 
 def run(args: argparse.Namespace) -> int:
+    from crs_study.paths import resolve_protocol
     from crs_study.protocol import load_protocol
 
-    protocol = load_protocol(args.protocol)
+    protocol = load_protocol(resolve_protocol(args.protocol))  # a path, or a shipped name
     summary = summarise(protocol, args.participant, args.session, args.counterbalance)
     plan = summary.pop("_plan")
     if args.list:

@@ -1,0 +1,102 @@
+"""The package as a user installs it: a wheel in a fresh venv runs the main job from any folder.
+
+The wheel is built offline from a copy of the source (pip wheel without build isolation: the
+test venv's setuptools, no index), installed without dependencies into a fresh venv that
+reaches the test venv's site-packages for numpy, pandas and the rest (a .pth file; the
+editable install's finder there is not activated, so the source tree is out of sight), then
+run from an empty folder. Before the defaults shipped as package data this failed with
+``protocols/digit_identification.toml: no such file``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import zipfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.slow  # about 20 s, most of it the demo itself; kept in the default run
+
+
+def _run(command: list[str], cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("PYTHONPATH", "PYTHONHOME", "MPLBACKEND", "PYTHONSTARTUP")}
+    done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout, check=False)
+    assert done.returncode == 0, f"{command} exited {done.returncode}:\n{done.stderr[-3000:]}"
+    return done
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory) -> Path:
+    """A fresh venv with the wheel of this source tree installed; its ``bin`` folder."""
+    base = tmp_path_factory.mktemp("wheel")
+    source = base / "source"
+    source.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, source / name)
+    shutil.copytree(REPO / "crs_study", source / "crs_study",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+          "--no-index", "-q", "-w", str(base / "dist"), str(source)], base)
+    (wheel,) = (base / "dist").glob("crs_study-*.whl")
+    venv = base / "venv"
+    _run([sys.executable, "-m", "venv", "--without-pip", str(venv)], base)
+    python = venv / "bin" / "python"
+    _run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
+          "--no-index", "-q", str(wheel)], base)
+    site = _run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                base).stdout.strip()
+    dependencies = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
+    Path(site, "test-venv-dependencies.pth").write_text("\n".join(sorted(dependencies)) + "\n")
+    with zipfile.ZipFile(wheel) as archive:
+        shipped = {n for n in archive.namelist() if n.startswith("crs_study/data/")}
+    for folder in ("protocols", "analysis", "consent"):
+        for path in (REPO / "crs_study" / "data" / folder).iterdir():
+            assert f"crs_study/data/{folder}/{path.name}" in shipped
+    return venv / "bin"
+
+
+def test_crs_study_demo_from_an_empty_folder(installed, tmp_path):
+    done = _run([str(installed / "crs-study"), "demo"], tmp_path)
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("demo: 12 simulated participants, 1440 trials, dataset in "
+                               "crs-study-output/demo-")
+    report = next(line for line in lines if line.startswith("report: "))
+    assert (tmp_path / report.removeprefix("report: ")).is_file()
+    assert any(line.startswith("chart (accuracy): ") for line in lines)
+
+
+def test_the_library_from_an_empty_folder(installed, tmp_path):
+    code = (
+        "import crs_study, crs_study.paths as paths\n"
+        "from crs_study.protocol import load_protocol\n"
+        "from crs_study.runner import dry_run\n"
+        "from crs_study.session_metadata import SessionMetadata\n"
+        "print(crs_study.__file__)\n"
+        "print(crs_study.__version__)\n"
+        "print(load_protocol(paths.resolve_protocol('pilot')).study_id)\n"
+        "(result,) = dry_run('pilot', 1, 'ds', responder='random')\n"
+        "meta = SessionMetadata.read(result.sidecar)\n"
+        "print(meta.status, meta.trials_completed)\n"
+    )
+    lines = _run([str(installed / "python"), "-c", code], tmp_path).stdout.splitlines()
+    assert Path(lines[0]).is_relative_to(installed.parent)  # the wheel, not the source tree
+    assert lines[1] == "0.1.0"
+    assert lines[2:] == ["digitid-pilot", "complete 26"]
+
+
+def test_init_copies_the_shipped_files_to_edit(installed, tmp_path):
+    _run([str(installed / "crs-study"), "init", "study"], tmp_path)
+    assert (tmp_path / "study" / "consent" / "consent_form.md").read_bytes() == \
+        (REPO / "consent" / "consent_form.md").read_bytes()
+    done = _run([str(installed / "crs-study"), "validate", "study/protocols/pilot.toml"],
+                tmp_path)
+    assert "analysis plan analysis/digit_identification.toml: found" in done.stdout
