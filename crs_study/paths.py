@@ -114,6 +114,18 @@ def shipped_file(relative: str | Path) -> Path:
                       f"shipped with crs-study, {data_dir()})")
 
 
+def recorded_path(path: str | Path) -> str:
+    """How a session records where its protocol came from: the path as given, but a shipped
+    file's as its place inside the package (``crs_study/data/protocols/pilot.toml``), not
+    the install location (which can name the user's home folder)."""
+    path = Path(path)
+    try:
+        inside = path.resolve().relative_to(data_dir().resolve())
+    except (OSError, ValueError):
+        return str(path)
+    return f"crs_study/data/{inside.as_posix()}"
+
+
 def find_referenced(protocol_path: str | Path, relative: str | Path) -> Path:
     """A file a protocol names (its consent form, its analysis plan), found where a lab keeps it.
 

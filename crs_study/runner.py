@@ -50,7 +50,7 @@ from crs_study._files import sha256_bytes
 from crs_study.clock import RealClock, VirtualClock
 from crs_study.dataset import Dataset, SessionStore
 from crs_study.errors import CrsStudyError, DeviceError, SessionError
-from crs_study.paths import resolve_protocol
+from crs_study.paths import recorded_path, resolve_protocol
 from crs_study.session_metadata import FINGERPRINTS, Fault, Resume, SessionMetadata, now_utc
 from crs_study.signals import deferred, handling, terminate_as_interrupt
 
@@ -492,7 +492,7 @@ def _metadata(spec: SessionSpec, protocol: Any, plan: Any, device_text: str, exp
                      "0 to 9; press that digit's key as soon as you know it.",
         protocol_text=protocol.text,
         protocol_sha256=protocol.sha256,
-        protocol_path=str(protocol.path),
+        protocol_path=recorded_path(protocol.path),
         study_id=protocol.study_id,
         study_version=protocol.version,
         device_file_text=device_text,

@@ -260,7 +260,7 @@ class SessionMetadata(_Record):
         ("Instructions", "instructions", _text),
         ("Protocol", "protocol_text", _text),                # the protocol file's full text
         ("ProtocolSha256", "protocol_sha256", _sha256),
-        ("ProtocolPath", "protocol_path", _text),
+        ("ProtocolPath", "protocol_path", _text),            # as given (paths.recorded_path)
         ("StudyId", "study_id", _text),
         ("StudyVersion", "study_version", _text),
         ("DeviceFile", "device_file_text", _text),           # the device file's full text

@@ -74,6 +74,19 @@ def test_unknown_names_are_one_line(tmp_path, monkeypatch, resolve, text, error,
         resolve(text)
 
 
+def test_a_session_records_a_shipped_protocol_without_the_install_location(tmp_path,
+                                                                            monkeypatch):
+    from crs_study.runner import dry_run
+    from crs_study.session_metadata import SessionMetadata
+
+    assert paths.recorded_path("mine/study.toml") == "mine/study.toml"
+    monkeypatch.chdir(tmp_path)
+    (result,) = dry_run("pilot", 1, "ds", responder="random")
+    meta = SessionMetadata.read(result.sidecar)
+    assert meta.protocol_path == "crs_study/data/protocols/pilot.toml"
+    assert str(paths.data_dir()) not in result.sidecar.read_text()
+
+
 def test_shipped_file_prefers_the_current_folder_then_the_package(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     shipped = paths.data_dir() / "analysis" / "digit_identification.toml"
