@@ -138,8 +138,9 @@ class _Record:
         for key, attribute, read in self._KEYS:
             value = getattr(self, attribute)
             try:
-                if read(_dump(value)) != value or isinstance(value, list):
-                    raise _Invalid(f"expected what {key} holds, got {_short(value)}")
+                parsed = read(_dump(value))
+                if parsed != value or type(parsed) is not type(value):
+                    raise _Invalid(f"expected a {type(parsed).__name__}, got {_short(value)}")
             except _Invalid as problem:
                 raise DatasetError(f"{type(self).__name__}.{attribute} ({key}): "
                                    f"{problem}") from None
@@ -196,7 +197,7 @@ class Resume(_Record):
     software_version: str
 
     _KEYS = (("Time", "time", _time), ("AtTrial", "at_trial", _whole(0)),
-             ("DeviceURL", "device_url", _text),
+             ("DeviceURL", "device_url", _text),                  # the device the session began on
              ("SoftwareVersion", "software_version", _text))
 
 
@@ -265,12 +266,12 @@ class SessionMetadata(_Record):
         ("StudyVersion", "study_version", _text),
         ("DeviceFile", "device_file_text", _text),           # the device file's full text
         ("DeviceFileSha256", "device_file_sha256", _sha256),
-        ("DeviceURL", "device_url", _text),
+        ("DeviceURL", "device_url", _text),                  # the device the session began on
         ("SoftwareVersion", "software_version", _text),
         ("Seed", "seed", _whole(0)),
-        ("Counterbalance", "counterbalance", _whole(0)),
-        ("PlanSha256", "plan_sha256", _sha256),
-        ("StimulusSha256", "stimulus_sha256", _or_none(_sha256)),
+        ("Counterbalance", "counterbalance", _whole(0)),     # the index the plan was made with
+        ("PlanSha256", "plan_sha256", _sha256),              # the trial plan (checked on resume)
+        ("StimulusSha256", "stimulus_sha256", _or_none(_sha256)),  # every bump path shown
         ("Participant", "participant", _label),
         ("Session", "session", _whole(1)),
         ("ConsentFormVersion", "consent_form_version", _text),
@@ -282,9 +283,9 @@ class SessionMetadata(_Record):
         ("Status", "status", _choice(STATUSES)),
         ("TrialsPlanned", "trials_planned", _whole(0)),
         ("TrialsCompleted", "trials_completed", _whole(0)),
-        ("TrialsSha256", "trials_sha256", _or_none(_sha256)),
-        ("Resumes", "resumes", _entries(Resume, "Resumes")),
-        ("Faults", "faults", _entries(Fault, "Faults")),
+        ("TrialsSha256", "trials_sha256", _or_none(_sha256)),  # the _beh.tsv bytes, last write
+        ("Resumes", "resumes", _entries(Resume, "Resumes")),  # one per resume
+        ("Faults", "faults", _entries(Fault, "Faults")),     # device faults during trials
     )
 
     def __post_init__(self) -> None:

@@ -169,12 +169,16 @@ def test_construction_checks_every_field():
     meta = SessionMetadata.read(_sidecar("p02"))
     with pytest.raises(DatasetError, match=r"SessionMetadata.status \(Status\): expected one of"):
         replace(meta, status="done")
-    with pytest.raises(DatasetError, match=r"start_time \(StartTime\): expected what"):
+    with pytest.raises(DatasetError,
+                       match=r"start_time \(StartTime\): expected a datetime, got '2026"):
         replace(meta, start_time="2026-11-24T00:00:00+00:00")  # a string, not a datetime
-    with pytest.raises(DatasetError, match=r"resumes \(Resumes\): expected what"):
+    with pytest.raises(DatasetError, match=r"resumes \(Resumes\): expected a tuple, got \[\]"):
         replace(meta, resumes=[])  # a list, not a tuple: the dataclass is frozen all through
     with pytest.raises(DatasetError, match=r"Resume.time \(Time\): expected an ISO 8601 time"):
         Resume(datetime(2026, 1, 1), 0, "sim://", "0.1.0")  # naive: no UTC offset
+    with pytest.raises(DatasetError, match=r"frame_rate_hz \(FrameRateHz\): expected a float, "
+                                           r"got 15$"):
+        replace(meta, frame_rate_hz=15)
     with pytest.raises(DatasetError, match="9 trials completed of 8 planned"):
         replace(meta, trials_completed=9)
 
