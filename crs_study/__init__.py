@@ -3,7 +3,8 @@
 The public surface is small on purpose; stages of the pipeline live in their own modules:
 ``layout`` (device geometry), ``targets``, ``render``, ``display`` (what the skin meets),
 ``quality``, ``device`` (LSC-24 I/O and the simulator), ``protocol``, ``plan``, ``runner``,
-``dataset``, ``analysis`` and ``consent``.
+``dataset`` (with ``bids``, its paths, and ``session_metadata``, the session sidecar),
+``analysis`` and ``consent``; ``paths`` finds the shipped protocols, plans and consent forms.
 """
 
 from importlib.metadata import PackageNotFoundError, version

@@ -7,6 +7,7 @@ Names follow the BIDS specification, "Common principles: file name structure" (e
 
 from __future__ import annotations
 
+import shutil
 import string
 from pathlib import Path
 
@@ -157,3 +158,20 @@ def test_the_writer_puts_every_file_where_the_module_says(tmp_path):
                                           bids.task_sidecar_name(), ".crs-study.lock")}
     assert written == expected
     assert bids.find_sessions(root) == [paths]
+
+
+def test_find_sessions_agrees_with_what_the_analysis_loads(tmp_path):
+    """The reader can switch to this module: the same sessions, in the same order, as
+    crs_study.analysis.load finds today (fixture sessions and a session-less participant)."""
+    from crs_study.analysis.load import load_datasets
+
+    root = Path(shutil.copytree(FIXTURE, tmp_path / "ds"))
+    extra = SessionPaths(root, "p00", None)
+    extra.beh_dir.mkdir(parents=True)
+    extra.tsv.write_bytes(SessionPaths(root, "p02", 1).tsv.read_bytes())
+    loaded = load_datasets(root)
+    assert any("p00" in w and "metadata missing" in w for w in loaded.warnings)
+    sessions = loaded.sessions[["participant", "session", "file"]].to_records(index=False)
+    assert [(p, s, Path(f)) for p, s, f in sessions] == \
+        [(s.participant, "" if s.session is None else str(s.session), s.tsv)
+         for s in bids.find_sessions(root)]
