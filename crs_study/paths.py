@@ -10,9 +10,11 @@ with only the wheel gets its own editable copies with ``crs-study init DIR``
 Names and paths: a bare name (letters, digits, ``_``, ``-``; no folder, no suffix) is a
 shipped file, ``"pilot"`` the shipped ``pilot.toml`` protocol (:func:`resolve_protocol`),
 ``"consent_form"`` the shipped form (:func:`resolve_consent_form`); anything else is a path,
-taken as given. A file a protocol refers to (``consent/consent_form.md``) is looked up beside
-the protocol, in the folder above it, in the current directory, then among the shipped files
-(:func:`find_referenced`, :func:`shipped_file`).
+taken as given. A file named relative to the project (``consent/consent_form.md``) is the one
+in the current directory, else the shipped copy (:func:`shipped_file`); a protocol's consent
+form and analysis plan are found beside the protocol first (``crs_study.protocol``).
+:func:`find_referenced` also looks in the folder above the protocol, the project folder of
+``crs-study init``, so an edited copy there wins from any current directory.
 
 The two copies are kept identical by a test (``tests/test_shipped_files.py``), not by a build
 step: both copies are then ordinary files in every kind of install (editable, wheel, sdist),
