@@ -34,7 +34,12 @@ import pandas as pd
 from crs_study import __version__
 from crs_study._files import os_errors, sha256_file, write_atomically
 from crs_study.analysis import charts
-from crs_study.analysis.accuracy import analyse_accuracy, chance_level
+from crs_study.analysis.accuracy import (
+    PARTICIPANT_LEVEL,
+    analyse_accuracy,
+    chance_level,
+    headline_accuracy,
+)
 from crs_study.analysis.confusion import analyse_confusions
 from crs_study.analysis.load import LoadedData, load_datasets, with_exclusions
 from crs_study.analysis.plan import AnalysisPlan, default_plan_path, load_plan
@@ -209,6 +214,9 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
                                 "n_participants": int(r["n_participants"]),
                                 "method": r["method"]}
                for r in records(accuracy.between_participants)}
+    shown = {r["condition"]: {"accuracy": r["accuracy"], "ci95": [r["ci_low"], r["ci_high"]],
+                              "method": r["method"]}
+             for r in records(headline_accuracy(accuracy))}
     results = {
         "alpha": alpha, "chance": chance, "reference": reference,
         "n_participants": int(n_participants),
@@ -223,6 +231,7 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
                 "p_vs_chance": float(row["p_vs_chance"]),
                 "n_participants": int((by_participant["condition"] == row["condition"]).sum()),
                 "between_participants": between.get(row["condition"]),
+                "headline": shown.get(row["condition"]),
             } for _, row in accuracy.by_condition.iterrows()},
         "accuracy_by_participant": records(by_participant),
         "accuracy_by_digit": records(accuracy.by_digit),
@@ -263,37 +272,63 @@ def format_p(p: float | None) -> str:
 
 
 def headline(results: dict) -> str:
-    """One line: each condition's accuracy and pooled interval, then the primary comparison(s),
-    saying when the odds ratio comes from a penalised fit or has no participant variance."""
-    parts = []
+    """One line: each condition's accuracy with an interval that accounts for participants
+    (``conditions.<c>.headline``: the mean of participant accuracies with the t interval
+    across participants, or the pooled Wilson interval where that has no width, labelled),
+    then the primary comparison(s). A separated condition's odds ratio is given as its
+    one-sided profile limit ("> 367 ... upper limit infinite"), never as the penalised
+    estimate; a logistic regression without participant variance says so."""
+    parts, methods = [], []
     reference = results["reference"]
     order = [c for c in results["conditions"] if c != reference] + [reference]
+    level = f"{100 * (1 - results['alpha']):g} %"
     for condition in order:
         row = results["conditions"].get(condition)
         if row:
-            low, high = row["ci95"]
-            parts.append(f"{condition} {100 * row['accuracy']:.1f} % "
+            shown = row.get("headline") or {"accuracy": row["accuracy"], "ci95": row["ci95"],
+                                            "method": POOLED_CI_METHOD}
+            low, high = shown["ci95"]
+            parts.append(f"{condition} {100 * shown['accuracy']:.1f} % "
                          f"[{100 * low:.1f}, {100 * high:.1f}]")
+            methods.append(shown["method"])
     text = " vs ".join(parts)
     if parts:
-        text += f" ({100 * (1 - results['alpha']):g} % Wilson, pooled trials)"
+        if set(methods) == {PARTICIPANT_LEVEL}:
+            text += (f" (mean of {results['n_participants']} participants, {level} t interval "
+                     "across participants)")
+        elif len(set(methods)) == 1:
+            text += f" ({level} {methods[0]})"
+        else:
+            text += f" ({level} intervals: {'; '.join(dict.fromkeys(methods))})"
     glmm = [c for c in results["comparisons"] if c["method"].startswith(("GLMM", "Fisher"))]
     for c in glmm:
         name = "GLMM odds ratio" if c["method"].startswith("GLMM") else "odds ratio (Fisher)"
         notes = []
-        if "penalised" in c["method"]:
-            notes.append("penalised: a condition at 0 or 100 %, see warnings")
         if "no random effect estimable" in c["method"]:
             notes.append("logistic regression: no participant variance estimable")
         if len(glmm) > 1:
             notes.insert(0, f"{c['condition']} vs {c['reference']}")
         who = f" ({'; '.join(notes)})" if notes else ""
+        if c.get("separated"):
+            text += f"; {name}{who} {_separated_text(c, level)}, {format_p(c['p_value'])}"
+            continue
         low, high = ("0" if v is None and k == 0 else "inf" if v is None else f"{v:.2f}"
                      for k, v in enumerate(c["ci95"]))
         text += f"; {name}{who} {c['estimate']:.2f} [{low}, {high}], {format_p(c['p_value'])}"
     if not glmm:
         text += "; no comparison of conditions (see warnings)"
     return text
+
+
+def _separated_text(c: dict, level: str) -> str:
+    """``> 367 (ML estimate infinite: ...; upper limit infinite)`` for a separated odds ratio."""
+    low, high = c["ci95"]
+    why = f"ML estimate infinite: a condition at 0 or 100 %; one-sided {level} profile limit"
+    if low is not None:
+        return f"> {low:.3g} ({why}, upper limit infinite)"
+    if high is not None:
+        return f"< {high:.3g} ({why}, lower limit 0)"
+    return "not estimable (ML estimate infinite, no finite profile limit)"
 
 
 def draw_charts(parts: dict, plan: AnalysisPlan, folder: Path) -> list[Path]:
