@@ -47,6 +47,7 @@ from crs_study.analysis.primary import primary_test
 from crs_study.analysis.psychometric import analyse_psychometric
 from crs_study.analysis.report_text import write_report
 from crs_study.analysis.secondary import secondary_tests
+from crs_study.analysis.sources import select_sources, summarise_sources
 from crs_study.analysis.speed_accuracy import analyse_speed_accuracy
 from crs_study.errors import AnalysisError, ConfigError, DatasetError
 
@@ -75,14 +76,26 @@ def analyze_dataset(dataset_dir: str | Path, plan_path: str | Path | None = None
 
 def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
             out_dir: str | Path | None = None, strict: bool = False,
-            write: bool = True) -> AnalysisResult:
-    """Analyse ``datasets`` with a plan; write the report and ``results.json`` when ``write``."""
+            write: bool = True, include_simulated: bool = False,
+            responders: list[str] | None = None) -> AnalysisResult:
+    """Analyse ``datasets`` with a plan; write the report and ``results.json`` when ``write``.
+
+    Simulated and human sessions together are refused unless ``include_simulated`` (pool
+    them, with a warning) or ``responders`` keeps one kind (:mod:`.sources`).
+    """
     datasets = [Path(d) for d in datasets]
     loaded = load_datasets(datasets, None, strict=strict)
+    loaded, sources, source_notes = select_sources(loaded, include_simulated, responders)
     plan, plan_file, plan_notes = resolve_plan(loaded, plan_path)
     loaded = with_exclusions(loaded, plan.exclusions)
     results, parts = run_analyses(loaded, plan)
-    every = list(loaded.warnings) + plan_notes + results["warnings"]
+    kinds = sorted(set(sources["kind"]))
+    results["sources"] = {"kind": kinds[0] if len(kinds) == 1 else "mixed",
+                          "sessions": summarise_sources(sources),
+                          "notes": source_notes}
+    pooled = [n for n in source_notes if "pooled on request" in n]
+    every = list(loaded.warnings) + pooled + excluded_participants(loaded) + plan_notes \
+        + results["warnings"]
     results["warnings"] = list(dict.fromkeys(every))          # each sentence once, in order
     results["plan"] = {"name": plan.name, "path": str(plan_file),
                        "sha256": sha256_file(plan_file)}
@@ -110,6 +123,20 @@ def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
         _derivative_description(out, datasets)
     return AnalysisResult(results["headline"], results, report_path, results_path,
                           tuple(results["warnings"]), tuple(chart_files))
+
+
+def excluded_participants(loaded: LoadedData) -> list[str]:
+    """A warning naming each participant none of whose trials is analysed, with the reasons."""
+    kept = set(loaded.analysed["participant_id"])
+    notes = []
+    for participant, rows in loaded.trials.groupby("participant_id", sort=True):
+        if participant in kept:
+            continue
+        reasons = rows["exclusion"].replace("", "unanswered").value_counts()
+        why = ", ".join(f"{reason} {count}" for reason, count in reasons.items())
+        notes.append(f"participant {participant!r} has no analysed trial (all {len(rows)} "
+                     f"excluded: {why}): left out of every analysis")
+    return notes
 
 
 def resolve_plan(loaded: LoadedData, plan_path: str | Path | None
@@ -383,8 +410,8 @@ def to_jsonable(value, path: str = "") -> tuple[object, list[str]]:
 
 
 def _sessions(loaded: LoadedData) -> list[dict]:
-    columns = ["dataset", "participant", "session", "n_rows", "Status", "Seed",
-               "SoftwareVersion", "TrialsSha256"]
+    columns = ["dataset", "participant", "session", "n_rows", "Status", "Responder",
+               "DeviceURL", "Seed", "SoftwareVersion", "TrialsSha256"]
     sessions = loaded.sessions.reindex(columns=columns)
     return sessions.astype(object).where(sessions.notna(), None).to_dict("records")
 

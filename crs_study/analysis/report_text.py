@@ -68,6 +68,12 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
         f"{results['n_trials_analysed']} of {results['n_trials_total']} trials analysed. "
         f"Plan `{results['plan']['path']}` (sha256 {results['plan']['sha256'][:12]}...). "
         f"Chance level {100 * results['chance']:.1f} %, alpha {results['alpha']:g}."))]
+    sources = results.get("sources")
+    if sources:
+        blocks += [("p", "Sessions by who answered and on what device (kind: `simulated` when "
+                         "the responder is a simulated participant or the device is `sim://`):"),
+                   ("table", _table(pd.DataFrame(sources["sessions"])))]
+        blocks += [("p", note) for note in sources["notes"]]
     exclusions = pd.DataFrame(results["exclusions"]).T
     if not exclusions.empty:
         exclusions.index.name = "excluded because"
