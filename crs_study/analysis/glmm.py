@@ -314,15 +314,19 @@ def _group_codes(data: pd.DataFrame, group_list: list[str], notes: list[str]):
 def _row_codes(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Index of each row's distinct value (rows of a 2-D array) and one row per distinct value.
 
-    Column-wise 1-D factorisation combined in mixed radix: much faster than
-    ``np.unique(axis=0)``, which sorts rows as opaque byte strings.
+    Column-wise hashed factorisation (``pandas.factorize``, sorted codes) combined in mixed
+    radix: much faster than ``np.unique(axis=0)``, which sorts rows as opaque byte strings,
+    or ``np.unique`` per column; the distinct rows come in sorted key order, as ``np.unique``
+    gives them, so the pooled rows do not depend on the order of the data.
     """
     key = np.zeros(len(columns), dtype=np.int64)
     for col in columns.T:
-        _, inverse = np.unique(col, return_inverse=True)
-        key = key * (int(inverse.max()) + 1) + inverse
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    return inverse.ravel(), columns[first]
+        inverse, uniques = pd.factorize(col, sort=True)
+        key = key * len(uniques) + inverse
+    inverse, uniques = pd.factorize(key, sort=True)
+    first = np.empty(len(uniques), dtype=np.intp)
+    first[inverse[::-1]] = np.arange(len(key) - 1, -1, -1)
+    return inverse.astype(np.intp), columns[first]
 
 
 def _pool(X, y, m, codes) -> BinomialData:

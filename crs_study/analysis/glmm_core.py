@@ -395,11 +395,12 @@ class CrossedFactors:
         dw = w * (1.0 - 2.0 * p)
         lam_cols = lam[cols]
         pairs = schur.pairs()
-        d = np.einsum("ia,ib,iab->i", lam_cols, lam_cols, pairs)
+        weighted = pairs * lam_cols[:, None, :]                  # G[i, a, b] lambda_ib
+        d = (weighted.sum(axis=2) * lam_cols).sum(axis=1)
         du_dbeta = schur.solve(-(lam[:, None] * self._Zt(w[:, None] * X)))  # (q, p)
         g_beta = X.T @ resid - 0.5 * (dw * d) @ (X + self._Z(lam[:, None] * du_dbeta))
         Zr = self._Zt(resid)
-        trace = np.einsum("i,ikb,ib->k", w, pairs, lam_cols)
+        trace = w @ weighted.sum(axis=2)
         K = self.n_variance
         masks = (self.factor_of_column[:, None] == np.arange(K)[None, :]).astype(float)
         Zu = self._Z(masks * u[:, None])                                     # (n, K)
