@@ -14,14 +14,18 @@ Where maximum likelihood fails the fit still returns, with a sentence in ``warni
 
 * **separation** (a condition at 100 % or 0 %, or any direction in which the data are
   separated; found by the linear program of Konis 2007, as R's ``detectseparation``): the
-  maximum-likelihood estimate is infinite, so the coefficients get independent normal priors,
-  N(0, 10^2) on the intercept and N(0, 2.5^2) on every other coefficient (the scales of
-  Gelman, Jakulin, Pittau & Su 2008, Ann. Appl. Stat. 2:1360, in the normal form that blme's
-  ``bglmer`` offers as a fixed-effect prior); estimates are then posterior modes, standard
-  errors come from the penalised information;
-* **a variance at zero**: reported as exactly 0, the fixed effects are those of the model
-  without that term; a likelihood-ratio test of that variance is a 50:50 mixture of chi2(0)
-  and chi2(1) (Self & Liang 1987, JASA 82:605);
+  maximum-likelihood estimate is infinite. The result carries ``separation``
+  (:mod:`crs_study.analysis.glmm_separation`): the separated coefficients, the supremum of the
+  unpenalised likelihood (which :func:`lrt` uses) and what :func:`profile_conf_int` needs for
+  the one-sided unpenalised profile limit. The printed coefficients are penalised, for
+  orientation only: independent normal priors, N(0, 10^2) on the intercept and N(0, 2.5^2) on
+  every other coefficient (the scales of Gelman, Jakulin, Pittau & Su 2008, Ann. Appl. Stat.
+  2:1360, in the normal form that blme's ``bglmer`` offers as a fixed-effect prior); posterior
+  modes, standard errors from the penalised information;
+* **a variance at zero**: reported as exactly 0 only when the likelihood falls as the variance
+  moves inward (:mod:`crs_study.analysis.glmm_optimise`); the fixed effects are those of the
+  model without that term; a likelihood-ratio test of that variance is a 50:50 mixture of
+  chi2(0) and chi2(1) (Self & Liang 1987, JASA 82:605);
 * **a grouping factor with one level** (a single participant): no variance is estimable, the
   term is dropped; with none left the model is a logistic regression by statsmodels' GLM;
 * **a level with no rows** (a missing condition) or aliased design columns: dropped.
@@ -125,10 +129,12 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     Notes
     -----
     Maximises the Laplace or AGQ marginal log-likelihood jointly over ``(beta, sigma)``
-    (lme4's second optimisation stage) with scipy (TNC, then L-BFGS-B if needed), subject to
-    ``sigma >= 0``, from ``beta = 0, sigma = 1``. Standard errors: the inverse of the observed
-    information of that objective, fixed-effects block (lme4's ``calc.vcov.hess``), the
-    Hessian by central differences of the exact gradient.
+    (lme4's second optimisation stage) with scipy (TNC, then L-BFGS-B if needed), every sigma
+    unconstrained (the likelihood is even in it), from ``beta = 0, sigma = 1``; a sigma near
+    0 is set to 0 only when the variance-scale slope there is <= 0, otherwise the fit restarts
+    from interior points (:func:`~.glmm_optimise.maximise`). Standard errors: the inverse of
+    the observed information of that objective, fixed-effects block (lme4's
+    ``calc.vcov.hess``), the Hessian by central differences of the exact gradient.
     """
     notes: list[str] = []
     group_list = [groups] if isinstance(groups, str) else list(groups)

@@ -16,9 +16,10 @@ with the random effects integrated out; the binomial constants are added by the 
   Liu & Pierce 1994, Biometrika 81:624) both have exact analytic gradients: the mode and the
   curvature depend on ``(beta, sigma)`` and are differentiated implicitly.
 * :class:`CrossedFactors` -- two or more crossed random intercepts, Laplace only (as lme4):
-  penalised IRLS with a sparse ``Z``, ``scipy.sparse.linalg.splu`` for the Newton steps and the
-  log-determinant of ``Lambda' Z' W Z Lambda + I``; the exact gradient from the inverse of
-  that matrix (central differences beyond a few thousand random effects).
+  penalised IRLS; the Newton steps, the log-determinant of ``Lambda' Z' W Z Lambda + I`` and
+  the entries of its inverse that the exact gradient needs come from the Schur complement of
+  the factor with most levels (:class:`_Schur`: its block is diagonal); beyond a few thousand
+  random effects a sparse ``splu`` and central differences.
 * :class:`NoRandom` -- plain logistic regression (used for the penalised fallback).
 """
 

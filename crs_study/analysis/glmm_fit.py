@@ -12,6 +12,7 @@ from crs_study.analysis.glmm_optimise import Optimum, boundary_failures, maximis
 from crs_study.analysis.glmm_result import GlmmResult
 
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
+_END_TOLERANCE = 5e-5       # Brent's tolerance on a profile end (log-odds or SD)
 
 
 def _minimise(problem, start: np.ndarray, fixed_values: dict[int, float]
@@ -198,7 +199,8 @@ def profile_sd_interval(result: GlmmResult, k: int, level: float) -> tuple[float
     index = problem.n_fixed + k
     drop = _profile_drop(problem, theta_hat, index, level)
     sigma = float(theta_hat[index])
-    low = 0.0 if drop(0.0) <= 0.0 else float(optimize.brentq(drop, 0.0, sigma, xtol=1e-6))
+    low = 0.0 if drop(0.0) <= 0.0 else float(optimize.brentq(drop, 0.0, sigma,
+                                                              xtol=_END_TOLERANCE))
     high = _profile_end(drop, sigma, max(0.5 * sigma, 0.25))
     problem.objective(theta_hat)
     return low, high
@@ -221,10 +223,15 @@ def _profile_drop(problem, theta_hat: np.ndarray, index: int, level: float):
         # start from the nearest optimum on the same side of the estimate, never from the
         # other end's search (on a likelihood with several peaks that start could land lower
         # and overstate the drop, placing the end too close)
-        side = [v for v in optima if (v - centre) * (value - centre) >= 0]
-        start = optima[min(side, key=lambda v: abs(v - value))].copy()
+        side = sorted((v for v in optima if (v - centre) * (value - centre) >= 0),
+                      key=lambda v: abs(v - value))
+        start = optima[side[0]].copy()
+        if len(side) > 1:   # the other parameters extrapolated along the profile trace
+            a, b = side[0], side[1]
+            start = start + (value - a) / (a - b) * (optima[a] - optima[b])
+            start[problem.n_fixed:] = np.abs(start[problem.n_fixed:])
         start[index] = value
-        opt = maximise(problem, start, {index: value})
+        opt = maximise(problem, start, {index: value}, profile=True)
         optima[float(value)] = opt.theta
         known[float(value)] = float(np.sqrt(2.0 * max(top - opt.value, 0.0))) - target
         return known[float(value)]
@@ -238,6 +245,6 @@ def _profile_end(drop, estimate: float, step: float) -> float:
     for _ in range(12):
         if drop(estimate + step) > 0:
             a, b = sorted((estimate, estimate + step))
-            return float(optimize.brentq(drop, a, b, xtol=1e-5))
+            return float(optimize.brentq(drop, a, b, xtol=_END_TOLERANCE))
         step *= 2.0
     return float(np.copysign(np.inf, step))

@@ -47,6 +47,11 @@ _MAX_ROUNDS = 4
 # multi-threaded OpenBLAS; L-BFGS-B is the second try when TNC stops short.
 _METHODS = (("TNC", {"maxfun": 3000, "ftol": 1e-14, "gtol": 1e-9, "xtol": 1e-10}),
             ("L-BFGS-B", {"maxiter": 3000, "ftol": 1e-15, "gtol": 1e-7}))
+#: Profile points need the maximum to ~1e-8 in log-likelihood, not the estimates to 1e-10: a
+#: profile end is where the drop meets the cutoff, and an error e in the drop moves the end
+#: by about e / slope (slope ~ 1 on the signed-root scale), far below the 1e-4 Brent tolerance.
+_PROFILE_METHODS = (("TNC", {"maxfun": 3000, "ftol": 1e-11, "gtol": 1e-6, "xtol": 1e-8}),
+                    ("L-BFGS-B", {"maxiter": 3000, "ftol": 1e-13, "gtol": 1e-6}))
 _LOCAL_GRADIENT = 2e-5   # max |gradient| of the log-likelihood accepted after the first method
 
 
@@ -92,7 +97,8 @@ class _Counted:
         return -value, -g[self.mask]
 
 
-def local_fit(problem, start: np.ndarray, held: dict[int, float]) -> Optimum:
+def local_fit(problem, start: np.ndarray, held: dict[int, float],
+              methods=_METHODS) -> Optimum:
     """One unconstrained local maximisation (sigmas may go negative; returned as ``|sigma|``).
 
     TNC first; L-BFGS-B from TNC's end when the gradient there is not yet small.
@@ -101,7 +107,7 @@ def local_fit(problem, start: np.ndarray, held: dict[int, float]) -> Optimum:
     x = start[counted.mask]
     iterations, message = 0, "no free parameter"
     if len(x):
-        for method, options in _METHODS:
+        for method, options in methods:
             res = optimize.minimize(counted, x, jac=True, method=method, options=options)
             x, iterations, message = res.x, iterations + int(res.nit), str(res.message)
             _, g = counted(x)
@@ -136,17 +142,20 @@ def variance_slope(problem, theta: np.ndarray, index: int) -> float:
     return slope
 
 
-def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None) -> Optimum:
+def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
+             profile: bool = False) -> Optimum:
     """The maximum of the objective over the parameters not ``held``, boundary checked.
 
     A local fit; then, for the sigmas that ended near 0, the fit with them held at 0 and the
     variance-scale slope of each there. All slopes <= 0 and the boundary fit no lower: the
     boundary is the estimate. Some slope > 0: restarts from ``RESTART_SIGMAS`` for those
     sigmas, the best optimum kept, and the check repeated on it (at most ``_MAX_ROUNDS``).
+    ``profile``: the looser tolerances of a profile point (``_PROFILE_METHODS``).
     """
     held = dict(held or {})
+    methods = _PROFILE_METHODS if profile else _METHODS
     sigmas = [i for i in range(problem.n_fixed, len(start)) if i not in held]
-    best = local_fit(problem, np.asarray(start, float), held)
+    best = local_fit(problem, np.asarray(start, float), held, methods)
     evaluations, iterations, restarts = best.evaluations, best.iterations, 0
     for _ in range(_MAX_ROUNDS):
         near = [i for i in sigmas if best.theta[i] < NEAR_ZERO]
@@ -154,7 +163,8 @@ def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None) -
             break
         boundary_start = best.theta.copy()
         boundary_start[near] = 0.0
-        boundary = local_fit(problem, boundary_start, {**held, **dict.fromkeys(near, 0.0)})
+        boundary = local_fit(problem, boundary_start, {**held, **dict.fromkeys(near, 0.0)},
+                             methods)
         evaluations += boundary.evaluations
         iterations += boundary.iterations
         slopes = {i: variance_slope(problem, boundary.theta, i) for i in near}
@@ -173,7 +183,7 @@ def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None) -
         for sigma in RESTART_SIGMAS:
             restart = boundary.theta.copy()
             restart[inward] = sigma
-            candidate = local_fit(problem, restart, held)
+            candidate = local_fit(problem, restart, held, methods)
             evaluations += candidate.evaluations
             iterations += candidate.iterations
             restarts += 1

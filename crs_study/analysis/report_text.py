@@ -86,7 +86,8 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
                      "between participants)."),
                ("table", _table(accuracy.by_condition)),
                ("p", "Between participants: the mean of the participants' accuracies with "
-                     "the t interval across participants."),
+                     "the t interval across participants (the figures of the headline and "
+                     "the chart: they account for differences between participants)."),
                ("table", _table(accuracy.between_participants))]
     if "accuracy" in images:
         blocks.append(("image", images["accuracy"]))
@@ -98,6 +99,16 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
         blocks.append(("table", _table(primary[["condition", "reference", "estimate", "ci95",
                                                 "ci_method", "ci95_wald", "p_value",
                                                 "p_wald", "p_lr"]])))
+    for comparison in results["comparisons"]:
+        penalised = comparison.get("penalised")
+        if penalised:
+            blocks.append(("p", (
+                f"`{comparison['condition']}` against `{comparison['reference']}`: the "
+                "maximum-likelihood odds ratio is infinite (separation), so the table gives "
+                "its one-sided profile limit. Penalised fit, for orientation only "
+                f"({penalised['note']}; prior: {penalised['prior']}): odds ratio "
+                f"{_fmt(penalised['odds_ratio'])}, Wald interval "
+                f"{_fmt(penalised['ci95_wald'])}, Wald p {_fmt(penalised['p_wald'])}.")))
     effects = (results["primary"]["model"] or {}).get("random_effects") or {}
     if effects:
         blocks.append(("p", "Random intercepts (standard deviation on the logit scale, "
