@@ -188,6 +188,9 @@ def test_separation_every_answer_right_in_one_condition(tmp_path):
     assert "never the primary figure" in penalised["note"]
     assert f"; GLMM odds ratio > {low:.3g} (ML estimate infinite" in result.headline
     assert "upper limit infinite" in result.headline and "penalised" not in result.headline
+    report = result.report_path.read_text()
+    assert "Penalised fit, for orientation only" in report
+    assert f"odds ratio {penalised['odds_ratio']:.4g}" in report
     # every participant at 100 %: the between-participant interval is the point 1
     between = result.results["conditions"]["crs"]["between_participants"]
     assert between["ci95"] == [1.0, 1.0] and "no spread" in between["method"]
@@ -202,6 +205,10 @@ def test_separation_every_answer_wrong_in_one_condition(tmp_path):
     result = _run(tmp_path, _cells(8, {"pixel-only": 0.0, "crs": 0.6}))
     assert result.results["conditions"]["pixel-only"]["ci95"][0] == 0.0
     assert any("is at 0 % correct" in w for w in result.warnings)
+    # the reference at 0 %: crs's odds ratio is infinite too, one-sided from below
+    glmm = result.results["comparisons"][0]
+    assert glmm["separated"] and glmm["ci95"][1] is None and glmm["ci95"][0] > 1
+    assert f"GLMM odds ratio > {glmm['ci95'][0]:.3g} (ML estimate infinite" in result.headline
 
 
 def test_single_participant(tmp_path):

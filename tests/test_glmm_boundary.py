@@ -158,3 +158,17 @@ def test_fit_primary_on_aggregated_counts_equals_trial_rows():
     row = by_count.to_frame().iloc[0]
     assert row["condition"] == "c1" and row["df"] == 1 and row["converged"]
     assert not row["separated"] and row["error"] is None
+
+
+def test_a_condition_at_zero_percent_has_an_upper_limit_only():
+    from crs_study.analysis.report import _separated_text
+
+    data = simulate_trials(np.random.default_rng(5001), 8, 30, [0.0, -0.7], 0.25)
+    data.loc[data["condition"] == "c1", "correct"] = 0
+    fit = fit_glmm(data, "correct", "condition", "participant")
+    assert fit.separation.directions == (-1,)
+    low, high = profile_conf_int(fit).loc["condition[T.c1]"]
+    assert low == -np.inf and fit.params["condition[T.c1]"] - 5 < high < 0
+    text = _separated_text({"ci95": [None, float(np.exp(high))]}, "95 %")
+    assert text.startswith(f"< {np.exp(high):.3g} (ML estimate infinite") and "lower limit 0" \
+        in text
