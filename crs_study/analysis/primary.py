@@ -368,7 +368,8 @@ def _comparison(test: LrComparison, label: str, odds: pd.DataFrame,
     if test.separated:
         return Comparison(
             condition=test.condition, reference=test.reference, method=label, estimate=None,
-            ci95=ci, p_value=floor_p(p_wald if p_lr is None else p_lr), p_wald=None,
+            # no LR test: no p (the penalised Wald p is never the primary figure)
+            ci95=ci, p_value=float("nan") if p_lr is None else floor_p(p_lr), p_wald=None,
             p_lr=None if p_lr is None else floor_p(p_lr), log_odds=None, std_error=None,
             ci_method=("one-sided profile-likelihood limit of the unpenalised likelihood "
                        "against its supremum (the ML odds ratio is infinite: separation); "
