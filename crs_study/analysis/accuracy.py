@@ -192,6 +192,6 @@ def headline_accuracy(result: AccuracyResult) -> pd.DataFrame:
                else "every participant alike")
         rows.append({"condition": condition, "accuracy": float(pooled["accuracy"]),
                      "ci_low": float(pooled["ci_low"]), "ci_high": float(pooled["ci_high"]),
-                     "method": f"Wilson interval of the pooled trials ({why}: no "
-                               "participant-level interval)"})
+                     "method": f"Wilson interval of the pooled trials; {why}, so no "
+                               "participant-level interval"})
     return pd.DataFrame(rows, columns=["condition", "accuracy", "ci_low", "ci_high", "method"])
