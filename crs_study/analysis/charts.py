@@ -6,6 +6,7 @@ No pyplot state: without ``ax`` a new :class:`matplotlib.figure.Figure` is made 
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -79,8 +80,8 @@ def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
         title = (f"Accuracy by condition: mean of {wide.shape[0]} participants, {level} t "
                  "interval\nacross participants (grey: each participant)")
     else:
-        title = (f"Accuracy by condition ({level}: " + "; ".join(sorted(methods))
-                 + ")\ngrey: each participant")
+        title = textwrap.fill(f"Accuracy by condition ({level}: " + "; ".join(sorted(methods))
+                              + "); grey: each participant", 70)
     ax.set_title(title, fontsize=8)
     return ax
 
