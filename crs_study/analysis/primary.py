@@ -242,8 +242,9 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
     seen = set(full.warnings)
     for group in full.boundary:
         warnings.append(f"GLMM: with the {group.removesuffix('_id')} variance at 0 the odds "
-                        "ratios and intervals are those of the logistic regression without "
-                        "that random intercept (the same model at variance 0)")
+                        "ratios and Wald intervals are those of the logistic regression without "
+                        "that random intercept (the same model at variance 0); the profile "
+                        "intervals let that variance move inward at other odds ratios")
     level = 1.0 - alpha
     odds = full.odds_ratios(level)
     wald = full.pvalues

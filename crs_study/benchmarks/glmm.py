@@ -158,8 +158,11 @@ def _primary_against_lme4(quick: bool) -> list[Figure]:
             data.to_csv(csv, index=False)
             script = Path(folder) / "lme4.R"
             script.write_text(_LME4_SCRIPT)
-            run = subprocess.run([rscript, str(script), str(csv)], capture_output=True,
-                                 text=True, timeout=600, check=False)
+            try:
+                run = subprocess.run([rscript, str(script), str(csv)], capture_output=True,
+                                     text=True, timeout=600, check=False)
+            except (OSError, subprocess.TimeoutExpired):
+                run = subprocess.CompletedProcess([], 1, "", "")
             for line in run.stdout.splitlines():
                 if line.startswith("elapsed "):
                     lme4_seconds = float(line.split()[1])
