@@ -71,20 +71,28 @@ def test_a_boundary_estimate_is_a_true_statement():
 
 
 def test_profile_intervals_free_every_variance():
-    # Few trials per cell (issue 12: 1.066-8.88 where lme4 gives 1.053-9.72): a variance at 0
-    # at the estimate may move inward at other values of the effect. Each profile end is the
-    # value where the best likelihood with every other parameter free (checked here by an
-    # independent maximisation from several starts) drops by chi2_1(0.95) / 2.
-    data = simulate_trials(np.random.default_rng(5007), 12, 4, [0.0, 0.9], 0.49,
-                           digit_variance=0.09)
+    # Few trials per cell (issue 12: 1.066-8.88 where lme4 gives 1.053-9.72). The digit
+    # variance is 0 at the estimate but moves inward towards the upper end; holding it at 0
+    # (our earlier profiles; glmmTMB's log-SD profile, 1.68534 on these data) ends too soon.
+    # Each end is where the best likelihood with every other parameter free (an independent
+    # maximisation from several starts) drops by chi2_1(0.95).
+    data = simulate_trials(np.random.default_rng(4011), 12, 6, [0.0, 0.8], 0.49,
+                           digit_variance=0.09)     # the corpus' sim-12p-6t-psd0.7-dsd0.3-11
     fit = fit_glmm(data, "correct", "condition", ["participant", "digit"])
+    assert fit.boundary == ("digit",)
     low, high = profile_conf_int(fit).loc["condition[T.c1]"]
     problem, theta_hat, _ = fit._model
     top = problem.objective(theta_hat, grad=False)
+    cutoff = stats.chi2.ppf(0.95, 1)
     for end in (low, high):
         best = max(maximise(problem, np.r_[theta_hat[0], end, s, s], {1: end}).value
                    for s in (0.0, 0.5, 1.5))
-        assert 2 * (top - best) == pytest.approx(stats.chi2.ppf(0.95, 1), abs=2e-3)
+        assert 2 * (top - best) == pytest.approx(cutoff, abs=2e-3)
+    at_end = maximise(problem, np.r_[theta_hat[0], high, theta_hat[2], 0.3], {1: high})
+    assert at_end.theta[3] > 0.05                      # the digit SD moved inward
+    held = maximise(problem, np.r_[theta_hat[0], 1.68534, theta_hat[2], 0.0],
+                    {1: 1.68534, 3: 0.0})
+    assert 2 * (top - held.value) == pytest.approx(cutoff, abs=2e-3) and high > 1.69
 
 
 @settings(max_examples=10, deadline=None)
