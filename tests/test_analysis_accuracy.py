@@ -15,6 +15,7 @@ from crs_study.analysis.accuracy import (
     analyse_accuracy,
     chance_level,
     floor_p,
+    headline_accuracy,
     wilson_interval,
 )
 from crs_study.errors import AnalysisError
@@ -112,3 +113,35 @@ def test_between_participant_interval_is_scipy_t_and_stays_in_range():
     # 0.9, 1, 1: the t interval reaches 1.11; reported up to 1, and said so
     assert out.loc["y", "ci_high"] == 1.0 and out.loc["y", "ci_low"] < out.loc["y", "mean"]
     assert out.loc["y", "method"].endswith("clipped to [0, 1]")
+
+
+def _participants(correct_by_participant: dict[str, int], n: int = 50) -> pd.DataFrame:
+    rows = [{"participant_id": p, "condition": "crs", "digit": i % 10, "correct": float(i < k)}
+            for p, k in correct_by_participant.items() for i in range(n)]
+    return pd.DataFrame(rows)
+
+
+def test_the_headline_interval_accounts_for_participants():
+    # Three participants at 30, 50 and 76 % (50 trials each): the pooled Wilson interval
+    # (trial level) is far narrower than the t interval across participants, which the
+    # headline shows (issue 12: [42.0, 58.0] against [22.8, 76.8] on such data).
+    result = analyse_accuracy(_participants({"a": 15, "b": 25, "c": 38}), ("crs",), 0.1)
+    (row,) = headline_accuracy(result).to_dict("records")
+    per = np.array([0.30, 0.50, 0.76])
+    low, high = stats.t.interval(0.95, 2, loc=per.mean(), scale=stats.sem(per))
+    assert row["method"] == "mean of participant accuracies, t interval across participants"
+    assert (row["accuracy"], row["ci_low"], row["ci_high"]) == pytest.approx(
+        (per.mean(), max(low, 0.0), min(high, 1.0)))
+    pooled = result.by_condition.iloc[0]
+    assert row["ci_high"] - row["ci_low"] > 3 * (pooled["ci_high"] - pooled["ci_low"])
+
+
+@pytest.mark.parametrize(("counts", "why"), [({"a": 20}, "one participant"),
+                                             ({"a": 20, "b": 20}, "every participant alike")])
+def test_the_headline_falls_back_to_the_pooled_interval_and_says_why(counts, why):
+    result = analyse_accuracy(_participants(counts), ("crs",), 0.1)
+    (row,) = headline_accuracy(result).to_dict("records")
+    pooled = result.by_condition.iloc[0]
+    assert (row["ci_low"], row["ci_high"]) == (pooled["ci_low"], pooled["ci_high"])
+    assert row["method"] == (f"Wilson interval of the pooled trials; {why}, so no "
+                             "participant-level interval")

@@ -67,3 +67,18 @@ def test_save_writes_a_png(tmp_path, trials):
     speed = analyse_speed_accuracy(trials, CONDITIONS)
     path = charts.save(charts.plot_caf(speed), tmp_path / "caf.png")
     assert path.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_accuracy_chart_bars_are_the_participant_level_intervals(trials):
+    # issue 12: the chart's bars account for participants (the headline's interval), and the
+    # title says which interval it shows
+    from crs_study.analysis.accuracy import headline_accuracy
+
+    result = analyse_accuracy(trials, tuple(CONDITIONS), 0.1)
+    ax = charts.plot_accuracy(result)
+    shown = headline_accuracy(result)
+    for container, (_, row) in zip(ax.containers, shown.iterrows(), strict=True):
+        (segments,) = container.lines[2]
+        _, (low, high) = np.asarray(segments.get_segments()[0]).T
+        assert (low, high) == pytest.approx((100 * row["ci_low"], 100 * row["ci_high"]))
+    assert "t interval" in ax.get_title() and "across participants" in ax.get_title()

@@ -84,10 +84,19 @@ def test_report_and_charts_are_written(full_run):
 def test_headline_reads_like_the_paper(full_run):
     _, _, result = full_run
     crs = result.results["conditions"]["crs"]
-    assert result.headline.startswith(f"crs {100 * crs['accuracy']:.1f} % [")
+    # issue 12: the headline's interval accounts for participants (the pooled Wilson one
+    # stays in the table): the mean of participant accuracies with its t interval
+    shown = crs["headline"]
+    assert shown["accuracy"] == pytest.approx(crs["between_participants"]["mean"])
+    assert shown["ci95"] == pytest.approx(crs["between_participants"]["ci95"])
+    low, high = shown["ci95"]
+    assert result.headline.startswith(f"crs {100 * shown['accuracy']:.1f} % "
+                                      f"[{100 * low:.1f}, {100 * high:.1f}]")
     assert " vs pixel-only " in result.headline and "; GLMM odds ratio " in result.headline
-    assert "(95 % Wilson, pooled trials); GLMM" in result.headline
-    assert "penalised" not in result.headline
+    n = result.results["n_participants"]
+    assert f"(mean of {n} participants, 95 % t interval across participants); GLMM" in \
+        result.headline
+    assert "Wilson" not in result.headline and "penalised" not in result.headline
 
 
 def test_pooled_and_between_participant_accuracy_intervals(full_run):
@@ -168,14 +177,27 @@ def test_separation_every_answer_right_in_one_condition(tmp_path):
     result = _run(tmp_path, _cells(8, {"pixel-only": 0.5, "crs": 1.0}))
     assert result.results["conditions"]["crs"]["accuracy"] == 1.0
     glmm = result.results["comparisons"][0]
-    assert glmm["estimate"] > 1 and glmm["ci95"][1] < 1e6          # finite, penalised
-    assert "; GLMM odds ratio (penalised: a condition at 0 or 100 %, see warnings) " in \
-        result.headline
-    assert glmm["ci_method"].endswith("of the penalised likelihood")
+    # issue 12: the ML odds ratio does not exist; the primary figure is the one-sided limit
+    # of the unpenalised profile, the penalised fit is kept apart and labelled
+    assert glmm["separated"] and glmm["estimate"] is None and glmm["p_wald"] is None
+    low, high = glmm["ci95"]
+    assert 1 < low < 1e6 and high is None
+    assert glmm["ci_method"].startswith("one-sided profile-likelihood limit of the unpenalised")
+    penalised = glmm["penalised"]
+    assert penalised["odds_ratio"] > 1 and penalised["ci95_wald"][1] < 1e6   # finite
+    assert "never the primary figure" in penalised["note"]
+    assert f"; GLMM odds ratio > {low:.3g} (ML estimate infinite" in result.headline
+    assert "upper limit infinite" in result.headline and "penalised" not in result.headline
+    report = result.report_path.read_text()
+    assert "Penalised fit, for orientation only" in report
+    assert f"odds ratio {penalised['odds_ratio']:.4g}" in report
     # every participant at 100 %: the between-participant interval is the point 1
     between = result.results["conditions"]["crs"]["between_participants"]
     assert between["ci95"] == [1.0, 1.0] and "no spread" in between["method"]
-    assert any("separation" in w and "fitted instead with normal priors" in w
+    # ... so the headline shows the pooled interval there, and says why
+    assert "every participant alike" in result.results["conditions"]["crs"]["headline"][
+        "method"]
+    assert any("separation" in w and "penalised by normal priors" in w
                for w in result.warnings)
 
 
@@ -183,6 +205,10 @@ def test_separation_every_answer_wrong_in_one_condition(tmp_path):
     result = _run(tmp_path, _cells(8, {"pixel-only": 0.0, "crs": 0.6}))
     assert result.results["conditions"]["pixel-only"]["ci95"][0] == 0.0
     assert any("is at 0 % correct" in w for w in result.warnings)
+    # the reference at 0 %: crs's odds ratio is infinite too, one-sided from below
+    glmm = result.results["comparisons"][0]
+    assert glmm["separated"] and glmm["ci95"][1] is None and glmm["ci95"][0] > 1
+    assert f"GLMM odds ratio > {glmm['ci95'][0]:.3g} (ML estimate infinite" in result.headline
 
 
 def test_single_participant(tmp_path):

@@ -2,7 +2,8 @@
 speed against accuracy, psychometric functions, charts and the report.
 
 The public entry points are :func:`analyze` / :func:`analyze_dataset` (the whole report),
-:func:`load_datasets` (the tidy trial table) and :func:`load_plan`; they are imported lazily so
+:func:`load_datasets` (the tidy trial table), :func:`load_plan` and :func:`fit_primary`
+(the primary likelihood-ratio tests alone, for power simulations); they are imported lazily so
 that ``import crs_study.analysis.glmm`` does not pull in matplotlib.
 """
 
@@ -18,6 +19,8 @@ _EXPORTS = {
     "LoadedData": "crs_study.analysis.load",
     "load_plan": "crs_study.analysis.plan",
     "AnalysisPlan": "crs_study.analysis.plan",
+    "fit_primary": "crs_study.analysis.primary",
+    "PrimaryFits": "crs_study.analysis.primary",
 }
 
 __all__ = sorted(_EXPORTS)

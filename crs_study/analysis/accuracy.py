@@ -11,6 +11,10 @@ pooled (trial-level) proportion, narrower than the uncertainty about the populat
 participants when participants differ. ``between_participants`` gives that second view: the
 mean of the participants' accuracies with the t interval across participants
 (``scipy.stats.t``; clipped to [0, 1] when it reaches past, and then said so).
+:func:`headline_accuracy` picks, per condition, the figure the headline and the accuracy
+chart show: that participant-level interval, which accounts for the differences between
+participants (with 3 participants the pooled Wilson interval was [42.0, 58.0] where the
+participant-level one is [22.8, 76.8], issue 12).
 """
 
 from __future__ import annotations
@@ -156,3 +160,38 @@ def between_participant_table(by_participant: pd.DataFrame, conditions: tuple[st
         rows.append(row)
     return pd.DataFrame(rows, columns=["condition", "n_participants", "mean", "ci_low",
                                        "ci_high", "method"])
+
+
+#: What the headline and the accuracy chart show for a condition (participant level).
+PARTICIPANT_LEVEL = "mean of participant accuracies, t interval across participants"
+
+
+def headline_accuracy(result: AccuracyResult) -> pd.DataFrame:
+    """Per condition: ``condition, accuracy, ci_low, ci_high, method`` for the headline.
+
+    The mean of the participants' accuracies with the t interval across participants
+    (:func:`between_participant_table`): it accounts for the differences between
+    participants, which the pooled Wilson interval ignores. Where that interval is not
+    defined (one participant) or has no width (every participant alike, a chance event that
+    would state a precision the trials do not have), the pooled Wilson interval of the
+    condition's trials is shown instead, and ``method`` says so.
+    """
+    rows = []
+    between = result.between_participants.set_index("condition")
+    for _, pooled in result.by_condition.iterrows():
+        condition = pooled["condition"]
+        row = between.loc[condition] if condition in between.index else None
+        usable = (row is not None and row["ci_low"] is not None
+                  and not pd.isna(row["ci_low"]) and row["ci_high"] > row["ci_low"])
+        if usable:
+            rows.append({"condition": condition, "accuracy": float(row["mean"]),
+                         "ci_low": float(row["ci_low"]), "ci_high": float(row["ci_high"]),
+                         "method": PARTICIPANT_LEVEL})
+            continue
+        why = ("one participant" if row is None or row["n_participants"] < 2
+               else "every participant alike")
+        rows.append({"condition": condition, "accuracy": float(pooled["accuracy"]),
+                     "ci_low": float(pooled["ci_low"]), "ci_high": float(pooled["ci_high"]),
+                     "method": f"Wilson interval of the pooled trials; {why}, so no "
+                               "participant-level interval"})
+    return pd.DataFrame(rows, columns=["condition", "accuracy", "ci_low", "ci_high", "method"])

@@ -6,13 +6,14 @@ No pyplot state: without ``ax`` a new :class:`matplotlib.figure.Figure` is made 
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from crs_study.analysis.accuracy import AccuracyResult
+from crs_study.analysis.accuracy import PARTICIPANT_LEVEL, AccuracyResult, headline_accuracy
 from crs_study.analysis.confusion import ConfusionResult
 from crs_study.analysis.psychometric import PsychometricResult
 from crs_study.analysis.speed_accuracy import SpeedAccuracyResult
@@ -41,7 +42,14 @@ def save(ax: Axes, path: str | Path, dpi: int = 110) -> Path:
 
 
 def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
-    """Accuracy per condition (Wilson interval) over per-participant lines joining conditions."""
+    """Accuracy per condition over per-participant lines joining conditions.
+
+    The marker and its bar are :func:`~crs_study.analysis.accuracy.headline_accuracy`: the
+    mean of the participants' accuracies with the t interval across participants (it
+    accounts for the differences between participants); the pooled-trial Wilson interval is
+    used, and the title says so, only where that has no width (one participant, or every
+    participant alike).
+    """
     ax = _axes(ax)
     conditions = list(result.by_condition["condition"])
     x = {c: i for i, c in enumerate(conditions)}
@@ -50,7 +58,7 @@ def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
     for _, row in wide.iterrows():
         ax.plot(range(len(conditions)), 100 * row.to_numpy(float), color="0.6", lw=0.8,
                 alpha=0.6, marker="o", ms=3, zorder=1)
-    table = result.by_condition
+    table = headline_accuracy(result)
     for i, row in table.iterrows():
         colour = COLOURS[i % len(COLOURS)]
         acc = 100 * row["accuracy"]
@@ -66,8 +74,15 @@ def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
     ax.set_xlim(-0.5, len(conditions) - 0.5)
     ax.set_ylim(0, 100)
     ax.set_ylabel("correct (%)")
-    ax.set_title(f"Accuracy by condition ({100 * (1 - result.alpha):.0f} % Wilson intervals; "
-                 "grey: participants)", fontsize=9)
+    level = f"{100 * (1 - result.alpha):.0f} %"
+    methods = set(table["method"])
+    if methods == {PARTICIPANT_LEVEL}:
+        title = (f"Accuracy by condition: mean of {wide.shape[0]} participants, {level} t "
+                 "interval\nacross participants (grey: each participant)")
+    else:
+        title = textwrap.fill(f"Accuracy by condition ({level}: " + "; ".join(sorted(methods))
+                              + "); grey: each participant", 70)
+    ax.set_title(title, fontsize=8)
     return ax
 
 

@@ -14,14 +14,18 @@ Where maximum likelihood fails the fit still returns, with a sentence in ``warni
 
 * **separation** (a condition at 100 % or 0 %, or any direction in which the data are
   separated; found by the linear program of Konis 2007, as R's ``detectseparation``): the
-  maximum-likelihood estimate is infinite, so the coefficients get independent normal priors,
-  N(0, 10^2) on the intercept and N(0, 2.5^2) on every other coefficient (the scales of
-  Gelman, Jakulin, Pittau & Su 2008, Ann. Appl. Stat. 2:1360, in the normal form that blme's
-  ``bglmer`` offers as a fixed-effect prior); estimates are then posterior modes, standard
-  errors come from the penalised information;
-* **a variance at zero**: reported as exactly 0, the fixed effects are those of the model
-  without that term; a likelihood-ratio test of that variance is a 50:50 mixture of chi2(0)
-  and chi2(1) (Self & Liang 1987, JASA 82:605);
+  maximum-likelihood estimate is infinite. The result carries ``separation``
+  (:mod:`crs_study.analysis.glmm_separation`): the separated coefficients, the supremum of the
+  unpenalised likelihood (which :func:`lrt` uses) and what :func:`profile_conf_int` needs for
+  the one-sided unpenalised profile limit. The printed coefficients are penalised, for
+  orientation only: independent normal priors, N(0, 10^2) on the intercept and N(0, 2.5^2) on
+  every other coefficient (the scales of Gelman, Jakulin, Pittau & Su 2008, Ann. Appl. Stat.
+  2:1360, in the normal form that blme's ``bglmer`` offers as a fixed-effect prior); posterior
+  modes, standard errors from the penalised information;
+* **a variance at zero**: reported as exactly 0 only when the likelihood falls as the variance
+  moves inward (:mod:`crs_study.analysis.glmm_optimise`); the fixed effects are those of the
+  model without that term; a likelihood-ratio test of that variance is a 50:50 mixture of
+  chi2(0) and chi2(1) (Self & Liang 1987, JASA 82:605);
 * **a grouping factor with one level** (a single participant): no variance is estimable, the
   term is dropped; with none left the model is a logistic regression by statsmodels' GLM;
 * **a level with no rows** (a missing condition) or aliased design columns: dropped.
@@ -29,13 +33,14 @@ Where maximum likelihood fails the fit still returns, with a sentence in ``warni
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import optimize, stats
+from scipy import stats
 from scipy.special import gammaln
 
 from crs_study.analysis.glmm_core import (
@@ -47,6 +52,12 @@ from crs_study.analysis.glmm_core import (
 )
 from crs_study.analysis.glmm_fit import fit_glm, optimise, profile_interval, profile_sd_interval
 from crs_study.analysis.glmm_result import P_FLOOR, GlmmResult, LrtResult, format_pvalue
+from crs_study.analysis.glmm_separation import (
+    Separation,
+    one_sided_limit,
+    separated_rows,
+    separation_direction,
+)
 from crs_study.errors import AnalysisError
 
 __all__ = ["fit_glmm", "lrt", "profile_conf_int", "profile_sd_conf_int", "GlmmResult",
@@ -118,10 +129,12 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     Notes
     -----
     Maximises the Laplace or AGQ marginal log-likelihood jointly over ``(beta, sigma)``
-    (lme4's second optimisation stage) with scipy (TNC, then L-BFGS-B if needed), subject to
-    ``sigma >= 0``, from ``beta = 0, sigma = 1``. Standard errors: the inverse of the observed
-    information of that objective, fixed-effects block (lme4's ``calc.vcov.hess``), the
-    Hessian by central differences of the exact gradient.
+    (lme4's second optimisation stage) with scipy (TNC, then L-BFGS-B if needed), every sigma
+    unconstrained (the likelihood is even in it), from ``beta = 0, sigma = 1``; a sigma near
+    0 is set to 0 only when the variance-scale slope there is <= 0, otherwise the fit restarts
+    from interior points (:func:`~.glmm_optimise.maximise`). Standard errors: the inverse of
+    the observed information of that objective, fixed-effects block (lme4's
+    ``calc.vcov.hess``), the Hessian by central differences of the exact gradient.
     """
     notes: list[str] = []
     group_list = [groups] if isinstance(groups, str) else list(groups)
@@ -134,7 +147,9 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     if method == "agq" and len(kept) > 1:
         raise AnalysisError(f"adaptive quadrature needs a single random intercept (as lme4's "
                             f"nAGQ > 1); got crossed groups {kept!r}: use method='laplace'")
-    separated = _separated_coefficients(X, y, m, names)
+    direction = separation_direction(X, y, m, _row_codes)
+    separated = [] if direction is None else [
+        n for n, d in zip(names, direction, strict=True) if d != 0]
     prior_sd = None
     penalty = None
     if separated:
@@ -143,8 +158,10 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
         penalty = (f"normal priors N(0, {PRIOR_SD_INTERCEPT:g}^2) on the intercept and "
                    f"N(0, {PRIOR_SD_COEFFICIENT:g}^2) on the other coefficients")
         notes.append(f"complete or quasi-complete separation: the maximum-likelihood estimate of "
-                     f"{separated!r} is infinite (a condition at 100 % or 0 % correct?); fitted "
-                     f"instead with {penalty} (posterior mode); treat p-values as approximate")
+                     f"{separated!r} is infinite (a condition at 100 % or 0 % correct?); the "
+                     f"estimates are penalised by {penalty} (posterior mode), the "
+                     f"likelihood-ratio test and the one-sided profile limits use the "
+                     f"unpenalised likelihood and its supremum")
     fixed_text = fixed if isinstance(fixed, str) else "<design matrix>"
     try:
         if not kept and prior_sd is None:
@@ -159,11 +176,19 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
         else:
             model = CrossedFactors(binomial)
         problem = _Problem(model, names, tuple(kept), prior_sd, user_constant)
-        return optimise(problem, len(data), response, fixed_text, tuple(group_list),
-                        "glm" if not kept else method,
-                        n_quadrature if method == "agq" and kept else (1 if kept else 0),
-                        {g: int(c.max()) + 1 for g, c in zip(kept, codes, strict=True)},
-                        penalty, notes)
+        result = optimise(problem, len(data), response, fixed_text, tuple(group_list),
+                          "glm" if not kept else method,
+                          n_quadrature if method == "agq" and kept else (1 if kept else 0),
+                          {g: int(c.max()) + 1 for g, c in zip(kept, codes, strict=True)},
+                          penalty, notes)
+        if direction is None:
+            return result
+        sup = _supremum(data, response, trials, group_list, method, n_quadrature, X, names,
+                        direction)
+        unpenalised = _Problem(model, names, tuple(kept), None, user_constant)
+        return dataclasses.replace(result, separation=Separation(
+            tuple(separated), tuple(int(np.sign(d)) for d in direction if d != 0), sup,
+            unpenalised))
     except _NUMERICAL_ERRORS as exc:
         raise GlmmFitError(f"numerical failure while maximising the likelihood "
                            f"({type(exc).__name__}: {exc})") from exc
@@ -295,15 +320,19 @@ def _group_codes(data: pd.DataFrame, group_list: list[str], notes: list[str]):
 def _row_codes(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Index of each row's distinct value (rows of a 2-D array) and one row per distinct value.
 
-    Column-wise 1-D factorisation combined in mixed radix: much faster than
-    ``np.unique(axis=0)``, which sorts rows as opaque byte strings.
+    Column-wise hashed factorisation (``pandas.factorize``, sorted codes) combined in mixed
+    radix: much faster than ``np.unique(axis=0)``, which sorts rows as opaque byte strings,
+    or ``np.unique`` per column; the distinct rows come in sorted key order, as ``np.unique``
+    gives them, so the pooled rows do not depend on the order of the data.
     """
     key = np.zeros(len(columns), dtype=np.int64)
     for col in columns.T:
-        _, inverse = np.unique(col, return_inverse=True)
-        key = key * (int(inverse.max()) + 1) + inverse
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    return inverse.ravel(), columns[first]
+        inverse, uniques = pd.factorize(col, sort=True)
+        key = key * len(uniques) + inverse
+    inverse, uniques = pd.factorize(key, sort=True)
+    first = np.empty(len(uniques), dtype=np.intp)
+    first[inverse[::-1]] = np.arange(len(key) - 1, -1, -1)
+    return inverse.astype(np.intp), columns[first]
 
 
 def _pool(X, y, m, codes) -> BinomialData:
@@ -319,30 +348,19 @@ def _unpooled(X, y, m, codes) -> BinomialData:
     return BinomialData(X, y, m, tuple(codes), tuple(int(c.max()) + 1 for c in codes))
 
 
-def _separated_coefficients(X, y, m, names) -> list[str]:
-    """Coefficients whose ML estimate is infinite (Konis 2007 linear program).
-
-    Finds a direction ``d`` with ``x_i'd >= 0`` on rows with only successes, ``<= 0`` on rows
-    with only failures, ``= 0`` on mixed rows, maximising the total margin; a positive
-    optimum means (quasi-)complete separation, and ``d``'s non-zero entries name the
-    coefficients that run away.
-    """
-    inverse, key = _row_codes(X)
-    ys, ms = np.bincount(inverse, y), np.bincount(inverse, m)
-    keep = ms > 0
-    key, ys, ms = key[keep], ys[keep], ms[keep]
-    sign = np.where(ys == ms, 1.0, np.where(ys == 0, -1.0, 0.0))
-    if not np.any(sign):
-        return []
-    signed = key[sign != 0] * sign[sign != 0, None]
-    mixed = key[sign == 0]
-    res = optimize.linprog(-signed.sum(axis=0), A_ub=-signed, b_ub=np.zeros(len(signed)),
-                           A_eq=mixed if len(mixed) else None,
-                           b_eq=np.zeros(len(mixed)) if len(mixed) else None,
-                           bounds=[(-1, 1)] * X.shape[1], method="highs")
-    if res.status != 0 or -res.fun <= 1e-7:
-        return []
-    return [n for n, d in zip(names, res.x, strict=True) if abs(d) > 1e-7]
+def _supremum(data, response, trials, group_list, method, n_quadrature, X, names,
+              direction) -> float:
+    """The supremum of the unpenalised log-likelihood of separated data: the maximum over the
+    rows that the separation does not push to 0 or 1 (those contribute 0 in the limit, and
+    their binomial constants are 0). See :mod:`crs_study.analysis.glmm_separation`."""
+    keep = ~separated_rows(X, direction)
+    if not keep.any():
+        return 0.0
+    rest = data.loc[keep]
+    design = pd.DataFrame(X[keep], columns=names, index=rest.index)
+    fit = fit_glmm(rest, response, design, group_list, trials=trials, method=method,
+                   n_quadrature=n_quadrature)
+    return fit.separation.sup_loglike if fit.separation else fit.loglike
 
 
 # ----------------------------------------------------------------------------- inference
@@ -370,12 +388,15 @@ def lrt(full: GlmmResult, reduced: GlmmResult) -> LrtResult:
             reduced.variance_components.index) <= set(full.variance_components.index):
         notes.append("the reduced model's terms are not a subset of the full model's; check "
                      "that the models are nested")
-    if full.penalty or reduced.penalty:
-        notes.append("a fit is penalised against separation: the likelihood ratio is "
-                     "approximate")
+    if full.separation or reduced.separation:
+        notes.append("separation: a separated model enters the test with the supremum of its "
+                     "unpenalised log-likelihood (the separated coefficients at infinity), not "
+                     "with its penalised fit")
     notes += [f"full model: {w}" for w in full.warnings]
     notes += [f"reduced model: {w}" for w in reduced.warnings]
-    statistic = 2.0 * (full.loglike - reduced.loglike)
+    loglike_full, loglike_reduced = (r.separation.sup_loglike if r.separation else r.loglike
+                                     for r in (full, reduced))
+    statistic = 2.0 * (loglike_full - loglike_reduced)
     if statistic < -1e-6:
         notes.append(f"the reduced model fits better than the full one (statistic "
                      f"{statistic:.3g}): an optimisation failed; statistic set to 0")
@@ -393,7 +414,7 @@ def lrt(full: GlmmResult, reduced: GlmmResult) -> LrtResult:
             notes.append("several variances tested at once: the chi2 reference is conservative")
     return LrtResult(statistic=float(statistic), df=int(df),
                      pvalue=float(max(pvalue, P_FLOOR)), distribution=distribution,
-                     loglike_full=full.loglike, loglike_reduced=reduced.loglike,
+                     loglike_full=loglike_full, loglike_reduced=loglike_reduced,
                      warnings=tuple(notes))
 
 
@@ -402,8 +423,10 @@ def profile_conf_int(result: GlmmResult, level: float = 0.95,
     """Profile-likelihood intervals of fixed effects (lme4's ``confint(method = "profile")``).
 
     Columns ``ci_low``, ``ci_high`` (log-odds); an end is infinite when the profile does not
-    drop by ``chi2_1(level) / 2`` within 2^12 standard errors. A fit penalised against
-    separation is profiled on its penalised likelihood.
+    drop by ``chi2_1(level) / 2`` within 2^12 standard errors. A coefficient whose ML estimate
+    is infinite (separation) gets the one-sided limit of the *unpenalised* profile against the
+    supremum, the other end infinite (:func:`~.glmm_separation.one_sided_limit`); the other
+    coefficients of a separated fit are profiled on its penalised likelihood.
     """
     _check_profilable(result)
     names = list(result.params.index) if terms is None else list(terms)
@@ -411,12 +434,20 @@ def profile_conf_int(result: GlmmResult, level: float = 0.95,
     if unknown:
         raise AnalysisError(f"unknown term {unknown[0]!r}; terms: {list(result.params.index)!r}")
     try:
-        rows = {t: profile_interval(result, list(result.params.index).index(t), level)
-                for t in names}
+        rows = {t: _profile_term(result, t, level) for t in names}
     except _NUMERICAL_ERRORS as exc:
         raise GlmmFitError(f"numerical failure while profiling the likelihood "
                            f"({type(exc).__name__}: {exc})") from exc
     return pd.DataFrame.from_dict(rows, orient="index", columns=["ci_low", "ci_high"])
+
+
+def _profile_term(result: GlmmResult, term: str, level: float) -> tuple[float, float]:
+    index = list(result.params.index).index(term)
+    separation = result.separation
+    if separation is not None and term in separation.coefficients:
+        return one_sided_limit(separation, list(result.params.index), result._model[1], term,
+                               level)
+    return profile_interval(result, index, level)
 
 
 def profile_sd_conf_int(result: GlmmResult, level: float = 0.95) -> pd.DataFrame:

@@ -8,85 +8,57 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
+from crs_study.analysis.glmm_optimise import Optimum, boundary_failures, maximise
 from crs_study.analysis.glmm_result import GlmmResult
 
-_BOUNDARY_SIGMA = 1e-4  # a standard deviation below this is the boundary value 0
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
-# Truncated Newton with bounds (scipy's C TNC): as accurate as L-BFGS-B here and free of the
-# per-iteration BLAS calls that make scipy's L-BFGS-B ~10x slower on a busy multi-threaded
-# OpenBLAS; L-BFGS-B is the second try when TNC stops short.
-_METHODS = (("TNC", {"maxfun": 3000, "ftol": 1e-14, "gtol": 1e-9, "xtol": 1e-10}),
-            ("L-BFGS-B", {"maxiter": 3000, "ftol": 1e-15, "gtol": 1e-7}))
+_END_TOLERANCE = 5e-5       # Brent's tolerance on a profile end (log-odds or SD)
 
 
-class _Counted:
-    """Wraps an objective for the minimiser: ``-value``, ``-gradient``, counts calls."""
-
-    def __init__(self, problem, fixed_values: dict[int, float]):
-        self.problem = problem
-        self.fixed_values = fixed_values  # parameter index -> value held fixed
-        self.calls = 0
-
-    def full(self, free: np.ndarray) -> np.ndarray:
-        theta = np.empty(len(free) + len(self.fixed_values))
-        mask = np.ones(len(theta), bool)
-        for i, v in self.fixed_values.items():
-            theta[i], mask[i] = v, False
-        theta[mask] = free
-        return theta
-
-    def __call__(self, free: np.ndarray):
-        self.calls += 1
-        value, g = self.problem.objective(self.full(free))
-        keep = [i for i in range(len(g)) if i not in self.fixed_values]
-        if not np.isfinite(value):
-            return np.inf, np.zeros(len(free))
-        return -value, -g[keep]
-
-
-def _minimise(problem, start: np.ndarray, fixed_values: dict[int, float]):
-    """Minimise ``-objective`` over the parameters not in ``fixed_values`` (sigma >= 0)."""
-    counted = _Counted(problem, fixed_values)
-    free_index = [i for i in range(len(start)) if i not in fixed_values]
-    bounds = [(None, None) if i < problem.n_fixed else (0.0, None) for i in free_index]
-    x = start[free_index]
-    for method, options in _METHODS:
-        res = optimize.minimize(counted, x, jac=True, method=method, bounds=bounds,
-                                options=options)
-        x = res.x
-        _, g = counted(x)
-        inward = [k for k, i in enumerate(free_index)
-                  if i < problem.n_fixed or x[k] > 0 or g[k] < 0]
-        if not inward or 2.0 * np.max(np.abs(g[inward])) < _CONVERGED_GRADIENT * 1e-2:
-            break
-    return counted.full(x), res, counted.calls
+def _minimise(problem, start: np.ndarray, fixed_values: dict[int, float]
+              ) -> tuple[np.ndarray, Optimum, int]:
+    """``(theta, optimum, evaluations)`` of :func:`~.glmm_optimise.maximise` with
+    ``fixed_values`` held (kept for callers of the earlier name)."""
+    opt = maximise(problem, start, fixed_values)
+    return opt.theta, opt, opt.evaluations
 
 
 def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, ...],
              method: str, n_quadrature: int, n_groups: dict[str, int], penalty: str | None,
              notes: list[str]) -> GlmmResult:
-    """Maximise the (penalised) marginal log-likelihood and assemble the result."""
+    """Maximise the (penalised) marginal log-likelihood and assemble the result.
+
+    From ``beta = 0, sigma = 1`` (lme4's start), by :func:`~.glmm_optimise.maximise`: sigmas
+    unconstrained, a variance reported at 0 only when its variance-scale slope at 0 says the
+    likelihood falls inward. ``converged`` is true when the gradient over the parameters not
+    on the boundary is within lme4's tolerance (``2 max |dl/dtheta| < 2e-3``, or the
+    Newton step ``H^-1 g`` below 1e-4 as lme4 scales it) *and* every boundary variance passed
+    that check; each boundary or singular-fit sentence is a measured statement.
+    """
     n_fixed, n_var = problem.n_fixed, problem.model.n_variance
     start = np.r_[np.zeros(n_fixed), np.ones(n_var)]  # lme4 starts at theta = 1
-    theta, res, calls = _minimise(problem, start, {})
-    iterations = int(res.nit)
-    at_zero = {n_fixed + k: 0.0 for k in range(n_var) if theta[n_fixed + k] < _BOUNDARY_SIGMA}
-    if at_zero:  # re-fit on the boundary so the fixed effects are exactly those at sigma = 0
-        theta, res, more = _minimise(problem, theta, at_zero)
-        calls += more
-        iterations += int(res.nit)
-        for k in at_zero:
-            g = problem.groups[k - n_fixed]
-            notes.append(f"the variance of the random intercept for {g!r} is estimated at 0 "
-                         f"(boundary, a singular fit): the data show no variation between "
-                         f"{g!r} levels beyond chance; a likelihood-ratio test of this variance "
-                         f"follows a 50:50 mixture of chi2(0) and chi2(1)")
+    opt = maximise(problem, start)
+    theta, at_zero = opt.theta, opt.at_zero
+    failed = boundary_failures(opt)
+    for k, slope in at_zero.items():
+        g = problem.groups[k - n_fixed]
+        if k in failed:
+            notes.append(f"the variance of the random intercept for {g!r} ended at 0 although "
+                         f"the likelihood rises as it moves inward (d loglik / d variance = "
+                         f"{slope:.3g} at 0) and no interior start found a higher maximum; "
+                         f"estimates may be unreliable")
+            continue
+        notes.append(f"the variance of the random intercept for {g!r} is estimated at 0 "
+                     f"(boundary, a singular fit): the likelihood falls as the variance moves "
+                     f"inward from 0 (d loglik / d variance = {slope:.3g} at 0, every other "
+                     f"parameter re-maximised); a likelihood-ratio test of this variance "
+                     f"follows a 50:50 mixture of chi2(0) and chi2(1)")
     value, gradient = problem.objective(theta)
     free = [i for i in range(len(theta)) if i not in at_zero]
     information = -_hessian(problem, theta, free)
     max_grad = float(np.max(np.abs(gradient[free]))) if free else 0.0
     converged = bool(np.isfinite(value) and 2.0 * max_grad < _CONVERGED_GRADIENT)
-    if not converged:
+    if not converged and np.isfinite(value):
         try:  # lme4 scales the gradient by the Hessian before judging it
             step = np.linalg.solve(information, gradient[free])
             converged = bool(np.max(np.abs(step)) < 1e-4)
@@ -94,7 +66,8 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
             pass
     if not converged:
         notes.append(f"the optimiser did not converge (max |gradient| {max_grad:.3g}, "
-                     f"{res.message}); estimates may be unreliable")
+                     f"{opt.message}); estimates may be unreliable")
+    converged = converged and not failed
     cov = _fixed_covariance(information, n_fixed, notes)
     names = problem.names
     loglike = float(problem.model.loglik(theta, grad=False)) + problem.user_constant
@@ -105,10 +78,10 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
         variance_components=pd.Series(theta[n_fixed:] ** 2, index=list(problem.groups),
                                       name="variance", dtype=float),
         loglike=loglike, nobs=nobs, n_groups=n_groups, method=method,
-        n_quadrature=n_quadrature, converged=converged, n_function_evaluations=calls,
-        n_iterations=iterations, max_abs_gradient=max_grad, response=response, fixed=fixed,
-        groups=groups, penalty=penalty, warnings=tuple(notes),
-        _model=(problem, theta, tuple(at_zero)))
+        n_quadrature=n_quadrature, converged=converged,
+        n_function_evaluations=opt.evaluations, n_iterations=opt.iterations,
+        max_abs_gradient=max_grad, response=response, fixed=fixed, groups=groups,
+        penalty=penalty, warnings=tuple(notes), _model=(problem, theta, tuple(at_zero)))
 
 
 def _hessian(problem, theta: np.ndarray, free: list[int]) -> np.ndarray:
@@ -197,14 +170,15 @@ def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes,
 def profile_interval(result: GlmmResult, index: int, level: float) -> tuple[float, float]:
     """Profile-likelihood interval of fixed effect ``index``: ``2 (l_max - l_prof(b)) = chi2``.
 
-    Each profile point re-maximises over the other parameters (Venzon & Moolgavkar 1988 in
-    the plain bracketing form); the ends are found with Brent's method. A variance estimated
-    at 0 stays at 0 (the fit's own boundary), so with every variance at 0 this is the
-    logistic regression's profile interval.
+    Each profile point re-maximises over every other parameter, every variance included (a
+    variance estimated at 0 is free to move inward at other values of ``b``: holding it at 0
+    gave intervals too narrow with few trials per cell, issue 12), by the same boundary-checked
+    :func:`~.glmm_optimise.maximise` as the fit (Venzon & Moolgavkar 1988 in the plain
+    bracketing form); the ends are found with Brent's method.
     """
-    problem, theta_hat, at_zero = result._model
+    problem, theta_hat, _ = result._model
     se = float(result.bse.iloc[index]) if np.isfinite(result.bse.iloc[index]) else 1.0
-    drop = _profile_drop(problem, theta_hat, index, {k: 0.0 for k in at_zero}, level)
+    drop = _profile_drop(problem, theta_hat, index, level)
     low = _profile_end(drop, theta_hat[index], -2.0 * se)
     high = _profile_end(drop, theta_hat[index], 2.0 * se)
     problem.objective(theta_hat)  # restore the warm start at the optimum
@@ -215,24 +189,24 @@ def profile_sd_interval(result: GlmmResult, k: int, level: float) -> tuple[float
     """Profile-likelihood interval of the ``k``-th random-intercept standard deviation.
 
     As lme4's ``confint(method = "profile")`` for ``.sig0k``: the ends are where ``2 (l_max -
-    l_prof(sigma)) = chi2_1(level)``, every other parameter re-maximised. The standard
-    deviation cannot be negative: when the profile at ``sigma = 0`` is still within the cutoff
-    the lower end is 0 (always so when the estimate itself is 0); the upper end is infinite
-    when the profile never drops that far (a flat likelihood, e.g. two groups).
+    l_prof(sigma)) = chi2_1(level)``, every other parameter (other variances included)
+    re-maximised. The standard deviation cannot be negative: when the profile at ``sigma =
+    0`` is still within the cutoff the lower end is 0 (always so when the estimate itself is
+    0); the upper end is infinite when the profile never drops that far (a flat likelihood,
+    e.g. two groups).
     """
-    problem, theta_hat, at_zero = result._model
+    problem, theta_hat, _ = result._model
     index = problem.n_fixed + k
-    others = {j: 0.0 for j in at_zero if j != index}
-    drop = _profile_drop(problem, theta_hat, index, others, level)
+    drop = _profile_drop(problem, theta_hat, index, level)
     sigma = float(theta_hat[index])
-    low = 0.0 if drop(0.0) <= 0.0 else float(optimize.brentq(drop, 0.0, sigma, xtol=1e-5))
+    low = 0.0 if drop(0.0) <= 0.0 else float(optimize.brentq(drop, 0.0, sigma,
+                                                              xtol=_END_TOLERANCE))
     high = _profile_end(drop, sigma, max(0.5 * sigma, 0.25))
     problem.objective(theta_hat)
     return low, high
 
 
-def _profile_drop(problem, theta_hat: np.ndarray, index: int, held: dict[int, float],
-                  level: float):
+def _profile_drop(problem, theta_hat: np.ndarray, index: int, level: float):
     """``b -> sqrt(2 (l_max - l_prof(b))) - sqrt(chi2_1(level))``: negative inside the
     interval. On this signed-root scale (lme4's ``zeta``) the profile is nearly linear, so
     Brent's method needs few points."""
@@ -249,13 +223,17 @@ def _profile_drop(problem, theta_hat: np.ndarray, index: int, held: dict[int, fl
         # start from the nearest optimum on the same side of the estimate, never from the
         # other end's search (on a likelihood with several peaks that start could land lower
         # and overstate the drop, placing the end too close)
-        side = [v for v in optima if (v - centre) * (value - centre) >= 0]
-        start = optima[min(side, key=lambda v: abs(v - value))].copy()
+        side = sorted((v for v in optima if (v - centre) * (value - centre) >= 0),
+                      key=lambda v: abs(v - value))
+        start = optima[side[0]].copy()
+        if len(side) > 1:   # the other parameters extrapolated along the profile trace
+            a, b = side[0], side[1]
+            start = start + (value - a) / (a - b) * (optima[a] - optima[b])
+            start[problem.n_fixed:] = np.abs(start[problem.n_fixed:])
         start[index] = value
-        theta, _, _ = _minimise(problem, start, {**held, index: value})
-        optima[float(value)] = theta
-        known[float(value)] = float(np.sqrt(2.0 * max(
-            top - problem.objective(theta, grad=False), 0.0))) - target
+        opt = maximise(problem, start, {index: value}, profile=True)
+        optima[float(value)] = opt.theta
+        known[float(value)] = float(np.sqrt(2.0 * max(top - opt.value, 0.0))) - target
         return known[float(value)]
 
     return drop
@@ -267,6 +245,6 @@ def _profile_end(drop, estimate: float, step: float) -> float:
     for _ in range(12):
         if drop(estimate + step) > 0:
             a, b = sorted((estimate, estimate + step))
-            return float(optimize.brentq(drop, a, b, xtol=1e-5))
+            return float(optimize.brentq(drop, a, b, xtol=_END_TOLERANCE))
         step *= 2.0
     return float(np.copysign(np.inf, step))

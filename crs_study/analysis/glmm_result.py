@@ -74,6 +74,8 @@ class GlmmResult:
     penalty: str | None = None  # the prior used against separation, if any
     warnings: tuple[str, ...] = ()
     _model: object = field(default=None, repr=False, compare=False)
+    #: :class:`~crs_study.analysis.glmm_separation.Separation` when an ML estimate is infinite
+    separation: object = None
 
     @property
     def n_params(self) -> int:
@@ -139,6 +141,7 @@ class GlmmResult:
             "loglike": self.loglike, "aic": self.aic, "bic": self.bic,
             "deviance": self.deviance, "nobs": self.nobs, "n_groups": dict(self.n_groups),
             "converged": self.converged, "penalty": self.penalty,
+            "separation": None if self.separation is None else self.separation.to_dict(),
             "warnings": list(self.warnings)}
 
     def summary(self) -> str:

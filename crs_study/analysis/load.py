@@ -261,7 +261,8 @@ def _read_session(tsv: Path, dataset: str, file_number: int
                "file": str(tsv), "n_rows": len(raw),
                **{k: meta.get(k) for k in ("Status", "Seed", "SoftwareVersion", "StartTime",
                                            "EndTime", "ConsentFormVersion", "DeviceURL",
-                                           "Clock", "ProtocolPath", "TrialsSha256")}}
+                                           "Responder", "Clock", "ProtocolPath",
+                                           "TrialsSha256")}}
     summary["Protocol"] = meta.get("Protocol")
     summary["_sha256"] = sha256_bytes(data)   # for the copy check; popped by load_datasets
     return raw, summary, problems

@@ -33,6 +33,7 @@ from scipy import stats
 
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
+from crs_study.errors import AnalysisError
 
 GROUP_COLUMNS = {"participant": "participant_id", "digit": "digit"}
 
@@ -44,13 +45,18 @@ class Comparison:
     ``ci95`` is the interval at the plan's level (95 % unless alpha differs), of the kind
     ``ci_method`` names (profile likelihood for the GLMM); ``ci95_wald`` the Wald interval
     when the GLMM gave one; ``p_value`` the method's p; ``p_wald`` and ``p_lr`` both when the
-    GLMM gave them (else None).
+    GLMM gave them (else None). ``separated``: the condition's ML odds ratio is infinite
+    (every trial of one condition right, or wrong); then ``estimate``, ``log_odds``,
+    ``std_error``, ``p_wald`` and ``ci95_wald`` are None, ``ci95`` holds the one-sided
+    unpenalised profile limit (the other end None: infinite), ``p_value`` is the
+    likelihood-ratio p at the supremum, and ``penalised`` the penalised fit's odds ratio, Wald
+    interval and p, labelled so and never the primary figure.
     """
 
     condition: str
     reference: str
     method: str
-    estimate: float
+    estimate: float | None   # None: the ML estimate does not exist (separation)
     ci95: tuple[float | None, float | None]  # None: the profile gives no finite end
     p_value: float
     p_wald: float | None = None
@@ -59,6 +65,8 @@ class Comparison:
     std_error: float | None = None
     ci_method: str = ""
     ci95_wald: tuple[float, float] | None = None
+    separated: bool = False
+    penalised: dict | None = None
 
     def to_dict(self) -> dict:
         return {"condition": self.condition, "reference": self.reference,
@@ -66,7 +74,8 @@ class Comparison:
                 "ci_method": self.ci_method,
                 "ci95_wald": None if self.ci95_wald is None else list(self.ci95_wald),
                 "p_value": self.p_value, "p_wald": self.p_wald, "p_lr": self.p_lr,
-                "log_odds": self.log_odds, "std_error": self.std_error}
+                "log_odds": self.log_odds, "std_error": self.std_error,
+                "separated": self.separated, "penalised": self.penalised}
 
 
 @dataclass(frozen=True)
@@ -80,6 +89,118 @@ class PrimaryResult:
 
     def to_frame(self) -> pd.DataFrame:
         return pd.DataFrame([c.to_dict() for c in self.comparisons])
+
+
+@dataclass(frozen=True)
+class LrComparison:
+    """The likelihood-ratio test of one condition against the reference (no profiles).
+
+    ``log_odds`` / ``odds_ratio``: the ML estimate, None when it is infinite (``separated``)
+    or the coefficient was dropped; ``test`` is None when the reduced model could not be
+    fitted (``error`` says why) or the coefficient was dropped.
+    """
+
+    condition: str
+    reference: str
+    column: str
+    full: object = field(repr=False)
+    reduced: object = field(default=None, repr=False)
+    test: object = None
+    error: str | None = None
+
+    @property
+    def separated(self) -> bool:
+        sep = self.full.separation
+        return sep is not None and self.column in sep.coefficients
+
+    @property
+    def log_odds(self) -> float | None:
+        if self.column not in self.full.params.index or self.separated:
+            return None
+        return float(self.full.params[self.column])
+
+    @property
+    def odds_ratio(self) -> float | None:
+        return None if self.log_odds is None else float(np.exp(self.log_odds))
+
+    @property
+    def p_value(self) -> float | None:
+        return None if self.test is None else floor_p(self.test.pvalue)
+
+    def to_dict(self) -> dict:
+        test = self.test
+        return {"condition": self.condition, "reference": self.reference,
+                "log_odds": self.log_odds, "odds_ratio": self.odds_ratio,
+                "separated": self.separated, "p_value": self.p_value,
+                "statistic": None if test is None else test.statistic,
+                "df": None if test is None else test.df,
+                "distribution": None if test is None else test.distribution,
+                "loglike_full": None if test is None else test.loglike_full,
+                "loglike_reduced": None if test is None else test.loglike_reduced,
+                "converged": bool(self.full.converged and (
+                    self.reduced is None or self.reduced.converged)),
+                "error": self.error}
+
+
+@dataclass(frozen=True)
+class PrimaryFits:
+    """The full model and one likelihood-ratio test per non-reference condition."""
+
+    full: object = field(repr=False)
+    tests: tuple[LrComparison, ...]
+    method: str
+    warnings: tuple[str, ...] = ()
+
+    def to_frame(self) -> pd.DataFrame:
+        return pd.DataFrame([t.to_dict() for t in self.tests])
+
+
+def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
+                random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
+                n_quadrature: int = 25) -> PrimaryFits:
+    """Fit the full model and, per condition, the model without it: the primary LR tests.
+
+    No profiles, no files, no report: the unit of work of a power simulation (the same fits
+    and tests :func:`primary_test` reports). ``trials`` has ``correct`` (0/1 per row, or the
+    number correct when an ``n_trials`` column gives the trials of each row: the aggregated
+    form, same likelihood), ``condition``, ``participant_id`` and ``digit``; rows with
+    ``correct`` missing are left out. ``conditions`` must hold ``reference`` and another
+    condition. A failure of the full fit raises :class:`GlmmFitError`; of a reduced fit, that
+    test's ``error``. A separated condition (ML odds ratio infinite) is tested at the
+    supremum of the likelihood (:mod:`crs_study.analysis.glmm_separation`).
+    """
+    if len(conditions) < 2 or reference not in conditions:
+        raise AnalysisError(f"the primary test needs the reference {reference!r} and another "
+                            f"condition, got {conditions!r}")
+    columns = ["correct", "condition", "participant_id", "digit"]
+    columns += ["n_trials"] if "n_trials" in trials.columns else []
+    data = trials.loc[trials["correct"].notna(), columns].reset_index(drop=True)
+    data = data.loc[data["condition"].isin(conditions)].reset_index(drop=True)
+    notes = []
+    groups = [GROUP_COLUMNS[g] for g in random_effects]
+    if method == "agq" and len(groups) > 1:
+        notes.append("adaptive quadrature needs a single random intercept: fitted with the "
+                     "Laplace approximation instead")
+        method = "laplace"
+    counts = "n_trials" if "n_trials" in data.columns else None
+    full_design = design(data, conditions, reference)
+    full = _fit(data, full_design, groups, method, n_quadrature, counts)
+    tests = []
+    for column in full_design.columns[1:]:
+        condition = column[len("condition["):-1]
+        if column not in full.params.index:
+            tests.append(LrComparison(condition, reference, column, full,
+                                      error="coefficient dropped (no trials or aliased)"))
+            continue
+        try:
+            reduced = _fit(data, full_design.drop(columns=column), groups, method,
+                           n_quadrature, counts)
+        except GlmmFitError as exc:
+            tests.append(LrComparison(condition, reference, column, full, error=str(exc)))
+            continue
+        tests.append(LrComparison(condition, reference, column, full, reduced,
+                                  _lrt(full, reduced)))
+    return PrimaryFits(full, tuple(tests), method, tuple(notes))
 
 
 def design(trials: pd.DataFrame, conditions: list[str], reference: str) -> pd.DataFrame:
@@ -97,84 +218,86 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                  n_quadrature: int = 25, alpha: float = 0.05) -> PrimaryResult:
     """Fit the GLMM on the answered ``trials`` and compare each condition with ``reference``.
 
-    ``conditions`` are those present in the data, ``reference`` among them.
+    ``conditions`` are those present in the data, ``reference`` among them. The fits and LR
+    tests are :func:`fit_primary`'s; this adds the profile intervals, the omnibus test and
+    the model summary.
     """
-    data = trials.loc[trials["correct"].notna(), ["correct", "condition", "participant_id",
-                                                  "digit"]].reset_index(drop=True)
-    data = data.loc[data["condition"].isin(conditions)].reset_index(drop=True)
     warnings: list[str] = []
     if len(conditions) < 2 or reference not in conditions:
         warnings.append(f"primary test not run: it needs the reference and at least one other "
                         f"condition with trials, found {conditions!r}")
         return PrimaryResult((), None, None, tuple(warnings))
-    groups = [GROUP_COLUMNS[g] for g in random_effects]
-    if method == "agq" and len(groups) > 1:
-        warnings.append("adaptive quadrature needs a single random intercept: fitted with the "
-                        "Laplace approximation instead")
-        method = "laplace"
-    full_design = design(data, conditions, reference)
     try:
-        full = _fit(data, full_design, groups, method, n_quadrature)
+        fits = fit_primary(trials, conditions, reference, random_effects, method, n_quadrature)
     except GlmmFitError as exc:  # numerical only: a wrong method or n_quadrature raises
         warnings.append(f"the mixed model could not be fitted ({exc}); reported Fisher's exact "
                         "test on the pooled 2 x 2 table of each condition against the reference "
                         "instead, which ignores the repeated measures")
+        data = trials.loc[trials["correct"].notna() & trials["condition"].isin(conditions)]
         return PrimaryResult(_fisher_comparisons(data, conditions, reference, alpha), None,
                              None, tuple(warnings))
+    full = fits.full
+    warnings += list(fits.warnings)
     warnings += [f"GLMM: {w}" for w in full.warnings]
     seen = set(full.warnings)
     for group in full.boundary:
         warnings.append(f"GLMM: with the {group.removesuffix('_id')} variance at 0 the odds "
-                        "ratios and intervals are those of the logistic regression without "
-                        "that random intercept (the same model at variance 0)")
+                        "ratios and Wald intervals are those of the logistic regression without "
+                        "that random intercept (the same model at variance 0); the profile "
+                        "intervals let that variance move inward at other odds ratios")
     level = 1.0 - alpha
     odds = full.odds_ratios(level)
     wald = full.pvalues
     label = _method_label(full)
-    columns = [c for c in full_design.columns[1:] if c in full.params.index]
+    columns = [t.column for t in fits.tests if t.column in full.params.index]
     profile = _profile_odds(full, columns, level, warnings)
     comparisons = []
-    for column in full_design.columns[1:]:
-        condition = column[len("condition["):-1]
+    for test in fits.tests:
+        condition, column = test.condition, test.column
         if column not in full.params.index:
             warnings.append(f"GLMM dropped the coefficient of {condition!r} (no trials or "
                             "aliased): no comparison for it")
             continue
-        try:
-            reduced = _fit(data, full_design.drop(columns=column), groups, method,
-                           n_quadrature)
-        except GlmmFitError as exc:
+        if test.test is None:
             warnings.append(f"GLMM likelihood-ratio test of {condition!r} not available: the "
-                            f"model without it could not be fitted ({exc}); p_value is the "
-                            "Wald p")
-            comparisons.append(_comparison(condition, reference, label, full, column, odds,
-                                           profile, wald[column], None))
+                            f"model without it could not be fitted ({test.error}); p_value is "
+                            "the Wald p")
+            comparisons.append(_comparison(test, label, odds, profile, wald[column], None))
             continue
-        test = _lrt(full, reduced)
-        for note in test.warnings:   # the fits' own notes are reported once, above
+        for note in test.test.warnings:   # the fits' own notes are reported once, above
             core = note.split(": ", 1)[1] if note.startswith(("full model: ",
                                                               "reduced model: ")) else note
             if core not in seen:
                 seen.add(core)
                 warnings.append(f"GLMM likelihood-ratio test of {condition!r}: {note}")
-        comparisons.append(_comparison(condition, reference, label, full, column, odds,
-                                       profile, wald[column], test.pvalue))
+        comparisons.append(_comparison(test, label, odds, profile, wald[column],
+                                       test.test.pvalue))
     omnibus = None
     if len(comparisons) > 1:
-        try:
-            null = _fit(data, full_design[["Intercept"]], groups, method, n_quadrature)
-        except GlmmFitError as exc:
-            warnings.append(f"GLMM omnibus likelihood-ratio test not available: the model "
-                            f"without condition could not be fitted ({exc})")
-        else:
-            test = _lrt(full, null)
-            omnibus = {"method": "likelihood-ratio test of condition",
-                       "statistic": float(test.statistic), "df": int(test.df),
-                       "p_value": floor_p(test.pvalue)}
+        omnibus = _omnibus(trials, conditions, reference, fits, n_quadrature, warnings)
     model = full.to_dict(level) if hasattr(full, "to_dict") else None
     if model is not None:
         model["random_effects"] = _random_effect_intervals(full, level, warnings)
     return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings))
+
+
+def _omnibus(trials, conditions, reference, fits: PrimaryFits, n_quadrature: int,
+             warnings: list[str]) -> dict | None:
+    """Likelihood-ratio test of condition as a whole (k - 1 df)."""
+    full = fits.full
+    data = trials.loc[trials["correct"].notna() & trials["condition"].isin(conditions)]
+    data = data.reset_index(drop=True)
+    counts = "n_trials" if "n_trials" in data.columns else None
+    try:
+        null = _fit(data, design(data, conditions, reference)[["Intercept"]],
+                    list(full.groups), fits.method, n_quadrature, counts)
+    except GlmmFitError as exc:
+        warnings.append(f"GLMM omnibus likelihood-ratio test not available: the model "
+                        f"without condition could not be fitted ({exc})")
+        return None
+    test = _lrt(full, null)
+    return {"method": "likelihood-ratio test of condition", "statistic": float(test.statistic),
+            "df": int(test.df), "p_value": floor_p(test.pvalue)}
 
 
 def _profile_odds(full, columns: list[str], level: float,
@@ -227,10 +350,14 @@ def _random_effect_intervals(full, level: float, warnings: list[str]) -> dict:
     return out
 
 
-def _comparison(condition: str, reference: str, label: str, full, column: str,
-                odds: pd.DataFrame, profile: pd.DataFrame | None, p_wald: float,
-                p_lr: float | None) -> Comparison:
-    """One GLMM comparison; ``p_value`` is the likelihood-ratio p, else the Wald p."""
+def _comparison(test: LrComparison, label: str, odds: pd.DataFrame,
+                profile: pd.DataFrame | None, p_wald: float, p_lr: float | None) -> Comparison:
+    """One GLMM comparison; ``p_value`` is the likelihood-ratio p, else the Wald p.
+
+    A separated condition (ML odds ratio infinite): no estimate, the one-sided unpenalised
+    profile limit as ``ci95``, the penalised figures apart under ``penalised``.
+    """
+    full, column = test.full, test.column
     wald_ci = (float(odds.loc[column, "ci_low"]), float(odds.loc[column, "ci_high"]))
     if profile is None:
         ci, how = wald_ci, "Wald (exp(b -/+ z se)); the profile failed"
@@ -239,8 +366,23 @@ def _comparison(condition: str, reference: str, label: str, full, column: str,
                    (float(profile.loc[column, "ci_low"]), float(profile.loc[column, "ci_high"])))
         how = ("profile likelihood (lme4 confint 'profile')"
                + (", of the penalised likelihood" if full.penalty else ""))
+    if test.separated:
+        return Comparison(
+            condition=test.condition, reference=test.reference, method=label, estimate=None,
+            # no LR test: no p (the penalised Wald p is never the primary figure)
+            ci95=ci, p_value=float("nan") if p_lr is None else floor_p(p_lr), p_wald=None,
+            p_lr=None if p_lr is None else floor_p(p_lr), log_odds=None, std_error=None,
+            ci_method=("one-sided profile-likelihood limit of the unpenalised likelihood "
+                       "against its supremum (the ML odds ratio is infinite: separation); "
+                       "the other end is infinite"), ci95_wald=None, separated=True,
+            penalised={"odds_ratio": float(odds.loc[column, "odds_ratio"]),
+                       "ci95_wald": list(wald_ci), "p_wald": floor_p(p_wald),
+                       "log_odds": float(full.params[column]),
+                       "std_error": float(full.bse[column]), "prior": full.penalty,
+                       "note": "posterior mode under the prior: not a maximum-likelihood "
+                               "estimate, never the primary figure"})
     return Comparison(
-        condition=condition, reference=reference, method=label,
+        condition=test.condition, reference=test.reference, method=label,
         estimate=float(odds.loc[column, "odds_ratio"]), ci95=ci,
         p_value=floor_p(p_wald if p_lr is None else p_lr), p_wald=floor_p(p_wald),
         p_lr=None if p_lr is None else floor_p(p_lr), log_odds=float(full.params[column]),
@@ -248,10 +390,10 @@ def _comparison(condition: str, reference: str, label: str, full, column: str,
 
 
 def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, groups: list[str], method: str,
-         n_quadrature: int):
+         n_quadrature: int, trials: str | None = None):
     from crs_study.analysis.glmm import fit_glmm
 
-    return fit_glmm(data, "correct", design_matrix, groups, method=method,
+    return fit_glmm(data, "correct", design_matrix, groups, trials=trials, method=method,
                     n_quadrature=n_quadrature)
 
 
@@ -267,7 +409,8 @@ def _method_label(model) -> str:
                                                                         model.method)
     effects = "".join(f" + (1 | {g.removesuffix('_id')})"
                       for g in model.variance_components.index)
-    penalty = ", penalised against separation" if model.penalty else ""
+    penalty = (", separation: ML odds ratio infinite, LR test at the supremum"
+               if model.separation is not None else "")
     return f"GLMM correct ~ condition{effects} ({how}{penalty}); odds ratio, LR test"
 
 

@@ -34,7 +34,12 @@ import pandas as pd
 from crs_study import __version__
 from crs_study._files import os_errors, sha256_file, write_atomically
 from crs_study.analysis import charts
-from crs_study.analysis.accuracy import analyse_accuracy, chance_level
+from crs_study.analysis.accuracy import (
+    PARTICIPANT_LEVEL,
+    analyse_accuracy,
+    chance_level,
+    headline_accuracy,
+)
 from crs_study.analysis.confusion import analyse_confusions
 from crs_study.analysis.load import LoadedData, load_datasets, with_exclusions
 from crs_study.analysis.plan import AnalysisPlan, default_plan_path, load_plan
@@ -42,6 +47,7 @@ from crs_study.analysis.primary import primary_test
 from crs_study.analysis.psychometric import analyse_psychometric
 from crs_study.analysis.report_text import write_report
 from crs_study.analysis.secondary import secondary_tests
+from crs_study.analysis.sources import select_sources, summarise_sources
 from crs_study.analysis.speed_accuracy import analyse_speed_accuracy
 from crs_study.errors import AnalysisError, ConfigError, DatasetError
 
@@ -70,14 +76,26 @@ def analyze_dataset(dataset_dir: str | Path, plan_path: str | Path | None = None
 
 def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
             out_dir: str | Path | None = None, strict: bool = False,
-            write: bool = True) -> AnalysisResult:
-    """Analyse ``datasets`` with a plan; write the report and ``results.json`` when ``write``."""
+            write: bool = True, include_simulated: bool = False,
+            responders: list[str] | None = None) -> AnalysisResult:
+    """Analyse ``datasets`` with a plan; write the report and ``results.json`` when ``write``.
+
+    Simulated and human sessions together are refused unless ``include_simulated`` (pool
+    them, with a warning) or ``responders`` keeps one kind (:mod:`.sources`).
+    """
     datasets = [Path(d) for d in datasets]
     loaded = load_datasets(datasets, None, strict=strict)
+    loaded, sources, source_notes = select_sources(loaded, include_simulated, responders)
     plan, plan_file, plan_notes = resolve_plan(loaded, plan_path)
     loaded = with_exclusions(loaded, plan.exclusions)
     results, parts = run_analyses(loaded, plan)
-    every = list(loaded.warnings) + plan_notes + results["warnings"]
+    kinds = sorted(set(sources["kind"]))
+    results["sources"] = {"kind": kinds[0] if len(kinds) == 1 else "mixed",
+                          "sessions": summarise_sources(sources),
+                          "notes": source_notes}
+    pooled = [n for n in source_notes if "pooled on request" in n]
+    every = list(loaded.warnings) + pooled + excluded_participants(loaded) + plan_notes \
+        + results["warnings"]
     results["warnings"] = list(dict.fromkeys(every))          # each sentence once, in order
     results["plan"] = {"name": plan.name, "path": str(plan_file),
                        "sha256": sha256_file(plan_file)}
@@ -105,6 +123,20 @@ def analyze(datasets: list[str | Path], plan_path: str | Path | None = None,
         _derivative_description(out, datasets)
     return AnalysisResult(results["headline"], results, report_path, results_path,
                           tuple(results["warnings"]), tuple(chart_files))
+
+
+def excluded_participants(loaded: LoadedData) -> list[str]:
+    """A warning naming each participant none of whose trials is analysed, with the reasons."""
+    kept = set(loaded.analysed["participant_id"])
+    notes = []
+    for participant, rows in loaded.trials.groupby("participant_id", sort=True):
+        if participant in kept:
+            continue
+        reasons = rows["exclusion"].replace("", "unanswered").value_counts()
+        why = ", ".join(f"{reason} {count}" for reason, count in reasons.items())
+        notes.append(f"participant {participant!r} has no analysed trial (all {len(rows)} "
+                     f"excluded: {why}): left out of every analysis")
+    return notes
 
 
 def resolve_plan(loaded: LoadedData, plan_path: str | Path | None
@@ -209,6 +241,9 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
                                 "n_participants": int(r["n_participants"]),
                                 "method": r["method"]}
                for r in records(accuracy.between_participants)}
+    shown = {r["condition"]: {"accuracy": r["accuracy"], "ci95": [r["ci_low"], r["ci_high"]],
+                              "method": r["method"]}
+             for r in records(headline_accuracy(accuracy))}
     results = {
         "alpha": alpha, "chance": chance, "reference": reference,
         "n_participants": int(n_participants),
@@ -223,6 +258,7 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
                 "p_vs_chance": float(row["p_vs_chance"]),
                 "n_participants": int((by_participant["condition"] == row["condition"]).sum()),
                 "between_participants": between.get(row["condition"]),
+                "headline": shown.get(row["condition"]),
             } for _, row in accuracy.by_condition.iterrows()},
         "accuracy_by_participant": records(by_participant),
         "accuracy_by_digit": records(accuracy.by_digit),
@@ -263,37 +299,63 @@ def format_p(p: float | None) -> str:
 
 
 def headline(results: dict) -> str:
-    """One line: each condition's accuracy and pooled interval, then the primary comparison(s),
-    saying when the odds ratio comes from a penalised fit or has no participant variance."""
-    parts = []
+    """One line: each condition's accuracy with an interval that accounts for participants
+    (``conditions.<c>.headline``: the mean of participant accuracies with the t interval
+    across participants, or the pooled Wilson interval where that has no width, labelled),
+    then the primary comparison(s). A separated condition's odds ratio is given as its
+    one-sided profile limit ("> 367 ... upper limit infinite"), never as the penalised
+    estimate; a logistic regression without participant variance says so."""
+    parts, methods = [], []
     reference = results["reference"]
     order = [c for c in results["conditions"] if c != reference] + [reference]
+    level = f"{100 * (1 - results['alpha']):g} %"
     for condition in order:
         row = results["conditions"].get(condition)
         if row:
-            low, high = row["ci95"]
-            parts.append(f"{condition} {100 * row['accuracy']:.1f} % "
+            shown = row.get("headline") or {"accuracy": row["accuracy"], "ci95": row["ci95"],
+                                            "method": POOLED_CI_METHOD}
+            low, high = shown["ci95"]
+            parts.append(f"{condition} {100 * shown['accuracy']:.1f} % "
                          f"[{100 * low:.1f}, {100 * high:.1f}]")
+            methods.append(shown["method"])
     text = " vs ".join(parts)
     if parts:
-        text += f" ({100 * (1 - results['alpha']):g} % Wilson, pooled trials)"
+        if set(methods) == {PARTICIPANT_LEVEL}:
+            text += (f" (mean of {results['n_participants']} participants, {level} t interval "
+                     "across participants)")
+        elif len(set(methods)) == 1:
+            text += f" ({level} {methods[0]})"
+        else:
+            text += f" ({level} intervals: {'; '.join(dict.fromkeys(methods))})"
     glmm = [c for c in results["comparisons"] if c["method"].startswith(("GLMM", "Fisher"))]
     for c in glmm:
         name = "GLMM odds ratio" if c["method"].startswith("GLMM") else "odds ratio (Fisher)"
         notes = []
-        if "penalised" in c["method"]:
-            notes.append("penalised: a condition at 0 or 100 %, see warnings")
         if "no random effect estimable" in c["method"]:
             notes.append("logistic regression: no participant variance estimable")
         if len(glmm) > 1:
             notes.insert(0, f"{c['condition']} vs {c['reference']}")
         who = f" ({'; '.join(notes)})" if notes else ""
+        if c.get("separated"):
+            text += f"; {name}{who} {_separated_text(c, level)}, {format_p(c['p_value'])}"
+            continue
         low, high = ("0" if v is None and k == 0 else "inf" if v is None else f"{v:.2f}"
                      for k, v in enumerate(c["ci95"]))
         text += f"; {name}{who} {c['estimate']:.2f} [{low}, {high}], {format_p(c['p_value'])}"
     if not glmm:
         text += "; no comparison of conditions (see warnings)"
     return text
+
+
+def _separated_text(c: dict, level: str) -> str:
+    """``> 367 (ML estimate infinite: ...; upper limit infinite)`` for a separated odds ratio."""
+    low, high = c["ci95"]
+    why = f"ML estimate infinite: a condition at 0 or 100 %; one-sided {level} profile limit"
+    if low is not None:
+        return f"> {low:.3g} ({why}, upper limit infinite)"
+    if high is not None:
+        return f"< {high:.3g} ({why}, lower limit 0)"
+    return "not estimable (ML estimate infinite, no finite profile limit)"
 
 
 def draw_charts(parts: dict, plan: AnalysisPlan, folder: Path) -> list[Path]:
@@ -348,8 +410,8 @@ def to_jsonable(value, path: str = "") -> tuple[object, list[str]]:
 
 
 def _sessions(loaded: LoadedData) -> list[dict]:
-    columns = ["dataset", "participant", "session", "n_rows", "Status", "Seed",
-               "SoftwareVersion", "TrialsSha256"]
+    columns = ["dataset", "participant", "session", "n_rows", "Status", "Responder",
+               "DeviceURL", "Seed", "SoftwareVersion", "TrialsSha256"]
     sessions = loaded.sessions.reindex(columns=columns)
     return sessions.astype(object).where(sessions.notna(), None).to_dict("records")
 

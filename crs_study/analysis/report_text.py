@@ -68,6 +68,12 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
         f"{results['n_trials_analysed']} of {results['n_trials_total']} trials analysed. "
         f"Plan `{results['plan']['path']}` (sha256 {results['plan']['sha256'][:12]}...). "
         f"Chance level {100 * results['chance']:.1f} %, alpha {results['alpha']:g}."))]
+    sources = results.get("sources")
+    if sources:
+        blocks += [("p", "Sessions by who answered and on what device (kind: `simulated` when "
+                         "the responder is a simulated participant or the device is `sim://`):"),
+                   ("table", _table(pd.DataFrame(sources["sessions"])))]
+        blocks += [("p", note) for note in sources["notes"]]
     exclusions = pd.DataFrame(results["exclusions"]).T
     if not exclusions.empty:
         exclusions.index.name = "excluded because"
@@ -80,7 +86,8 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
                      "between participants)."),
                ("table", _table(accuracy.by_condition)),
                ("p", "Between participants: the mean of the participants' accuracies with "
-                     "the t interval across participants."),
+                     "the t interval across participants (the figures of the headline and "
+                     "the chart: they account for differences between participants)."),
                ("table", _table(accuracy.between_participants))]
     if "accuracy" in images:
         blocks.append(("image", images["accuracy"]))
@@ -92,6 +99,16 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
         blocks.append(("table", _table(primary[["condition", "reference", "estimate", "ci95",
                                                 "ci_method", "ci95_wald", "p_value",
                                                 "p_wald", "p_lr"]])))
+    for comparison in results["comparisons"]:
+        penalised = comparison.get("penalised")
+        if penalised:
+            blocks.append(("p", (
+                f"`{comparison['condition']}` against `{comparison['reference']}`: the "
+                "maximum-likelihood odds ratio is infinite (separation), so the table gives "
+                "its one-sided profile limit. Penalised fit, for orientation only "
+                f"({penalised['note']}; prior: {penalised['prior']}): odds ratio "
+                f"{_fmt(penalised['odds_ratio'])}, Wald interval "
+                f"{_fmt(penalised['ci95_wald'])}, Wald p {_fmt(penalised['p_wald'])}.")))
     effects = (results["primary"]["model"] or {}).get("random_effects") or {}
     if effects:
         blocks.append(("p", "Random intercepts (standard deviation on the logit scale, "

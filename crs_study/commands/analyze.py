@@ -32,13 +32,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="print results.json on stdout instead of the headline")
     parser.add_argument("--strict", action="store_true",
                         help="a failed checksum or metadata check is an error, not a warning")
+    sources = parser.add_argument_group(
+        "simulated and human sessions",
+        "a dataset holding both is refused unless one of these says what to analyse")
+    sources.add_argument("--include-simulated", action="store_true",
+                         help="pool simulated sessions (observer/random responder or a sim:// "
+                              "device) with human ones")
+    sources.add_argument("--responder", action="append", metavar="NAME", default=None,
+                         help="analyse only sessions of this responder (keypad, scripted, "
+                              "observer, random); repeatable%(default).0s")
 
 
 @os_errors(AnalysisError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
     from crs_study.analysis.report import analyze
 
-    result = analyze(args.datasets, args.plan, args.out, strict=args.strict)
+    result = analyze(args.datasets, args.plan, args.out, strict=args.strict,
+                     include_simulated=args.include_simulated, responders=args.responder)
     for warning in result.warnings:
         loud = "TAMPERED" in warning or "tampering" in warning
         print(f"crs-study analyze: {'WARNING' if loud else 'warning'}: {warning}",
