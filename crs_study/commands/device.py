@@ -361,7 +361,9 @@ def _calibrate(args: argparse.Namespace) -> int:
             for label, mm_value in (("base (0 mm, fully retracted)", 0.0),
                                     (f"full travel ({actuator.calibration.travel_mm:g} mm)",
                                      actuator.calibration.travel_mm)):
-                pulse = int(round(actuator.calibration.pulse_us(mm_value)))
+                setpoints = layout.neutral_setpoints()
+                setpoints[index] = mm_value
+                pulse = int(device.pulse_map.to_pulses(setpoints)[index])
                 pulse = _adjust(device, neutral, index, pulse, f"{key} {actuator.name}: {label}")
                 if pulse is None:
                     break
