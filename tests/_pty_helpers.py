@@ -194,8 +194,8 @@ def _next_write_at(device) -> float:
 def step_serial_device(device, clock: SteppedClock, times, frames, until: float) -> float:
     """Hand ``frames[k]`` to the opened ``device`` at ``times[k]``, stepping ``clock`` through
     every time a write falls due in between (a write due at a frame's time goes first, the
-    policy's tie rule); then on to ``until`` and past any write still on the wire. Returns the
-    end time, at which every wire is free."""
+    policy's tie rule); then on until every frame is written, and to ``until`` if later.
+    Returns the end time, at which every wire is free."""
     for t, frame in zip(times, frames, strict=True):
         while (due := _next_write_at(device)) < t:
             clock.set(due)
@@ -204,14 +204,9 @@ def step_serial_device(device, clock: SteppedClock, times, frames, until: float)
         settle(device, clock)
         device.send(frame)
         settle(device, clock)
-    end = until
-    while True:
-        end = max(end, *(port.writes.free_at for port in device.ports))
-        due = _next_write_at(device)
-        if due > end:
-            break
+    while (due := _next_write_at(device)) < float("inf"):
         clock.set(due)
         settle(device, clock)
-    clock.set(max(end, clock.now()))
+    clock.set(max(until, clock.now(), *(port.writes.free_at for port in device.ports)))
     settle(device, clock)
     return clock.now()

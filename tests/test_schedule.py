@@ -272,10 +272,7 @@ def test_the_model_matches_a_simulated_run(layout2d, rate, refresh_s):
     for k, setpoints in enumerate(frames):
         device.clock.sleep_until(start + k / rate)
         device.send(setpoints)
-    # everything waiting is delivered: the last frame's write ends within two full writes
-    # (133 ms); the refresh of the idle wire that follows comes refresh_s (>= 0.37 s) after
-    # the last frame, beyond the stimulus the plan covers, and is left out
-    device.displayed_setpoints(start + (n - 1) / rate + 0.2)
+    device.displayed_setpoints(start + n / rate + 1.0)  # everything waiting is delivered
     latency = np.zeros(n)
     full_writes = 0
     for board, members in zip(device.boards, ChannelSplit(layout2d).members, strict=True):

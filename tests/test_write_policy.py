@@ -48,13 +48,13 @@ def test_first_write_is_full_then_changed_only_within_the_deadband():
     assert p.want(0.0, pulses(1000, 1500, 2000), 40) is False
     first = p.take(0.0)
     assert first.full and first.local.tolist() == [0, 1, 2] and first.n_bytes == 16
-    assert first.done == pytest.approx(16 * W) and first.carries_frame
+    assert first.done == pytest.approx(16 * W)
     p.want(1.0, pulses(1001, 1502, 2000), 40)  # 1 us is inside the dead-band, 2 us is not
     second = p.take(1.0)
     assert second.local.tolist() == [1] and second.n_bytes == 10 and not second.full
     p.want(2.0, pulses(1001, 1502, 2000), 40)  # nothing changed: nothing is written
     nothing = p.take(2.0)
-    assert nothing.n_bytes == 0 and nothing.done == 2.0 and nothing.carries_frame
+    assert nothing.n_bytes == 0 and nothing.done == 2.0 and p.next_write_at() == math.inf
 
 
 def test_a_frame_wanted_while_the_wire_is_busy_waits_and_a_newer_one_replaces_it():
@@ -84,34 +84,17 @@ def test_the_refresh_rides_on_the_first_frame_due_after_the_interval():
     assert sizes == [16, 0, 0, 16, 0]
 
 
-def test_an_idle_wire_is_refreshed_on_its_own_every_interval():
-    # one frame at 0 and nothing more: the refresh goes alone at 0.5, 1.0, ..., carrying the
-    # last wanted pulses (the serial device's writer did this; its test pins it)
-    p = port(refresh_s=0.5)
-    p.want(0.0, pulses(1000, 1500, 2000), 30)
-    p.take(0.0)
-    starts = []
-    for _ in range(3):
-        at = p.next_write_at()
-        write = p.take(at)
-        assert write.full and not write.carries_frame and write.move_ms == 30
-        assert write.pulses.tolist() == [1000, 1500, 2000]
-        starts.append(write.start)
-    assert starts == pytest.approx([0.5, 1.0, 1.5])
-    assert p.take(1.6) is None  # not due yet: nothing to write
-
-
-def test_the_idle_refresh_waits_a_whole_interval_after_the_last_frame():
-    # full at 0; a frame at 0.2 (nothing changed); the refresh is due at 0.5 but frames may
-    # still come, so alone it waits until 0.2 + 0.5; a frame at 0.6 carries it instead
+def test_a_held_pose_is_not_rewritten_and_the_next_frame_after_the_interval_is_full():
+    # one frame at 0 and nothing more: the wire stays quiet (the refresh rides on frames, never
+    # goes alone); the next frame, 3 s later, carries every channel although nothing changed
     p = port(refresh_s=0.5)
     same = pulses(1000, 1500, 2000)
-    for t in (0.0, 0.2):
-        p.want(t, same, 0)
-        p.take(t)
-    assert p.next_write_at() == pytest.approx(0.7)
-    p.want(0.6, same, 0)
-    assert p.take(0.6).full
+    p.want(0.0, same, 30)
+    p.take(0.0)
+    assert p.next_write_at() == math.inf and p.take(2.9) is None
+    p.want(3.0, same, 30)
+    write = p.take(3.0)
+    assert write.full and write.n_bytes == 16 and write.start == 3.0
 
 
 def test_a_write_due_at_the_instant_a_frame_comes_goes_first():
@@ -147,9 +130,9 @@ def test_send_all_carries_every_channel_every_time():
 
 def test_a_controller_without_channels_is_never_written():
     p = PortWrites(0, WritePolicy(0, 0.5))
-    p.want(0.0, np.zeros(0, dtype=np.int64), 0)
-    assert p.take(0.0).n_bytes == 0
-    assert p.next_write_at() == math.inf  # no refresh of nothing
+    for t in (0.0, 1.0):
+        p.want(t, np.zeros(0, dtype=np.int64), 0)
+        assert p.take(t).n_bytes == 0
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [
@@ -171,14 +154,12 @@ def test_the_predicted_write_is_the_write(seed, refresh, deadband, gaps):
     rng = np.random.default_rng(seed)
     p = port(refresh, deadband, n=5)
     t = 0.0
-    prediction = None
+    prediction = None  # nothing waits before the first frame, so no write compares with it
     for gap in gaps:
         t += gap
         while p.next_write_at() <= t:
             write = p.take(p.next_write_at())
-            if write.carries_frame and prediction is not None:
-                assert (len(write.local), write.n_bytes, write.done) == prediction
-                prediction = None
+            assert (len(write.local), write.n_bytes, write.done) == prediction
         p.want(t, rng.integers(1000, 1010, 5), 0)
         prediction = p.predict(t)
     write = p.take(p.next_write_at())
@@ -226,14 +207,14 @@ def _board_writes(device) -> list[list[tuple[float, bytes]]]:
     return out
 
 
-def _estimated_writes(layout, frames, times, options, until) -> list[list[tuple[float, bytes]]]:
+def _estimated_writes(layout, frames, times, options) -> list[list[tuple[float, bytes]]]:
     split = ChannelSplit(layout)
     policy = WritePolicy(options["deadband_us"], options["refresh_s"])
     pulses_all = PulseMap.from_layout(layout).to_pulses(frames)
     out = []
     for c, members in enumerate(split.members):
         run = simulate_port(pulses_all[:, members], times, policy,
-                            move_ms=default_move_ms(layout), until=until)
+                            move_ms=default_move_ms(layout))
         out.append([(w.start, split.write_bytes(c, w)) for w in run.writes if w.n_bytes])
     return out
 
@@ -277,15 +258,15 @@ def _simulated_writes(layout, frames, times, options, until):
 
 gaps = st.one_of(st.floats(0.0, 0.012),  # faster than the wire: frames merge
                  st.floats(0.012, 0.15),  # about a frame's wire time
-                 st.floats(0.15, 2.5))  # pauses: refreshes of the idle wire
+                 st.floats(0.15, 2.5))  # pauses: the frame after one may be a refresh
 
 
 @settings(max_examples=30, deadline=None)
 @given(name=st.sampled_from(sorted(LAYOUTS)), seed=st.integers(0, 2**32 - 1),
        gaps=st.lists(gaps, min_size=1, max_size=16), deadband=st.integers(0, 3),
-       refresh=st.sampled_from([0.0]) | st.floats(0.15, 1.2), tail=st.floats(0.0, 2.5))
+       refresh=st.sampled_from([0.0]) | st.floats(0.15, 1.2))
 def test_serial_simulated_and_estimate_write_the_same_bytes_at_the_same_times(
-        name, seed, gaps, deadband, refresh, tail):
+        name, seed, gaps, deadband, refresh):
     """One frame sequence (random setpoints, timings, dead-band and refresh interval), three
     writers: SerialDevice's writer threads on real ptys, SimulatedDevice's boards, and the
     estimate (``simulate_port``). Every write matches in bytes and start time; the serial and
@@ -295,9 +276,9 @@ def test_serial_simulated_and_estimate_write_the_same_bytes_at_the_same_times(
     frames = _frames(layout, seed, len(gaps))
     times = 0.05 + np.cumsum(gaps)
     options = {"deadband_us": deadband, "refresh_s": refresh}
-    serial_writes, end = _serial_writes(layout, frames, times, options, times[-1] + tail)
+    serial_writes, end = _serial_writes(layout, frames, times, options, times[-1])
     simulated = _simulated_writes(layout, frames, times, options, end)
-    estimated = _estimated_writes(layout, frames, times, options, end)
+    estimated = _estimated_writes(layout, frames, times, options)
     query = codec.get_battery_voltage()
     for real, sim, est in zip(serial_writes, simulated, estimated, strict=True):
         assert [d for _, d in sim] == [d for _, d in real]
@@ -318,7 +299,7 @@ def test_a_frame_handed_over_the_instant_a_wire_frees_waits_for_the_one_waiting(
     options = {"deadband_us": 0, "refresh_s": 0.0}
     serial_writes, end = _serial_writes(layout, frames, times, options, times[-1])
     simulated = _simulated_writes(layout, frames, times, options, end)
-    estimated = _estimated_writes(layout, frames, times, options, end)
+    estimated = _estimated_writes(layout, frames, times, options)
     a_real, a_sim, a_est = serial_writes[0], simulated[0], estimated[0]
     assert [d for _, d in a_sim] == [d for _, d in a_real] and a_est == a_real[1:-1]
     moves = [codec.decode_frame(d) for _, d in a_est]

@@ -14,16 +14,16 @@ Writes: what goes on the wire, and when, is the host's write policy
 queueing (a frame handed over while its port's wire is busy waits, a newer one replaces it);
 changed-only channels; the full refresh every ``refresh_s`` (default
 :data:`~.writes.DEFAULT_REFRESH_S`, 0: never), riding on the first write that starts
-``refresh_s`` or more after the last full write, or on its own when the host wanted nothing new
-for a whole interval. :func:`simulate_port` runs the policy over a frame sequence. The latency
+``refresh_s`` or more after the last full write. :func:`simulate_port` runs the policy over a
+frame sequence. The latency
 of frame k is the time from its stimulus time ``t_k = k / f`` to the last byte of the write
 that carries it (or a newer frame that superseded it), the worst over controllers; it stays
 bounded (about two writes) however fast frames come. A refresh frame takes the full frame's
 wire time, so with the refresh on, the frame rate at which every frame fits its period
 (:attr:`WirePlan.rate_bound_hz`) is never above the full-frame bound, and the frames after a
 refresh that overran its period wait: the latencies count them. By default the last full write
-is long past, so frame 0 is full: the worst case for the first frame of a stimulus (in a
-session, the refresh of the idle wire between trials may have gone shortly before it).
+is long past, so frame 0 is full, as the first frame after the device opens or has been idle
+for ``refresh_s`` (a stimulus onset after the response phase).
 
 Balance: which channel is on which controller is pinned by the device file (the reasons are in
 :mod:`~crs_study.device.serial_device`, "Which channel goes on which controller"):
@@ -250,19 +250,18 @@ class PortRun:
 
     @property
     def refreshes(self) -> int:
-        """Full writes (a changed-only run: the refreshes, riding or on their own)."""
+        """Full writes (in a changed-only run from a known pose: the refreshes)."""
         return sum(w.full for w in self.writes)
 
 
 def simulate_port(pulses: np.ndarray, times: np.ndarray, policy: WritePolicy,
                   last_sent: np.ndarray | None = None, last_full_at: float = -math.inf,
-                  move_ms: int = 0, until: float = -math.inf) -> PortRun:
+                  move_ms: int = 0) -> PortRun:
     """The write policy (:class:`~.writes.PortWrites`) on one port: frame k (this
-    controller's whole-us ``pulses[k]``) wanted at ``times[k]`` (non-decreasing).
+    controller's whole-us ``pulses[k]``) wanted at ``times[k]`` (non-decreasing), until the
+    last frame has been written.
 
     ``last_sent``, ``last_full_at``: the port before frame 0 (None, -inf: nothing sent yet).
-    The run ends when the last frame has been written, or at ``until`` if later (writes that
-    start by then, such as refreshes of the idle wire, are included).
     """
     port = PortWrites(pulses.shape[1], policy, last_sent, last_full_at)
     latency = np.zeros(len(times))
@@ -272,13 +271,10 @@ def simulate_port(pulses: np.ndarray, times: np.ndarray, policy: WritePolicy,
 
     def take(t: float) -> None:
         write = port.take(t)
-        if write is None:
-            return
         writes.append(write)
-        if write.carries_frame:
-            for j in waiting:
-                latency[j] = write.done - times[j]
-            waiting.clear()
+        for j in waiting:
+            latency[j] = write.done - times[j]
+        waiting.clear()
 
     for k, t in enumerate(times):
         while port.next_write_at() <= t:  # due by t: goes before frame k (the tie rule)
@@ -287,7 +283,7 @@ def simulate_port(pulses: np.ndarray, times: np.ndarray, policy: WritePolicy,
         waiting.append(k)
         if port.next_write_at() <= t:
             take(t)
-    while port.pending or port.next_write_at() <= until:
+    if port.pending:
         take(port.next_write_at())
     return PortRun(writes, latency, merged)
 

@@ -21,21 +21,20 @@ Writing (what goes on the wire, and when: the write policy, :mod:`~crs_study.dev
     wire is free, one SERVO_MOVE of the channels whose wanted pulse differs from the last sent
     by more than the dead-band; a frame handed over while a previous one still waits replaces
     it (merged, never queued), so latency never grows. The full refresh rides on the first
-    write ``refresh_s`` after the last full one, and goes on its own when nothing new has been
-    handed over for ``refresh_s`` (a frame the board lost or garbled is repaired). The
-    simulated device and the wire estimate run the same policy, so they put the same bytes on
-    the wire. With ``pace`` (the default) the writer writes once the wire is free: the bytes
-    already written have had their time at ``10 / baud`` s a byte (less ``lead_s``, so the next
-    frame follows without a gap despite wake-up jitter) *and* the port's output buffer
-    (``out_waiting``) holds at most :data:`OUT_WAITING_LOW_BYTES`. The model alone is not
-    enough: on a wire slower than nominal (an adapter's baud error, gaps between bytes) bytes
-    would pile up in the OS buffer and latency grow without bound; ``out_waiting`` alone is not
-    either (a USB adapter's chip FIFO is not counted). A port without ``out_waiting``
-    (AttributeError, NotImplementedError) is paced by the model; one whose buffer does not
-    drain within ``write_timeout_s`` has failed. Linux ptys report 0
-    (:mod:`~crs_study.device.virtual_pty` has a port that counts). Without ``pace`` the writer
-    writes as soon as a frame is handed over and relies on the port's own blocking (for ports
-    that throttle themselves).
+    write ``refresh_s`` after the last full one (a frame the board lost or garbled is repaired;
+    why it never goes on its own: :mod:`~crs_study.device.writes`). The simulated device and
+    the wire estimate run the same policy, so they put the same bytes on the wire. With
+    ``pace`` (the default) the writer writes once the wire is free: the bytes already written
+    have had their time at ``10 / baud`` s a byte (less ``lead_s``, so the next frame follows
+    without a gap despite wake-up jitter) *and* the port's output buffer (``out_waiting``)
+    holds at most :data:`OUT_WAITING_LOW_BYTES`. The model alone is not enough: on a wire
+    slower than nominal (an adapter's baud error, gaps between bytes) bytes would pile up in
+    the OS buffer and latency grow without bound; ``out_waiting`` alone is not either (a USB
+    adapter's chip FIFO is not counted). A port without ``out_waiting`` (AttributeError,
+    NotImplementedError) is paced by the model; one whose buffer does not drain within
+    ``write_timeout_s`` has failed. Linux ptys report 0 (:mod:`~crs_study.device.virtual_pty`
+    has a port that counts). Without ``pace`` the writer writes as soon as a frame is handed
+    over and relies on the port's own blocking (for ports that throttle themselves).
 
 Which channel goes on which controller (the decision, and why)
     The device file pins every channel (``"A:3"``), and software never moves one: there is no
@@ -290,9 +289,9 @@ class _Port:
                     if self.stopping or self.error is not None:
                         return  # close() waited for the neutral pose before stopping
                     now = clock.now()
-                    at = writes.next_write_at()
-                    if writes.pending:  # a frame: once the wire is free (or at once, unpaced)
-                        at = at - options.lead_s if options.pace else now
+                    # a waiting frame goes once the wire is free (or at once, unpaced)
+                    at = (writes.next_write_at() - options.lead_s) if options.pace else (
+                        now if writes.pending else math.inf)
                     if at <= now:
                         break
                     # a hand-over, a stop or (a stepping clock in tests) the time moving

@@ -16,8 +16,8 @@ The wire (per controller port)
     code that drives the serial device's writer threads: a frame sent while the wire is busy
     waits, a newer one replaces it (*merged*, ``FrameReport.merged``), never queued; when the
     wire frees, the channels whose latest wanted pulse differs from the last sent by more than
-    the dead-band go out as one frame; the full refresh rides on a frame, or goes on its own
-    when nothing new was sent for ``refresh_s``. A write of ``b`` bytes occupies the wire for
+    the dead-band go out as one frame; the full refresh rides on the first frame written
+    ``refresh_s`` after the last full one. A write of ``b`` bytes occupies the wire for
     ``b * 10 / baud`` s and reaches the board when its last byte does. Latency therefore never
     exceeds two frame times. ``FrameReport.wire_done_at`` of a waiting frame is its predicted
     end.
@@ -356,7 +356,8 @@ class SimulatedDevice(Device):
             writes = wire.writes
             while not wire.cut and (wire.flying or writes.pending):  # frames for the wire first
                 self._advance_wire(k, wire, max(t, wire.end_at if wire.flying else t,
-                                                writes.next_write_at() if writes.pending else t))
+                                                writes.next_write_at()
+                                                if writes.pending else t))
             if wire.cut:
                 answers.append(None)
                 continue

@@ -4,7 +4,7 @@ One :class:`PortWrites` per controller port decides every SERVO_MOVE the host wr
 three users drive it with their own notion of time and their own bytes:
 :class:`~crs_study.device.serial_device.SerialDevice`'s writer thread (a real port, a real
 clock), :class:`~crs_study.device.simulated.SimulatedDevice`'s event model (virtual boards,
-any clock) and :func:`~crs_study.device.schedule.simulate_writes` (the estimate behind
+any clock) and :func:`~crs_study.device.schedule.simulate_port` (the estimate behind
 ``validate``, ``device check`` and the bench). So the three put the same bytes on the wire at
 the same times for the same frames (tests/test_write_policy.py proves it on random frame
 sequences).
@@ -14,7 +14,8 @@ The calls
     (whole us) from ``t`` on. ``next_write_at()``: the earliest time the next write may start
     (``inf``: nothing to write). ``take(t)``: the write handed to the port at ``t`` (it starts
     on the wire at ``max(t, free)``); the caller encodes and writes it. ``written(t, n)``: ``n``
-    other bytes (a battery query) went on this wire at ``t``.
+    other bytes (a battery query) went on this wire at ``t``. ``predict(t)``: what the waiting
+    frame's write will be (what a device reports for a frame it hands over).
 
 The policy (hardware.md: 9600 baud, 10 bits a byte, 1.0417 ms; a SERVO_MOVE for n servos is
 3 n + 7 bytes)
@@ -27,29 +28,35 @@ The policy (hardware.md: 9600 baud, 10 bits a byte, 1.0417 ms; a SERVO_MOVE for 
       neutral pose on close), and the refresh.
     * The refresh (every ``refresh_s``; 0: never) repairs what the board lost or garbled (an
       LSC frame has no checksum and a PWM servo gives no feedback, so a wrong position would
-      otherwise stay until its channel changes again). It rides on the next frame: the first
-      write that starts ``refresh_s`` or more after the last full write is full. When no frame
-      comes (the host has wanted nothing new for a whole ``refresh_s``: a held pose, the
-      response phase, between trials), it goes on its own, at ``max(last full, last wanted) +
-      refresh_s`` and every ``refresh_s`` after, carrying the last wanted pulses. So every
-      channel is on the wire at least every ``2 refresh_s``, and every ``refresh_s`` plus a
-      frame period while frames flow.
+      otherwise stay until its channel changes again). It rides on a frame: the first write
+      that starts ``refresh_s`` or more after the last full write carries every channel. So
+      while frames flow every channel is on the wire at least every ``refresh_s`` plus one
+      frame period, and the first frame after a pause of ``refresh_s`` (a stimulus onset after
+      the response phase) is full. A wire with no frame to carry is not written.
 
-Why the refresh rides on a frame while frames flow, rather than going out the moment it is
-due (the serial device's writer did that, the simulated device and the estimate did not; the
-decision and its arithmetic)
+Why the refresh rides on a frame rather than going out on its own when due (the serial
+device's writer sent it on its own, also on an idle wire; the simulated device and the
+estimate with the next frame; the decision, with its arithmetic and measurements)
     The shipped 2D device at the default protocol's 15 frames/s (a 66.7 ms period): board A's
-    full frame is 19 servos, 64 bytes, 66.7 ms; a CRS digit's changed-only frame is ~6
-    channels, 25 bytes, 26 ms. Riding, the refresh turns one frame's 25 bytes into 64: that
-    frame's latency is 66.7 ms and the wire carries 39 bytes more. On its own, the refresh
-    falls due somewhere in the period, after frame k's write; it carries frame k's pulses (not
-    the newest) in 64 bytes, and frame k + 1 waits behind it for up to 66.7 ms and then needs
-    its own 25 bytes: a latency of up to 92.7 ms, 64 more bytes on the wire. Riding is never
-    worse in latency and always cheaper in bytes, so it is the rule while frames flow. With
-    no frame to ride on the wire is idle, and a refresh on its own costs nothing: so it goes
-    alone then, which the serial device's writer did (and its tests pin), and which a held
-    pose needs (a garbled neutral frame at a stimulus offset would otherwise stay wrong
-    through the response phase, up to the protocol's time limit).
+    full frame is 19 servos, 64 bytes, 66.7 ms; a CRS digit's changed-only frame on A is a
+    median 22 bytes (5 channels, 23 ms). Riding, the refresh turns one frame's 22 bytes into
+    64: that frame's latency is 66.7 ms and the wire carries 42 bytes more. On its own, the
+    refresh falls due somewhere in the period after frame k's write; it carries frame k's
+    pulses (not the newest) in 64 bytes, and frame k + 1 then waits behind it for up to
+    66.7 ms before its own 22 bytes: up to 89.6 ms, more where the next frames queue up behind
+    it, and 64 bytes more on the wire. Measured over the ten CRS digits (``crs-study bench
+    writes``): the largest latency is 66.7 ms riding and 108 ms on its own (99th percentile
+    66.7 against 99 ms), and riding sends 5 % fewer bytes.
+    A refresh of an idle wire (the neutral pose held between trials) would cost no latency,
+    and the serial device's writer sent one; it was dropped too, for what it breaks (measured
+    with it in place): it moves the refresh to another frame of every stimulus, so repeated
+    presentations of a digit no longer reach the skin identically. Dry-runs then gave other
+    simulated responses than before (20 and 25 of 120 trials for the default protocol's first
+    two participants; a session resumed across versions would mix the two), and the
+    observer's cache of sensed frames stopped hitting: a default-protocol dry-run took 40 %
+    more CPU time. What it would repair (a frame garbled while a pose is held) the next
+    stimulus's first frame repairs, full, before anything is presented, and ``close`` sends a
+    full neutral pose.
 
 Ties: at a time ``t`` where a write falls due and a frame is wanted, the write goes first
 (the frame then waits for it), in all three users.
@@ -127,7 +134,6 @@ class Write(NamedTuple):
     move_ms: int
     full: bool  # carries every channel
     n_bytes: int  # 3 len(local) + 7, or 0: nothing changed, nothing is written
-    carries_frame: bool  # False: a refresh of an idle wire (no frame was waiting)
 
 
 class PortWrites:
@@ -142,9 +148,9 @@ class PortWrites:
     last_full_at : when every channel was last written (-inf: never).
     """
 
-    __slots__ = ("policy", "byte_s", "refresh_s", "deadband_us", "every", "wanted", "move_ms",
-                 "pending", "force_full", "wanted_at", "last_sent", "last_full_at", "free_at",
-                 "handed_over", "taken")
+    __slots__ = ("policy", "byte_s", "refresh_s", "deadband_us", "send_all", "every", "wanted",
+                 "move_ms", "pending", "force_full", "wanted_at", "last_sent", "last_full_at",
+                 "free_at")
 
     def __init__(self, n_channels: int, policy: WritePolicy,
                  last_sent: np.ndarray | None = None, last_full_at: float = -math.inf) -> None:
@@ -152,6 +158,7 @@ class PortWrites:
         self.byte_s = policy.byte_s
         self.refresh_s = float(policy.refresh_s)
         self.deadband_us = int(policy.deadband_us)
+        self.send_all = bool(policy.send_all)
         self.every = np.arange(n_channels)  # ``local`` of a full write (shared, read-only)
         self.every.setflags(write=False)
         self.wanted: np.ndarray | None = None  # the newest wanted pulses
@@ -162,8 +169,6 @@ class PortWrites:
         self.last_sent = None if last_sent is None else np.array(last_sent, dtype=np.int64)
         self.last_full_at = float(last_full_at)
         self.free_at = -math.inf  # when the bytes booked so far have left the wire
-        self.handed_over = 0  # frames wanted so far
-        self.taken = 0  # frames wanted so far that a write has carried (or superseded)
 
     # -- the three calls ----------------------------------------------------------------------
 
@@ -180,29 +185,21 @@ class PortWrites:
         self.wanted_at = t
         self.pending = True
         self.force_full |= full
-        self.handed_over += 1
         return merged
 
     def next_write_at(self) -> float:
-        """Earliest time the next write may start: a waiting frame once the wire is free, else
-        the refresh of an idle wire; ``inf`` when there is nothing to write."""
-        if self.pending:
-            return max(self.free_at, self.wanted_at)
-        if self.wanted is not None and self.refresh_s > 0 and len(self.every):
-            return self._idle_refresh_at()
-        return math.inf
+        """Earliest time the next write may start: when the wire frees for a waiting frame;
+        ``inf`` when no frame waits."""
+        return max(self.free_at, self.wanted_at) if self.pending else math.inf
 
     def take(self, t: float) -> Write | None:
-        """The write handed to the port at ``t``: it starts on the wire at ``max(t, free)``
-        and is booked there. None when there is nothing to write by then."""
-        start = t if t > self.free_at else self.free_at
-        if self.pending:
-            full = (self.force_full or self.last_sent is None or self.policy.send_all
-                    or (self.refresh_s > 0 and start - self.last_full_at >= self.refresh_s))
-        elif self.next_write_at() <= start:  # the refresh of an idle wire
-            full = True
-        else:
+        """The write of the waiting frame, handed to the port at ``t``: it starts on the wire
+        at ``max(t, free)`` and is booked there. None when no frame waits."""
+        if not self.pending:
             return None
+        start = t if t > self.free_at else self.free_at
+        full = (self.force_full or self.last_sent is None or self.send_all
+                or (self.refresh_s > 0 and start - self.last_full_at >= self.refresh_s))
         wanted = self.wanted
         if full:
             local = self.every
@@ -214,10 +211,8 @@ class PortWrites:
         n_bytes = servo_move_bytes(len(local)) if len(local) else 0
         done = start + n_bytes * self.byte_s
         self.free_at = done
-        carries = self.pending
         self.pending = self.force_full = False
-        self.taken = self.handed_over
-        return Write(start, done, local, wanted, self.move_ms, full, n_bytes, carries)
+        return Write(start, done, local, wanted, self.move_ms, full, n_bytes)
 
     def written(self, t: float, n_bytes: int) -> float:
         """``n_bytes`` other bytes were written to this port at ``t`` (a battery query): the
@@ -234,18 +229,13 @@ class PortWrites:
         if not self.pending:
             return 0, 0, t
         start = t if t > self.free_at else self.free_at
-        if (self.force_full or self.last_sent is None or self.policy.send_all
+        if (self.force_full or self.last_sent is None or self.send_all
                 or (self.refresh_s > 0 and start - self.last_full_at >= self.refresh_s)):
             n = len(self.every)
         else:
             n = len(changed_channels(self.wanted, self.last_sent, self.deadband_us))
         n_bytes = servo_move_bytes(n) if n else 0
         return n, n_bytes, start + n_bytes * self.byte_s
-
-    def _idle_refresh_at(self) -> float:
-        # the host wanted nothing new for a whole interval, and the last full write is as old
-        return max(self.free_at, self.last_full_at + self.refresh_s,
-                   self.wanted_at + self.refresh_s)
 
 
 class ChannelSplit:
