@@ -48,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             group.add_argument("--deadband-us", type=int, default=None,
                                help="resend a channel when it moved more than this (us)")
             group.add_argument("--refresh-s", type=float, default=None,
-                               help="send every channel at least this often (0: never)")
+                               help="the first frame this long after the last full one "
+                                    "carries every channel (s; 0: never)")
             group.add_argument("--min-battery-mv", type=int, default=None,
                                help="refuse a board reporting less (mV; 0: no check)")
             group.add_argument("--battery-timeout-s", type=float, default=None,

@@ -138,10 +138,9 @@ class PulseMap:
         With ``check`` a pulse outside the calibrated range is a :class:`DeviceError`; without,
         any pulse maps (a modelled servo's position: a limp one sinks below its range).
         """
-        pulses = np.asarray(pulses_us, dtype=float)
         if check:
-            self.check_pulses(pulses)
-        return (pulses - self.zero_us) / self._us_per_mm
+            self.check_pulses(pulses_us)
+        return (pulses_us - self.zero_us) / self._us_per_mm  # float arrays for any input
 
     def check_pulses(self, pulses_us: np.ndarray) -> None:
         """Raise :class:`DeviceError` if any pulse lies outside its channel's calibrated range."""

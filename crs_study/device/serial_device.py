@@ -129,7 +129,7 @@ class SerialOptions:
     """Options of :class:`SerialDevice` (all times in seconds unless named otherwise)."""
 
     move_ms: int | None = None  # SERVO_MOVE time when send() gets none; None: one full frame
-    refresh_s: float = DEFAULT_REFRESH_S  # send every channel at least this often (0: never)
+    refresh_s: float = DEFAULT_REFRESH_S  # a frame this long after the last full one: full
     deadband_us: int = DEFAULT_DEADBAND_US  # resend a channel when it moved more than this
     baud: int = 9600  # the LSC boards support 9600 only (hardware.md)
     pace: bool = True  # write no faster than the wire carries bytes

@@ -38,7 +38,8 @@ URL syntax (options may also be given as keyword arguments; keywords win)::
     move_ms=67           SERVO_MOVE time when send() is given none (default: one full frame
                          of the busiest controller on the wire, as the serial device)
     neutral_move_ms=500  move time of the neutral pose sent on close()
-    refresh_s=1.0        send every channel at least this often (0: never force a refresh)
+    refresh_s=1.0        the first frame this long after the last full one carries every
+                         channel (0: never; device/writes.py)
     deadband_us=1        resend a channel when its pulse moved by more than this (schedule.py)
     battery_mv=7400      what each board reports while healthy
     seed=0               seed of the garbage generator
@@ -439,17 +440,19 @@ class SimulatedDevice(Device):
         bytes_sent = []
         channels = 0
         merged = False
-        members = self.split.members
+        split = self.split
         for k, wire in enumerate(self._wires):
             if wire.cut:  # only close() gets here: the other boards still get their frame
                 bytes_sent.append(0)
                 continue
             writes = wire.writes
-            merged |= writes.want(t, pulses[members[k]], move_ms, full)
-            if writes.next_write_at() <= t:  # the wire is free: the write starts now
-                write = writes.take(t)
-                self._put(k, wire, write)
-                n, size, done = len(write.local), write.n_bytes, write.done
+            merged |= writes.want(t, pulses[split.members[k]], move_ms, full)
+            if writes.free_at <= t:  # the wire is free (next_write_at() <= t): it goes now
+                _, done, local, mine, _, _, size = writes.take(t)
+                n = len(local)
+                if size:  # _put, inline (once per frame and board)
+                    wire.flying = split.encode(k, mine, local, move_ms)
+                    wire.start_at, wire.end_at = t, done
             else:  # it waits for the wire (a newer frame may replace it)
                 n, size, done = writes.predict(t)
             bytes_sent.append(size)
@@ -459,23 +462,29 @@ class SimulatedDevice(Device):
 
     def _put(self, k: int, wire: _Wire, write: Write) -> None:
         """Put ``write``'s bytes on wire ``k`` (the previous ones have arrived)."""
-        data = self.split.write_bytes(k, write)
+        data = self.split.encode(k, write.pulses, write.local, write.move_ms)
         if data:
             wire.flying, wire.start_at, wire.end_at = data, write.start, write.done
 
     def _advance(self, t: float) -> None:
         """Deliver every write whose last byte has arrived by ``t``; make the writes due."""
         for k, wire in enumerate(self._wires):
+            # nothing arrives, waits or vanishes by t (the common case: a frame still flying)
+            if (not wire.flying or wire.end_at > t) and not wire.writes.pending \
+                    and t < wire.vanish_at:
+                continue
             self._advance_wire(k, wire, t)
 
     def _advance_wire(self, k: int, wire: _Wire, t: float) -> None:
         """:meth:`_advance` for wire ``k`` alone."""
-        horizon = min(t, wire.vanish_at)
+        horizon = t if t < wire.vanish_at else wire.vanish_at
         writes = wire.writes
         while True:
             if wire.flying and wire.end_at <= horizon:
                 self._deliver(wire, wire.flying, wire.end_at)
                 wire.flying = b""
+            if not writes.pending:  # nothing waits for the wire (the common case)
+                break
             at = writes.next_write_at()
             if at > horizon:
                 break

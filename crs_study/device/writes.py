@@ -81,7 +81,8 @@ from crs_study.layout import Layout
 #: the full refresh puts the exact value on the wire at its interval.
 DEFAULT_DEADBAND_US = 1
 
-#: Default full-refresh interval (s): every channel is sent at least this often (0: never).
+#: Default full-refresh interval (s): the first frame this long after the last full write
+#: carries every channel (0: never).
 DEFAULT_REFRESH_S = 1.0
 
 #: Frames remembered by each :class:`ChannelSplit`'s encoder (cleared when full).
@@ -205,14 +206,18 @@ class PortWrites:
             local = self.every
             self.last_sent = wanted.copy()
             self.last_full_at = start
-        else:
-            local = changed_channels(wanted, self.last_sent, self.deadband_us)
+        else:  # changed_channels, inline: this runs for every frame of a dry-run
+            diff = wanted - self.last_sent
+            np.abs(diff, out=diff)
+            local = (diff > self.deadband_us).nonzero()[0]
             self.last_sent[local] = wanted[local]
-        n_bytes = servo_move_bytes(len(local)) if len(local) else 0
+        n = len(local)
+        n_bytes = 3 * n + 7 if n else 0  # servo_move_bytes
         done = start + n_bytes * self.byte_s
         self.free_at = done
         self.pending = self.force_full = False
-        return Write(start, done, local, wanted, self.move_ms, full, n_bytes)
+        # Write(...) without its keyword-handling constructor: once per frame and port
+        return tuple.__new__(Write, (start, done, local, wanted, self.move_ms, full, n_bytes))
 
     def written(self, t: float, n_bytes: int) -> float:
         """``n_bytes`` other bytes were written to this port at ``t`` (a battery query): the
