@@ -137,7 +137,9 @@ def test_a_controller_without_channels_is_never_written():
 
 @pytest.mark.parametrize(("kwargs", "message"), [
     ({"deadband_us": -1}, r"dead-band: expected a whole number of us >= 0, got -1"),
+    ({"deadband_us": True}, r"dead-band: .* got True"),
     ({"refresh_s": math.nan}, r"refresh interval: .* got nan"),
+    ({"refresh_s": "1"}, r"refresh interval: .* got '1'"),
     ({"baud": 0}, r"baud rate: expected a whole number > 0, got 0")])
 def test_bad_policies_are_one_line_errors(kwargs, message):
     with pytest.raises(DeviceError, match=message):

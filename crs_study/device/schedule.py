@@ -15,15 +15,14 @@ queueing (a frame handed over while its port's wire is busy waits, a newer one r
 changed-only channels; the full refresh every ``refresh_s`` (default
 :data:`~.writes.DEFAULT_REFRESH_S`, 0: never), riding on the first write that starts
 ``refresh_s`` or more after the last full write. :func:`simulate_port` runs the policy over a
-frame sequence. The latency
-of frame k is the time from its stimulus time ``t_k = k / f`` to the last byte of the write
-that carries it (or a newer frame that superseded it), the worst over controllers; it stays
-bounded (about two writes) however fast frames come. A refresh frame takes the full frame's
-wire time, so with the refresh on, the frame rate at which every frame fits its period
-(:attr:`WirePlan.rate_bound_hz`) is never above the full-frame bound, and the frames after a
-refresh that overran its period wait: the latencies count them. By default the last full write
-is long past, so frame 0 is full, as the first frame after the device opens or has been idle
-for ``refresh_s`` (a stimulus onset after the response phase).
+frame sequence. The latency of frame k is the time from its stimulus time ``t_k = k / f`` to the
+last byte of the write that carries it (or a newer frame that superseded it), the worst over
+controllers; it stays bounded (about two writes) however fast frames come. A refresh frame takes
+the full frame's wire time, so with the refresh on, the frame rate at which every frame fits its
+period (:attr:`WirePlan.rate_bound_hz`) is never above the full-frame bound, and the frames
+after a refresh that overran its period wait: the latencies count them. By default the last full
+write is long past, so frame 0 is full, as the first frame after the device opens or has been
+idle for ``refresh_s`` (a stimulus onset after the response phase).
 
 Balance: which channel is on which controller is pinned by the device file (the reasons are in
 :mod:`~crs_study.device.serial_device`, "Which channel goes on which controller"):
