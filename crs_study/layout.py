@@ -55,23 +55,17 @@ class Controller:
 
 @dataclass(frozen=True)
 class Calibration:
-    """Linear map between stroke (mm) and pulse width (us) for one channel.
+    """The device file's linear map between stroke (mm) and pulse width (us) for one channel.
 
     ``pulse = zero_us + (full_us - zero_us) * mm / travel_mm``; ``zero_us > full_us`` reverses
-    the direction. The calibrated range is [0, travel_mm] mm.
+    the direction. The calibrated range is [0, travel_mm] mm. The map itself, with its limits
+    and whole-us quantisation, is :class:`crs_study.device.calibration.PulseMap` (one place,
+    used by every device and the wire estimate).
     """
 
     zero_us: float
     full_us: float
     travel_mm: float
-
-    def pulse_us(self, mm: np.ndarray | float) -> np.ndarray | float:
-        return self.zero_us + (self.full_us - self.zero_us) * np.asarray(mm) / self.travel_mm
-
-    def mm(self, pulse_us: np.ndarray | float) -> np.ndarray | float:
-        return (np.asarray(pulse_us) - self.zero_us) * self.travel_mm / (
-            self.full_us - self.zero_us
-        )
 
 
 @dataclass(frozen=True)
@@ -179,13 +173,6 @@ class Layout:
     def neutral_setpoints(self) -> np.ndarray:
         """All pixels at base height, no boundary feed: the safe pose."""
         return np.zeros(self.n_actuators)
-
-    def pulse_us(self, setpoints_mm: np.ndarray) -> np.ndarray:
-        """Pulse widths (us) for a full setpoint vector, channel by channel (unclamped)."""
-        setpoints_mm = np.asarray(setpoints_mm, dtype=float)
-        return np.array(
-            [a.calibration.pulse_us(v) for a, v in zip(self.actuators, setpoints_mm, strict=True)]
-        )
 
     def with_pitch(self, pitch_mm: float) -> Layout:
         """The same device scaled to another pixel pitch (used for d/l sweeps)."""

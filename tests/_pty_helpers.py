@@ -1,4 +1,5 @@
-"""Shared by the device tests: pseudo-terminal boards, and a base-0, reversed layout.
+"""Shared by the device tests: pseudo-terminal boards, a base-0, reversed layout, and a
+stepped clock that drives the serial device's writer threads through chosen times.
 
 The far end of each pty decodes what the host writes with the codec (host direction) and
 answers GET_BATTERY_VOLTAGE like a board (hardware.md: reply ``55 55 04 0F lo hi``). Test
@@ -59,6 +60,13 @@ class PtyBoard:
             time.sleep(0.005)
         return self.moves()
 
+    def wait_for_bytes(self, count: int, timeout: float = 2.0) -> bool:
+        """Wait until ``count`` bytes have arrived; False on timeout."""
+        deadline = time.monotonic() + timeout
+        while len(self.raw) < count and time.monotonic() < deadline:
+            time.sleep(0.002)
+        return len(self.raw) >= count
+
     def vanish(self) -> None:
         self._stop.set()
         self._thread.join()
@@ -102,3 +110,103 @@ def base0_reversed(layout):
     acts[2] = replace(acts[2], calibration=replace(cal, zero_us=cal.full_us, full_us=cal.zero_us))
     controllers = (replace(first, channel_base=0), *layout.controllers[1:])
     return replace(layout, controllers=controllers, actuators=tuple(acts))
+
+
+class SteppedClock:
+    """A clock that moves only when the test moves it, waking the serial device's writer
+    threads when it does (they wait on their port's condition, as for a hand-over).
+
+    With it, the writer threads decide at exactly the times the test steps to, so a
+    SerialDevice can be run through the same event times as a SimulatedDevice on a virtual
+    clock (:func:`step_serial_device`).
+    """
+
+    is_virtual = True
+
+    def __init__(self, start: float = 0.0) -> None:
+        self._now = float(start)
+        self.device = None  # the SerialDevice whose writers to wake
+
+    def now(self) -> float:
+        return self._now
+
+    def sleep(self, seconds: float) -> None:
+        if seconds > 0:
+            self.set(self._now + seconds)
+
+    def sleep_until(self, deadline: float) -> None:
+        if deadline > self._now:
+            self.set(deadline)
+
+    def set(self, t: float) -> None:
+        assert t >= self._now, (t, self._now)
+        self._now = float(t)
+        for port in getattr(self.device, "ports", ()):
+            with port.cond:
+                port.cond.notify_all()
+
+
+class RecordingPort:
+    """A real pyserial port (here a pty) that records each write with the clock time it was
+    made, so a test can compare when bytes went out, not only which."""
+
+    def __init__(self, port, clock) -> None:
+        self._port = port
+        self._clock = clock
+        self.writes: list[tuple[float, bytes]] = []
+
+    def write(self, data: bytes) -> int:
+        self.writes.append((self._clock.now(), bytes(data)))
+        return self._port.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self._port, name)
+
+
+def _settled(device, clock) -> bool:
+    """Every writer has done what is due by ``clock.now()`` (nothing due, nothing mid-write)."""
+    for port in device.ports:
+        with port.cond:
+            if port.error is not None:
+                raise AssertionError(f"{port.label}: {port.error}")
+            if port.writing_since is not None or port.writes.next_write_at() <= clock.now():
+                return False
+    return True
+
+
+def settle(device, clock, timeout: float = 5.0) -> None:
+    """Wait (real time) until the writer threads have caught up with the stepped clock."""
+    deadline = time.monotonic() + timeout
+    while not _settled(device, clock):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the writer threads did not settle at t={clock.now()!r}")
+        time.sleep(0.0002)
+
+
+def _next_write_at(device) -> float:
+    due = []
+    for port in device.ports:
+        with port.cond:
+            due.append(port.writes.next_write_at())
+    return min(due)
+
+
+def step_serial_device(device, clock: SteppedClock, times, frames, until: float) -> float:
+    """Hand ``frames[k]`` to the opened ``device`` at ``times[k]``, stepping ``clock`` through
+    every time a write falls due in between (a write due at a frame's time goes first, the
+    policy's tie rule); then on until every frame is written, and to ``until`` if later.
+    Returns the end time, at which every wire is free."""
+    for t, frame in zip(times, frames, strict=True):
+        while (due := _next_write_at(device)) < t:
+            clock.set(due)
+            settle(device, clock)
+        clock.set(t)
+        settle(device, clock)
+        device.send(frame)
+        settle(device, clock)
+    while (due := _next_write_at(device)) < float("inf"):
+        clock.set(due)
+        settle(device, clock)
+    clock.set(max(until, clock.now(), *(port.writes.free_at for port in device.ports)))
+    settle(device, clock)
+    return clock.now()

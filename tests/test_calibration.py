@@ -1,7 +1,8 @@
 """Calibration: mm <-> pulse width per channel, limits that never reach the wire, calibrated copies.
 
 The linear map is the device file's (layout.py ``Calibration``; hardware.md "Linear PWM servos":
-1000 us retracted, 2000 us extended in the shipped default).
+1000 us retracted, 2000 us extended in the shipped default); PulseMap.to_pulses is the one
+place it is computed.
 """
 
 from __future__ import annotations
@@ -122,6 +123,85 @@ def test_no_setpoint_outside_limits_is_ever_encoded(layout1d, cals, stimulus, sh
     fraction = np.clip(setpoints, 0, pm.travel_mm) / pm.travel_mm
     exact = pm.zero_us + (pm.full_us - pm.zero_us) * fraction
     assert np.all(np.abs(pulses - exact) <= 1.0)
+
+
+@pytest.mark.parametrize("name", ["crs2d", "crs1d"])
+def test_the_shipped_device_files_map_travel_onto_their_published_endpoints(name):
+    # hardware.md, "Linear PWM servos": 1000 us fully retracted, 2000 us fully extended; the
+    # device files publish that per channel (their [calibration] table), and travel 0 and
+    # full travel must land on those very pulse widths, half travel half way
+    layout = load_layout(name)
+    pm = PulseMap.from_layout(layout)
+    cals = [a.calibration for a in layout.actuators]
+    travel = np.array([c.travel_mm for c in cals])
+    assert {(c.zero_us, c.full_us) for c in cals} == {(1000, 2000)}
+    assert pm.to_pulses(np.zeros(len(cals))).tolist() == [c.zero_us for c in cals]
+    assert pm.to_pulses(travel).tolist() == [c.full_us for c in cals]
+    assert pm.to_pulses(travel / 2).tolist() == [1500] * len(cals)
+
+
+def test_a_calibrated_copys_endpoints_are_what_its_channels_reach(tmp_path):
+    # the endpoints an experimenter found (one fractional, one reversed) are the pulses the
+    # channel gets at 0 mm and full travel; a fractional endpoint rounds inside the range
+    out = tmp_path / "dev.toml"
+    layout = write_calibrated_copy(device_file_path("crs1d"), out,
+                                   {"A:1": (1010, 1985), "A:3": (2010.5, 1020)})
+    pm = PulseMap.from_layout(layout)
+    travel = pm.travel_mm
+    assert pm.to_pulses(np.zeros(7))[[0, 2]].tolist() == [1010, 2010]
+    assert pm.to_pulses(travel)[[0, 2]].tolist() == [1985, 1020]
+
+
+def test_every_user_converts_millimetres_through_the_one_map(layout2d, monkeypatch):
+    # one mm-to-pulse map (PulseMap.to_pulses): both devices and the wire estimate call it,
+    # and the device file's Calibration and the Layout hold no second copy of the formula
+    from crs_study.benchmarks.device import PacedPort
+    from crs_study.clock import VirtualClock
+    from crs_study.device.schedule import wire_plan
+    from crs_study.device.serial_device import SerialDevice, SerialOptions
+    from crs_study.device.simulated import SimulatedDevice
+    from crs_study.layout import Layout
+
+    calls = []
+    original = PulseMap.to_pulses
+
+    def counted(self, setpoints_mm):
+        calls.append(np.shape(setpoints_mm))
+        return original(self, setpoints_mm)
+
+    monkeypatch.setattr(PulseMap, "to_pulses", counted)
+    frame = np.full(layout2d.n_actuators, 2.0)
+    ports = [PacedPort(c.name, 0.0) for c in layout2d.controllers]
+    for device in (SimulatedDevice(layout2d, VirtualClock()),
+                   SerialDevice(layout2d, ports, VirtualClock(),
+                                SerialOptions(check_battery=False, pace=False))):
+        with device:
+            calls.clear()
+            device.send(frame)
+            assert calls == [frame.shape], type(device).__name__
+    calls.clear()
+    wire_plan(layout2d, np.array([frame, frame]), 15.0)
+    assert (2, layout2d.n_actuators) in calls
+    for cls, name in ((Calibration, "pulse_us"), (Calibration, "mm"), (Layout, "pulse_us")):
+        assert not hasattr(cls, name), f"{cls.__name__}.{name}: a second map"
+
+
+@settings(max_examples=150, deadline=None)
+@given(cal=calibrations, fractions=st.lists(st.floats(0.0, 1.0), min_size=2, max_size=12))
+def test_pulses_follow_the_setpoint_and_map_back_within_half_a_microsecond(layout1d, cal,
+                                                                             fractions):
+    # monotone in the setpoint (rising for zero_us < full_us, falling when reversed), and the
+    # inverse map returns each setpoint to within half a microsecond's worth of stroke
+    zero, full, travel = cal
+    acts = tuple(replace(a, calibration=Calibration(zero, full, travel))
+                 for a in layout1d.actuators)
+    pm = PulseMap.from_layout(replace(layout1d, actuators=acts))
+    mm = np.sort(np.array(fractions)) * travel
+    pulses = pm.to_pulses(np.repeat(mm[:, None], 7, axis=1))[:, 0]
+    steps = np.diff(pulses) * np.sign(full - zero)
+    assert np.all(steps >= 0)
+    back = pm.to_mm(np.repeat(pulses[:, None], 7, axis=1))[:, 0]
+    assert np.all(np.abs(back - mm) <= 0.5 * travel / abs(full - zero) + 1e-9)
 
 
 def test_calibrated_copy_replaces_only_the_calibration_table(tmp_path):

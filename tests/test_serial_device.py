@@ -214,11 +214,23 @@ def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout2d, b
 
 
 def test_full_refresh_resends_every_channel(layout1d, boards):
+    # The refresh rides on the first frame written refresh_s after the last full one, even
+    # when nothing changed; a held pose is not rewritten on its own (the write policy,
+    # device/writes.py, says why). This test once asserted the opposite: three full writes
+    # within a second after a single frame, the serial device's own rule before the policy
+    # was one for all three writers.
     (board,) = boards(1)
-    with SerialDevice.from_url(url_of([board]), layout1d, pace=False, refresh_s=0.05) as device:
+    with SerialDevice.from_url(url_of([board]), layout1d, pace=False, refresh_s=0.5) as device:
         device.send(np.zeros(7))
-        moves = board.wait_for(3, timeout=1.0)
-        assert len(moves) >= 3 and all(len(m.positions) == 7 for m in moves)
+        assert device.wait_sent(1.0)
+        time.sleep(0.6)
+        assert len(board.wait_for(2, timeout=0.1)) == 1  # the held pose: not rewritten
+        device.send(np.zeros(7))  # nothing changed, but the refresh is due: every channel
+        assert device.wait_sent(1.0)
+        device.send(np.zeros(7))  # right after: nothing changed, nothing written
+        assert device.wait_sent(1.0)
+        moves = board.wait_for(3, timeout=0.3)
+        assert len(moves) == 2 and all(len(m.positions) == 7 for m in moves)
 
 
 def test_controllers_are_written_concurrently(layout2d):

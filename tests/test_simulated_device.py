@@ -38,7 +38,9 @@ def expected_frame(layout, controller, setpoints, only=None, move_ms=0):
     pairs = []
     for a in layout.actuators:
         if a.controller == controller and (only is None or a.index in only):
-            pairs.append((a.channel, int(np.rint(a.calibration.pulse_us(setpoints[a.index])))))
+            cal = a.calibration  # hardware.md, "Linear PWM servos": the device file's line
+            pulse = cal.zero_us + (cal.full_us - cal.zero_us) * setpoints[a.index] / cal.travel_mm
+            pairs.append((a.channel, int(np.rint(pulse))))
     return codec.servo_move(pairs, move_ms)
 
 

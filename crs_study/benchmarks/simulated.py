@@ -79,7 +79,7 @@ def run(quick: bool) -> list[Figure]:
     clock = VirtualClock()
     device = SimulatedDevice.from_url("sim://", layout, clock)
     device.open()
-    split, pulse_map = device.builder.split, device.builder.pulse_map
+    split, pulse_map = device.split, device.pulse_map
     all_pulses = pulse_map.to_pulses(frames)
     step = 1.0 / FRAME_RATE_HZ
     cursor = iter(range(10**12))

@@ -48,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             group.add_argument("--deadband-us", type=int, default=None,
                                help="resend a channel when it moved more than this (us)")
             group.add_argument("--refresh-s", type=float, default=None,
-                               help="send every channel at least this often (0: never)")
+                               help="the first frame this long after the last full one "
+                                    "carries every channel (s; 0: never)")
             group.add_argument("--min-battery-mv", type=int, default=None,
                                help="refuse a board reporting less (mV; 0: no check)")
             group.add_argument("--battery-timeout-s", type=float, default=None,
@@ -346,7 +347,9 @@ def _calibrate(args: argparse.Namespace) -> int:
             for label, mm_value in (("base (0 mm, fully retracted)", 0.0),
                                     (f"full travel ({actuator.calibration.travel_mm:g} mm)",
                                      actuator.calibration.travel_mm)):
-                pulse = int(round(actuator.calibration.pulse_us(mm_value)))
+                setpoints = layout.neutral_setpoints()
+                setpoints[index] = mm_value
+                pulse = int(device.pulse_map.to_pulses(setpoints)[index])
                 pulse = _adjust(device, neutral, index, pulse, f"{key} {actuator.name}: {label}")
                 if pulse is None:
                     break

@@ -1,7 +1,9 @@
 """The device seam: one interface, a serial and a simulated implementation, chosen by URL.
 
 ``open_device("serial:///dev/ttyUSB0,/dev/ttyUSB1", layout)`` (one port per controller, in
-device-file order) or ``open_device("sim://?faults...", layout, clock)``. Both take setpoint
+device-file order) or ``open_device("sim://?faults...", layout, clock)``: the URL's scheme is
+looked up in a registry (:func:`register_scheme`), which :mod:`crs_study.device` fills with
+its two implementations, so this module never imports them. Both take setpoint
 vectors in millimetres in :class:`~crs_study.layout.Layout` actuator order and turn them into
 LSC SERVO_MOVE frames (hardware.md); the simulated device decodes those very bytes.
 
@@ -11,8 +13,11 @@ n servos is 3 n + 7 bytes.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Self
 
 import numpy as np
 
@@ -27,6 +32,11 @@ BYTE_TIME_S = BITS_PER_BYTE / BAUD_RATE
 
 class DeviceWarning(UserWarning):
     """Something odd but not fatal about the device (no battery answer, unbalanced channels)."""
+
+
+#: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell); both
+#: devices use it (``min_battery_mv`` of the serial device; 0 turns its check off).
+LOW_BATTERY_MV = 6000
 
 
 def servo_move_bytes(n_servos: int) -> int:
@@ -52,6 +62,14 @@ def full_frame_wire_time_s(layout: Layout) -> float:
     return servo_move_bytes(busiest) * BYTE_TIME_S if busiest else 0.0
 
 
+def default_move_ms(layout: Layout, baud: int = BAUD_RATE) -> int:
+    """SERVO_MOVE time when a frame is sent without one: one full frame of the busiest
+    controller on the wire (ms, rounded up; 67 ms on the shipped 2D device), so a servo
+    moves over the time until the next frame can arrive."""
+    busiest = max(channels_per_controller(layout).values(), default=0)
+    return math.ceil(servo_move_bytes(busiest) * BITS_PER_BYTE / baud * 1000)
+
+
 def full_frame_rate_hz(layout: Layout) -> float:
     """Highest frame rate the wire allows when every channel changes in every frame."""
     wire = full_frame_wire_time_s(layout)
@@ -74,15 +92,20 @@ class FrameReport:
 
 
 class Device(ABC):
-    """A CRS display behind one or more LSC controllers.
+    """A CRS display behind one or more LSC controllers: the interface the runner and the
+    ``device`` commands use (implementations: :class:`~.serial_device.SerialDevice`,
+    :class:`~.simulated.SimulatedDevice`; chosen by URL with :func:`open_device`).
 
     Use as a context manager: ``__exit__`` always calls :meth:`close`, which moves every
     actuator to the safe neutral pose and releases the ports, on success, error or Ctrl-C.
+    Faults met on the way (a neutral pose that could not be sent) are appended to
+    :attr:`faults`.
     """
 
     def __init__(self, layout: Layout, clock: Clock | None = None) -> None:
         self.layout = layout
-        self.clock = clock or RealClock()
+        self.clock: Clock = clock or RealClock()
+        self.faults: list[str] = []
 
     @abstractmethod
     def open(self) -> None:
@@ -100,22 +123,23 @@ class Device(ABC):
     def close(self) -> None:
         """Move to the neutral pose (best effort) and release every port. Idempotent."""
 
+    @abstractmethod
     def displayed_setpoints(self, t: float | None = None) -> np.ndarray:
         """Where the actuators are at clock time ``t`` (mm, actuator order).
 
         The simulated device returns modelled servo positions; a real device, which gets no
         feedback from PWM servos, returns the last commanded setpoints.
         """
-        raise NotImplementedError
 
     def battery_mv(self) -> list[float | None]:
         """Battery voltage per controller in millivolts (None where unknown)."""
         return [None] * len(self.layout.controllers)
 
     def neutral(self) -> FrameReport:
+        """Send the neutral pose (every pixel at base, no boundary feed)."""
         return self.send(self.layout.neutral_setpoints())
 
-    def __enter__(self) -> Device:
+    def __enter__(self) -> Self:
         self.open()
         return self
 
@@ -123,17 +147,27 @@ class Device(ABC):
         self.close()
 
 
+#: Makes a device from its URL: ``factory(url, layout, clock, **options)``.
+DeviceFactory = Callable[..., Device]
+
+#: URL scheme (``"serial"`` for ``serial://...``) -> factory. The package registers its own
+#: (:mod:`crs_study.device`: ``serial``, ``sim``); :func:`register_scheme` adds more.
+_SCHEMES: dict[str, DeviceFactory] = {}
+
+
+def register_scheme(scheme: str, factory: DeviceFactory) -> None:
+    """Let :func:`open_device` make ``scheme://...`` URLs with ``factory``."""
+    _SCHEMES[scheme] = factory
+
+
 def open_device(url: str, layout: Layout, clock: Clock | None = None, **options: object
                 ) -> Device:
-    """Device for a URL: ``serial://PORT[,PORT...]`` or ``sim://[?options]``."""
-    if url.startswith("serial://"):
-        from crs_study.device.serial_device import SerialDevice
-
-        return SerialDevice.from_url(url, layout, clock, **options)
-    if url.startswith("sim://"):
-        from crs_study.device.simulated import SimulatedDevice
-
-        return SimulatedDevice.from_url(url, layout, clock, **options)
-    raise DeviceError(
-        f"unknown device URL {url!r}; expected serial:///dev/ttyUSB0[,/dev/ttyUSB1] or sim://"
-    )
+    """Device for a URL: ``serial://PORT[,PORT...]`` or ``sim://[?options]`` (or a scheme
+    added with :func:`register_scheme`), not yet opened."""
+    scheme, sep, _ = url.partition("://")
+    factory = _SCHEMES.get(scheme) if sep else None
+    if factory is None:
+        raise DeviceError(
+            f"unknown device URL {url!r}; expected serial:///dev/ttyUSB0[,/dev/ttyUSB1] or sim://"
+        )
+    return factory(url, layout, clock, **options)

@@ -1,7 +1,9 @@
 """Setpoints (mm) to pulse widths (us) per channel, and back, with limits that never leak.
 
-Each actuator's :class:`~crs_study.layout.Calibration` maps stroke to pulse width linearly
-(hardware.md, "Linear PWM servos")::
+:meth:`PulseMap.to_pulses` is the one map from millimetres to pulse widths: both devices and
+the wire estimate use it, and the ``device calibrate`` command starts each channel from it.
+Each actuator's :class:`~crs_study.layout.Calibration` (the device file's numbers) maps
+stroke to pulse width linearly (hardware.md, "Linear PWM servos")::
 
     pulse = zero_us + (full_us - zero_us) * mm / travel_mm,   mm in [0, travel_mm]
 
@@ -50,6 +52,7 @@ class PulseMap:
     # derived once (to_pulses runs every frame): full_us - zero_us, the accepted setpoint
     # range with its tolerance, and the whole-us pulse range as floats
     _span_us: np.ndarray = field(init=False, repr=False)
+    _us_per_mm: np.ndarray = field(init=False, repr=False)
     _accept_high_mm: np.ndarray = field(init=False, repr=False)
     _pulse_low_f: np.ndarray = field(init=False, repr=False)
     _pulse_high_f: np.ndarray = field(init=False, repr=False)
@@ -63,6 +66,7 @@ class PulseMap:
             and np.all(self.full_us == np.round(self.full_us))))
         derived = {
             "_span_us": self.full_us - self.zero_us,
+            "_us_per_mm": (self.full_us - self.zero_us) / self.travel_mm,
             "_accept_high_mm": self.travel_mm + self.tolerance_mm,
             "_pulse_low_f": np.asarray(self.pulse_low, dtype=float),
             "_pulse_high_f": np.asarray(self.pulse_high, dtype=float),
@@ -127,11 +131,16 @@ class PulseMap:
             np.minimum(pulses, self._pulse_high_f, out=pulses)
         return pulses.astype(np.int64)
 
-    def to_mm(self, pulses_us: np.ndarray) -> np.ndarray:
-        """Setpoints (mm) for pulse widths; a pulse outside the calibrated range is an error."""
-        pulses = np.asarray(pulses_us, dtype=float)
-        self.check_pulses(pulses)
-        return (pulses - self.zero_us) * self.travel_mm / (self.full_us - self.zero_us)
+    def to_mm(self, pulses_us: np.ndarray, check: bool = True) -> np.ndarray:
+        """Setpoints (mm) for pulse widths, ``(pulse - zero_us) / ((full_us - zero_us) /
+        travel_mm)``: the inverse of :meth:`to_pulses` (before its rounding).
+
+        With ``check`` a pulse outside the calibrated range is a :class:`DeviceError`; without,
+        any pulse maps (a modelled servo's position: a limp one sinks below its range).
+        """
+        if check:
+            self.check_pulses(pulses_us)
+        return (pulses_us - self.zero_us) / self._us_per_mm  # float arrays for any input
 
     def check_pulses(self, pulses_us: np.ndarray) -> None:
         """Raise :class:`DeviceError` if any pulse lies outside its channel's calibrated range."""

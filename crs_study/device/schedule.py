@@ -9,26 +9,20 @@ width differs by more than ``deadband_us`` from what was last sent on it (dead-b
 change; default :data:`DEFAULT_DEADBAND_US`). Send-everything frames carry every channel of
 the controller.
 
-Merging, never queueing (:class:`~crs_study.device.serial_device.SerialDevice` and the
-simulated device behave alike): a frame handed over while its port's wire is busy waits; a
-newer frame replaces it; when the wire frees, the channels whose latest wanted pulse differs
-from the last sent go out as one SERVO_MOVE. The latency of frame k is the time from its
-stimulus time ``t_k = k / f`` to the last byte of the write that carries it (or a newer frame
-that superseded it), the worst over controllers. Latency therefore stays bounded (about two
-writes) however fast frames come.
-
-Full refresh: every ``refresh_s`` (default :data:`DEFAULT_REFRESH_S`, 0: never) a write
-carries every channel, whatever changed, so a frame the board lost or garbled is repaired. The
-model does what :class:`~crs_study.device.simulated.SimulatedDevice` does: a write that starts
-``refresh_s`` or more after the port's last full write is full. By default the last full write
-is long past, so frame 0 is full, as the first frame after the device opens or has been idle
-for ``refresh_s`` (between trials). A refresh frame takes the full frame's wire time, so with
-the refresh on, the frame rate at which every frame fits its period
-(:attr:`WirePlan.rate_bound_hz`) is never above the full-frame bound, and the frames after a
-refresh that overran its period wait: the latencies count them. (SerialDevice's writer sends a
-due refresh as soon as it is due, also between frames, rather than with the next frame; the
-next frame may then wait for it, by at most one full frame's wire time once a refresh
-interval.)
+Writes: what goes on the wire, and when, is the host's write policy
+(:mod:`~crs_study.device.writes`), the very code that drives both devices: merging, never
+queueing (a frame handed over while its port's wire is busy waits, a newer one replaces it);
+changed-only channels; the full refresh every ``refresh_s`` (default
+:data:`~.writes.DEFAULT_REFRESH_S`, 0: never), riding on the first write that starts
+``refresh_s`` or more after the last full write. :func:`simulate_port` runs the policy over a
+frame sequence. The latency of frame k is the time from its stimulus time ``t_k = k / f`` to the
+last byte of the write that carries it (or a newer frame that superseded it), the worst over
+controllers; it stays bounded (about two writes) however fast frames come. A refresh frame takes
+the full frame's wire time, so with the refresh on, the frame rate at which every frame fits its
+period (:attr:`WirePlan.rate_bound_hz`) is never above the full-frame bound, and the frames
+after a refresh that overran its period wait: the latencies count them. By default the last full
+write is long past, so frame 0 is full, as the first frame after the device opens or has been
+idle for ``refresh_s`` (a stimulus onset after the response phase).
 
 Balance: which channel is on which controller is pinned by the device file (the reasons are in
 :mod:`~crs_study.device.serial_device`, "Which channel goes on which controller"):
@@ -43,69 +37,35 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from crs_study.device.base import (
+    BAUD_RATE,
     BYTE_TIME_S,
     DeviceWarning,
     full_frame_rate_hz,
     servo_move_bytes,
 )
 from crs_study.device.calibration import PulseMap
-from crs_study.device.codec import servo_move_arrays
+from crs_study.device.writes import (
+    DEFAULT_DEADBAND_US,
+    DEFAULT_REFRESH_S,
+    ChannelSplit,
+    PortWrites,
+    Write,
+    WritePolicy,
+)
 from crs_study.errors import DeviceError
 from crs_study.layout import Layout
 
-#: Default dead-band (us): a channel is resent when its pulse moved by more than this. 1 us is
-#: 0.009 mm on a 9 mm / 1000 us servo, far below feel, and it stops a slowly drifting channel
-#: (typically a boundary servo's feed, sub-micron per frame) from costing 3 bytes every frame;
-#: the full refresh puts the exact value on the wire at its interval.
-DEFAULT_DEADBAND_US = 1
-
-#: Default full-refresh interval (s): every channel is sent at least this often (0: never).
-DEFAULT_REFRESH_S = 1.0
+__all__ = ["DEFAULT_DEADBAND_US", "DEFAULT_REFRESH_S", "IMBALANCE_WARN", "Balance",
+           "ChannelSplit", "PortRun", "WirePlan", "changed_bytes_per_frame", "channel_balance",
+           "max_frame_rate_hz", "simulate_port", "warn_if_unbalanced", "wire_plan"]
 
 #: A busiest controller whose full frame is this much longer than an even split's is reported.
 IMBALANCE_WARN = 0.10
-
-
-class ChannelSplit:
-    """Which actuators sit on which controller, and SERVO_MOVE frames of changed channels.
-
-    ``members[c]`` are the actuator indices on controller ``c`` (device-file order), ``ids[c]``
-    their servo ids. Shared by the serial and the simulated device.
-    """
-
-    def __init__(self, layout: Layout) -> None:
-        acts = layout.actuators
-        self.layout = layout
-        self.names = tuple(c.name for c in layout.controllers)
-        self.members = tuple(np.array([a.index for a in acts if a.controller == name],
-                                      dtype=np.intp) for name in self.names)
-        self.ids = tuple(np.array([acts[i].channel for i in m], dtype=np.int64)
-                         for m in self.members)
-
-    def changed(self, controller: int, pulses: np.ndarray, last_sent: np.ndarray | None,
-                deadband_us: int = DEFAULT_DEADBAND_US) -> np.ndarray:
-        """Local indices (into ``members[controller]``) of channels to send.
-
-        ``pulses`` is the full actuator vector; ``last_sent`` this controller's last sent
-        pulses (None: unknown, send all).
-        """
-        mine = pulses[self.members[controller]]
-        if last_sent is None:
-            return np.arange(len(mine))
-        return np.flatnonzero(np.abs(mine - last_sent) > deadband_us)
-
-    def frame(self, controller: int, pulses: np.ndarray, local: np.ndarray, move_ms: int
-              ) -> bytes:
-        """SERVO_MOVE bytes moving channels ``local`` of ``controller`` (b"" when none)."""
-        if not len(local):
-            return b""
-        return servo_move_arrays(self.ids[controller][local],
-                                 pulses[self.members[controller][local]], move_ms)
 
 
 @dataclass(frozen=True)
@@ -279,45 +239,52 @@ def changed_bytes_per_frame(pulses: np.ndarray, split: ChannelSplit,
     return out
 
 
-def _simulate_port(pulses: np.ndarray, times: np.ndarray, last: np.ndarray | None,
-                   deadband_us: int, send_all: bool, refresh_s: float = 0.0,
-                   last_full_at: float = -math.inf) -> tuple[np.ndarray, int, int]:
-    """Latency per frame, merged count and full refreshes on one port (module docstring)."""
-    n = len(times)
-    latency = np.zeros(n)
-    free_at = -math.inf
-    waiting: list[int] = []
-    merged = refreshes = 0
-    last = None if last is None else last.copy()
-    def write(start: float) -> float:
-        nonlocal last, last_full_at, refreshes
-        wanted = pulses[waiting[-1]]
-        if send_all or last is None or (refresh_s > 0 and start - last_full_at >= refresh_s):
-            changed = np.arange(len(wanted))
-            last_full_at = start
-            refreshes += not send_all
-        else:
-            changed = np.flatnonzero(np.abs(wanted - last) > deadband_us)
-        done = start + servo_move_bytes(len(changed)) * BYTE_TIME_S if len(changed) else start
-        for j in waiting:
-            latency[j] = done - times[j]
-        if last is None:
-            last = wanted.copy()
-        else:
-            last[changed] = wanted[changed]
-        waiting.clear()
-        return done
+@dataclass(frozen=True, eq=False)
+class PortRun:
+    """What the write policy did on one port over a frame sequence (:func:`simulate_port`)."""
 
-    for k in range(n):
-        if waiting and free_at < times[k]:  # the wire freed before frame k: the waiting go
-            free_at = write(free_at)
-        merged += len(waiting)  # a frame still waiting is superseded by frame k
-        waiting[:] = [*waiting, k]
-        if free_at <= times[k]:
-            free_at = write(times[k])
-    if waiting:
-        write(free_at)
-    return latency, merged, refreshes
+    writes: list[Write]  # in order; a write of 0 bytes (nothing changed) puts nothing on the wire
+    latency_s: np.ndarray = field(repr=False)  # per frame: end of the write carrying it - t_k
+    merged: int  # frames superseded before they reached the wire
+
+    @property
+    def refreshes(self) -> int:
+        """Full writes (in a changed-only run from a known pose: the refreshes)."""
+        return sum(w.full for w in self.writes)
+
+
+def simulate_port(pulses: np.ndarray, times: np.ndarray, policy: WritePolicy,
+                  last_sent: np.ndarray | None = None, last_full_at: float = -math.inf,
+                  move_ms: int = 0) -> PortRun:
+    """The write policy (:class:`~.writes.PortWrites`) on one port: frame k (this
+    controller's whole-us ``pulses[k]``) wanted at ``times[k]`` (non-decreasing), until the
+    last frame has been written.
+
+    ``last_sent``, ``last_full_at``: the port before frame 0 (None, -inf: nothing sent yet).
+    """
+    port = PortWrites(pulses.shape[1], policy, last_sent, last_full_at)
+    latency = np.zeros(len(times))
+    writes: list[Write] = []
+    waiting: list[int] = []  # frames wanted and not yet carried by a write
+    merged = 0
+
+    def take(t: float) -> None:
+        write = port.take(t)
+        writes.append(write)
+        for j in waiting:
+            latency[j] = write.done - times[j]
+        waiting.clear()
+
+    for k, t in enumerate(times):
+        while port.next_write_at() <= t:  # due by t: goes before frame k (the tie rule)
+            take(port.next_write_at())
+        merged += port.want(t, pulses[k], move_ms)
+        waiting.append(k)
+        if port.next_write_at() <= t:
+            take(t)
+    if port.pending:
+        take(port.next_write_at())
+    return PortRun(writes, latency, merged)
 
 
 def wire_plan(layout: Layout, setpoints_sequence: np.ndarray, frame_rate_hz: float,
@@ -352,16 +319,17 @@ def wire_plan(layout: Layout, setpoints_sequence: np.ndarray, frame_rate_hz: flo
     lat_changed = np.zeros(len(pulses))
     lat_full = np.zeros(len(pulses))
     merged_changed = merged_full = refreshes = 0
+    policy = WritePolicy(deadband_us, refresh_s, BAUD_RATE)
+    send_all = WritePolicy(deadband_us, 0.0, BAUD_RATE, send_all=True)
     for members in split.members:
         mine = pulses[:, members]
-        lc, mc, rc = _simulate_port(mine, times, initial[members], deadband_us, False,
-                                    refresh_s, last_refresh_s)
-        lf, mf, _ = _simulate_port(mine, times, initial[members], deadband_us, True)
-        lat_changed = np.maximum(lat_changed, lc)
-        lat_full = np.maximum(lat_full, lf)
-        merged_changed = max(merged_changed, mc)
-        merged_full = max(merged_full, mf)
-        refreshes = max(refreshes, rc)
+        run = simulate_port(mine, times, policy, initial[members], last_refresh_s)
+        everything = simulate_port(mine, times, send_all, initial[members])
+        lat_changed = np.maximum(lat_changed, run.latency_s)
+        lat_full = np.maximum(lat_full, everything.latency_s)
+        merged_changed = max(merged_changed, run.merged)
+        merged_full = max(merged_full, everything.merged)
+        refreshes = max(refreshes, run.refreshes)
     steady = changed[1:].max() if len(changed) > 1 else 0
     return WirePlan(
         frame_rate_hz=float(frame_rate_hz), deadband_us=int(deadband_us),

@@ -12,27 +12,29 @@ such as the simulator's); it is handed to :func:`serial.serial_for_url` unchange
 Device options (:class:`SerialOptions`) are keyword arguments of :meth:`SerialDevice.from_url`
 (the ``crs-study device`` flags), never part of the URL.
 
-Writing (see :mod:`~crs_study.device.schedule` for the model)
+Writing (what goes on the wire, and when: the write policy, :mod:`~crs_study.device.writes`)
     Ports run 9600 baud 8N1 with read and write timeouts. Each port has a writer thread, so
     controllers are written concurrently. :meth:`SerialDevice.send` converts setpoints to
-    whole-us pulses (refusing anything outside calibrated limits before any byte moves), stores
-    them as the port's *latest wanted pulses* and returns at once. The writer sends, when the
-    port's wire is free, one SERVO_MOVE of the channels whose wanted pulse differs from the
-    last sent by more than the dead-band; a frame handed over while a previous one still waits
-    replaces it (merged, never queued), so latency never grows. When ``refresh_s`` has passed
-    since the last full frame, the next frame carries every channel, and one is written even
-    if nothing changed (a frame the board lost or garbled is repaired). With ``pace`` (the
-    default) the writer writes once the wire is free: the bytes already written have had
-    their time at ``10 / baud`` s a byte (less ``lead_s``, so the next frame follows without
-    a gap despite wake-up jitter) *and* the port's output buffer (``out_waiting``) holds at
-    most :data:`OUT_WAITING_LOW_BYTES`. The model alone is not enough: on a wire slower than
-    nominal (an adapter's baud error, gaps between bytes) bytes would pile up in the OS
-    buffer and latency grow without bound; ``out_waiting`` alone is not either (a USB
+    whole-us pulses (refusing anything outside calibrated limits before any byte moves), hands
+    them to the port's :class:`~.writes.PortWrites` as its *latest wanted pulses* and returns
+    at once. The writer thread writes what the policy decides, when it decides it: once the
+    wire is free, one SERVO_MOVE of the channels whose wanted pulse differs from the last sent
+    by more than the dead-band; a frame handed over while a previous one still waits replaces
+    it (merged, never queued), so latency never grows. The full refresh rides on the first
+    write ``refresh_s`` after the last full one (a frame the board lost or garbled is repaired;
+    why it never goes on its own: :mod:`~crs_study.device.writes`). The simulated device and
+    the wire estimate run the same policy, so they put the same bytes on the wire. With
+    ``pace`` (the default) the writer writes once the wire is free: the bytes already written
+    have had their time at ``10 / baud`` s a byte (less ``lead_s``, so the next frame follows
+    without a gap despite wake-up jitter) *and* the port's output buffer (``out_waiting``)
+    holds at most :data:`OUT_WAITING_LOW_BYTES`. The model alone is not enough: on a wire
+    slower than nominal (an adapter's baud error, gaps between bytes) bytes would pile up in
+    the OS buffer and latency grow without bound; ``out_waiting`` alone is not either (a USB
     adapter's chip FIFO is not counted). A port without ``out_waiting`` (AttributeError,
     NotImplementedError) is paced by the model; one whose buffer does not drain within
     ``write_timeout_s`` has failed. Linux ptys report 0 (:mod:`~crs_study.device.virtual_pty`
-    has a port that counts). Without ``pace`` the writer writes as soon as a frame is
-    handed over and relies on the port's own blocking (for ports that throttle themselves).
+    has a port that counts). Without ``pace`` the writer writes as soon as a frame is handed
+    over and relies on the port's own blocking (for ports that throttle themselves).
 
 Which channel goes on which controller (the decision, and why)
     The device file pins every channel (``"A:3"``), and software never moves one: there is no
@@ -72,13 +74,17 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
+import serial
 
 from crs_study.clock import Clock
+from crs_study.device import protocol_lscsim
 from crs_study.device.base import (
     BITS_PER_BYTE,
+    LOW_BATTERY_MV,
     Device,
     DeviceWarning,
     FrameReport,
+    default_move_ms,
     servo_move_bytes,
 )
 from crs_study.device.calibration import PulseMap
@@ -91,12 +97,13 @@ from crs_study.device.codec import (
     FrameDecoder,
     get_battery_voltage,
 )
-from crs_study.device.schedule import (
+from crs_study.device.schedule import channel_balance, warn_if_unbalanced
+from crs_study.device.writes import (
     DEFAULT_DEADBAND_US,
     DEFAULT_REFRESH_S,
     ChannelSplit,
-    channel_balance,
-    warn_if_unbalanced,
+    PortWrites,
+    WritePolicy,
 )
 from crs_study.errors import DeviceError
 from crs_study.layout import Layout
@@ -105,9 +112,8 @@ from crs_study.layout import Layout
 #: bytes (about 4 ms at 9600 baud: the next frame follows without a gap, never behind a queue).
 OUT_WAITING_LOW_BYTES = 4
 
-#: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell); the
-#: same threshold as the simulated device. 0 turns the check off.
-LOW_BATTERY_MV = 6000
+#: Longest single wait of a writer thread (s): it looks at its port again at least this often.
+MAX_WAIT_S = 0.5
 
 #: Baud rates a port may be opened at (the LSC boards take 9600 only; hardware.md).
 MIN_BAUD, MAX_BAUD = 300, 4_000_000
@@ -123,7 +129,7 @@ class SerialOptions:
     """Options of :class:`SerialDevice` (all times in seconds unless named otherwise)."""
 
     move_ms: int | None = None  # SERVO_MOVE time when send() gets none; None: one full frame
-    refresh_s: float = DEFAULT_REFRESH_S  # send every channel at least this often (0: never)
+    refresh_s: float = DEFAULT_REFRESH_S  # a frame this long after the last full one: full
     deadband_us: int = DEFAULT_DEADBAND_US  # resend a channel when it moved more than this
     baud: int = 9600  # the LSC boards support 9600 only (hardware.md)
     pace: bool = True  # write no faster than the wire carries bytes
@@ -179,11 +185,7 @@ def _whole(x: object, low: int, high: int) -> bool:
 def serial_for_spec(spec: str, **settings: Any) -> Any:
     """``serial.serial_for_url(spec, **settings)``, with the simulator's ``lscsim://`` scheme
     registered first when ``spec`` uses it (so a dry run of the serial path needs no code)."""
-    import serial
-
     if spec.startswith("lscsim://"):
-        from crs_study.device import protocol_lscsim
-
         protocol_lscsim.register()
     return serial.serial_for_url(spec, **settings)
 
@@ -212,15 +214,9 @@ class _Port:
         # held around every serial.write: two threads writing one port could interleave the
         # bytes of two frames, and an LSC frame has no checksum to catch it
         self.write_lock = threading.Lock()
-        self.wanted: np.ndarray | None = None  # full actuator pulse vector last handed over
-        self.wanted_seq = 0
-        self.sent_seq = 0
-        self.move_ms = 0
-        self.force_full = False
-        self.last_sent: np.ndarray | None = None  # this controller's channels
-        self.free_at = -math.inf  # clock time the bytes written so far have left
+        # what goes on this port, and when (the policy; read and changed under ``cond``)
+        self.writes = PortWrites(len(device.split.members[index]), device.policy)
         self.reports_backlog = True  # until out_waiting proves unsupported
-        self.last_full_at = -math.inf
         self.writing_since: float | None = None
         self.error: BaseException | None = None
         self.stopping = False
@@ -237,8 +233,6 @@ class _Port:
     # -- opening -------------------------------------------------------------------------
 
     def open(self) -> None:
-        import serial
-
         options = self.device.options
         if self.serial is None:
             try:
@@ -258,7 +252,10 @@ class _Port:
         options = self.device.options
         try:
             self.serial.reset_input_buffer()
-            self.serial.write(get_battery_voltage())
+            query = get_battery_voltage()
+            self.serial.write(query)
+            with self.cond:  # on the wire ahead of any frame
+                self.writes.written(self.device.clock.now(), len(query))
             deadline = time.monotonic() + options.battery_timeout_s
             while time.monotonic() < deadline:
                 data = self.serial.read(max(1, self.serial.in_waiting))
@@ -280,31 +277,26 @@ class _Port:
 
     # -- writing -------------------------------------------------------------------------
 
-    def _due(self, now: float) -> bool:
-        if self.wanted is None:
-            return False
-        refresh = self.device.options.refresh_s
-        return (self.wanted_seq != self.sent_seq or self.force_full
-                or (refresh > 0 and now - self.last_full_at >= refresh))
-
     def _write_loop(self) -> None:
+        """Write what the policy (:attr:`writes`) decides, when it decides it."""
         device = self.device
-        clock, options, split = device.clock, device.options, device.split
+        clock, options, writes = device.clock, device.options, self.writes
         byte_s = BITS_PER_BYTE / options.baud
         draining_since: float | None = None  # real time the backlog was first seen too long
         while True:
             with self.cond:
-                while not self.stopping and self.error is None and not self._due(clock.now()):
-                    timeout = None
-                    if options.refresh_s > 0 and self.wanted is not None:
-                        timeout = max(1e-3, self.last_full_at + options.refresh_s - clock.now())
-                    self.cond.wait(timeout)
-                if self.stopping or self.error is not None:
-                    return  # close() waited for the neutral pose before stopping
-                wait = self.free_at - options.lead_s - clock.now() if options.pace else 0.0
-            if wait > 0:
-                clock.sleep(min(wait, 0.05))
-                continue
+                while True:
+                    if self.stopping or self.error is not None:
+                        return  # close() waited for the neutral pose before stopping
+                    now = clock.now()
+                    # a waiting frame goes once the wire is free (or at once, unpaced)
+                    at = (writes.next_write_at() - options.lead_s) if options.pace else (
+                        now if writes.pending else math.inf)
+                    if at <= now:
+                        break
+                    # a hand-over, a stop or (a stepping clock in tests) the time moving
+                    # on notifies the condition
+                    self.cond.wait(min(at - now, MAX_WAIT_S))
             # the model says the wire is free; the port may know better (a wire slower than
             # nominal): wait for its output buffer to drain, the wanted frame merging meanwhile
             backlog = self._backlog() if options.pace else 0
@@ -318,26 +310,13 @@ class _Port:
                             f"{time.monotonic() - draining_since:.2f} s (write_timeout_s)")
                         self.cond.notify_all()
                     return
-                clock.sleep(min(max((backlog - OUT_WAITING_LOW_BYTES) * byte_s, 1e-3), 0.02))
+                time.sleep(min(max((backlog - OUT_WAITING_LOW_BYTES) * byte_s, 1e-3), 0.02))
                 continue
             draining_since = None
             with self.cond:
                 now = clock.now()
-                full = (self.force_full or self.last_sent is None
-                        or (options.refresh_s > 0 and now - self.last_full_at >= options.refresh_s))
-                local = (np.arange(len(split.members[self.index])) if full else
-                         split.changed(self.index, self.wanted, self.last_sent,
-                                       options.deadband_us))
-                data = split.frame(self.index, self.wanted, local, self.move_ms)
-                mine = self.wanted[split.members[self.index]]
-                if self.last_sent is None:
-                    self.last_sent = mine.copy()
-                else:
-                    self.last_sent[local] = mine[local]
-                if full:
-                    self.last_full_at = now
-                    self.force_full = False
-                self.sent_seq = self.wanted_seq
+                write = writes.take(now)
+                data = b"" if write is None else device.split.write_bytes(self.index, write)
                 self.writing_since = now if data else None
             if not data:
                 continue
@@ -351,7 +330,6 @@ class _Port:
                     self.cond.notify_all()
                 return
             with self.cond:
-                self.free_at = max(now, self.free_at) + len(data) * byte_s
                 self.writing_since = None
                 self.frames_written += 1
                 self.bytes_written += len(data)
@@ -403,8 +381,8 @@ class _Port:
         """Wait (real time) until what was handed over has been written; False on timeout."""
         deadline = time.monotonic() + timeout_s
         with self.cond:
-            while (self.wanted_seq != self.sent_seq or self.force_full
-                   or self.writing_since is not None) and self.error is None:
+            while (self.writes.pending or self.writing_since is not None) \
+                    and self.error is None:
                 left = deadline - time.monotonic()
                 if left <= 0 or not any(t.is_alive() for t in self.threads[:1]):
                     return False
@@ -445,12 +423,12 @@ class SerialDevice(Device):
         self.options = options or SerialOptions()
         self.pulse_map = PulseMap.from_layout(layout)
         self.split = ChannelSplit(layout)
+        self.policy = WritePolicy(self.options.deadband_us, self.options.refresh_s,
+                                  self.options.baud)
         self.balance = channel_balance(layout)
         self.ports = [_Port(self, i, spec) for i, spec in enumerate(ports)]
         self.default_move_ms = (self.options.move_ms if self.options.move_ms is not None else
-                                math.ceil(servo_move_bytes(max(self.balance.counts.values()))
-                                          * BITS_PER_BYTE / self.options.baud * 1000))
-        self.faults: list[str] = []
+                                default_move_ms(layout, self.options.baud))
         self._last_setpoints = layout.neutral_setpoints()
         self._state = "new"
 
@@ -531,24 +509,16 @@ class SerialDevice(Device):
                               f"got {move!r}")
         for port in self.ports:
             port.check(commanded_at)
-        byte_s = BITS_PER_BYTE / self.options.baud
         sent, done, channels, merged = [], commanded_at, 0, False
         for port in self.ports:
             with port.cond:
-                merged |= port.wanted_seq != port.sent_seq
-                port.wanted = pulses
-                port.wanted_seq += 1
-                port.move_ms = move
-                full = port.last_sent is None or port.force_full
-                local = (self.split.members[port.index] if full else
-                         self.split.changed(port.index, pulses, port.last_sent,
-                                            self.options.deadband_us))
-                n_bytes = servo_move_bytes(len(local)) if len(local) else 0
-                start = max(commanded_at, port.free_at)
-                done = max(done, start + n_bytes * byte_s)
+                merged |= port.writes.want(commanded_at, pulses[self.split.members[port.index]],
+                                           move)
+                n, n_bytes, port_done = port.writes.predict(commanded_at)
                 port.cond.notify_all()
             sent.append(n_bytes)
-            channels += len(local)
+            channels += n
+            done = max(done, port_done)
         return FrameReport(commanded_at, done, tuple(sent), channels, merged)
 
     def close(self) -> None:
@@ -569,14 +539,13 @@ class SerialDevice(Device):
         """Every channel to neutral, slowly; best effort, failures recorded in ``faults``."""
         pulses = self.pulse_map.to_pulses(self.layout.neutral_setpoints())
         byte_s = BITS_PER_BYTE / self.options.baud
+        now = self.clock.now()
         for port in self.ports:
             with port.cond:
                 healthy = port.error is None and all(t.is_alive() for t in port.threads)
                 if healthy:
-                    port.wanted = pulses
-                    port.wanted_seq += 1
-                    port.move_ms = self.options.neutral_move_ms
-                    port.force_full = True
+                    port.writes.want(now, pulses[self.split.members[port.index]],
+                                     self.options.neutral_move_ms, full=True)
                     port.cond.notify_all()
             if not healthy:
                 self._neutral_direct(port, pulses)

@@ -1,7 +1,7 @@
 """SimulatedDevice: the serial device's bytes, decoded by virtual LSC-24 boards, on any clock.
 
-The device turns setpoints into LSC frames exactly as :class:`SerialDevice` does (calibration,
-changed-only channels, the same codec), "puts them on a wire" that takes ``10 / baud`` seconds
+The device turns setpoints into LSC frames exactly as :class:`SerialDevice` does (the same
+calibration, write policy and codec), "puts them on a wire" that takes ``10 / baud`` seconds
 a byte, and hands each frame's bytes to a :class:`~.virtual_controller.VirtualController`
 (one per controller in the device file) at the time its last byte arrives. The boards decode
 the bytes and move model servos; :meth:`SimulatedDevice.displayed_setpoints` reads the servo
@@ -12,13 +12,15 @@ No threads, no sleeping: the wire and the servos are computed, so the device run
 :class:`~crs_study.clock.RealClock` in step with wall time.
 
 The wire (per controller port)
-    A frame of ``b`` bytes occupies the wire for ``b * 10 / baud`` s from when the wire is
-    free. A frame sent while the wire is busy waits; a newer one replaces it (*merged*,
-    ``FrameReport.merged``), never queued; when the wire frees, the channels whose latest
-    wanted pulse differs from the last sent by more than the dead-band go out as one frame
-    (the serial device's writer does the same, :mod:`~crs_study.device.schedule`). Latency
-    therefore never exceeds two frame times. ``FrameReport.wire_done_at`` of a waiting frame
-    is its predicted end.
+    What goes on each wire, and when, is the host's write policy (:mod:`~.writes`), the very
+    code that drives the serial device's writer threads: a frame sent while the wire is busy
+    waits, a newer one replaces it (*merged*, ``FrameReport.merged``), never queued; when the
+    wire frees, the channels whose latest wanted pulse differs from the last sent by more than
+    the dead-band go out as one frame; the full refresh rides on the first frame written
+    ``refresh_s`` after the last full one. A write of ``b`` bytes occupies the wire for
+    ``b * 10 / baud`` s and reaches the board when its last byte does. Latency therefore never
+    exceeds two frame times. ``FrameReport.wire_done_at`` of a waiting frame is its predicted
+    end.
 
 The battery
     :meth:`SimulatedDevice.open` and :meth:`SimulatedDevice.battery_mv` ask every board as the
@@ -36,7 +38,8 @@ URL syntax (options may also be given as keyword arguments; keywords win)::
     move_ms=67           SERVO_MOVE time when send() is given none (default: one full frame
                          of the busiest controller on the wire, as the serial device)
     neutral_move_ms=500  move time of the neutral pose sent on close()
-    refresh_s=1.0        send every channel at least this often (0: never force a refresh)
+    refresh_s=1.0        the first frame this long after the last full one carries every
+                         channel (0: never; device/writes.py)
     deadband_us=1        resend a channel when its pulse moved by more than this (schedule.py)
     battery_mv=7400      what each board reports while healthy
     seed=0               seed of the garbage generator
@@ -79,9 +82,11 @@ from crs_study.clock import Clock
 from crs_study.device.base import (
     BAUD_RATE,
     BITS_PER_BYTE,
+    LOW_BATTERY_MV,
     Device,
     DeviceWarning,
     FrameReport,
+    default_move_ms,
     servo_move_bytes,
 )
 from crs_study.device.calibration import PulseMap
@@ -90,14 +95,8 @@ from crs_study.device.codec import (
     Direction,
     FrameDecoder,
     get_battery_voltage,
-    servo_move_arrays,
 )
-from crs_study.device.schedule import (
-    DEFAULT_DEADBAND_US,
-    DEFAULT_REFRESH_S,
-    ChannelSplit,
-    warn_if_unbalanced,
-)
+from crs_study.device.schedule import warn_if_unbalanced
 from crs_study.device.virtual_controller import (
     NORMAL_BATTERY_MV,
     ServoBank,
@@ -106,13 +105,17 @@ from crs_study.device.virtual_controller import (
     clear_decode_cache,
     speed_us_per_s,
 )
+from crs_study.device.writes import (
+    DEFAULT_DEADBAND_US,
+    DEFAULT_REFRESH_S,
+    ChannelSplit,
+    PortWrites,
+    Write,
+    WritePolicy,
+)
 from crs_study.errors import DeviceError
 from crs_study.layout import Layout
 
-#: Frames remembered by each device's encoder cache (cleared when full).
-ENCODE_CACHE_SIZE = 1 << 15
-#: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell).
-LOW_BATTERY_MV = 6000
 #: The battery reply ``55 55 04 0F lo hi`` (hardware.md): how long the host waits for it.
 BATTERY_REPLY_BYTES = 6
 
@@ -226,83 +229,15 @@ _PARSERS = {
 }
 
 
-class _FrameBuilder:
-    """Setpoints (mm) to per-controller SERVO_MOVE bytes, as the serial device builds them.
-
-    Calibration and limits: :class:`~.calibration.PulseMap`; which channels go out:
-    :class:`~.schedule.ChannelSplit` (changed by more than the dead-band since last sent);
-    the bytes: the codec (:func:`~.codec.servo_move_arrays`, the values checked over whole
-    vectors). Encoded frames are remembered by content: a dry-run replays each digit's
-    stimulus many times, and looking a frame up costs less than checking and packing it again.
-    """
-
-    def __init__(self, layout: Layout, deadband_us: int) -> None:
-        self.layout = layout
-        self.deadband_us = deadband_us
-        self.pulse_map = PulseMap.from_layout(layout)
-        self.split = ChannelSplit(layout)
-        pm = self.pulse_map
-        self.zero = np.asarray(pm.zero_us)
-        self.scale = (pm.full_us - pm.zero_us) / pm.travel_mm  # us per mm
-        self.members = self.split.members
-        self.every = tuple(np.arange(len(m)) for m in self.members)  # local: every channel
-        for local in self.every:
-            local.setflags(write=False)
-        self._encoded: dict[tuple[int, int, bytes, bytes], bytes] = {}
-
-    def pulses(self, setpoints_mm: np.ndarray) -> np.ndarray:
-        """Whole-us pulse widths per actuator; DeviceError for a value outside its range."""
-        return self.pulse_map.to_pulses(setpoints_mm)
-
-    def changed_local(self, controller: int, mine: np.ndarray, last: np.ndarray | None
-                      ) -> np.ndarray:
-        """Local indices of the channels to send, as :meth:`ChannelSplit.changed` gives them,
-        for ``mine`` = this controller's pulses, already gathered (None: send all)."""
-        if last is None:
-            return self.every[controller]
-        diff = mine - last
-        np.abs(diff, out=diff)
-        return (diff > self.deadband_us).nonzero()[0]
-
-    def n_changed(self, controller: int, pulses: np.ndarray, last: np.ndarray | None) -> int:
-        """How many channels :meth:`changed_local` would send for the full ``pulses``."""
-        if last is None:
-            return len(self.members[controller])
-        diff = pulses[self.members[controller]] - last
-        np.abs(diff, out=diff)
-        return int(np.count_nonzero(diff > self.deadband_us))
-
-    def frame_local(self, controller: int, mine: np.ndarray, local: np.ndarray, move_ms: int
-                    ) -> bytes:
-        """SERVO_MOVE bytes for channels ``local`` of ``controller`` (b"" when none), as
-        :meth:`ChannelSplit.frame` builds them; ``mine`` = this controller's pulses."""
-        if not len(local):
-            return b""
-        values = mine if local is self.every[controller] else mine[local]
-        key = (controller, move_ms, local.tobytes(), values.tobytes())
-        data = self._encoded.get(key)
-        if data is None:
-            data = servo_move_arrays(self.split.ids[controller][local], values, move_ms)
-            if len(self._encoded) >= ENCODE_CACHE_SIZE:
-                self._encoded.clear()
-            self._encoded[key] = data
-        return data
-
-
 class _Wire:
-    """One port: what is on the wire, what waits for it, and the board at the far end."""
+    """One port: the write policy's state, what is on the wire, and the board at the far end."""
 
-    def __init__(self, board: VirtualController, byte_s: float) -> None:
+    def __init__(self, board: VirtualController, writes: PortWrites) -> None:
         self.board = board
-        self.byte_s = byte_s
-        self.free_at = -math.inf  # when the last byte of the frame on the wire has left
-        self.start_at = -math.inf  # when that frame's first byte went out
-        self.flying: bytes = b""  # the frame on the wire, not yet delivered
-        self.last_sent: np.ndarray | None = None  # pulses last put on the wire (this board)
-        self.last_full_at = -math.inf  # when every channel was last sent
-        self.waiting: np.ndarray | None = None  # merged pulses waiting for the wire (all)
-        self.waiting_move_ms = 0
-        self.force_full = False  # the next frame carries every channel (neutral on close)
+        self.writes = writes  # what goes on this wire, and when (the policy)
+        self.flying: bytes = b""  # the bytes on the wire, not yet delivered
+        self.start_at = -math.inf  # when their first byte went out
+        self.end_at = -math.inf  # when their last byte arrives
         self.vanish_at = math.inf
         self.cut = False  # the port vanished
         self.inbox: list[tuple[float, bytes]] = []  # the board's replies: (arrival, bytes)
@@ -318,16 +253,15 @@ class SimulatedDevice(Device):
         self.options = options or SimOptions()
         self.url = "sim://"
         self.record = record
-        self.builder = _FrameBuilder(layout, self.options.deadband_us)
-        busiest = max(len(m) for m in self.builder.members)
+        self.pulse_map = PulseMap.from_layout(layout)
+        self.split = ChannelSplit(layout, cache=True)
+        self.policy = WritePolicy(self.options.deadband_us, self.options.refresh_s,
+                                  self.options.baud)
         self.default_move_ms = (self.options.move_ms if self.options.move_ms is not None else
-                                math.ceil(servo_move_bytes(busiest) * BITS_PER_BYTE
-                                          / self.options.baud * 1000))
+                                default_move_ms(layout, self.options.baud))
         self.byte_s = BITS_PER_BYTE / self.options.baud
-        self._refresh = self.options.refresh_s if self.options.refresh_s > 0 else math.inf
         self.boards: list[VirtualController] = []
         self._wires: list[_Wire] = []
-        self.faults: list[str] = []
         self.opened_at: float | None = None
         self.closed = False
         self.neutral_attempted = False
@@ -359,7 +293,7 @@ class SimulatedDevice(Device):
         t0 = self.clock.now()
         self.opened_at = t0
         opts = self.options
-        self.boards, self._wires = [], []
+        self.boards = []
         for c in self.layout.controllers:
             specs = [ServoSpec() for _ in range(c.channels)]
             for a in self.layout.actuators:
@@ -373,7 +307,8 @@ class SimulatedDevice(Device):
             board = VirtualController(c.name, c.channels, c.channel_base, specs,
                                       opts.battery_mv, t0, record=self.record)
             self.boards.append(board)
-            self._wires.append(_Wire(board, self.byte_s))
+        self._wires = [_Wire(board, writes) for board, writes
+                       in zip(self.boards, self.split.ports(self.policy), strict=True)]
         # every board's servos in one bank (boards hold views): one read per displayed frame
         self._servos = ServoBank.joined([b.servos for b in self.boards])
         names = _controller_names(self.layout)
@@ -419,16 +354,19 @@ class SimulatedDevice(Device):
         answers: list[int | None] = []
         waited_until = t
         for k, wire in enumerate(self._wires):
-            while wire.flying or wire.waiting is not None:  # frames for the wire go first
-                self._advance_wire(k, wire, max(t, wire.free_at))
+            writes = wire.writes
+            while not wire.cut and (wire.flying or writes.pending):  # frames for the wire first
+                self._advance_wire(k, wire, max(t, wire.end_at if wire.flying else t,
+                                                writes.next_write_at()
+                                                if writes.pending else t))
             if wire.cut:
                 answers.append(None)
                 continue
-            start = max(t, wire.free_at)
-            wire.flying, wire.start_at = query, start
-            wire.free_at = start + len(query) * self.byte_s
-            self._advance_wire(k, wire, wire.free_at)  # delivered, unless the port vanished
-            expected = wire.free_at + BATTERY_REPLY_BYTES * self.byte_s
+            start = max(t, writes.free_at)
+            end = writes.written(start, len(query))
+            wire.flying, wire.start_at, wire.end_at = query, start, end
+            self._advance_wire(k, wire, end)  # delivered, unless the port vanished
+            expected = end + BATTERY_REPLY_BYTES * self.byte_s
             arrived = max([expected, *(at for at, _ in wire.inbox)])
             waited_until = max(waited_until, arrived)
             answers.append(self._read_battery(wire, arrived))
@@ -467,16 +405,15 @@ class SimulatedDevice(Device):
                                        f"controller {wire.board.name}: port vanished")
         finally:
             # like a flushed port: whatever is on or waiting for the wire still goes out
-            self._advance(max(w.free_at for w in self._wires) + self._frame_s_bound())
+            self._advance(max(max(w.end_at, w.writes.free_at) for w in self._wires)
+                          + self._frame_s_bound())
             for wire in self._wires:
                 if wire.cut:
                     wire.board.end_of_stream()
             self.closed = True
 
     def _frame_s_bound(self) -> float:
-        return max(len(m) * 3 + 7 for m in self.builder.members) * self.byte_s
-
-
+        return max(servo_move_bytes(len(m)) for m in self.split.members) * self.byte_s
 
     # -- sending ------------------------------------------------------------------------------
 
@@ -492,7 +429,7 @@ class SimulatedDevice(Device):
         self._advance(t)
         if t >= self._fault_at and check_faults:
             self._raise_faults(t)
-        pulses = self.builder.pulses(setpoints_mm)
+        pulses = self.pulse_map.to_pulses(setpoints_mm)
         if move_ms is None:
             move_ms = self.default_move_ms
         elif isinstance(move_ms, bool) or not isinstance(move_ms, int | np.integer) \
@@ -503,76 +440,63 @@ class SimulatedDevice(Device):
         bytes_sent = []
         channels = 0
         merged = False
+        split = self.split
         for k, wire in enumerate(self._wires):
             if wire.cut:  # only close() gets here: the other boards still get their frame
                 bytes_sent.append(0)
                 continue
-            if full:
-                wire.force_full = True
-            if wire.free_at > t:  # busy: replace whatever waits, never queue
-                merged |= wire.waiting is not None
-                wire.waiting, wire.waiting_move_ms = pulses, move_ms
-                last = None if wire.free_at - wire.last_full_at >= self._refresh_s() \
-                    or wire.force_full else wire.last_sent
-                n = self.builder.n_changed(k, pulses, last)
-                size = 3 * n + 7 if n else 0
-                done = wire.free_at + size * self.byte_s
-            else:
-                size, n = self._start(k, wire, pulses, move_ms, t)
-                done = wire.free_at if size else t
+            writes = wire.writes
+            merged |= writes.want(t, pulses[split.members[k]], move_ms, full)
+            if writes.free_at <= t:  # the wire is free (next_write_at() <= t): it goes now
+                _, done, local, mine, _, _, size = writes.take(t)
+                n = len(local)
+                if size:  # _put, inline (once per frame and board)
+                    wire.flying = split.encode(k, mine, local, move_ms)
+                    wire.start_at, wire.end_at = t, done
+            else:  # it waits for the wire (a newer frame may replace it)
+                n, size, done = writes.predict(t)
             bytes_sent.append(size)
             channels += n
             done_at = max(done_at, done)
         return FrameReport(t, done_at, tuple(bytes_sent), channels, merged)
 
-    def _refresh_s(self) -> float:
-        return self._refresh
-
-    def _start(self, k: int, wire: _Wire, pulses: np.ndarray, move_ms: int, t: float
-               ) -> tuple[int, int]:
-        """Put the frame for ``pulses`` on free wire ``k`` at ``t``; (bytes, channels)."""
-        full = t - wire.last_full_at >= self._refresh_s() or wire.force_full
-        wire.force_full = False
-        mine = pulses[self.builder.members[k]]  # a fresh array: safe to keep
-        local = self.builder.changed_local(k, mine, None if full else wire.last_sent)
-        data = self.builder.frame_local(k, mine, local, move_ms)
-        if full:
-            wire.last_full_at = t
+    def _put(self, k: int, wire: _Wire, write: Write) -> None:
+        """Put ``write``'s bytes on wire ``k`` (the previous ones have arrived)."""
+        data = self.split.encode(k, write.pulses, write.local, write.move_ms)
         if data:
-            wire.flying = data
-            wire.start_at = t
-            wire.free_at = t + len(data) * self.byte_s
-            if wire.last_sent is None or full:
-                wire.last_sent = mine
-            else:
-                wire.last_sent[local] = mine[local]
-        return len(data), len(local)
+            wire.flying, wire.start_at, wire.end_at = data, write.start, write.done
 
     def _advance(self, t: float) -> None:
-        """Deliver every frame whose last byte has arrived by ``t``; start waiting frames."""
+        """Deliver every write whose last byte has arrived by ``t``; make the writes due."""
         for k, wire in enumerate(self._wires):
+            # nothing arrives, waits or vanishes by t (the common case: a frame still flying)
+            if (not wire.flying or wire.end_at > t) and not wire.writes.pending \
+                    and t < wire.vanish_at:
+                continue
             self._advance_wire(k, wire, t)
 
     def _advance_wire(self, k: int, wire: _Wire, t: float) -> None:
         """:meth:`_advance` for wire ``k`` alone."""
-        horizon = min(t, wire.vanish_at)
-        while wire.free_at <= horizon and (wire.flying or wire.waiting is not None):
-            if wire.flying:
-                self._deliver(wire, wire.flying, wire.free_at)
+        horizon = t if t < wire.vanish_at else wire.vanish_at
+        writes = wire.writes
+        while True:
+            if wire.flying and wire.end_at <= horizon:
+                self._deliver(wire, wire.flying, wire.end_at)
                 wire.flying = b""
-            if wire.waiting is not None:
-                pulses, wire.waiting = wire.waiting, None
-                self._start(k, wire, pulses, wire.waiting_move_ms, wire.free_at)
+            if not writes.pending:  # nothing waits for the wire (the common case)
+                break
+            at = writes.next_write_at()
+            if at > horizon:
+                break
+            self._put(k, wire, writes.take(at))
         if t >= wire.vanish_at and not wire.cut:
             wire.cut = True
-            wire.waiting = None
-            if wire.flying and wire.free_at > wire.vanish_at:
+            if wire.flying and wire.end_at > wire.vanish_at:
                 arrived = int((wire.vanish_at - wire.start_at) / self.byte_s)
                 if arrived > 0:
                     self._deliver(wire, wire.flying[:arrived],
                                   wire.start_at + arrived * self.byte_s)
             wire.flying = b""
-            wire.free_at = wire.vanish_at
 
     def _deliver(self, wire: _Wire, data: bytes, t: float) -> None:
         """``data`` reaches the board at ``t`` (garbled on the way); its reply, if any, sets
@@ -623,7 +547,7 @@ class SimulatedDevice(Device):
 
     def clear_caches(self) -> None:
         """Forget remembered encodings and decodings (benchmarks of a first presentation)."""
-        self.builder._encoded.clear()
+        self.split.clear_cache()
         clear_decode_cache()
 
     # -- what the skin meets ------------------------------------------------------------------
@@ -634,16 +558,14 @@ class SimulatedDevice(Device):
         Servo pulse widths from the boards, through the inverse calibration. ``t`` should not
         precede a frame already delivered (the model keeps only each servo's current move).
         """
+        if not self.boards:
+            return np.zeros(self.layout.n_actuators)  # before open: the servos rest at base
         if t is None:
             t = self.clock.now()
-        if self.boards:
-            self._advance(t)
-            for board in self.boards:
-                board.advance(t)
-            us = self._servos.position(t)[self._flat]
-        else:
-            us = self.builder.zero
-        return (us - self.builder.zero) / self.builder.scale
+        self._advance(t)
+        for board in self.boards:
+            board.advance(t)
+        return self.pulse_map.to_mm(self._servos.position(t)[self._flat], check=False)
 
     def battery_mv(self) -> list[float | None]:
         """Each board's voltage, asked over its wire now (:meth:`_ask_batteries`; the clock

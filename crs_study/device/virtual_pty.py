@@ -42,6 +42,8 @@ import time
 import tty
 from typing import Any
 
+import serial
+
 from crs_study.device.virtual_controller import VirtualController
 
 #: Longest the thread blocks in select(): how quickly it notices stop() and vanish().
@@ -130,8 +132,6 @@ class VirtualControllerPty:
         """The slave as an open pyserial port whose ``out_waiting`` is :meth:`backlog`
         (``settings`` go to :class:`serial.Serial`; default 9600 baud, 0.05 s read and 0.5 s
         write timeouts, as :class:`~.serial_device.SerialDevice` opens its ports)."""
-        import serial
-
         bridge = self
 
         class PtySerial(serial.Serial):
