@@ -1,6 +1,6 @@
 """Renderer: a target surface to actuator setpoints, per experimental condition.
 
-Setpoint vectors follow :class:`~crs_study.layout.Layout` actuator order: pixel heights above
+Setpoint vectors follow :class:`~crs_study.geometry.Layout` actuator order: pixel heights above
 base (mm), then for each beam the length fed into the display by its start and end boundary
 servos (mm, >= 0).
 
@@ -53,7 +53,7 @@ from typing import Literal
 import numpy as np
 
 from crs_study.errors import RenderError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 from crs_study.targets import Bump, arc_excess
 
 ClampPolicy = Literal["clip", "error"]

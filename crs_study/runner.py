@@ -171,7 +171,7 @@ def stimulus_cache(protocol: Any, layout: Any) -> StimulusCache:
 
 
 def _device_file_text(layout: Any, protocol: Any) -> str:
-    from crs_study.layout import device_file_path
+    from crs_study.geometry.layout import device_file_path
 
     for candidate in (getattr(protocol, "device_path", None), layout.source, protocol.device):
         if candidate is None:

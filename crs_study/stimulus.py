@@ -37,7 +37,7 @@ from crs_study.errors import ProtocolError
 from crs_study.targets import Bump
 
 if TYPE_CHECKING:  # pragma: no cover
-    from crs_study.layout import Layout
+    from crs_study.geometry.layout import Layout
 
 Placement = Literal["centre", "offset"]
 #: Where the digits are drawn: the display centre, or that plus ``offset_mm``.

@@ -20,14 +20,14 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
 
 @pytest.fixture(scope="session")
 def layout2d():
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
 
     return load_layout("crs2d")
 
 
 @pytest.fixture(scope="session")
 def layout1d():
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
 
     return load_layout("crs1d")
 

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from crs_study.device import codec
 from crs_study.device.calibration import PulseMap, write_calibrated_copy
 from crs_study.errors import DeviceError, DeviceFileError
-from crs_study.layout import Calibration, device_file_path, load_layout
+from crs_study.geometry.layout import Calibration, device_file_path, load_layout
 
 
 def test_default_calibration_maps_travel_onto_1000_to_2000_us(layout2d):
@@ -160,7 +160,7 @@ def test_every_user_converts_millimetres_through_the_one_map(layout2d, monkeypat
     from crs_study.device.schedule import wire_plan
     from crs_study.device.serial_device import SerialDevice, SerialOptions
     from crs_study.device.simulated import SimulatedDevice
-    from crs_study.layout import Layout
+    from crs_study.geometry.layout import Layout
 
     calls = []
     original = PulseMap.to_pulses

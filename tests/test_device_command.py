@@ -15,7 +15,7 @@ from _pty_helpers import boards_fixture, url_of  # noqa: F401 - the boards fixtu
 from crs_study.cli import main
 from crs_study.device import codec, protocol_lscsim
 from crs_study.device.virtual_controller import VirtualController
-from crs_study.layout import device_file_path, load_layout
+from crs_study.geometry.layout import device_file_path, load_layout
 
 
 def test_neutral_puts_valid_servo_moves_on_both_ttys(boards, capsys):

@@ -101,5 +101,5 @@ def test_device_modules_import_only_the_layers_above_them_and_never_inside_a_fun
         if name.startswith("crs_study.device."):
             assert name.removeprefix("crs_study.device.") in above, (module, name)
         else:  # below the device stage: the foundations and the device file's geometry
-            assert name in ("crs_study.clock", "crs_study.errors", "crs_study.layout"), \
+            assert name in ("crs_study.clock", "crs_study.errors", "crs_study.geometry.layout"), \
                 (module, name)

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from crs_study.display.base import MODELS, get_model
 from crs_study.errors import DisplayModelError
-from crs_study.layout import layout_from_dict, load_layout
+from crs_study.geometry.layout import layout_from_dict, load_layout
 
 LAYOUT2D = load_layout("crs2d")
 LAYOUT1D = load_layout("crs1d")

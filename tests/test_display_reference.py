@@ -7,7 +7,7 @@ import pytest
 
 from crs_study.display import get_model
 from crs_study.errors import CollapseError
-from crs_study.layout import load_layout
+from crs_study.geometry.layout import load_layout
 from crs_study.render import Renderer
 from crs_study.targets import Bump
 

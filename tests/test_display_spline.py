@@ -9,7 +9,7 @@ from scipy.interpolate import CubicSpline
 from crs_study.display import get_model
 from crs_study.display.network import NetworkModel
 from crs_study.errors import DisplayModelError
-from crs_study.layout import load_layout
+from crs_study.geometry.layout import load_layout
 
 
 def test_1d_is_the_clamped_spline_through_the_pixels():

@@ -1,4 +1,4 @@
-"""Tests for crs_study.layout: the shipped device files and one-line errors for malformed ones."""
+"""Tests for crs_study.geometry.layout: the shipped device files, one-line errors for bad ones."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from crs_study.errors import DeviceFileError
-from crs_study.layout import device_file_path, layout_from_dict, load_layout
+from crs_study.geometry.layout import device_file_path, layout_from_dict, load_layout
 
 
 def _data(name: str) -> dict:
@@ -204,7 +204,7 @@ def test_the_same_channel_calibrated_twice_is_refused():
 def test_the_fabric_meshes_any_clamp_margin_on_the_lattice(margin, mesh):
     """Clamps off the fabric's mesh made every 2D beam model fail (and a dry-run guess)."""
     from crs_study.display.base import get_model
-    from crs_study.layout import fabric_mesh_for_margin
+    from crs_study.geometry.layout import fabric_mesh_for_margin
 
     assert fabric_mesh_for_margin(margin) == mesh
     layout = layout_from_dict(_mutated("crs2d", _set(["geometry", "end_margin_pitch"], margin)),

@@ -312,7 +312,7 @@ def test_curvature_check_is_the_paper_formula():
 
 
 def _device_variant(tmp_path, **replacements) -> str:
-    from crs_study.layout import device_file_path
+    from crs_study.geometry.layout import device_file_path
 
     text = device_file_path("crs2d").read_text()
     for old, new in replacements.items():

@@ -30,7 +30,7 @@ LAYERS = {
     "crs_study.errors": 0, "crs_study._files": 0, "crs_study._toml": 0,
     "crs_study._toml_lines": 0, "crs_study.clock": 0, "crs_study.paths": 0,
     "crs_study.consent_form": 0,
-    "crs_study.layout": 1, "crs_study.targets": 1, "crs_study.digits": 1,
+    "crs_study.geometry.layout": 1, "crs_study.targets": 1, "crs_study.digits": 1,
     "crs_study.stimulus": 1,
     "crs_study.render": 2, "crs_study.display": 2, "crs_study.quality": 2,
     # the wire model (the exception of the module docstring)

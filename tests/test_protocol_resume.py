@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from crs_study.cli import main
-from crs_study.layout import load_layout
+from crs_study.geometry.layout import load_layout
 from crs_study.plan import make_plan
 from crs_study.protocol import load_protocol
 from crs_study.runner import plan_sha256, stimulus_sha256

@@ -11,7 +11,7 @@ import pytest
 import crs_study.display  # noqa: F401, I001  (registers every model present)
 from crs_study.display.base import MODELS, DisplayModel
 from crs_study.errors import CollapseError, DisplayModelError, RenderError
-from crs_study.layout import load_layout
+from crs_study.geometry.layout import load_layout
 from crs_study.quality import cell_rule, distortion, hull_distortion, periodic_layout
 from crs_study.quality.criteria import _Evaluator
 from crs_study.quality.mechanics import (

@@ -134,7 +134,7 @@ def test_device_option_computes_that_devices_lattice_with_its_section(tmp_path, 
     the CRS numbers, never the pixel-only ones, which are scale-free in d/l)."""
     import tomllib
 
-    from crs_study.layout import device_file_path
+    from crs_study.geometry.layout import device_file_path
 
     text = device_file_path("crs1d").read_text()
     thick = tmp_path / "thick1d.toml"

@@ -27,7 +27,7 @@ from crs_study.errors import (
     PlanError,
     ProtocolError,
 )
-from crs_study.layout import device_file_path, load_layout
+from crs_study.geometry.layout import device_file_path, load_layout
 from crs_study.paths import shipped_file
 from crs_study.protocol import TABLE_KEYS, load_protocol
 

@@ -25,7 +25,7 @@ from crs_study.device.serial_device import SerialDevice, SerialOptions
 from crs_study.device.simulated import SimOptions, SimulatedDevice
 from crs_study.device.writes import ChannelSplit, PortWrites, WritePolicy
 from crs_study.errors import DeviceError
-from crs_study.layout import load_layout
+from crs_study.geometry.layout import load_layout
 
 W = BYTE_TIME_S
 FULL7 = 28 * W  # the 1D device's board: every channel

@@ -135,7 +135,7 @@ def run(quick: bool) -> list[Figure]:
     from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
     from crs_study.device.calibration import PulseMap
     from crs_study.device.writes import ChannelSplit
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
 
     layout = load_layout("crs2d")
     figures = []

@@ -106,7 +106,7 @@ def speed_accuracy_rows(quick: bool = True) -> list[dict]:
 
     from crs_study.display import get_model
     from crs_study.errors import DisplayModelError
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
     from crs_study.render import Renderer
     from crs_study.targets import Bump
 
@@ -196,7 +196,7 @@ def _frames(device: str, count: int = 32):
 
     from crs_study.display import get_model
     from crs_study.errors import DisplayModelError
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
     from crs_study.render import Renderer
     from crs_study.targets import Bump
 

@@ -21,7 +21,7 @@ TARGET_2D_CRS_S = 100e-6
 def run(quick: bool) -> list[Figure]:
     import numpy as np
 
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
     from crs_study.render import Renderer
     from crs_study.targets import Bump
 

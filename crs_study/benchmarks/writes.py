@@ -73,7 +73,7 @@ def run(quick: bool) -> list[Figure]:
     from crs_study.benchmarks.device import _digit_frames
     from crs_study.device.calibration import PulseMap
     from crs_study.device.writes import ChannelSplit
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
 
     layout = load_layout("crs2d")
     stimuli, rate = _digit_frames(layout, "crs", quick)

@@ -120,7 +120,7 @@ def _open(args: argparse.Namespace, layout=None):
     option the device cannot honour is refused, never ignored."""
     from crs_study.device.base import open_device
     from crs_study.errors import DeviceError
-    from crs_study.layout import load_layout
+    from crs_study.geometry.layout import load_layout
 
     layout = layout or load_layout(args.layout)
     flags = {"deadband_us": ("--deadband-us", args.deadband_us),
@@ -315,7 +315,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         write_calibrated_copy,
     )
     from crs_study.errors import DeviceError, DeviceFileError
-    from crs_study.layout import device_file_path
+    from crs_study.geometry.layout import device_file_path
 
     out = Path(args.output)
     if out.exists() and not args.overwrite:

@@ -140,7 +140,7 @@ def _device_settings(args: argparse.Namespace) -> dict:
         return {}
     from crs_study._files import sha256_bytes
     from crs_study.errors import DisplayModelError
-    from crs_study.layout import device_file_path, load_layout
+    from crs_study.geometry.layout import device_file_path, load_layout
     from crs_study.quality.lattices import lattice_of
 
     layout = load_layout(args.device)  # a malformed file: one line naming key and value

@@ -4,7 +4,7 @@
 device-file order) or ``open_device("sim://?faults...", layout, clock)``: the URL's scheme is
 looked up in a registry (:func:`register_scheme`), which :mod:`crs_study.device` fills with
 its two implementations, so this module never imports them. Both take setpoint
-vectors in millimetres in :class:`~crs_study.layout.Layout` actuator order and turn them into
+vectors in millimetres in :class:`~crs_study.geometry.Layout` actuator order and turn them into
 LSC SERVO_MOVE frames (hardware.md); the simulated device decodes those very bytes.
 
 Wire arithmetic (hardware.md): 9600 baud 8N1 is 10 bits a byte, 1.0417 ms; a SERVO_MOVE for
@@ -23,7 +23,7 @@ import numpy as np
 
 from crs_study.clock import Clock, RealClock
 from crs_study.errors import DeviceError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 BAUD_RATE = 9600
 BITS_PER_BYTE = 10  # start + 8 data + stop

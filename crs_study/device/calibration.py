@@ -2,7 +2,7 @@
 
 :meth:`PulseMap.to_pulses` is the one map from millimetres to pulse widths: both devices and
 the wire estimate use it, and the ``device calibrate`` command starts each channel from it.
-Each actuator's :class:`~crs_study.layout.Calibration` (the device file's numbers) maps
+Each actuator's :class:`~crs_study.geometry.layout.Calibration` (the device file's numbers) maps
 stroke to pulse width linearly (hardware.md, "Linear PWM servos")::
 
     pulse = zero_us + (full_us - zero_us) * mm / travel_mm,   mm in [0, travel_mm]
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from crs_study.errors import DeviceError, DeviceFileError
-from crs_study.layout import Layout, load_layout
+from crs_study.geometry.layout import Layout, load_layout
 
 #: Setpoints this far outside [0, travel] are float noise and are clipped, not refused (mm).
 DEFAULT_TOLERANCE_MM = 1e-6

@@ -58,7 +58,7 @@ from crs_study.device.writes import (
     WritePolicy,
 )
 from crs_study.errors import DeviceError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 __all__ = ["DEFAULT_DEADBAND_US", "DEFAULT_REFRESH_S", "IMBALANCE_WARN", "Balance",
            "ChannelSplit", "PortRun", "WirePlan", "changed_bytes_per_frame", "channel_balance",

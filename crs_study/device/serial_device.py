@@ -106,7 +106,7 @@ from crs_study.device.writes import (
     WritePolicy,
 )
 from crs_study.errors import DeviceError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 #: The writer writes once the port's output buffer (``out_waiting``) holds at most this many
 #: bytes (about 4 ms at 9600 baud: the next frame follows without a gap, never behind a queue).

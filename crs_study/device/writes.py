@@ -73,7 +73,7 @@ import numpy as np
 from crs_study.device.base import BAUD_RATE, BITS_PER_BYTE, servo_move_bytes
 from crs_study.device.codec import servo_move_arrays
 from crs_study.errors import DeviceError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 #: Default dead-band (us): a channel is resent when its pulse moved by more than this. 1 us is
 #: 0.009 mm on a 9 mm / 1000 us servo, far below feel, and it stops a slowly drifting channel

@@ -19,7 +19,7 @@ from typing import ClassVar
 import numpy as np
 
 from crs_study.errors import DisplayModelError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 
 class DisplayModel(ABC):

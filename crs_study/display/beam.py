@@ -81,7 +81,7 @@ from crs_study.display.network import (
     check_yield,
 )
 from crs_study.errors import CollapseError, DisplayModelError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
 _SERIES_TERMS = 64

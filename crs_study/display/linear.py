@@ -19,7 +19,7 @@ from scipy.spatial import Delaunay
 
 from crs_study.display.base import DisplayModel, register
 from crs_study.display.nearest import highest_pixel_xy, pixel_heights
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 
 @register

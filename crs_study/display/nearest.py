@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from crs_study.display.base import DisplayModel, register
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 #: Circumradius of a lattice cell in pitches: the farthest a point of the display can be from
 #: its nearest pixel.

@@ -60,10 +60,10 @@ from scipy.spatial import ConvexHull
 
 from crs_study.display.base import DisplayModel
 from crs_study.errors import DisplayModelError
-from crs_study.layout import Beam, Layout, fabric_mesh_for_margin
+from crs_study.geometry.layout import Beam, Layout, fabric_mesh_for_margin
 
 #: fine-lattice subdivisions of one pitch for the fabric (h = d / 8 = 3.75 mm at d = 30 mm);
-#: finer when the beam clamps need it (:func:`crs_study.layout.fabric_mesh_for_margin`)
+#: finer when the beam clamps need it (:func:`crs_study.geometry.layout.fabric_mesh_for_margin`)
 DEFAULT_FABRIC_SUBDIVISIONS = 8
 #: point sets whose surface plan a fabric keeps (LRU)
 _PLANS_KEPT = 16

@@ -40,7 +40,7 @@ from crs_study.display.network import (
     commanded_lengths,
 )
 from crs_study.errors import CollapseError, DisplayModelError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(6)
 _XI = (_GAUSS_X + 1.0) / 2.0

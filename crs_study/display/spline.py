@@ -36,7 +36,7 @@ from crs_study.display.network import (
     check_setpoints,
     check_yield,
 )
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(12)  # sqrt(1 + y'^2), y' quadratic
 

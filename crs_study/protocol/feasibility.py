@@ -52,7 +52,7 @@ from crs_study.errors import (
     ProtocolError,
     RenderError,
 )
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.quality.mechanics import StimulusLimits, layout_delta, stimulus_limits
 from crs_study.render import Renderer

@@ -32,7 +32,7 @@ from crs_study._toml import Section, parse_toml
 from crs_study._toml_lines import locate, one_line
 from crs_study.digits import load_digits
 from crs_study.errors import ConfigError, ProtocolError
-from crs_study.layout import BUILTIN_DEVICES
+from crs_study.geometry.layout import BUILTIN_DEVICES
 from crs_study.protocol.feasibility import check_on_device
 from crs_study.protocol.model import (
     OPTIONAL_KEYS,

@@ -21,7 +21,7 @@ from typing import Any, Literal, get_args
 
 from crs_study._toml import integer_problem, number_problem, string_problem
 from crs_study.errors import ConfigError, ProtocolError
-from crs_study.layout import Layout, load_layout
+from crs_study.geometry.layout import Layout, load_layout
 from crs_study.paths import shipped_file
 from crs_study.render import CONDITIONS
 from crs_study.stimulus import (

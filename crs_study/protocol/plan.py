@@ -50,7 +50,7 @@ from typing import Literal
 import numpy as np
 
 from crs_study.errors import ProtocolError
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
 from crs_study.stimulus import make_stimulus
 

@@ -29,7 +29,7 @@ from crs_study.device.base import (
     servo_move_bytes,
 )
 from crs_study.device.schedule import DEFAULT_DEADBAND_US, DEFAULT_REFRESH_S, wire_plan
-from crs_study.layout import Layout
+from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
 from crs_study.render import Renderer
 from crs_study.stimulus import make_stimulus, render_frames

@@ -63,7 +63,7 @@ from scipy.optimize import brentq
 
 from crs_study.display.base import DisplayModel, get_model
 from crs_study.errors import DisplayModelError, RenderError
-from crs_study.layout import Layout, load_layout
+from crs_study.geometry.layout import Layout, load_layout
 from crs_study.quality.lattices import (
     LATTICES,
     LatticeName,

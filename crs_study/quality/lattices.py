@@ -20,7 +20,7 @@ from typing import Literal
 import numpy as np
 
 from crs_study.errors import DisplayModelError
-from crs_study.layout import Actuator, Beam, Calibration, Controller, Layout, load_layout
+from crs_study.geometry.layout import Actuator, Beam, Calibration, Controller, Layout, load_layout
 
 LatticeName = Literal["1d", "square", "hex"]
 LATTICES: tuple[LatticeName, ...] = ("1d", "square", "hex")

@@ -24,7 +24,7 @@ from scipy.optimize import brentq
 
 from crs_study.display.beam import no_collapse_number  # Eq. 4, one definition (re-exported)
 from crs_study.errors import CollapseError, RenderError
-from crs_study.layout import BeamSection, Layout
+from crs_study.geometry.layout import BeamSection, Layout
 from crs_study.render import BeamGeometry, split_feed
 from crs_study.targets import Bump, arc_excess
 

@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from crs_study.errors import CrsStudyError
-from crs_study.layout import load_layout
+from crs_study.geometry.layout import load_layout
 
 #: d/l values of the default sweep: the paper's range, and 0.1, 0.2, 0.3 and 1/3 always.
 DEFAULT_D_OVER_L = (0.1, 0.15, 0.2, 0.25, 0.3, 1 / 3, 0.4, 0.5)

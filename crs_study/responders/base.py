@@ -23,7 +23,7 @@ from crs_study.protocol import model as protocol_model
 
 if TYPE_CHECKING:  # pragma: no cover
     from crs_study.clock import Clock
-    from crs_study.layout import Layout
+    from crs_study.geometry.layout import Layout
 
 
 @dataclass(frozen=True)

@@ -22,15 +22,15 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from crs_study._toml import Section, read_toml
 from crs_study.errors import DeviceFileError
+from crs_study.paths import data_dir
 
 #: Device files shipped with the package, by name.
 BUILTIN_DEVICES = ("crs2d", "crs1d")
@@ -186,8 +186,6 @@ class Layout:
             )
             for b in self.beams
         )
-        from dataclasses import replace
-
         return replace(self, pitch_mm=pitch_mm, pixel_xy=self.pixel_xy * scale, beams=beams)
 
 
@@ -209,7 +207,7 @@ def device_file_path(name_or_path: str | Path) -> Path:
     """Path of a built-in device (``"crs2d"``, ``"crs1d"``) or of a file given by path."""
     text = str(name_or_path)
     if text in BUILTIN_DEVICES:
-        return Path(str(resources.files("crs_study") / "devices" / f"{text}.toml"))
+        return data_dir() / "devices" / f"{text}.toml"
     return Path(text)
 
 
