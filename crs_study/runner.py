@@ -132,8 +132,9 @@ class StimulusCache:
         """``(frame_times (n,), setpoints (n, n_actuators))``."""
         key = (int(digit), condition, level)
         if key not in self._frames:
-            from crs_study.render import Renderer
-            from crs_study.stimulus import make_stimulus, render_frames
+            from crs_study.rendering.frames import render_frames
+            from crs_study.rendering.render import Renderer
+            from crs_study.stimuli.stimulus import make_stimulus
 
             if (digit, level) not in self._stimuli:
                 self._stimuli[(digit, level)] = make_stimulus(self.protocol, self.layout, digit,
@@ -256,7 +257,7 @@ def stimulus_sha256(protocol: Any, layout: Any) -> str:
     frame times, centres, heights, diameter), so a resume under software that draws the
     digits differently (another strokes scaling, say) is refused although the protocol file
     is unchanged."""
-    from crs_study.stimulus import make_stimulus
+    from crs_study.stimuli.stimulus import make_stimulus
 
     digest = hashlib.sha256()
     for level in protocol.level_values:

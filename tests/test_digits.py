@@ -1,4 +1,4 @@
-"""Digit strokes: the shipped file, strict loading, arc-length motion (crs_study/digits.py)."""
+"""Digit strokes: the shipped file, strict loading, arc-length motion (stimuli/digits.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study.digits import (
+from crs_study.errors import ProtocolError
+from crs_study.protocol import load_protocol
+from crs_study.stimuli.digits import (
     arc_lengths,
     frames_for_stroke,
     load_digits,
@@ -19,8 +21,6 @@ from crs_study.digits import (
     resample_by_arc_length,
     sample_stroke,
 )
-from crs_study.errors import ProtocolError
-from crs_study.protocol import load_protocol
 
 
 def test_shipped_digits_cover_0_to_9_in_the_unit_box():
@@ -84,7 +84,7 @@ def test_protocol_size_is_the_mean_bounding_box_of_the_shown_digits(protocol_nam
     cut by under one frame's step) to a few hundredths of a pitch."""
     from crs_study.paths import shipped_file
     from crs_study.protocol import load_protocol
-    from crs_study.stimulus import make_stimulus
+    from crs_study.stimuli.stimulus import make_stimulus
 
     protocol = load_protocol(shipped_file(f"protocols/{protocol_name}"))
     spec = protocol.stimulus

@@ -16,8 +16,8 @@ from crs_study.display import get_model
 from crs_study.display.beam import CompressedBeams, fundamental_matrix, no_collapse_number
 from crs_study.errors import CollapseError, DisplayModelError
 from crs_study.geometry.layout import device_file_path, layout_from_dict, load_layout
-from crs_study.render import Renderer
-from crs_study.targets import Bump
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.targets import Bump
 
 X1D = np.linspace(-30.0, 150.0, 3601)
 XY1D = np.column_stack([X1D, np.zeros_like(X1D)])
@@ -223,7 +223,8 @@ def test_zero_feed_falls_back_to_the_spline():
 def test_small_and_large_d_over_l():
     """d/l = 1/20: the beam reproduces the bump closely. d/l = 1.5: a bump between pixels
     leaves every pixel at base, so the paper's feed can only buckle the beam: CollapseError;
-    the renderer's default feed cap (crs_study.render) commands the straight beam instead."""
+    the renderer's default feed cap (crs_study.rendering.render) commands the straight beam
+    instead."""
     fine = line_layout(pixels=21, pitch=4.5)
     bump = Bump((44.0, 0.0), 90.0, 2.0)
     setpoints = Renderer(fine, "crs").render(bump).setpoints

@@ -11,8 +11,8 @@ from crs_study.display import get_model
 from crs_study.display.network import BeamProfiles, Fabric
 from crs_study.errors import DisplayModelError
 from crs_study.geometry.layout import device_file_path, layout_from_dict, load_layout
-from crs_study.render import Renderer
-from crs_study.targets import Bump
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.targets import Bump
 
 
 @pytest.fixture(scope="module")

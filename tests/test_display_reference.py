@@ -8,8 +8,8 @@ import pytest
 from crs_study.display import get_model
 from crs_study.errors import CollapseError
 from crs_study.geometry.layout import load_layout
-from crs_study.render import Renderer
-from crs_study.targets import Bump
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.targets import Bump
 
 X = np.linspace(-30.0, 150.0, 721)
 XY = np.column_stack([X, np.zeros_like(X)])

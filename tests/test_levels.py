@@ -25,7 +25,7 @@ from crs_study.errors import ProtocolError
 from crs_study.paths import shipped_file
 from crs_study.plan import make_plan
 from crs_study.protocol import LEVEL_PARAMETERS, load_protocol
-from crs_study.stimulus import make_stimulus
+from crs_study.stimuli.stimulus import make_stimulus
 
 PSYCHOMETRIC = shipped_file("protocols/digit_size_psychometric.toml")
 BASE = tomllib.loads(PSYCHOMETRIC.read_text())
@@ -246,7 +246,8 @@ def test_observer_templates_are_per_level(layout2d):
                        for a in range(10) for b in range(a)]) for v in (0.5, 1.2)]
     assert spread[1] > 2 * spread[0]
     # the sensing window holds every drawn path: at 1.5 pitch the 7 spans 1.02 x 1.51 pitch
-    # (its box, 0.605 x 1.5 / W by 1.5 / H with W = 0.8913, H = 0.9958; crs_study/digits.py),
+    # (its box, 0.605 x 1.5 / W by 1.5 / H with W = 0.8913, H = 0.9958;
+    # crs_study/stimuli/digits.py),
     # a half-diagonal of 27 mm
     reach = max(np.hypot(*make_stimulus(protocol, layout2d, d, v).centres_mm.T).max()
                 for d in protocol.digits for v in protocol.level_values)

@@ -12,10 +12,11 @@ from crs_study.clock import VirtualClock
 from crs_study.errors import ConfigError
 from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol
-from crs_study.render import Renderer
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
 from crs_study.responders.base import StimulusRecord
 from crs_study.responders.observer import PerceptualObserver
-from crs_study.stimulus import make_stimulus, render_frames
+from crs_study.stimuli.stimulus import make_stimulus
 
 
 @pytest.fixture(scope="module")

@@ -158,7 +158,7 @@ def test_williams_square_is_balanced():
 
 
 def test_latin_with_three_registered_conditions(full, monkeypatch):
-    from crs_study import render
+    from crs_study.rendering import render
 
     monkeypatch.setitem(render.CONDITIONS, "crs-b", render.render_crs)
     protocol = with_design(replace(full, conditions=("pixel-only", "crs", "crs-b")),
@@ -185,7 +185,7 @@ def test_block_orders_repeat_with_the_counterbalance_cycle(full, scheme, orderin
 
 
 def test_block_orders_of_three_conditions_latin(full, monkeypatch):
-    from crs_study import render
+    from crs_study.rendering import render
 
     monkeypatch.setitem(render.CONDITIONS, "crs-b", render.render_crs)
     protocol = with_design(replace(full, conditions=("pixel-only", "crs", "crs-b")),

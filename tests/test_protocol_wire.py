@@ -12,8 +12,9 @@ from crs_study.cli import main
 from crs_study.device.schedule import wire_plan
 from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol, wire_budget
-from crs_study.render import Renderer
-from crs_study.stimulus import make_stimulus, render_frames
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.stimulus import make_stimulus
 
 PILOT = shipped_file("protocols/pilot.toml")
 PSYCHOMETRIC = shipped_file("protocols/digit_size_psychometric.toml")

@@ -26,7 +26,7 @@ from crs_study.quality.mechanics import (
     no_collapse_number,
     stimulus_limits,
 )
-from crs_study.targets import Bump
+from crs_study.stimuli.targets import Bump
 
 needs_beam = pytest.mark.skipif("beam" not in MODELS,
                                 reason="the compressed-beam model 'beam' is not registered yet")

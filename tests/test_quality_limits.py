@@ -29,8 +29,8 @@ import pytest
 
 from crs_study.display import get_model
 from crs_study.quality import distortion, periodic_layout
-from crs_study.render import Renderer
-from crs_study.targets import Bump
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.targets import Bump
 
 D_OVER_L = (0.1, 0.15, 0.2, 0.25, 0.3, 1 / 3)
 #: mean distance to the nearest side of the lattice triangle, in units of d (module docstring)

@@ -1,4 +1,4 @@
-"""Tests for crs_study.render: conditions, the split rule, the clamp policy."""
+"""Tests for crs_study.rendering.render: conditions, the split rule, the clamp policy."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crs_study.errors import CollapseError, RenderError
-from crs_study.render import (
+from crs_study.rendering.render import (
     CONDITIONS,
     BeamGeometry,
     Renderer,
@@ -17,7 +17,7 @@ from crs_study.render import (
     render,
     split_feed,
 )
-from crs_study.targets import Bump, arc_length
+from crs_study.stimuli.targets import Bump, arc_length
 
 coordinate = st.floats(-90.0, 90.0, allow_nan=False)
 device_bumps = st.builds(

@@ -252,7 +252,7 @@ def test_resume_refuses_software_that_draws_the_digits_differently(tmp_path, dev
                                                                    monkeypatch):
     # The protocol file is unchanged, but the bump paths are not (as when an upgrade rescaled
     # the strokes mid-study): finishing the session would mix two stimuli in one session.
-    import crs_study.stimulus as stimulus_module
+    import crs_study.stimuli.stimulus as stimulus_module
 
     protocol = tiny_protocol(tmp_path)
     spec = spec_for(tmp_path, protocol)

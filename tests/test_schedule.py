@@ -130,8 +130,8 @@ def test_deadband_skips_small_changes_only(layout1d):
 
 
 def test_moving_bump_sends_fewer_bytes_than_everything(layout2d):
-    from crs_study.render import Renderer
-    from crs_study.targets import Bump
+    from crs_study.rendering.render import Renderer
+    from crs_study.stimuli.targets import Bump
 
     renderer = Renderer(layout2d, "crs")
     path = np.column_stack([np.linspace(-15, 15, 30), np.linspace(-10, 10, 30)])

@@ -1,4 +1,4 @@
-"""Stimuli: the bump's path over time, the render cache, device checks (crs_study/stimulus.py)."""
+"""Stimuli: the bump's path over time, the render cache, device checks (stimuli/stimulus.py)."""
 
 from __future__ import annotations
 
@@ -7,17 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from crs_study.digits import arc_lengths
 from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol
 from crs_study.protocol.feasibility import collapse_delta
-from crs_study.render import Renderer
-from crs_study.stimulus import (
-    display_centre,
-    inside_convex_hull,
-    make_stimulus,
-    render_frames,
-)
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.digits import arc_lengths
+from crs_study.stimuli.stimulus import display_centre, inside_convex_hull, make_stimulus
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +47,7 @@ def test_bump_moves_at_the_stroke_speed(protocol, layout2d):
 def test_one_stroke_digit_duration_matches_its_length(protocol, layout2d):
     spec = protocol.stimulus
     pitch = layout2d.pitch_mm
-    from crs_study.digits import load_digits
+    from crs_study.stimuli.digits import load_digits
 
     length = load_digits()[7].length_mm(spec.digit_width_pitch * pitch,
                                         spec.digit_height_pitch * pitch)
@@ -135,7 +131,7 @@ def test_the_device_check_and_the_sessions_share_one_rendering(protocol, layout2
     # policy="clip" is served the very same frames, never a second rendering
     from dataclasses import replace
 
-    from crs_study.stimulus import placement_centre, stimulus_for
+    from crs_study.stimuli.stimulus import placement_centre, stimulus_for
 
     spec = replace(protocol.stimulus, bump_height_mm=4.321)  # rendered nowhere else
     stim = stimulus_for(spec, layout2d.pitch_mm, placement_centre(spec, layout2d), 3)
@@ -149,7 +145,7 @@ def test_clipped_frames_are_still_refused_under_the_error_policy(protocol, layou
     from dataclasses import replace
 
     from crs_study.errors import RenderError
-    from crs_study.stimulus import placement_centre, stimulus_for
+    from crs_study.stimuli.stimulus import placement_centre, stimulus_for
 
     spec = replace(protocol.stimulus, bump_height_mm=9.5)  # above the 9 mm pixel travel
     stim = stimulus_for(spec, layout2d.pitch_mm, placement_centre(spec, layout2d), 1)

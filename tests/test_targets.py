@@ -1,4 +1,4 @@
-"""Tests for crs_study.targets: the Eq. 7 bump and arc lengths along straight segments."""
+"""Tests for crs_study.stimuli.targets: the Eq. 7 bump and arc lengths along straight segments."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.integrate import quad
 
 from crs_study.errors import RenderError
-from crs_study.targets import Bump, arc_excess, arc_length
+from crs_study.stimuli.targets import Bump, arc_excess, arc_length
 
 finite = st.floats(-200.0, 200.0, allow_nan=False)
 bumps = st.builds(

@@ -20,7 +20,6 @@ from hypothesis import strategies as st
 from crs_study._toml import Section, closest_key, misspelling_of, unknown_key_reason
 from crs_study._toml_lines import find_line, locate, syntax_error, syntax_line
 from crs_study.analysis.plan import load_plan
-from crs_study.digits import load_digits, shipped_strokes_path
 from crs_study.errors import (
     ConfigError,
     DeviceFileError,
@@ -30,6 +29,7 @@ from crs_study.errors import (
 from crs_study.geometry.layout import device_file_path, load_layout
 from crs_study.paths import shipped_file
 from crs_study.protocol import TABLE_KEYS, load_protocol
+from crs_study.stimuli.digits import load_digits, shipped_strokes_path
 
 # --- the errors carry where they are ---------------------------------------------------------
 

@@ -10,7 +10,7 @@ from crs_study.cli import main
 from crs_study.paths import shipped_file
 from crs_study.plan import make_plan
 from crs_study.protocol import load_protocol
-from crs_study.stimulus import make_stimulus
+from crs_study.stimuli.stimulus import make_stimulus
 
 FULL = str(shipped_file("protocols/digit_identification.toml"))
 PILOT = str(shipped_file("protocols/pilot.toml"))

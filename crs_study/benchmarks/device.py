@@ -97,8 +97,9 @@ def _achieved_rate(layout, seconds: float) -> tuple[float, float, list[float]]:
 def _digit_frames(layout, condition: str, quick: bool):
     from crs_study.paths import shipped_file
     from crs_study.protocol import load_protocol
-    from crs_study.render import Renderer
-    from crs_study.stimulus import make_stimulus, render_frames
+    from crs_study.rendering.frames import render_frames
+    from crs_study.rendering.render import Renderer
+    from crs_study.stimuli.stimulus import make_stimulus
 
     protocol = load_protocol(shipped_file("protocols/digit_identification.toml"))
     renderer = Renderer(layout, condition)

@@ -107,8 +107,8 @@ def speed_accuracy_rows(quick: bool = True) -> list[dict]:
     from crs_study.display import get_model
     from crs_study.errors import DisplayModelError
     from crs_study.geometry.layout import load_layout
-    from crs_study.render import Renderer
-    from crs_study.targets import Bump
+    from crs_study.rendering.render import Renderer
+    from crs_study.stimuli.targets import Bump
 
     repeat = 3 if quick else 9
     rows = []
@@ -197,8 +197,8 @@ def _frames(device: str, count: int = 32):
     from crs_study.display import get_model
     from crs_study.errors import DisplayModelError
     from crs_study.geometry.layout import load_layout
-    from crs_study.render import Renderer
-    from crs_study.targets import Bump
+    from crs_study.rendering.render import Renderer
+    from crs_study.stimuli.targets import Bump
 
     layout = load_layout(device)
     renderer = Renderer(layout, "crs")

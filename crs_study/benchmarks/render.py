@@ -22,8 +22,8 @@ def run(quick: bool) -> list[Figure]:
     import numpy as np
 
     from crs_study.geometry.layout import load_layout
-    from crs_study.render import Renderer
-    from crs_study.targets import Bump
+    from crs_study.rendering.render import Renderer
+    from crs_study.stimuli.targets import Bump
 
     repeat, number = (5, 200) if quick else (15, 2000)
     rng = np.random.default_rng(0)

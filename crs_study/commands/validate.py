@@ -37,7 +37,7 @@ def summarise(protocol, participant: str = "example", session: int = 1,
 
     from crs_study.protocol import analysis_plan_path, make_plan, wire_budget
     from crs_study.protocol.plan import block_orders, expected_duration_s
-    from crs_study.stimulus import make_stimulus
+    from crs_study.stimuli.stimulus import make_stimulus
 
     layout = protocol.layout()
     plan = make_plan(protocol, participant, session, counterbalance)

@@ -510,7 +510,7 @@ class CompressedBeams:
         L(margin N_cr) / (1 - margin N_cr / EA), so the feed at most that less the span S,
         less ``LENGTH_TOLERANCE_MM`` (so the root is bracketed strictly). With every pixel at
         base this is ~margin N_cr S / EA (the straight beam's elastic shortening). One
-        (nq x n_pix) product per beam: the renderer's feed cap (:mod:`crs_study.render`).
+        (nq x n_pix) product per beam: the renderer's feed cap (:mod:`crs_study.rendering.render`).
         """
         heights = np.asarray(pixel_heights_mm, dtype=float)[self._pixel_index] * self._pixel_real
         top = np.matmul(self._top_slopes, heights[:, :, None])[..., 0]

@@ -189,6 +189,13 @@ class Layout:
         return replace(self, pitch_mm=pitch_mm, pixel_xy=self.pixel_xy * scale, beams=beams)
 
 
+def layout_key(layout: Layout) -> tuple:
+    """A hashable fingerprint of everything in a layout that shapes rendered setpoints (the
+    key of the caches of rendered frames and of display models)."""
+    return (layout.name, layout.source, layout.pixel_xy.tobytes(), layout.beams,
+            layout.travel_mm, layout.boundary_travel_mm, layout.n_actuators)
+
+
 #: Finest fabric mesh (subdivisions of a pitch) the 2D display models will build.
 MAX_FABRIC_SUBDIVISIONS = 64
 

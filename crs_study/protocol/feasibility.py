@@ -26,7 +26,7 @@ The checks, in the order a failure is reported:
 7. with a skeleton condition, no collapse: Delta >= 1 (Eq. 4);
 8. every frame of every digit rendered in every condition with ``policy="error"`` (within
    the pixels' and boundary servos' travel, no feed cap): the frames go to the one render
-   cache (:func:`crs_study.stimulus.render_frames`) that sessions then read.
+   cache (:func:`crs_study.rendering.frames.render_frames`) that sessions then read.
 
 A protocol with ``[levels]`` is checked at each level as a fixed stimulus; lines shared by all
 levels are kept once, the others carry their level, and a failure is named
@@ -55,17 +55,17 @@ from crs_study.errors import (
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.quality.mechanics import StimulusLimits, layout_delta, stimulus_limits
-from crs_study.render import Renderer
-from crs_study.stimulus import (
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.stimulus import (
     Stimulus,
     StimulusSpec,
     display_centre,
     inside_convex_hull,
     placement_centre,
-    render_frames,
     stimulus_for,
 )
-from crs_study.targets import Bump
+from crs_study.stimuli.targets import Bump
 
 Severity = Literal["ok", "warning", "error"]
 
@@ -142,7 +142,7 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
 
     Raises :class:`ProtocolError` (naming the protocol key and its line) for the first check
     that fails. The heavy part (rendering every frame of every digit) is cached per stimulus
-    and device (:func:`crs_study.stimulus.render_frames`).
+    and device (:func:`crs_study.rendering.frames.render_frames`).
     """
     result = check_feasibility(protocol)
     error = result.error()

@@ -30,7 +30,6 @@ from typing import Any
 
 from crs_study._toml import Section, parse_toml
 from crs_study._toml_lines import locate, one_line
-from crs_study.digits import load_digits
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import BUILTIN_DEVICES
 from crs_study.protocol.feasibility import check_on_device
@@ -46,6 +45,7 @@ from crs_study.protocol.model import (
     one_line_problem,
 )
 from crs_study.protocol.odd_values import protocol_warnings
+from crs_study.stimuli.digits import load_digits
 
 
 def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:

@@ -1,7 +1,7 @@
 """The protocol model: frozen dataclasses, their closed choices and the checks of their fields.
 
 A :class:`Protocol` holds one table of the file per part: ``[study]`` (its own fields),
-``[stimulus]`` (:class:`~crs_study.stimulus.StimulusSpec`, from the stimulus layer),
+``[stimulus]`` (:class:`~crs_study.stimuli.stimulus.StimulusSpec`, from the stimulus layer),
 ``[conditions]``, ``[design]`` (:class:`DesignSpec`), ``[responses]`` (:class:`ResponseSpec`)
 and the optional ``[levels]`` (:class:`LevelSpec`). Every dataclass checks its fields on
 construction: a wrong type or a value out of range is a one-line
@@ -23,8 +23,8 @@ from crs_study._toml import integer_problem, number_problem, string_problem
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import Layout, load_layout
 from crs_study.paths import shipped_file
-from crs_study.render import CONDITIONS
-from crs_study.stimulus import (
+from crs_study.rendering.render import CONDITIONS
+from crs_study.stimuli.stimulus import (
     MIN_FRAME_RATE_HZ,
     MIN_STROKE_SPEED_MM_S,
     NUMBER_RANGES,
@@ -250,7 +250,7 @@ class Protocol:
 
     The ``[study]`` fields are checked here (``study.id``: letters, digits, ``.``, ``_``,
     ``-``; the others non-empty one-line strings), as are the conditions (registered in
-    :data:`crs_study.render.CONDITIONS`, each once) and the prompts (non-empty, one per
+    :data:`crs_study.rendering.render.CONDITIONS`, each once) and the prompts (non-empty, one per
     listed condition at most)."""
 
     path: Path

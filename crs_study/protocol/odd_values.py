@@ -25,7 +25,7 @@ from crs_study.errors import CrsStudyWarning
 from crs_study.protocol.feasibility import Finding
 from crs_study.protocol.model import Protocol
 from crs_study.protocol.plan import make_plan, trial_seconds
-from crs_study.stimulus import make_stimulus
+from crs_study.stimuli.stimulus import make_stimulus
 
 #: A session expected to last longer than this (s):
 WARN_SESSION_S = 90 * 60.0

@@ -52,7 +52,7 @@ import numpy as np
 from crs_study.errors import ProtocolError
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
-from crs_study.stimulus import make_stimulus
+from crs_study.stimuli.stimulus import make_stimulus
 
 #: Restarts allowed per block before the run constraint is declared unsatisfiable.
 MAX_RESTARTS = 10_000

@@ -11,7 +11,8 @@ Two bounds (:mod:`crs_study.device.schedule`):
   out of the busiest frame (:func:`crs_study.device.schedule.wire_plan`).
 
 Every stimulus the protocol shows counts: each digit, at each level of ``[levels]``, rendered
-in each condition (frames from the one render cache, :func:`crs_study.stimulus.render_frames`).
+in each condition (frames from the one render cache,
+:func:`crs_study.rendering.frames.render_frames`).
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ from crs_study.device.base import (
 from crs_study.device.schedule import DEFAULT_DEADBAND_US, DEFAULT_REFRESH_S, wire_plan
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
-from crs_study.render import Renderer
-from crs_study.stimulus import make_stimulus, render_frames
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.stimulus import make_stimulus
 
 
 @dataclass(frozen=True)

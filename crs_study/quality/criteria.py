@@ -73,8 +73,8 @@ from crs_study.quality.lattices import (
     panel_edges,
     periodic_layout,
 )
-from crs_study.render import Renderer
-from crs_study.targets import Bump
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.targets import Bump
 
 #: Smallest d/l computed (the bump then spans 50 pitches).
 MIN_D_OVER_L = 0.02

@@ -25,8 +25,8 @@ from scipy.optimize import brentq
 from crs_study.display.beam import no_collapse_number  # Eq. 4, one definition (re-exported)
 from crs_study.errors import CollapseError, RenderError
 from crs_study.geometry.layout import BeamSection, Layout
-from crs_study.render import BeamGeometry, split_feed
-from crs_study.targets import Bump, arc_excess
+from crs_study.rendering.render import BeamGeometry, split_feed
+from crs_study.stimuli.targets import Bump, arc_excess
 
 
 def layout_delta(layout: Layout) -> float:

@@ -58,12 +58,13 @@ Calibration: the defaults were chosen (noise, peak fraction and temperature swep
 displayed frames of the simulated device) so that the shipped protocol on the published 2D
 device gives pixel-only accuracy near the paper's 50.3 % and CRS near 67.8 %. The temperature
 was re-tuned (1.6 -> 1.9 mm) when the digits were sized by their average bounding box
-(crs_study/digits.py), which made them 12 % wider and easier: ``crs-study demo`` (12 simulated
-participants on protocols/digit_identification.toml, 600 test trials a condition, the
-report's headline) gives 49.7 % pixel-only and 68.3 % CRS. tests/test_observer.py checks the
-gap and the range. ``detect_mm`` (2 mm, 40 % of the 5 mm bump) sits above the maximum of
-the blurred receptor noise (~1 mm), so a flat frame is not felt as a phantom peak. Decision
-times: median rt_median_s e^(rt_uncertainty H), about 2 s at the typical H of 0.75.
+(crs_study/stimuli/digits.py), which made them 12 % wider and easier: ``crs-study demo``
+(12 simulated participants on protocols/digit_identification.toml, 600 test trials a
+condition, the report's headline) gives 49.7 % pixel-only and 68.3 % CRS.
+tests/test_observer.py checks the gap and the range. ``detect_mm`` (2 mm, 40 % of the 5 mm
+bump) sits above the maximum of the blurred receptor noise (~1 mm), so a flat frame is not
+felt as a phantom peak. Decision times: median rt_median_s e^(rt_uncertainty H), about 2 s
+at the typical H of 0.75.
 """
 
 from __future__ import annotations
@@ -186,7 +187,8 @@ class PerceptualObserver(Responder):
         ability = np.random.default_rng([self.seed, 1, 0]).standard_normal()
         self.temperature_mm = self.options.temperature_mm * float(
             np.exp(self.options.ability_sd * ability))
-        from crs_study.stimulus import layout_key, placement_centre
+        from crs_study.geometry.layout import layout_key
+        from crs_study.stimuli.stimulus import placement_centre
 
         self._layout_key = layout_key(self.layout)
         o = self.options
@@ -292,7 +294,7 @@ class PerceptualObserver(Responder):
         """A digit's bump-centre path (drawn frames) at ``level``, resampled and centred."""
         key = (digit, level)
         if key not in self._templates:
-            from crs_study.stimulus import make_stimulus
+            from crs_study.stimuli.stimulus import make_stimulus
 
             stim = make_stimulus(self.protocol, self.layout, digit, level)
             self._templates[key] = _normalise(stim.centres_mm[stim.drawn],
@@ -339,8 +341,8 @@ def _largest_half_diagonal(protocol: Any, layout: Any) -> float:
     """How far (mm) the drawn bump centre gets from the placement point, over the protocol's
     digits and levels: the drawn paths themselves, so the window holds the widest digit
     whatever the strokes (a box of digit_width x digit_height pitch is the digits' *average*
-    size, crs_study/digits.py, and the widest digits exceed it)."""
-    from crs_study.stimulus import make_stimulus, placement_centre
+    size, crs_study/stimuli/digits.py, and the widest digits exceed it)."""
+    from crs_study.stimuli.stimulus import make_stimulus, placement_centre
 
     centre = np.asarray(placement_centre(protocol.stimulus, layout), dtype=float)
     reach = 0.0

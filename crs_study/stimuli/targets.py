@@ -27,7 +27,7 @@ class Bump:
     Parameters
     ----------
     centre_mm : (x_f, y_f); y_f is ignored on a 1D (line) device: the renderer (and
-        :func:`crs_study.render.render`) show rho = |x - x_f| there.
+        :func:`crs_study.rendering.render.render`) show rho = |x - x_f| there.
     diameter_mm : l, the bump's diameter (support), > 0.
     height_mm : z_f, the height at the centre, >= 0.
     """

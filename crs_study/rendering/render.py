@@ -54,7 +54,7 @@ import numpy as np
 
 from crs_study.errors import RenderError
 from crs_study.geometry.layout import Layout
-from crs_study.targets import Bump, arc_excess
+from crs_study.stimuli.targets import Bump, arc_excess
 
 ClampPolicy = Literal["clip", "error"]
 

@@ -30,7 +30,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +37,7 @@ import numpy as np
 from crs_study._toml import Section, parse_toml
 from crs_study._toml_lines import locate, one_line
 from crs_study.errors import ConfigError, ProtocolError
+from crs_study.paths import data_dir
 
 #: Format number of the strokes file this module reads.
 STROKES_FORMAT = 1
@@ -47,7 +47,7 @@ DIGIT_NAMES = tuple(str(d) for d in range(10))
 
 def shipped_strokes_path() -> Path:
     """The strokes file that ships with the package."""
-    return Path(str(resources.files("crs_study") / "data" / "digits.toml"))
+    return data_dir() / "digits.toml"
 
 
 @dataclass(frozen=True, eq=False)

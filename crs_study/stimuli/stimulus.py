@@ -1,43 +1,40 @@
 """Stimuli: a digit's strokes turned into the bump's path over time, frame by frame.
 
-A trial's stimulus is the raised-cosine bump of Eq. 7 (:class:`~crs_study.targets.Bump`)
+A trial's stimulus is the raised-cosine bump of Eq. 7 (:class:`~crs_study.stimuli.targets.Bump`)
 whose centre moves along the digit's strokes at the protocol's stroke speed, sampled at its
 frame rate. Frame k is shown at t_k = k / f from onset. The timeline of a digit:
 
 1. ``start_hold_s``: the bump rests at the first point of the first stroke;
 2. each stroke: the centre moves at constant speed along the stroke's arc length
-   (:func:`crs_study.digits.sample_stroke`, s_k = min(k v / f, L));
+   (:func:`crs_study.stimuli.digits.sample_stroke`, s_k = min(k v / f, L));
 3. between strokes (pen lift): ``stroke_pause_s`` of flat display (height 0, at least one
    frame), during which the centre moves to the next stroke's first point;
 4. ``end_hold_s``: the bump rests at the last point. Then the runner returns to neutral.
 
 What is drawn is a :class:`StimulusSpec` (a protocol's ``[stimulus]`` table, checked on
 construction). The stimulus of a digit is the same in every trial (no per-trial randomness),
-so its setpoints are rendered once per (digit, level, condition, device) and cached
-(:func:`render_frames`, the one cache of rendered frames: the protocol's device checks, the
-runner, ``validate`` and ``device check`` all read it): a protocol with ``[levels]`` has one
-stimulus spec per level (:meth:`crs_study.protocol.Protocol.stimulus_at`), and the spec is
-part of every cache key. The checks of a protocol against its device are in
-:mod:`crs_study.protocol.feasibility`.
+so its path is made once per (digit, spec, pitch, placement) (:func:`stimulus_for`) and its
+setpoints are rendered once per stimulus, condition and device by the one cache of rendered
+frames, :func:`crs_study.rendering.frames.render_frames` (the rendering stage, a layer above
+this one). A protocol with ``[levels]`` has one stimulus spec per level
+(:meth:`crs_study.protocol.Protocol.stimulus_at`), and the spec is part of every cache key.
+The checks of a protocol against its device are in :mod:`crs_study.protocol.feasibility`.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING, Any, Literal, Protocol, get_args
+from typing import Any, Literal, Protocol, get_args
 
 import numpy as np
 from scipy.spatial import ConvexHull
 
 from crs_study._toml import number_problem
-from crs_study.digits import load_digits, sample_stroke
 from crs_study.errors import ProtocolError
-from crs_study.targets import Bump
-
-if TYPE_CHECKING:  # pragma: no cover
-    from crs_study.geometry.layout import Layout
+from crs_study.geometry.layout import Layout
+from crs_study.stimuli.digits import load_digits, sample_stroke
+from crs_study.stimuli.targets import Bump
 
 Placement = Literal["centre", "offset"]
 #: Where the digits are drawn: the display centre, or that plus ``offset_mm``.
@@ -68,7 +65,7 @@ MAX_DRAWING_S = 120.0
 class StimulusSpec:
     """The ``[stimulus]`` table: what is drawn, how big, how fast. Lengths in mm, times in s.
 
-    Sizes are in pixel pitches (the digits' mean bounding box, :mod:`crs_study.digits`).
+    Sizes are in pixel pitches (the digits' mean bounding box, :mod:`crs_study.stimuli.digits`).
     Every field is checked on construction (ranges :data:`NUMBER_RANGES`): a bad value is a
     :class:`~crs_study.errors.ProtocolError` whose ``key_path`` is ``stimulus.<field>``, in
     Python (``dataclasses.replace``) as in a protocol file. Numbers are stored as floats, the
@@ -140,25 +137,6 @@ class StimulusSource(Protocol):
     """What :func:`make_stimulus` draws from: the stimulus spec of each level."""
 
     def stimulus_at(self, level: float | None) -> StimulusSpec: ...
-
-
-class FrameRendering(Protocol):
-    """One rendered frame (:class:`crs_study.render.Rendering`)."""
-
-    setpoints: np.ndarray
-    clamped: tuple[str, ...]
-
-
-class FrameRenderer(Protocol):
-    """What :func:`render_frames` renders with (:class:`crs_study.render.Renderer`, a layer
-    above this one: the cache knows it by these attributes only)."""
-
-    layout: Layout
-    condition: str
-    policy: str
-    cap_feed: bool
-
-    def render(self, target: Bump) -> FrameRendering: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -271,43 +249,6 @@ def stimulus_for(spec: StimulusSpec, pitch_mm: float, centre_mm: tuple[float, fl
         a.setflags(write=False)
     key = (digit, spec, float(pitch_mm), tuple(centre_mm))
     return Stimulus(digit, *arrays, diameter_mm=spec.bump_diameter_mm, duration_s=n / f, key=key)
-
-
-# --------------------------------------------------------------------------------------------
-# Rendering cache
-
-#: key -> (read-only frames, whether any frame was clipped or capped)
-_RENDERED: OrderedDict[tuple, tuple[np.ndarray, bool]] = OrderedDict()
-_RENDERED_MAX = 512
-
-
-def layout_key(layout: Layout) -> tuple:
-    """A hashable fingerprint of everything in a layout that shapes rendered setpoints."""
-    return (layout.name, layout.source, layout.pixel_xy.tobytes(), layout.beams,
-            layout.travel_mm, layout.boundary_travel_mm, layout.n_actuators)
-
-
-def render_frames(stimulus: Stimulus, renderer: FrameRenderer) -> np.ndarray:
-    """Setpoints (n, n_actuators) of every frame, rendered once per stimulus, device,
-    condition and feed cap and then served from a cache (read-only array).
-
-    The clamp policy is not part of the key: a stimulus that renders under ``"error"`` needs
-    no clip, so its frames are those ``"clip"`` gives, and the device check (``"error"``) and
-    the sessions (``"clip"``) share one rendering. Frames rendered under ``"clip"`` that had
-    to be clipped are rendered again under ``"error"``, which raises at the first such frame.
-    """
-    key = (stimulus.key, layout_key(renderer.layout), renderer.condition, renderer.cap_feed)
-    cached = _RENDERED.get(key)
-    if cached is not None and not (cached[1] and renderer.policy == "error"):
-        _RENDERED.move_to_end(key)
-        return cached[0]
-    renderings = [renderer.render(stimulus.target(k)) for k in range(stimulus.n_frames)]
-    frames = np.array([r.setpoints for r in renderings])
-    frames.setflags(write=False)
-    _RENDERED[key] = (frames, any(r.clamped for r in renderings))
-    if len(_RENDERED) > _RENDERED_MAX:
-        _RENDERED.popitem(last=False)
-    return frames
 
 
 # --------------------------------------------------------------------------------------------
