@@ -45,13 +45,13 @@ from typing import Any
 
 import numpy as np
 
-from crs_study import __version__, schema
+from crs_study import __version__
 from crs_study._files import sha256_bytes
 from crs_study.clock import RealClock, VirtualClock
-from crs_study.dataset import Dataset, SessionStore
+from crs_study.dataset import Dataset, SessionStore, schema
+from crs_study.dataset.session_metadata import FINGERPRINTS, Fault, Resume, SessionMetadata, now_utc
 from crs_study.errors import CrsStudyError, DeviceError, SessionError
 from crs_study.paths import recorded_path, resolve_protocol
-from crs_study.session_metadata import FINGERPRINTS, Fault, Resume, SessionMetadata, now_utc
 from crs_study.signals import deferred, handling, terminate_as_interrupt
 
 #: Session time spent before the first trial with the display neutral (settled and flat).

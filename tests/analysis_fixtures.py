@@ -1,4 +1,4 @@
-"""Small valid datasets for the analysis tests (BIDS beh, per crs_study.schema).
+"""Small valid datasets for the analysis tests (BIDS beh, per crs_study.dataset.schema).
 
 ``dataset(path, **spec)`` draws one from the analysis' own generating model
 (:mod:`crs_study.analysis.synthetic`); ``explicit_dataset(path, cells)`` writes exactly the
@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset, write_sessions
-from crs_study.schema import MISSING
+from crs_study.dataset.schema import MISSING
 
 FAST_PLAN = """
 [plan]

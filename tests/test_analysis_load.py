@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from crs_study.analysis.load import load_datasets, with_exclusions
 from crs_study.analysis.plan import Exclusions
+from crs_study.dataset.schema import TRIAL_COLUMNS
 from crs_study.errors import DatasetError
-from crs_study.schema import TRIAL_COLUMNS
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Synthetic datasets: valid BIDS per crs_study.schema, checksums the loader accepts, the
+"""Synthetic datasets: valid BIDS per crs_study.dataset.schema, checksums the loader accepts, the
 generating model recovered by the analysis."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 from crs_study.analysis.load import load_datasets
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
-from crs_study.schema import TRIAL_COLUMNS
+from crs_study.dataset.schema import TRIAL_COLUMNS
 
 
 def test_dataset_loads_without_any_warning(tmp_path):

@@ -1,5 +1,5 @@
-"""The dataset's paths (crs_study.bids): names built and parsed, sessions found, and the writer
-putting every file where the module says.
+"""The dataset's paths (crs_study.dataset.bids): names built and parsed, sessions found, and
+the writer putting every file where the module says.
 
 Names follow the BIDS specification, "Common principles: file name structure" (entities
 ``key-label`` joined by ``_``, then the suffix and extension; alphanumeric labels).
@@ -15,8 +15,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from crs_study import bids
-from crs_study.bids import BidsName, SessionPaths
+from crs_study.dataset import bids
+from crs_study.dataset.bids import BidsName, SessionPaths
 from crs_study.errors import DatasetError
 
 FIXTURE = Path(__file__).parent / "fixtures" / "sessions_4c71d44" / "dataset"

@@ -14,14 +14,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study import schema
-from crs_study.dataset import (
-    Dataset,
-    SessionStore,
-    format_value,
-    read_frame_log,
-    write_atomically,
-)
+from crs_study._files import write_atomically
+from crs_study.dataset import Dataset, SessionStore, format_value, read_frame_log, schema
 from crs_study.errors import DatasetError, SessionError
 
 

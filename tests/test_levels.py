@@ -19,8 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_protocol import dump_toml
 
-from crs_study import schema
-from crs_study.dataset import column_dictionary
+from crs_study.dataset import column_dictionary, schema
 from crs_study.errors import ProtocolError
 from crs_study.paths import shipped_file
 from crs_study.plan import make_plan

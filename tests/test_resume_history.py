@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 from _session_helpers import PauseAt
 
+from crs_study.dataset.session_metadata import SessionMetadata
 from crs_study.errors import DeviceError
 from crs_study.plan import plan_seed
 from crs_study.runner import SessionSpec, run_session, seed_check
-from crs_study.session_metadata import SessionMetadata
 
 FIXTURES = Path(__file__).parent / "fixtures" / "sessions_4c71d44"
 #: What differs between two runs of one history: wall-clock times and where the protocol was.

@@ -17,15 +17,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study import schema
-from crs_study.errors import DatasetError
-from crs_study.session_metadata import (
+from crs_study.dataset import schema
+from crs_study.dataset.session_metadata import (
     FINGERPRINTS,
     SIDECAR_KEYS,
     Fault,
     Resume,
     SessionMetadata,
 )
+from crs_study.errors import DatasetError
 
 FIXTURES = Path(__file__).parent / "fixtures" / "sessions_4c71d44"
 #: Every sidecar of 4c71d44 in the fixtures (tests/fixtures/main_sessions: two more sessions,

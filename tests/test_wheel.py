@@ -79,7 +79,7 @@ def test_the_library_from_an_empty_folder(installed, tmp_path):
         "import crs_study, crs_study.paths as paths\n"
         "from crs_study.protocol import load_protocol\n"
         "from crs_study.runner import dry_run\n"
-        "from crs_study.session_metadata import SessionMetadata\n"
+        "from crs_study.dataset.session_metadata import SessionMetadata\n"
         "print(crs_study.__file__)\n"
         "print(crs_study.__version__)\n"
         "print(load_protocol(paths.resolve_protocol('pilot')).study_id)\n"

@@ -10,7 +10,7 @@ participant                    str        BIDS label without ``sub-``
 participant_id                 str        unique across datasets: ``participant``, or
                                           ``dataset/participant`` when several datasets load
 session                        str        BIDS label without ``ses-``
-trial_index, block,            Int64      as in ``crs_study.schema.TRIAL_COLUMNS``
+trial_index, block,            Int64      as in ``crs_study.dataset.schema.TRIAL_COLUMNS``
 repetition, frames,                       (nullable integers; ``n/a`` -> ``<NA>``)
 late_frames
 digit                          int64      the digit shown (never missing)
@@ -46,8 +46,8 @@ import pandas as pd
 
 from crs_study._files import os_errors, sha256_bytes
 from crs_study.analysis.plan import Exclusions
+from crs_study.dataset.schema import MISSING, SESSION_STATUSES, TASK, TRIAL_COLUMNS
 from crs_study.errors import DatasetError
-from crs_study.schema import MISSING, SESSION_STATUSES, TASK, TRIAL_COLUMNS
 
 INT_COLUMNS = ("trial_index", "block", "repetition", "frames", "late_frames", "response")
 FLOAT_COLUMNS = ("correct", "response_time", "response_time_from_offset", "onset",
@@ -248,7 +248,7 @@ def _read_session(tsv: Path, dataset: str, file_number: int
     missing = [c for c in REQUIRED_COLUMNS if c not in raw.columns]
     if missing:
         raise DatasetError(f"{tsv}: missing column {missing[0]!r} "
-                           f"(expected the columns of crs_study.schema.TRIAL_COLUMNS)")
+                           f"(expected the columns of crs_study.dataset.schema.TRIAL_COLUMNS)")
     if meta and "TrialsCompleted" in meta and meta["TrialsCompleted"] != len(raw):
         problems.append(f"{tsv}: TrialsCompleted is {meta['TrialsCompleted']!r} but the file "
                         f"holds {len(raw)} trials (possible tampering)")

@@ -3,7 +3,7 @@
 The generating model is the analysis' own: ``logit P(correct) = b_condition + u_participant +
 v_digit`` with ``u ~ N(0, participant_sd^2)`` and ``v ~ N(0, digit_sd^2)``; an error names
 another digit, more often a neighbour; response times are log-normal, errors slower. Files
-follow ``crs_study.schema`` and the layout in DESIGN.md ("The stored dataset"), with each
+follow ``crs_study.dataset.schema`` and the layout in DESIGN.md ("The stored dataset"), with each
 session's ``TrialsSha256`` the sha256 of its ``_beh.tsv`` bytes, so the loader's checks pass.
 This is a test and benchmark aid; real datasets come from ``crs-study run`` / ``dry-run``.
 """
@@ -19,7 +19,7 @@ import numpy as np
 from crs_study import __version__
 from crs_study._files import sha256_bytes
 from crs_study.dataset import column_dictionary  # the runner's, so both files agree
-from crs_study.schema import MISSING, TASK, TRIAL_COLUMNS
+from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS
 
 
 @dataclass(frozen=True)

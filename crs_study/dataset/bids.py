@@ -28,8 +28,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from crs_study.dataset.schema import TASK
 from crs_study.errors import DatasetError
-from crs_study.schema import TASK
 
 DATASET_DESCRIPTION = "dataset_description.json"
 PARTICIPANTS_TSV = "participants.tsv"

@@ -3,12 +3,18 @@
 One row per trial in ``sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-<task>_beh.tsv``; the
 descriptions below become the column dictionary ``task-<task>_beh.json`` (BIDS). Missing values
 are written ``n/a``. Times are seconds on the runner's monotonic clock, relative to the
-session's start, except response times (seconds from stimulus onset or offset).
+session's start, except response times (seconds from stimulus onset or offset). How a value
+is written in a cell (:func:`format_value`) is here too, for every TSV the dataset holds.
 """
 
 from __future__ import annotations
 
-from crs_study.session_metadata import SIDECAR_KEYS, STATUSES
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from crs_study.dataset.session_metadata import SIDECAR_KEYS, STATUSES
+from crs_study.errors import DatasetError
 
 TASK = "digitid"
 MISSING = "n/a"
@@ -68,6 +74,27 @@ def trial_columns(level_column: str | None = None) -> tuple[str, ...]:
 
 
 #: Session sidecar keys (``..._beh.json``), in written order, and the statuses a session
-#: has: :class:`crs_study.session_metadata.SessionMetadata` owns the sidecar's format.
+#: has: :class:`crs_study.dataset.session_metadata.SessionMetadata` owns the sidecar's format.
 SESSION_KEYS: tuple[str, ...] = SIDECAR_KEYS
 SESSION_STATUSES: tuple[str, ...] = STATUSES
+
+
+def format_value(value: Any) -> str:
+    """A TSV cell: ``n/a`` for missing, 0/1 for booleans, floats to the microsecond."""
+    if value is None:
+        return MISSING
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return MISSING
+        text = f"{value:.6f}"
+        return "0.000000" if text == "-0.000000" else text
+    text = str(value)
+    if any(c in text for c in "\t\n\r"):
+        raise DatasetError(f"a TSV value may not contain tabs or newlines: {text!r}")
+    return text
+
+
+def tsv_line(values: Sequence[Any]) -> str:
+    return "\t".join(format_value(v) for v in values) + "\n"

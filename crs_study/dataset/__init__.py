@@ -1,0 +1,31 @@
+"""The dataset stage: the stored BIDS dataset (datatype ``beh``), the only thing analysis reads.
+
+* :mod:`~crs_study.dataset.schema`: the vocabulary (trial columns, the task, ``n/a``) and how
+  a value is written in a cell;
+* :mod:`~crs_study.dataset.session_metadata`: a session's sidecar as typed data
+  (:class:`SessionMetadata`, read strictly);
+* :mod:`~crs_study.dataset.bids`: every path of the layout, built and found
+  (:class:`SessionPaths`, :func:`find_sessions`), for the writer and the reader alike;
+* :mod:`~crs_study.dataset.folder`: the dataset's shared files and its participants
+  (:class:`Dataset`);
+* :mod:`~crs_study.dataset.session_store`: one session's files, written durably trial by
+  trial (:class:`SessionStore`).
+"""
+
+from crs_study.dataset.bids import SessionPaths, beh_files, derivatives_dir, find_sessions
+from crs_study.dataset.folder import (
+    DATASET_LOCK,
+    WITHDRAWAL_JOURNAL,
+    Dataset,
+    check_label,
+    column_dictionary,
+    utc_now,
+)
+from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS, format_value, trial_columns
+from crs_study.dataset.session_metadata import SessionMetadata
+from crs_study.dataset.session_store import SessionStore, read_frame_log
+
+__all__ = ["DATASET_LOCK", "MISSING", "TASK", "TRIAL_COLUMNS", "WITHDRAWAL_JOURNAL", "Dataset",
+           "SessionMetadata", "SessionPaths", "SessionStore", "beh_files", "check_label",
+           "column_dictionary", "derivatives_dir", "find_sessions", "format_value",
+           "read_frame_log", "trial_columns", "utc_now"]

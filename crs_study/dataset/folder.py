@@ -1,0 +1,239 @@
+"""The stored dataset's folder: BIDS ``beh``, its shared files and its participants.
+
+Layout (DESIGN.md, "The stored dataset"; every path is built by :mod:`crs_study.dataset.bids`)::
+
+    DATASET/
+      dataset_description.json, participants.tsv, participants.json, task-digitid_beh.json
+      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.tsv    one row per trial
+      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.json   session sidecar
+      sub-<id>/ses-<n>/.sub-<id>_ses-<n>.lock                       the runner's lock
+      sourcedata/sub-<id>/ses-<n>/..._frames.tsv.gz                 per-frame device log
+      sourcedata/sub-<id>/ses-<n>/..._beh-torn-<time>.bin           bytes cut from a torn tail
+
+The sidecar is a :class:`~crs_study.dataset.session_metadata.SessionMetadata`, read strictly.
+
+Written trial by trial so that nothing is ever lost: one session's files are
+:class:`~crs_study.dataset.session_store.SessionStore`'s (durability, torn tails, the session
+lock). This module holds what the whole dataset shares: ``dataset_description.json``,
+``participants.tsv`` (the order of arrival, under the dataset lock), the column dictionary
+and the README.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import fcntl
+import io
+import json
+import re
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from crs_study import __version__
+from crs_study._files import make_dirs, os_errors, write_atomically
+from crs_study.dataset import bids, schema
+from crs_study.dataset.bids import SessionPaths
+from crs_study.dataset.schema import tsv_line
+from crs_study.errors import DatasetError, SessionError
+
+BIDS_VERSION = "1.10.0"
+DATASET_LOCK = ".crs-study.lock"
+#: Journal of a participant's withdrawal in progress (crs_study.consent); while it exists no
+#: session may start in the dataset.
+WITHDRAWAL_JOURNAL = ".crs-study-withdrawal.json"
+PARTICIPANT_COLUMNS = ("participant_id", "counterbalance")
+PARTICIPANTS_SIDECAR = {
+    "participant_id": {"Description": "Pseudonymous participant label (never a name)"},
+    "counterbalance": {
+        "Description": "Counterbalancing index: the participant's 0-based order of arrival in "
+        "the dataset (or as set with --counterbalance); the protocol maps it to the order of "
+        "the condition blocks",
+        "Units": "index",
+    },
+}
+_LABEL_RE = re.compile(r"[A-Za-z0-9]+")
+
+
+def check_label(label: str) -> str:
+    """BIDS participant labels: letters and digits only."""
+    if not isinstance(label, str) or not _LABEL_RE.fullmatch(label):
+        raise SessionError(f"participant label {label!r} is not valid: use letters and digits "
+                           "only (BIDS), e.g. p7k2m9q")
+    return label
+
+
+def utc_now() -> str:
+    """The current time, ISO 8601 in UTC, to the second."""
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def json_text(data: Any) -> str:
+    return json.dumps(data, indent=2, ensure_ascii=False) + "\n"
+
+
+# --- the dataset -------------------------------------------------------------------------------
+
+class Dataset:
+    """A BIDS dataset directory: top-level files, participants, sessions."""
+
+    def __init__(self, root: str | Path, name: str = "crs-study digit identification") -> None:
+        self.root = Path(root)
+        self.name = name
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the dataset-wide lock (short updates of shared files such as participants)."""
+        if self.root.exists() and not self.root.is_dir():
+            raise DatasetError(f"{self.root}: exists and is not a directory")
+        with os_errors(DatasetError, "create the dataset", self.root):
+            make_dirs(self.root)
+            handle = open(self.root / DATASET_LOCK, "a+")  # noqa: SIM115 - closed below
+        with handle:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(handle, fcntl.LOCK_UN)
+
+    def refuse_pending_withdrawal(self) -> None:
+        """A :class:`SessionError` while a withdrawal is unfinished (call under :meth:`locked`).
+
+        Withdrawal writes its journal under the same lock, so a session either holds its lock
+        before the journal exists (and the withdrawal waits for it) or never starts.
+        """
+        if (self.root / WITHDRAWAL_JOURNAL).exists():
+            raise SessionError(
+                f"{self.root}: a participant's withdrawal was interrupted; no session may run "
+                f"until it is finished: crs-study consent recover --dataset {self.root}")
+
+    def ensure(self) -> None:
+        """Create the top-level files that are missing (never rewrites existing ones)."""
+        if self.root.exists() and not self.root.is_dir():
+            raise DatasetError(f"{self.root}: exists and is not a directory")
+        with self.locked():
+            self.refuse_pending_withdrawal()
+            files = {
+                bids.DATASET_DESCRIPTION: json_text({
+                    "Name": self.name,
+                    "BIDSVersion": BIDS_VERSION,
+                    "DatasetType": "raw",
+                    "GeneratedBy": [{
+                        "Name": "crs-study",
+                        "Version": __version__,
+                        "Description": "CRS haptic display digit-identification sessions",
+                    }],
+                }),
+                bids.PARTICIPANTS_JSON: json_text(PARTICIPANTS_SIDECAR),
+                bids.task_sidecar_name(schema.TASK): json_text(column_dictionary()),
+                bids.PARTICIPANTS_TSV: "\t".join(PARTICIPANT_COLUMNS) + "\n",
+                bids.DATASET_README: DATASET_README,
+            }
+            for name, text in files.items():
+                if not (self.root / name).exists():
+                    with os_errors(DatasetError, "write", self.root / name):
+                        write_atomically(self.root / name, text)
+
+    def participants(self) -> dict[str, int]:
+        """Label -> counterbalance index, from ``participants.tsv``."""
+        path = self.root / bids.PARTICIPANTS_TSV
+        if not path.exists():
+            return {}
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DatasetError(f"{path}: cannot read the participants table: {exc}") from None
+        rows = list(csv.reader(io.StringIO(text), delimiter="\t"))
+        if not rows or tuple(rows[0][:2]) != PARTICIPANT_COLUMNS:
+            raise DatasetError(f"{path}: expected columns {PARTICIPANT_COLUMNS}, got "
+                               f"{rows[0] if rows else []!r}")
+        found = {}
+        for number, row in enumerate(rows[1:], start=2):
+            if not row:
+                continue
+            try:
+                label = row[0].removeprefix("sub-")
+                found[label] = int(row[1])
+            except (IndexError, ValueError):
+                raise DatasetError(f"{path}:{number}: malformed row {row!r}") from None
+        return found
+
+    def register_participant(self, label: str, counterbalance: int | None = None) -> int:
+        """The participant's counterbalance index, adding the participant when new.
+
+        A new participant gets ``counterbalance`` when given, else the number of participants
+        already in the dataset (0-based order of arrival). A known participant keeps the index
+        stored; asking for another one is a :class:`SessionError`.
+        """
+        check_label(label)
+        self.ensure()
+        with self.locked():
+            self.refuse_pending_withdrawal()
+            known = self.participants()
+            if label in known:
+                if counterbalance is not None and counterbalance != known[label]:
+                    raise SessionError(
+                        f"participant {label!r} has counterbalance {known[label]} in "
+                        f"{self.root / bids.PARTICIPANTS_TSV}; --counterbalance "
+                        f"{counterbalance} disagrees")
+                return known[label]
+            index = len(known) if counterbalance is None else int(counterbalance)
+            if index < 0:
+                raise SessionError(f"counterbalance must be >= 0, got {index!r}")
+            known[label] = index
+            lines = ["\t".join(PARTICIPANT_COLUMNS) + "\n"]
+            lines += [tsv_line([f"sub-{k}", v]) for k, v in sorted(known.items())]
+            with os_errors(DatasetError, "write", self.root / bids.PARTICIPANTS_TSV):
+                write_atomically(self.root / bids.PARTICIPANTS_TSV, "".join(lines))
+            return index
+
+    def session_paths(self, participant: str, session: int) -> SessionPaths:
+        check_label(participant)
+        if not isinstance(session, int) or session < 1:
+            raise SessionError(f"session must be a whole number >= 1, got {session!r}")
+        return SessionPaths(self.root, participant, session)
+
+    def sessions(self, participant: str) -> list[int]:
+        """Session numbers of a participant found in the dataset."""
+        return bids.session_numbers(self.root, check_label(participant))
+
+
+_LEVEL_TEXT = {
+    "0|1": {"0": "no", "1": "yes"},
+    "practice|test": {"practice": "practice trial, with feedback, not analysed",
+                      "test": "test trial"},
+    "0-9": {str(d): f"the digit {d}" for d in range(10)},
+}
+
+
+def column_dictionary() -> dict[str, Any]:
+    """The BIDS column dictionary (``task-digitid_beh.json``) from :mod:`crs_study.dataset.schema`.
+
+    Closed sets become ``Levels`` (an object level -> meaning, as BIDS requires); numeric
+    columns get ``Units``; free labels (condition, responder) only a description. The level
+    columns (:data:`crs_study.dataset.schema.LEVEL_COLUMNS`) are described too: the file is one per
+    dataset, and only sessions of protocols with ``[levels]`` hold them.
+    """
+    columns: dict[str, Any] = {}
+    described = {**schema.TRIAL_COLUMNS, **schema.LEVEL_COLUMNS}
+    for name, (description, units) in described.items():
+        entry: dict[str, Any] = {"LongName": name.replace("_", " "), "Description": description}
+        if units in _LEVEL_TEXT:
+            entry["Levels"] = _LEVEL_TEXT[units]
+        elif units != "label":
+            entry["Units"] = units
+        columns[name] = entry
+    return {"TaskName": schema.TASK, **columns}
+
+
+DATASET_README = """\
+# crs-study dataset
+
+Digit-identification sessions on the continuity reinforcement skeleton (CRS) haptic display,
+written by crs-study (BIDS, datatype beh). One row per trial in
+sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.tsv; the session's protocol, device
+file, seed and status are in the .json beside it; per-frame device logs are under sourcedata/.
+Participant labels are pseudonyms; names are never stored here.
+"""
