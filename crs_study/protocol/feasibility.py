@@ -43,7 +43,7 @@ from typing import Literal
 import numpy as np
 
 from crs_study._toml_lines import find_line, one_line
-from crs_study.consent_form import read_form
+from crs_study.consent.form import read_form
 from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
 from crs_study.errors import (
     ConfigError,

@@ -1,9 +1,9 @@
 """Consent forms: versioned Markdown documents, read and checked (no register, no dataset).
 
 A form has a ``# Title`` line, exactly one ``Version: X`` line and ``- [ ]`` consent
-statements. Reading one is all a protocol needs to check its ``study.consent_form_version``,
-so it lives apart from the consent register (:mod:`crs_study.consent`), which sits above the
-dataset; :mod:`crs_study.consent` re-exports both names.
+statements. Reading one is all a protocol needs to check its ``study.consent_form_version``
+(:mod:`crs_study.protocol.feasibility`), and all the register records of the form a
+participant consented on (its version and sha256).
 """
 
 from __future__ import annotations

@@ -1,0 +1,227 @@
+"""The consent register: consent and withdrawal events, kept outside every dataset.
+
+The **register** is a directory kept outside every dataset (owner-only: 0700, files 0600)::
+
+    register.jsonl   one JSON object per event: {"event": "consent" | "withdrawal", ...}
+    audit.jsonl      one line per completed withdrawal: label, time, what was removed
+
+Consent events hold the participant's pseudonymous label, the UTC time, the form's path,
+version and sha256, the experimenter's initials and, only when the lab chooses, a name. Names
+never leave the register: datasets hold labels alone.
+
+A register inside a dataset (any folder with a ``dataset_description.json`` above it) is
+refused: names would travel with the data.
+
+The gate before a real session is :mod:`crs_study.consent.gate`; withdrawal, which marks the
+register and removes the participant's data, is :mod:`crs_study.consent.withdrawal`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import secrets
+import stat
+import string
+import warnings
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from crs_study._files import append_durably, fsync_dir, os_errors
+from crs_study.consent.form import ConsentForm
+from crs_study.dataset import check_label as dataset_check_label
+from crs_study.dataset import utc_now
+from crs_study.errors import ConsentError, CrsStudyWarning, SessionError
+
+REGISTER_ENV = "CRS_STUDY_CONSENT_DIR"
+REGISTER_FILE = "register.jsonl"
+AUDIT_FILE = "audit.jsonl"
+
+_INITIALS_RE = re.compile(r"^[A-Za-z]{1,4}$")
+_LABEL_ALPHABET = string.ascii_lowercase + string.digits
+
+
+def default_register_dir() -> Path:
+    """``$CRS_STUDY_CONSENT_DIR``, else ``~/.crs-study/consent``."""
+    return Path(os.environ.get(REGISTER_ENV) or Path.home() / ".crs-study" / "consent")
+
+
+def enclosing_dataset(path: str | Path) -> Path | None:
+    """The dataset (a folder with ``dataset_description.json``) holding ``path``, or None."""
+    resolved = Path(path).resolve()
+    for folder in (resolved, *resolved.parents):
+        if (folder / "dataset_description.json").is_file():
+            return folder
+    return None
+
+
+def check_label(label: str) -> str:
+    """A participant label must be BIDS-valid: letters and digits only (as in the dataset)."""
+    try:
+        return dataset_check_label(label)
+    except SessionError as error:
+        raise ConsentError(str(error)) from None
+
+
+def generate_label(existing: Iterable[str] = (), length: int = 7) -> str:
+    """A random pseudonymous label such as ``p7k2m9q`` (a letter, then letters and digits)."""
+    taken = set(existing)
+    while True:
+        label = "p" + "".join(secrets.choice(_LABEL_ALPHABET) for _ in range(length - 1))
+        if label not in taken:
+            return label
+
+
+@dataclass(frozen=True)
+class ConsentRecord:
+    """The current consent state of one participant, folded from the register's events."""
+
+    participant: str
+    time: str
+    form_path: str
+    form_version: str
+    form_sha256: str
+    experimenter: str
+    name: str | None = None
+    withdrawn_at: str | None = None
+
+    @property
+    def status(self) -> str:
+        return "withdrawn" if self.withdrawn_at else "consented"
+
+
+class Register:
+    """The consent register directory (see the module docstring)."""
+
+    def __init__(self, directory: str | Path | None = None) -> None:
+        self.directory = Path(directory) if directory else default_register_dir()
+        self.path = self.directory / REGISTER_FILE
+        self.audit_path = self.directory / AUDIT_FILE
+
+    def _check_outside_datasets(self) -> None:
+        dataset = enclosing_dataset(self.directory)
+        if dataset is not None:
+            raise ConsentError(
+                f"{self.directory}: the consent register lies inside the dataset {dataset}; "
+                "keep it outside every dataset (names must never travel with the data)")
+
+    def _ensure(self) -> None:
+        self._check_outside_datasets()
+        try:
+            self.directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+            os.chmod(self.directory, 0o700)
+        except OSError as exc:
+            raise ConsentError(f"{self.directory}: cannot create the consent register: {exc}"
+                               ) from None
+
+    def _append(self, path: Path, event: dict) -> None:
+        self._ensure()
+        with os_errors(ConsentError, "write the consent register", path):
+            new = not path.exists()
+            append_durably(path, json.dumps(event, sort_keys=True).encode("utf-8") + b"\n",
+                           mode=0o600)
+            os.chmod(path, 0o600)
+            if new:
+                fsync_dir(path.parent)
+
+    def _restore_privacy(self) -> None:
+        """Owner-only permissions back on the register (0700) and its files (0600), with a
+        warning that names what others could read: a copy restored from a backup or a chmod
+        must not leave names readable by the group."""
+        for path, mode in ((self.directory, 0o700), (self.path, 0o600),
+                           (self.audit_path, 0o600)):
+            try:
+                current = stat.S_IMODE(path.stat().st_mode)
+            except FileNotFoundError:
+                continue
+            if current & 0o077:
+                try:
+                    os.chmod(path, mode)
+                except OSError as exc:
+                    raise ConsentError(f"{path}: readable by others (mode {current:o}) and "
+                                       f"cannot be made owner-only: {exc}") from None
+                warnings.warn(f"{path} was readable by others (mode {current:o}); made "
+                              f"owner-only ({mode:o}) again", CrsStudyWarning, stacklevel=3)
+
+    def events(self) -> list[dict]:
+        self._check_outside_datasets()
+        if not self.path.exists():
+            return []
+        self._restore_privacy()
+        events = []
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConsentError(f"{self.path}: cannot read the consent register: {exc}"
+                               ) from None
+        for number, line in enumerate(text.splitlines(), 1):
+            if not line.strip():
+                continue
+            try:
+                event = json.loads(line)
+                event["event"], event["participant"]  # noqa: B018  (required keys)
+            except (json.JSONDecodeError, KeyError, TypeError):
+                raise ConsentError(f"{self.path}:{number}: not a consent register line: "
+                                   f"{line[:60]!r}") from None
+            events.append(event)
+        return events
+
+    def records(self) -> dict[str, ConsentRecord]:
+        """The current record per participant (a later consent replaces an earlier one)."""
+        records: dict[str, ConsentRecord] = {}
+        for event in self.events():
+            label = event["participant"]
+            if event["event"] == "consent":
+                records[label] = ConsentRecord(
+                    label, event["time"], event["form_path"], event["form_version"],
+                    event["form_sha256"], event["experimenter"], event.get("name"),
+                )
+            elif event["event"] == "withdrawal" and label in records:
+                old = records[label]
+                records[label] = ConsentRecord(**{**asdict(old), "withdrawn_at": event["time"]})
+        return records
+
+    def record(self, form: ConsentForm, experimenter: str, participant: str | None = None,
+               name: str | None = None) -> ConsentRecord:
+        """Store a consent event; a label is generated when none is given."""
+        if not _INITIALS_RE.match(experimenter or ""):
+            raise ConsentError(
+                f"experimenter initials {experimenter!r} are not valid: 1 to 4 letters"
+            )
+        records = self.records()
+        if participant is None:
+            participant = generate_label(records)
+        check_label(participant)
+        if participant in records and records[participant].withdrawn_at:
+            raise ConsentError(
+                f"participant {participant!r} withdrew on {records[participant].withdrawn_at}; "
+                "give a returning person a new label"
+            )
+        event = {
+            "event": "consent", "participant": participant, "time": utc_now(),
+            "form_path": str(form.path), "form_version": form.version,
+            "form_sha256": form.sha256, "experimenter": experimenter.upper(),
+        }
+        if name:
+            event["name"] = name
+        self._append(self.path, event)
+        return self.records()[participant]
+
+    def mark_withdrawn(self, participant: str) -> None:
+        if any(e["event"] == "withdrawal" and e["participant"] == participant
+               for e in self.events()):
+            return  # idempotent (also for a simulated participant with no consent record)
+        self._append(self.path, {"event": "withdrawal", "participant": participant,
+                                 "time": utc_now()})
+
+    def audit(self, entry: dict) -> None:
+        if self.audit_path.exists() and any(
+            json.loads(line).get("journal_id") == entry["journal_id"]
+            for line in self.audit_path.read_text(encoding="utf-8").splitlines() if line
+        ):
+            return  # idempotent
+        self._append(self.audit_path, entry)
+
+
