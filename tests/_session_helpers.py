@@ -10,7 +10,7 @@ import numpy as np
 from crs_study.device.base import Device, FrameReport, full_frame_wire_time_s
 from crs_study.errors import DeviceError
 from crs_study.paths import shipped_file
-from crs_study.responders.random import RandomResponder
+from crs_study.session.responders.random import RandomResponder
 
 
 def tiny_protocol(directory: Path, name: str = "tiny.toml", *, digits=(1, 4, 7),

@@ -137,7 +137,8 @@ def test_the_writer_puts_every_file_where_the_module_says(tmp_path):
     """A session with a torn row cut on resume: each file written is one the module names."""
     from _session_helpers import tiny_protocol
 
-    from crs_study.runner import SessionSpec, run_session
+    from crs_study.session.runner import run_session
+    from crs_study.session.spec import SessionSpec
 
     protocol = tiny_protocol(tmp_path)
     spec = SessionSpec(protocol, "p01", tmp_path / "ds", "sim://", 1, "random", "virtual")

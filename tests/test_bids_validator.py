@@ -36,7 +36,7 @@ def crs_study(*args: str) -> subprocess.CompletedProcess:
 def test_dry_run_dataset_is_valid_bids(tmp_path):
     protocol = tiny_protocol(tmp_path)
     dataset = tmp_path / "rehearsal"
-    responder = "observer" if importlib.util.find_spec("crs_study.responders.observer") \
+    responder = "observer" if importlib.util.find_spec("crs_study.session.responders.observer") \
         else "random"
     crs_study("dry-run", str(protocol), "--participants", "3", "--out", str(dataset),
               "--responder", responder, "--jobs", "2")

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from crs_study.clock import RealClock
-from crs_study.responders.base import StimulusRecord
-from crs_study.responders.keypad import KeypadResponder, PauseRequested
+from crs_study.session.responders.base import StimulusRecord
+from crs_study.session.responders.keypad import KeypadResponder, PauseRequested
 
 #: Allowed delay between writing a key and its time stamp (s). Typically 0.1 ms (median of
 #: 30 keys here); single keys reached 5 ms on a loaded two-core machine, hence the margin,
@@ -117,8 +117,8 @@ def test_stdin_of_a_child_process(terminal):
         import sys, time
         import numpy as np
         from crs_study.clock import RealClock
-        from crs_study.responders.base import StimulusRecord
-        from crs_study.responders.keypad import KeypadResponder
+        from crs_study.session.responders.base import StimulusRecord
+        from crs_study.session.responders.keypad import KeypadResponder
         class Trial:
             index, digit = 0, 2
         clock = RealClock()

@@ -22,8 +22,8 @@ from test_protocol import dump_toml
 from crs_study.dataset import column_dictionary, schema
 from crs_study.errors import ProtocolError
 from crs_study.paths import shipped_file
-from crs_study.plan import make_plan
 from crs_study.protocol import LEVEL_PARAMETERS, load_protocol
+from crs_study.protocol.plan import make_plan
 from crs_study.stimuli.stimulus import make_stimulus
 
 PSYCHOMETRIC = shipped_file("protocols/digit_size_psychometric.toml")
@@ -232,7 +232,7 @@ def test_stimulus_per_digit_and_level(layout2d):
 
 
 def test_observer_templates_are_per_level(layout2d):
-    from crs_study.responders.observer import PerceptualObserver
+    from crs_study.session.responders.observer import PerceptualObserver
 
     protocol = load_protocol(PSYCHOMETRIC)
     observer = PerceptualObserver(layout2d, protocol, seed=1)
@@ -273,7 +273,7 @@ def test_dry_run_of_a_tiny_level_protocol(tmp_path):
     """Two digits, three speeds, one condition: the TSV has the stroke_speed column, each
     (digit, speed) cell once, and the analysis finds the level column; a rerun is a no-op."""
     from crs_study.analysis.psychometric import find_level_column
-    from crs_study.runner import dry_run
+    from crs_study.session.dry_runs import dry_run
 
     data = speed_protocol([10, 20, 40], repetitions=1, practice_trials=0, break_every=0,
                           counterbalancing="none", inter_trial_interval_s=0.5)

@@ -1,4 +1,4 @@
-"""The perceptual observer (crs_study/responders/observer.py): sensing, decisions, calibration."""
+"""The perceptual observer (session/responders/observer.py): sensing, decisions, calibration."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
-from crs_study.responders.base import StimulusRecord
-from crs_study.responders.observer import PerceptualObserver
+from crs_study.session.responders.base import StimulusRecord
+from crs_study.session.responders.observer import PerceptualObserver
 from crs_study.stimuli.stimulus import make_stimulus
 
 
@@ -122,7 +122,7 @@ def test_same_seed_and_trial_give_the_same_answer(protocol, records):
 def test_answers_do_not_depend_on_what_the_process_sensed_before(protocol, records):
     """A resumed session (a fresh process) must answer as an uninterrupted one: the surface
     cache may not hand one frame the surface of a nearby earlier frame."""
-    from crs_study.responders import observer as module
+    from crs_study.session.responders import observer as module
 
     layout = protocol.layout()
     record = records["crs", 3]
@@ -224,7 +224,7 @@ def test_a_model_that_cannot_be_built_fails_the_run_not_the_frame(protocol, monk
     """Per-frame collapse skips a frame; a model that cannot be built at all must not turn
     every CRS trial into a silent guess (it did, for a device file the fabric could not mesh)."""
     import crs_study.display.base as display_base
-    import crs_study.responders.observer as observer_module
+    import crs_study.session.responders.observer as observer_module
     from crs_study.errors import DisplayModelError
 
     def broken(name, layout, **options):

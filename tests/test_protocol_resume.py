@@ -18,9 +18,9 @@ import pytest
 
 from crs_study.cli import main
 from crs_study.geometry.layout import load_layout
-from crs_study.plan import make_plan
 from crs_study.protocol import load_protocol
-from crs_study.runner import plan_sha256, stimulus_sha256
+from crs_study.protocol.plan import make_plan
+from crs_study.session.resume import plan_sha256, stimulus_sha256
 
 FIXTURE = Path(__file__).parent / "fixtures" / "main_sessions"
 SIDECAR = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json"

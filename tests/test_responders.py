@@ -10,11 +10,11 @@ from scipy import stats
 
 from crs_study.clock import VirtualClock
 from crs_study.errors import ConfigError, SessionError
-from crs_study.responders import make_responder
-from crs_study.responders.base import Response, StimulusRecord, respond_at, trial_rng
-from crs_study.responders.keypad import KeypadResponder
-from crs_study.responders.random import RandomResponder
-from crs_study.responders.scripted import ScriptedResponder, parse_script
+from crs_study.session.responders import make_responder
+from crs_study.session.responders.base import Response, StimulusRecord, respond_at, trial_rng
+from crs_study.session.responders.keypad import KeypadResponder
+from crs_study.session.responders.random import RandomResponder
+from crs_study.session.responders.scripted import ScriptedResponder, parse_script
 
 
 class Trial:

@@ -80,11 +80,11 @@ def mark(what):
 
 mark("process")
 import crs_study.dataset as dataset
-import crs_study.runner as runner
+import crs_study.session.runner as runner
 from crs_study.cli import main
 
 mark("imported")
-real_run_trial, real_save, real_replay = runner._run_trial, runner._save, runner._replay
+real_run_trial, real_save, real_replay = runner.run_trial, runner.save, runner.replay
 real_append_row, real_replace = dataset.SessionStore.append_row, os.replace
 completing = False
 
@@ -124,7 +124,7 @@ def replay(*args):
     mark("replay-end")
 
 
-runner._run_trial, runner._save, runner._replay = run_trial, save, replay
+runner.run_trial, runner.save, runner.replay = run_trial, save, replay
 dataset.SessionStore.append_row = append_row
 os.replace = replace
 sys.exit(main(sys.argv[1:]))

@@ -12,8 +12,9 @@ from _session_helpers import PauseAt
 
 from crs_study.dataset.session_metadata import SessionMetadata
 from crs_study.errors import DeviceError
-from crs_study.plan import plan_seed
-from crs_study.runner import SessionSpec, run_session, seed_check
+from crs_study.protocol.plan import plan_seed
+from crs_study.session.runner import run_session, seed_check
+from crs_study.session.spec import SessionSpec
 
 FIXTURES = Path(__file__).parent / "fixtures" / "sessions_4c71d44"
 #: What differs between two runs of one history: wall-clock times and where the protocol was.

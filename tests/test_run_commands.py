@@ -52,7 +52,7 @@ def test_seed_check_writes_nothing(tmp_path, capsys):
     protocol = tiny_protocol(tmp_path)
     assert main(run_args(protocol, tmp_path / "ds", "--seed-check", "--json")) == 0
     report = json.loads(capsys.readouterr().out)
-    from crs_study.plan import plan_seed
+    from crs_study.protocol.plan import plan_seed
 
     assert report["seed"] == plan_seed("tiny", "1.0.0", "p01", 1)
     assert report["stored"] == "none" and report["trials"] == 8

@@ -12,21 +12,17 @@ import numpy as np
 import pytest
 from _session_helpers import FakeDevice, tiny_protocol
 
-import crs_study.device.base as device_base
+import crs_study.session.runner as runner_module
 from crs_study.dataset import read_frame_log
 from crs_study.errors import ConsentError, CrsStudyError, DeviceError, SessionError
-from crs_study.plan import make_plan
 from crs_study.protocol import load_protocol
-from crs_study.responders.base import Responder, Response
-from crs_study.responders.random import RandomResponder
-from crs_study.runner import (
-    SessionSpec,
-    ceil_ms,
-    dry_run,
-    run_session,
-    seed_check,
-    simulated_labels,
-)
+from crs_study.protocol.plan import make_plan
+from crs_study.session.dry_runs import dry_run, simulated_labels
+from crs_study.session.responders.base import Responder, Response
+from crs_study.session.responders.random import RandomResponder
+from crs_study.session.runner import run_session, seed_check
+from crs_study.session.spec import SessionSpec
+from crs_study.session.trials import ceil_ms
 
 
 @pytest.fixture
@@ -40,7 +36,7 @@ def devices(monkeypatch):
         made.append(device)
         return device
 
-    monkeypatch.setattr(device_base, "open_device", fake_open)
+    monkeypatch.setattr(runner_module, "open_device", fake_open)  # the runner's name for it
     made_options = options
     return made, made_options
 
@@ -68,7 +64,7 @@ class Recorder(RandomResponder):
 
 
 def plan_seed_of(participant="p01", session=1):
-    from crs_study.plan import plan_seed
+    from crs_study.protocol.plan import plan_seed
 
     return plan_seed("tiny", "1.0.0", participant, session)
 
@@ -252,7 +248,7 @@ def test_resume_refuses_software_that_draws_the_digits_differently(tmp_path, dev
                                                                    monkeypatch):
     # The protocol file is unchanged, but the bump paths are not (as when an upgrade rescaled
     # the strokes mid-study): finishing the session would mix two stimuli in one session.
-    import crs_study.stimuli.stimulus as stimulus_module
+    import crs_study.session.resume as resume_module
 
     protocol = tiny_protocol(tmp_path)
     spec = spec_for(tmp_path, protocol)
@@ -260,13 +256,13 @@ def test_resume_refuses_software_that_draws_the_digits_differently(tmp_path, dev
     sidecar = json.loads(spec.dataset.joinpath(
         "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json").read_text())
     assert len(sidecar["StimulusSha256"]) == 64
-    drawn = stimulus_module.make_stimulus
+    drawn = resume_module.make_stimulus
 
     def wider(protocol, layout, digit, level=None):
         original = drawn(protocol, layout, digit, level)
         return replace(original, centres_mm=original.centres_mm * [1.01, 1.0])
 
-    monkeypatch.setattr(stimulus_module, "make_stimulus", wider)
+    monkeypatch.setattr(resume_module, "make_stimulus", wider)  # what the fingerprint draws
     with pytest.raises(SessionError, match=r"cannot resume: the stimulus \(the bump paths"):
         run_session(spec)
 
@@ -612,7 +608,7 @@ def test_participants_arriving_together_get_their_own_counterbalance(tmp_path, d
                                                                      monkeypatch):
     """The order of arrival used to be read without the dataset lock and written back as
     given: a second runner registering in between left both participants on index 0."""
-    import crs_study.runner as runner
+    import crs_study.session.runner as runner
     from crs_study.dataset import Dataset
 
     real_prepare = runner.prepare

@@ -248,7 +248,7 @@ def test_any_value_under_any_key_reads_or_is_one_dataset_error(key, value):
 def test_a_dry_run_sidecar_is_session_metadata(tmp_path):
     from _session_helpers import tiny_protocol
 
-    from crs_study.runner import dry_run
+    from crs_study.session.dry_runs import dry_run
 
     (result,) = dry_run(tiny_protocol(tmp_path), 1, tmp_path / "ds", responder="random")
     meta = SessionMetadata.read(result.sidecar)

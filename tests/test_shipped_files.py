@@ -77,7 +77,7 @@ def test_unknown_names_are_one_line(tmp_path, monkeypatch, resolve, text, error,
 def test_a_session_records_a_shipped_protocol_without_the_install_location(tmp_path,
                                                                             monkeypatch):
     from crs_study.dataset.session_metadata import SessionMetadata
-    from crs_study.runner import dry_run
+    from crs_study.session.dry_runs import dry_run
 
     assert paths.recorded_path("mine/study.toml") == "mine/study.toml"
     monkeypatch.chdir(tmp_path)

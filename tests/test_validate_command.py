@@ -8,8 +8,8 @@ import pytest
 
 from crs_study.cli import main
 from crs_study.paths import shipped_file
-from crs_study.plan import make_plan
 from crs_study.protocol import load_protocol
+from crs_study.protocol.plan import make_plan
 from crs_study.stimuli.stimulus import make_stimulus
 
 FULL = str(shipped_file("protocols/digit_identification.toml"))

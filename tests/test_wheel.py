@@ -78,7 +78,7 @@ def test_the_library_from_an_empty_folder(installed, tmp_path):
     code = (
         "import crs_study, crs_study.paths as paths\n"
         "from crs_study.protocol import load_protocol\n"
-        "from crs_study.runner import dry_run\n"
+        "from crs_study.session import dry_run\n"
         "from crs_study.dataset.session_metadata import SessionMetadata\n"
         "print(crs_study.__file__)\n"
         "print(crs_study.__version__)\n"

@@ -29,12 +29,14 @@ TARGET_SPEEDUP = 100.0
 
 
 def _responder() -> str:
-    return "observer" if importlib.util.find_spec("crs_study.responders.observer") else "random"
+    return "observer" if importlib.util.find_spec("crs_study.session.responders.observer") \
+        else "random"
 
 
 def run(quick: bool) -> list[Figure]:
     from crs_study.paths import shipped_file
-    from crs_study.runner import SessionSpec, run_session
+    from crs_study.session.runner import run_session
+    from crs_study.session.spec import SessionSpec
 
     protocol = shipped_file("protocols/digit_identification.toml")
     responder = _responder()

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from crs_study.errors import SessionError
     from crs_study.paths import resolve_protocol
     from crs_study.protocol import emit_warnings, load_protocol
-    from crs_study.runner import dry_run
+    from crs_study.session.dry_runs import dry_run
 
     out = args.out or fresh_directory()
     if out.exists() and any(out.iterdir()):

@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from crs_study.commands.run import stderr_progress
     from crs_study.paths import resolve_protocol
     from crs_study.protocol import emit_warnings, load_protocol
-    from crs_study.runner import dry_run
+    from crs_study.session.dry_runs import dry_run
 
     protocol = resolve_protocol(args.protocol)
     emit_warnings(load_protocol(protocol))  # odd but legal values, once, up front

@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def spec_from_args(args: argparse.Namespace):
-    from crs_study.runner import SessionSpec
+    from crs_study.session.spec import SessionSpec
 
     return SessionSpec(
         protocol=Path(args.protocol), participant=args.participant, dataset=args.out,
@@ -82,7 +82,7 @@ def stderr_progress(enabled: bool):
 
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    from crs_study.runner import run_session, seed_check
+    from crs_study.session.runner import run_session, seed_check
 
     spec = spec_from_args(args)
     if args.seed_check:

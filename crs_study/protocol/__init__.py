@@ -5,7 +5,7 @@ The stage, in the order its modules build on each other:
 * :mod:`~crs_study.protocol.model`: the frozen dataclasses (:class:`Protocol` and its
   tables), their closed choices and the checks of their fields;
 * :mod:`~crs_study.protocol.plan`: a protocol, a participant and a session expanded into the
-  fixed list of trials (also importable as :mod:`crs_study.plan`);
+  fixed list of trials;
 * :mod:`~crs_study.protocol.feasibility`: every check of a protocol against its device,
   as structured findings (:class:`Finding`);
 * :mod:`~crs_study.protocol.odd_values`: odd but legal values, as warnings;

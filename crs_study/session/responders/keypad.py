@@ -26,7 +26,7 @@ import tty
 from typing import Any, TextIO
 
 from crs_study.errors import ConfigError, SessionError
-from crs_study.responders.base import PAUSE_KEYS, Responder, Response, StimulusRecord
+from crs_study.session.responders.base import PAUSE_KEYS, Responder, Response, StimulusRecord
 
 QUIT_KEYS = PAUSE_KEYS
 CONTINUE_KEYS = frozenset({" ", "\r", "\n"})

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 from crs_study.errors import ConfigError
-from crs_study.responders.base import (
+from crs_study.session.responders.base import (
     Responder,
     Response,
     StimulusRecord,

@@ -76,7 +76,13 @@ from typing import Any
 import numpy as np
 
 from crs_study.errors import ConfigError, DisplayModelError
-from crs_study.responders.base import Responder, Response, StimulusRecord, respond_at, trial_rng
+from crs_study.session.responders.base import (
+    Responder,
+    Response,
+    StimulusRecord,
+    respond_at,
+    trial_rng,
+)
 
 #: Display model per condition; conditions not listed use the skeleton model ``beam``.
 DEFAULT_MODELS = {"pixel-only": "linear"}

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from crs_study.errors import ConfigError, SessionError
-from crs_study.responders.base import Responder, Response, StimulusRecord, respond_at
+from crs_study.session.responders.base import Responder, Response, StimulusRecord, respond_at
 
 DEFAULT_RT_AFTER_OFFSET_S = 0.5
 

@@ -1,0 +1,83 @@
+"""Dry-runs: many simulated participants on the simulated device and a virtual clock."""
+
+from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+from crs_study.dataset.folder import Dataset
+from crs_study.errors import SessionError
+from crs_study.paths import resolve_protocol
+from crs_study.session.runner import run_session
+from crs_study.session.spec import Progress, SessionResult, SessionSpec
+
+
+def simulated_labels(n: int, prefix: str = "sim") -> list[str]:
+    """``sim01`` .. ``simNN`` (at least two digits, so labels sort in order)."""
+    if not isinstance(n, int) or n < 1:
+        raise SessionError(f"--participants must be a whole number >= 1, got {n!r}")
+    width = max(2, len(str(n)))
+    return [f"{prefix}{i:0{width}d}" for i in range(1, n + 1)]
+
+
+def _dry_run_one(spec: SessionSpec) -> SessionResult:
+    return run_session(spec)
+
+
+def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, jobs: int = 1,
+            responder: str = "observer", device_url: str = "sim://", prefix: str = "sim",
+            progress: Progress | None = None, durable: bool = False) -> list[SessionResult]:
+    """Session 1 of ``participants`` simulated participants on a virtual clock.
+
+    ``protocol`` is a protocol file or a shipped protocol's name (``"pilot"``).
+
+    Participant i (from 0) gets counterbalance index i, so the protocol's block orders are
+    balanced across the N. With ``jobs > 1`` sessions run in that many worker processes (each
+    session is written by one process; the dataset lock serialises ``participants.tsv``).
+    Completed sessions already in the dataset are left as they are (a rerun resumes).
+    ``durable=False`` (a documented choice; ``--fsync`` turns it off) fsyncs each session
+    once, when it stops, rather than after every trial as ``crs-study run`` does: a killed
+    dry-run still loses nothing and resumes exactly. A power cut costs at most the unfinished
+    sessions; one whose files the cut left inconsistent is refused on resume in one line,
+    and removing its files lets the same command regenerate it exactly from its seed.
+    """
+    if not device_url.startswith("sim://"):
+        raise SessionError(f"a dry-run uses the simulated device (sim://...), got "
+                           f"{device_url!r}; use crs-study run for a real device")
+    if not isinstance(jobs, int) or jobs < 1:
+        raise SessionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
+    if responder == "keypad":
+        raise SessionError("a dry-run has no person at the keypad: use --responder observer, "
+                           "random or scripted:FILE")
+    labels = simulated_labels(participants, prefix)
+    protocol = resolve_protocol(protocol)  # a shipped protocol's name, or a path
+    Dataset(dataset).ensure()
+    specs = [SessionSpec(protocol, label, Path(dataset), device_url, 1, responder,
+                         "virtual", i, durable=durable) for i, label in enumerate(labels)]
+    results: list[SessionResult] = []
+
+    def note(result: SessionResult) -> None:
+        results.append(result)
+        if progress:
+            progress(f"dry-run: {len(results)}/{len(specs)} participants "
+                     f"(sub-{result.participant}: {result.status}, "
+                     f"{result.trials_completed} trials)")
+
+    if jobs == 1 or len(specs) == 1:
+        for spec in specs:
+            note(run_session(spec))
+    else:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(jobs, len(specs)),
+                                 mp_context=context) as pool:
+            futures = [pool.submit(_dry_run_one, spec) for spec in specs]
+            try:
+                for future in as_completed(futures):
+                    note(future.result())
+            except BaseException:
+                for future in futures:
+                    future.cancel()
+                raise
+    order = {label: i for i, label in enumerate(labels)}
+    return sorted(results, key=lambda r: order[r.participant])

@@ -1,0 +1,113 @@
+"""Resume checks: a stored session continues only as the run that began it would have.
+
+A session's sidecar records fingerprints (``FINGERPRINTS`` of
+:mod:`crs_study.dataset.session_metadata`): the protocol file's sha256, the seed, the
+counterbalance index, the trial plan's sha256, the device file's sha256 and the sha256 of every
+bump path the protocol draws. A resume recomputes them and refuses, in one line naming what
+differs, a session whose files or software would now play another plan (:func:`check_resume`);
+it also refuses to finish a session by another kind of run than the one that began it
+(:func:`check_same_kind_of_run`), and stored rows that do not belong to the plan
+(:func:`check_rows`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from crs_study._files import sha256_bytes
+from crs_study.dataset.session_metadata import FINGERPRINTS, SessionMetadata
+from crs_study.errors import SessionError
+from crs_study.geometry.layout import Layout
+from crs_study.protocol.model import Protocol
+from crs_study.protocol.plan import TrialPlan
+from crs_study.session.spec import SessionSpec
+from crs_study.stimuli.stimulus import make_stimulus
+
+#: Fingerprint key (as in the sidecar) -> value, as :func:`fingerprints` computes them.
+Fingerprints = dict[str, str | int]
+
+
+def plan_sha256(plan: TrialPlan) -> str:
+    """The plan's fingerprint (:meth:`~crs_study.protocol.plan.TrialPlan.sha256`)."""
+    return plan.sha256()
+
+
+def stimulus_sha256(protocol: Protocol, layout: Layout) -> str:
+    """sha256 of every bump path the protocol shows on ``layout`` (each digit at each level:
+    frame times, centres, heights, diameter), so a resume under software that draws the
+    digits differently (another strokes scaling, say) is refused although the protocol file
+    is unchanged."""
+    digest = hashlib.sha256()
+    for level in protocol.level_values:
+        for digit in protocol.digits:
+            stimulus = make_stimulus(protocol, layout, digit, level)
+            for array in (stimulus.frame_times, stimulus.centres_mm, stimulus.heights_mm):
+                digest.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
+            digest.update(repr((digit, level, float(stimulus.diameter_mm))).encode())
+    return digest.hexdigest()
+
+
+def fingerprints(protocol: Protocol, plan: TrialPlan, device_text: str,
+                 layout: Layout) -> Fingerprints:
+    """What a stored session must match to be resumed (see :func:`check_resume`)."""
+    return {
+        "ProtocolSha256": protocol.sha256, "Seed": int(plan.seed),
+        "Counterbalance": int(plan.counterbalance), "PlanSha256": plan_sha256(plan),
+        "DeviceFileSha256": sha256_bytes(device_text.encode("utf-8")),
+        "StimulusSha256": stimulus_sha256(protocol, layout),
+    }
+
+
+def check_resume(stored: SessionMetadata, expected: Fingerprints, sidecar: Path) -> None:
+    """A stored session may only be resumed with the same plan: one line saying what differs.
+
+    A fingerprint the stored session lacks (``StimulusSha256`` of a session begun by older
+    software) is not compared.
+    """
+    recorded = stored.fingerprints()
+    for key, label in FINGERPRINTS.items():
+        if recorded[key] is not None and recorded[key] != expected[key]:
+            raise SessionError(
+                f"{sidecar}: cannot resume: the {label} differs ({key} stored "
+                f"{recorded[key]!r}, now {expected[key]!r}); use the original files or start "
+                "another --session")
+
+
+def device_kind(url: str) -> str:
+    """``"simulated"`` for ``sim://`` URLs, else ``"real"``."""
+    return "simulated" if url.startswith("sim://") else "real"
+
+
+def check_same_kind_of_run(stored: SessionMetadata, spec: SessionSpec, responder_name: str,
+                           clock_kind: str, sidecar: Path) -> None:
+    """A session is finished as it began: by the same kind of responder, on the same kind of
+    device and clock. Ports may differ (a board replugged as another ttyUSB), so only
+    ``sim://`` against a real device counts, not the URL."""
+    now = {"Responder": responder_name, "Clock": clock_kind,
+           "Device": device_kind(spec.device_url)}
+    then = {"Responder": stored.responder, "Clock": stored.clock,
+            "Device": "simulated" if stored.simulated_device else "real"}
+    for key, option in (("Responder", "--responder"), ("Clock", "--clock"),
+                        ("Device", "--device")):
+        if then[key] != now[key]:
+            raise SessionError(
+                f"{sidecar}: cannot resume: the session began with {key.lower()} "
+                f"{then[key]!r}, now {now[key]!r}; resume with the same {option} or start "
+                "another --session")
+
+
+def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path) -> None:
+    """The stored rows are the plan's first trials, in order (else the file is another's)."""
+    if len(rows) > len(plan.trials):
+        raise SessionError(f"{tsv}: {len(rows)} rows but the plan has {len(plan.trials)} trials")
+    for k, row in enumerate(rows):
+        trial = plan.trials[k]
+        stored = (row["trial_index"], row["condition"], row["digit"])
+        wanted = (str(trial.index), trial.condition, str(trial.digit))
+        if stored != wanted:
+            raise SessionError(f"{tsv}: row {k + 1} holds (trial_index, condition, digit) = "
+                               f"{stored}, the plan says {wanted}; the file does not belong "
+                               "to this plan")

@@ -1,0 +1,306 @@
+"""The session runner: plays a protocol's trial plan on a device and stores every trial durably.
+
+:func:`run_session` loads the protocol and plan (:func:`prepare`), asks everything that can
+refuse the run before anything is written (the responder, the clock, the consent gate for a
+real device, the resume checks of :mod:`crs_study.session.resume`), then opens the device and
+plays the trials one by one (:mod:`crs_study.session.trials`); :mod:`crs_study.session.dry_run`
+runs many simulated participants.
+
+Session time: ``onset`` and ``trial_end`` are seconds since the session started, not counting
+the time a session spent interrupted: a resumed session continues from the last stored
+``trial_end``. Each trial ends on a whole millisecond of session time (so the stored value is
+exact). On a virtual clock a resumed session first replays the stored trials' frames on the
+fresh simulated device, without responder or writing, so the device's history (wire timing,
+refresh phase, servo positions) is the uninterrupted run's; the rest of the session is then
+bit for bit what an uninterrupted run writes: every column of every row and every frame log.
+
+Failures: Ctrl-C (or the keypad's quit key, or SIGTERM) is a safe pause: the display goes
+neutral, the session is marked ``interrupted`` and the run returns status ``interrupted``
+(exit 130). A :class:`~crs_study.errors.DeviceError` during a trial marks the session
+interrupted, records the fault in the sidecar, moves to neutral and is raised again as one
+line; the trial is rerun on resume and its row then says ``device_fault = 1``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+from crs_study import __version__
+from crs_study.clock import Clock, RealClock, VirtualClock
+from crs_study.consent import read_form, require_consent
+from crs_study.dataset import schema
+from crs_study.dataset.folder import Dataset
+from crs_study.dataset.session_metadata import Fault, Resume, SessionMetadata, now_utc
+from crs_study.dataset.session_store import SessionStore
+from crs_study.device import open_device
+from crs_study.errors import DeviceError, SessionError
+from crs_study.geometry.layout import Layout, device_file_path
+from crs_study.paths import recorded_path, resolve_protocol
+from crs_study.protocol.loader import load_protocol
+from crs_study.protocol.model import Protocol, consent_form_path
+from crs_study.protocol.plan import TrialPlan, make_plan
+from crs_study.session.prompts import INSTRUCTIONS, TASK_DESCRIPTION, resume_prompt
+from crs_study.session.responders import Responder, make_responder
+from crs_study.session.resume import (
+    Fingerprints,
+    check_resume,
+    check_rows,
+    check_same_kind_of_run,
+    fingerprints,
+)
+from crs_study.session.spec import Progress, SessionResult, SessionSpec
+from crs_study.session.state import (
+    SessionState,
+    ignore_interrupts,
+    save,
+    save_after_failure,
+)
+from crs_study.session.trials import replay, run_trial, trial_frames
+from crs_study.signals import terminate_as_interrupt
+
+#: Session time spent before the first trial with the display neutral (settled and flat).
+SETTLE_S = 1.0
+
+
+def device_file_text(layout: Layout, protocol: Protocol) -> str:
+    """The device file's text, stored with the session."""
+    for candidate in (layout.source, protocol.device):
+        if candidate is None:
+            continue
+        path = device_file_path(candidate)
+        if path.exists():
+            return path.read_text(encoding="utf-8")
+    raise SessionError(f"cannot find the device file {protocol.device!r} to store with the "
+                       "session")
+
+
+def choose_clock(spec: SessionSpec, responder: Responder) -> str:
+    """``"real"`` or ``"virtual"``: the spec's clock, checked against responder and device."""
+    if spec.clock not in ("real", "virtual", "auto"):
+        raise SessionError(f"--clock must be real, virtual or auto, got {spec.clock!r}")
+    if spec.clock == "auto":
+        return "virtual" if spec.device_url.startswith("sim://") and responder.simulated \
+            else "real"
+    if spec.clock == "virtual" and responder.needs_real_clock:
+        raise SessionError(f"the {responder.name} responder needs --clock real (a person answers "
+                           "in real time)")
+    if spec.clock == "virtual" and not spec.device_url.startswith("sim://"):
+        raise SessionError(f"--clock virtual needs the simulated device (sim://); "
+                           f"{spec.device_url} moves real servos in real time")
+    return spec.clock
+
+
+def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
+    """Load the protocol, layout and plan for ``spec`` (nothing is written)."""
+    if not spec.device_url.startswith(("sim://", "serial://")):
+        raise DeviceError(f"unknown device URL {spec.device_url!r}; expected "
+                          "serial:///dev/ttyUSB0[,/dev/ttyUSB1] or sim://")
+    dataset = Dataset(spec.dataset)
+    dataset.session_paths(spec.participant, spec.session)  # checks label and session
+    protocol = load_protocol(resolve_protocol(spec.protocol))
+    layout = protocol.layout()
+    known = dataset.participants() if (spec.dataset / "participants.tsv").exists() else {}
+    if spec.participant in known:
+        counterbalance = known[spec.participant]
+        if spec.counterbalance is not None and spec.counterbalance != counterbalance:
+            raise SessionError(
+                f"participant {spec.participant!r} has counterbalance {counterbalance} in "
+                f"{spec.dataset / 'participants.tsv'}; --counterbalance {spec.counterbalance} "
+                "disagrees")
+    else:
+        counterbalance = len(known) if spec.counterbalance is None else spec.counterbalance
+    plan = make_plan(protocol, spec.participant, spec.session, counterbalance)
+    return protocol, layout, plan, dataset
+
+
+def session_columns(protocol: Protocol) -> tuple[str, ...]:
+    """The session TSV's columns: the schema's, plus the level column when levels vary."""
+    levels = protocol.levels
+    return schema.trial_columns(levels.column if levels is not None else None)
+
+
+def seed_check(spec: SessionSpec) -> dict[str, str | int]:
+    """The seed and plan of ``spec``, checked against a stored session (nothing is written).
+
+    A stored session whose seed, protocol, counterbalance, plan or device file differ is a
+    :class:`SessionError` naming the difference.
+    """
+    protocol, layout, plan, dataset = prepare(spec)
+    paths = dataset.session_paths(spec.participant, spec.session)
+    device_text = device_file_text(layout, protocol)
+    expected = fingerprints(protocol, plan, device_text, layout)
+    stored = SessionStore(paths, columns=session_columns(protocol)).read_sidecar()
+    if stored is not None:
+        check_resume(stored, expected, paths.sidecar)
+    return {
+        "participant": spec.participant, "session": spec.session,
+        "seed": expected["Seed"], "counterbalance": expected["Counterbalance"],
+        "trials": len(plan.trials), "plan_sha256": expected["PlanSha256"],
+        "protocol_sha256": expected["ProtocolSha256"],
+        "stored": "none" if stored is None else
+        f"{stored.status} ({stored.trials_completed}/{stored.trials_planned} trials), matches",
+    }
+
+
+def run_session(spec: SessionSpec, *, progress: Progress | None = None,
+                responder: Responder | None = None,
+                device_options: dict[str, object] | None = None) -> SessionResult:
+    """Run (or resume) one session; see the module docstring."""
+    wall_start = time.perf_counter()
+    protocol, layout, plan, dataset = prepare(spec)
+    # Everything that can refuse the run is asked before anything is written (a typo must
+    # not take a counterbalance slot or leave an empty session behind).
+    if responder is None:
+        responder = make_responder(spec.responder, seed=int(plan.seed), layout=layout,
+                                   protocol=protocol)
+    clock_kind = choose_clock(spec, responder)
+    responder.check_ready()
+    if not spec.device_url.startswith("sim://"):
+        # The gate comes before anything is written: no consent, no trace in the dataset.
+        require_consent(spec.consent_register, spec.participant, protocol.consent_form_version,
+                        read_form(consent_form_path(protocol)))
+    # The order of arrival is taken under the dataset lock: two runners adding participants
+    # at once would otherwise both read the same count and share a counterbalance index.
+    counterbalance = dataset.register_participant(spec.participant, spec.counterbalance)
+    if counterbalance != int(plan.counterbalance):
+        plan = make_plan(protocol, spec.participant, spec.session, counterbalance)
+    paths = dataset.session_paths(spec.participant, spec.session)
+    n_trials = len(plan.trials)
+    device_text = device_file_text(layout, protocol)
+    expected = fingerprints(protocol, plan, device_text, layout)
+    store = SessionStore(paths, columns=session_columns(protocol), durable=spec.durable)
+    with store:
+        stored = store.read_sidecar()
+        if stored is not None:
+            check_resume(stored, expected, paths.sidecar)
+        if stored is not None and stored.is_complete:
+            # Never rewritten: checked read-only (no torn-tail cut), then left alone.
+            rows = store.verify_complete(stored.trials_sha256)
+            check_rows(rows, plan, paths.tsv)
+            if len(rows) != n_trials:
+                raise SessionError(
+                    f"{paths.sidecar}: the session is marked complete but holds {len(rows)} "
+                    f"of {n_trials} planned trials; a completed session is never rewritten: "
+                    "use another --session")
+            return SessionResult(
+                "already-complete", spec.participant, spec.session, n_trials, n_trials, 0, 0,
+                0.0, 0.0, paths.tsv, paths.sidecar,
+                f"session {spec.session} of participant {spec.participant} is complete "
+                f"({n_trials} trials) in {paths.tsv.parent}; nothing to do (a new session "
+                "needs --session N)")
+        if stored is not None:
+            check_same_kind_of_run(stored, spec, responder.name, clock_kind, paths.sidecar)
+        rows = store.recover_rows()
+        check_rows(rows, plan, paths.tsv)
+        metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
+                             responder.name, n_trials)
+        faults = {f.trial for f in metadata.faults}
+        state = SessionState(spec, protocol, layout, plan, store, metadata, rows, faults)
+        resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
+        clock: Clock = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
+        frames = trial_frames(protocol, layout)
+        store.create()
+        save(state, "running", final=True)
+        first = len(rows)
+        status = "interrupted"
+        origin = 0.0
+        try:
+            with terminate_as_interrupt(), responder, open_device(
+                    spec.device_url, layout, clock, **(device_options or {})) as device:
+                device.neutral()
+                if clock_kind == "virtual":
+                    clock.sleep_until(0.0)
+                    if rows:
+                        if progress:
+                            progress(f"sub-{spec.participant} ses-{spec.session}: replaying "
+                                     f"{len(rows)} stored trials on the simulated device")
+                        replay(state, device, clock, frames)
+                else:
+                    clock.sleep(SETTLE_S)
+                    origin = clock.now() - resume_at
+                if first and not responder.simulated:
+                    responder.prompt(resume_prompt(plan, first), clock)
+                for k in range(first, n_trials):
+                    if progress:
+                        progress(f"sub-{spec.participant} ses-{spec.session}: trial "
+                                 f"{k + 1}/{n_trials}")
+                    state.in_trial = True
+                    run_trial(state, device, responder, clock, origin, frames, plan.trials[k])
+                    state.in_trial = False
+                status = "complete"
+        except KeyboardInterrupt:
+            status = "interrupted"
+        except DeviceError as error:
+            k = len(state.rows)
+            where = f"at trial {k + 1}/{n_trials}" if state.in_trial else \
+                f"before trial {k + 1}/{n_trials}"
+            if state.in_trial:
+                fault = Fault(k, now_utc(), str(error))
+                state.metadata = replace(state.metadata, faults=(*state.metadata.faults, fault))
+            status = "fault"
+            save_after_failure(state)
+            raise DeviceError(f"device fault {where}: {error}; the session is marked "
+                              "interrupted: run the same command to resume") from None
+        except BaseException:
+            status = "failed"
+            save_after_failure(state)  # the first error is the one reported
+            raise
+        if status == "interrupted":
+            with ignore_interrupts():
+                save(state, "interrupted", final=True)
+        if status == "complete":
+            save(state, "complete", final=True)
+        done = len(state.rows)
+        return SessionResult(
+            status, spec.participant, spec.session, n_trials, done, done - first,
+            state.late_frames, (clock.now() - origin) - resume_at,
+            time.perf_counter() - wall_start, paths.tsv, paths.sidecar,
+            f"session {spec.session} of participant {spec.participant}: {done}/{n_trials} "
+            f"trials in {paths.tsv}")
+
+
+def _metadata(spec: SessionSpec, protocol: Protocol, plan: TrialPlan, device_text: str,
+              expected: Fingerprints, stored: SessionMetadata | None, clock_kind: str,
+              responder_name: str, n_trials: int) -> SessionMetadata:
+    """The sidecar of a session beginning now, or resumed now from ``stored``."""
+    resumes: tuple[Resume, ...] = ()
+    faults: tuple[Fault, ...] = ()
+    if stored is not None:
+        resumes = (*stored.resumes, Resume(now_utc(), stored.trials_completed, spec.device_url,
+                                           __version__))
+        faults = stored.faults
+    return SessionMetadata(
+        task_name=schema.TASK,
+        task_description=TASK_DESCRIPTION,
+        instructions=INSTRUCTIONS,
+        protocol_text=protocol.text,
+        protocol_sha256=protocol.sha256,
+        protocol_path=recorded_path(protocol.path),
+        study_id=protocol.study_id,
+        study_version=protocol.version,
+        device_file_text=device_text,
+        device_file_sha256=expected["DeviceFileSha256"],
+        device_url=spec.device_url,
+        software_version=__version__,
+        seed=int(plan.seed),
+        counterbalance=int(plan.counterbalance),
+        plan_sha256=expected["PlanSha256"],
+        # a session begun before the fingerprint existed cannot be vouched for: none recorded
+        stimulus_sha256=(expected["StimulusSha256"]
+                         if stored is None or stored.stimulus_sha256 is not None else None),
+        participant=spec.participant,
+        session=spec.session,
+        consent_form_version=protocol.consent_form_version,
+        responder=responder_name,
+        clock=clock_kind,  # real or virtual (choose_clock)
+        frame_rate_hz=float(protocol.frame_rate_hz),
+        start_time=stored.start_time if stored is not None else now_utc(),
+        end_time=None,
+        status="running",
+        trials_planned=n_trials,
+        trials_completed=0,
+        trials_sha256=None,
+        resumes=resumes,
+        faults=faults,
+    )

@@ -1,0 +1,219 @@
+"""The trial loop: one trial's stimulus on the device, the response, the stored row.
+
+One trial (all times on the session's :class:`~crs_study.clock.Clock`):
+
+1. a prompt to the experimenter at a block start or a break (mount or remove the skeleton);
+   simulated responders continue at once, the keypad waits for Space or Enter;
+2. the stimulus: the pre-rendered frames of the (digit, condition) pair are commanded at the
+   protocol's frame rate, each at its due time ``onset + frame_times[k]`` (``sleep_until``); a
+   frame commanded more than one period after its due time counts as late; the displayed
+   setpoints are sampled one period after each frame (what the skin meets) for the responder;
+   at the offset, the end of the last frame's period (``onset + n / f``), the display returns
+   to the neutral (flat) pose;
+3. the response (:class:`~crs_study.session.responders.base.Responder`), with the protocol's
+   time limit from stimulus offset;
+4. the trial's frame log and its row are stored durably (:mod:`crs_study.dataset`), then the
+   sidecar; feedback after practice trials; the inter-trial interval.
+
+The frames come from the one cache of rendered frames
+(:func:`crs_study.rendering.frames.render_frames`); :class:`TrialFrames` adds only the
+renderer of each condition and the frame log's text of each stimulus.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from crs_study.clock import Clock
+from crs_study.device import Device, FrameReport
+from crs_study.errors import SessionError
+from crs_study.geometry.layout import Layout
+from crs_study.protocol.model import Protocol
+from crs_study.protocol.plan import PlannedTrial
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
+from crs_study.session.prompts import BREAK_PROMPT
+from crs_study.session.responders.base import Responder, StimulusRecord
+from crs_study.session.state import SessionState, save
+from crs_study.signals import deferred
+from crs_study.stimuli.stimulus import make_stimulus
+
+#: Without per-trial durability (dry-runs) the sidecar is rewritten every this many trials
+#: (and when the session stops); the trial file is the authority on what is done.
+DRY_RUN_SIDECAR_EVERY = 10
+FRAME_LOG_COLUMNS = ("kind", "frame", "due", "commanded_at", "wire_done_at", "bytes",
+                     "channels", "merged")
+
+
+def ceil_ms(seconds: float) -> float:
+    """The next whole millisecond at or after ``seconds`` (exactly ``k / 1000``)."""
+    return math.ceil(round(seconds * 1000.0, 6)) / 1000.0
+
+
+class TrialFrames:
+    """The frames of each (digit, condition, level) of a protocol on a device; ``level`` is
+    None for protocols without ``[levels]``. Rendering and its cache are
+    :func:`~crs_study.rendering.frames.render_frames`'; here are the renderer of each
+    condition and the frames' text for the frame log."""
+
+    def __init__(self, protocol: Protocol, layout: Layout) -> None:
+        self.protocol = protocol
+        self.layout = layout
+        self._renderers: dict[str, Renderer] = {}
+        self._text: dict[tuple[int, str, float | None], list[str]] = {}
+
+    def get(self, digit: int, condition: str, level: float | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+        """``(frame_times (n,), setpoints (n, n_actuators))``, both read-only."""
+        stimulus = make_stimulus(self.protocol, self.layout, digit, level)
+        if condition not in self._renderers:
+            self._renderers[condition] = Renderer(self.layout, condition)
+        frames = render_frames(stimulus, self._renderers[condition])
+        times = stimulus.frame_times
+        if frames.ndim != 2 or len(frames) != len(times) or len(times) == 0:
+            raise SessionError(f"stimulus of digit {digit} ({condition}): {len(times)} "
+                               f"frame times but frames of shape {frames.shape}")
+        return times, frames
+
+    def setpoint_text(self, digit: int, condition: str, level: float | None = None
+                      ) -> list[str]:
+        """The frames' setpoints as tab-separated text (mm, 4 decimals), for the frame log."""
+        key = (int(digit), condition, level)
+        if key not in self._text:
+            _, frames = self.get(digit, condition, level)
+            self._text[key] = ["\t".join(f"{v:.4f}" for v in row) for row in frames.tolist()]
+        return self._text[key]
+
+
+_trial_frames: dict[tuple[str, str], TrialFrames] = {}
+
+
+def trial_frames(protocol: Protocol, layout: Layout) -> TrialFrames:
+    """One :class:`TrialFrames` per protocol and device file per process (shared by dry-run
+    participants)."""
+    key = (protocol.sha256, layout.source)
+    if key not in _trial_frames:
+        _trial_frames[key] = TrialFrames(protocol, layout)
+    return _trial_frames[key]
+
+
+def digit_choices(protocol: Protocol) -> tuple[int, ...]:
+    """The digits a response may name."""
+    return tuple(int(d) for d in protocol.digits)
+
+
+@dataclass
+class Shown:
+    """What one stimulus presentation did on the device."""
+
+    onset: float
+    offset: float
+    reports: list[FrameReport]
+    displayed: np.ndarray
+    late: int
+    neutral_due: float
+    neutral: FrameReport
+
+
+def present(device: Device, clock: Clock, frame_times: np.ndarray, frames: np.ndarray,
+            period: float) -> Shown:
+    """Command the frames at ``onset + frame_times[k]``, then neutral at the offset."""
+    n = len(frame_times)
+    displayed = np.empty_like(frames)
+    reports = []
+    late = 0
+    onset = clock.now()
+    for i in range(n):
+        due = onset + frame_times[i]
+        clock.sleep_until(due)
+        now = clock.now()
+        if i:
+            displayed[i - 1] = device.displayed_setpoints(now)
+        if now - due > period:
+            late += 1
+        reports.append(device.send(frames[i]))
+    offset = onset + float(frame_times[-1]) + period  # end of the last frame's period
+    clock.sleep_until(offset)
+    displayed[n - 1] = device.displayed_setpoints(clock.now())
+    neutral_due = clock.now()
+    neutral = device.neutral()  # the display goes flat at the stimulus offset
+    return Shown(onset, offset, reports, displayed, late, neutral_due, neutral)
+
+
+def replay(state: SessionState, device: Device, clock: Clock, frames: TrialFrames) -> None:
+    """Bring a fresh simulated device to where an uninterrupted run had it (virtual clock).
+
+    The stored trials' frames are commanded again at their original session times (no
+    responder, nothing written), so the device's history (wire timing, refresh phase, servo
+    positions) and therefore every later trial are exactly those of an uninterrupted run.
+    """
+    period = 1.0 / float(state.protocol.frame_rate_hz)
+    for row, trial in zip(state.rows, state.plan.trials, strict=False):
+        frame_times, setpoints = frames.get(trial.digit, trial.condition, trial.level)
+        present(device, clock, frame_times, setpoints, period)
+        clock.sleep_until(float(row["trial_end"]))
+
+
+def frame_line(kind: str, frame: int, due: float, report: FrameReport, origin: float,
+               setpoints: str) -> str:
+    """One frame-log line (without the trial column): times in session seconds."""
+    return (f"{kind}\t{frame}\t{due - origin:.6f}\t{report.commanded_at - origin:.6f}\t"
+            f"{report.wire_done_at - origin:.6f}\t{','.join(map(str, report.bytes_sent))}\t"
+            f"{report.channels_sent}\t{int(report.merged)}\t{setpoints}")
+
+
+def run_trial(state: SessionState, device: Device, responder: Responder, clock: Clock,
+              origin: float, frames: TrialFrames, trial: PlannedTrial) -> None:
+    """Play ``trial``, collect its response and store it durably (the module docstring)."""
+    protocol = state.protocol
+    if trial.prompt_before or trial.break_before:
+        responder.prompt(trial.prompt_before or BREAK_PROMPT, clock)
+    if trial.break_before and not responder.needs_real_clock:  # a person rests until ready
+        clock.sleep(float(protocol.design.break_duration_s))
+    level = trial.level
+    frame_times, setpoints = frames.get(trial.digit, trial.condition, level)
+    period = 1.0 / float(protocol.frame_rate_hz)
+    responder.begin_trial(trial, clock.now(), clock)
+    shown = present(device, clock, frame_times, setpoints, period)
+    onset, offset, reports = shown.onset, shown.offset, shown.reports
+    record = StimulusRecord(state.layout, trial.condition, frame_times + period, shown.displayed,
+                            digit_choices(protocol), onset, offset)
+    response = responder.respond(trial, record, clock, protocol.time_limit_s)
+    duration = offset - onset
+    rt = float(response.response_time_s)
+    correct = None if response.digit is None else int(response.digit == trial.digit)
+    trial_end = ceil_ms(clock.now() - origin + float(protocol.inter_trial_interval_s))
+    latencies = [r.wire_done_at - (onset + frame_times[i]) for i, r in enumerate(reports)]
+    n = len(frame_times)
+    row = {
+        "trial_index": trial.index, "trial_type": trial.trial_type, "block": trial.block,
+        "condition": trial.condition, "repetition": trial.repetition, "digit": trial.digit,
+        "response": response.digit, "correct": correct, "response_time": rt,
+        "response_time_from_offset": rt - duration, "onset": onset - origin,
+        "stimulus_duration": duration, "timed_out": int(response.digit is None),
+        "device_fault": int(trial.index in state.faults), "frames": n,
+        "late_frames": shown.late, "median_wire_latency": float(np.median(latencies)),
+        "responder": responder.name, "trial_end": trial_end,
+    }
+    if protocol.levels is not None:
+        row[protocol.levels.column] = level
+    text = frames.setpoint_text(trial.digit, trial.condition, level)
+    log = [frame_line("stimulus", i, onset + frame_times[i], r, origin, text[i])
+           for i, r in enumerate(reports)]
+    flat = "\t".join(f"{v:.4f}" for v in state.layout.neutral_setpoints().tolist())
+    log.append(frame_line("neutral", n, shown.neutral_due, shown.neutral, origin, flat))
+    columns = FRAME_LOG_COLUMNS + tuple(f"a{j:02d}" for j in range(setpoints.shape[1]))
+    with deferred():  # stored whole: frames, row, rows in memory, sidecar
+        state.store.append_frames(trial.index, columns, log)
+        state.store.append_row(row)
+        state.rows.append({k: str(v) for k, v in row.items()})
+        state.late_frames += shown.late
+        if state.spec.durable or len(state.rows) % DRY_RUN_SIDECAR_EVERY == 0:
+            save(state, "running")
+    if trial.feedback:
+        responder.feedback(trial, response, bool(correct))
+    responder.end_trial()
+    clock.sleep_until(origin + trial_end)
