@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study.display.base import MODELS, get_model
+from crs_study.display import get_model
+from crs_study.display.base import MODELS
 from crs_study.errors import DisplayModelError
 from crs_study.geometry.layout import layout_from_dict, load_layout
 

@@ -203,7 +203,7 @@ def test_the_same_channel_calibrated_twice_is_refused():
 @pytest.mark.parametrize("margin, mesh", [(1.0, 8), (0.5, 8), (0.3, 10), (1 / 3, 9), (0.35, 20)])
 def test_the_fabric_meshes_any_clamp_margin_on_the_lattice(margin, mesh):
     """Clamps off the fabric's mesh made every 2D beam model fail (and a dry-run guess)."""
-    from crs_study.display.base import get_model
+    from crs_study.display import get_model
     from crs_study.geometry.layout import fabric_mesh_for_margin
 
     assert fabric_mesh_for_margin(margin) == mesh

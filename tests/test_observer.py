@@ -79,7 +79,7 @@ def test_model_per_condition(protocol):
 
 
 def test_linear_model_as_a_matrix_equals_the_model(protocol, rng):
-    from crs_study.display.base import get_model
+    from crs_study.display import get_model
 
     layout = protocol.layout()
     observer = PerceptualObserver(layout, protocol, 1, skin_blur_mm=0.0, reuse_tolerance_mm=0.0)
@@ -223,14 +223,13 @@ def test_calibration_pixel_only_clearly_below_crs_near_the_paper(protocol, recor
 def test_a_model_that_cannot_be_built_fails_the_run_not_the_frame(protocol, monkeypatch):
     """Per-frame collapse skips a frame; a model that cannot be built at all must not turn
     every CRS trial into a silent guess (it did, for a device file the fabric could not mesh)."""
-    import crs_study.display.base as display_base
     import crs_study.session.responders.observer as observer_module
     from crs_study.errors import DisplayModelError
 
     def broken(name, layout, **options):
         raise DisplayModelError(f"{name}: cannot mesh {layout.name!r}")
 
-    monkeypatch.setattr(display_base, "get_model", broken)
+    monkeypatch.setattr(observer_module, "get_model", broken)  # the observer's name for it
     monkeypatch.setattr(observer_module, "_MODELS", {})
     observer = PerceptualObserver(protocol.layout(), protocol, 3)
     with pytest.raises(DisplayModelError, match="cannot mesh"):

@@ -38,6 +38,13 @@ def test_factory_builds_each_kind(tmp_path):
             make_responder(bad, seed=1)
 
 
+def test_the_observer_without_a_protocol_and_layout_is_one_line():
+    # it senses the displayed surface of the protocol's digits (an AttributeError before)
+    with pytest.raises(ConfigError, match="the observer responder senses the displayed "
+                       "surface: it needs the protocol and the device's layout"):
+        make_responder("observer", seed=1)
+
+
 def test_script_formats():
     text = "# a comment\ndigit\trt\n7\n\n3\t1.25\nn/a\n2 -0.5\n"
     assert parse_script(text) == [(7, 0.5), (3, 1.25), (None, 0.5), (2, -0.5)]

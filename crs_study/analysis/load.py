@@ -46,6 +46,7 @@ import pandas as pd
 
 from crs_study._files import os_errors, sha256_bytes
 from crs_study.analysis.plan import Exclusions
+from crs_study.dataset import WITHDRAWAL_JOURNAL
 from crs_study.dataset.schema import MISSING, SESSION_STATUSES, TASK, TRIAL_COLUMNS
 from crs_study.errors import DatasetError
 
@@ -200,9 +201,7 @@ def _dataset_name(path: Path) -> str:
 def _session_files(root: Path) -> list[Path]:
     if not root.is_dir():
         raise DatasetError(f"{root}: no such dataset directory")
-    from crs_study.consent import JOURNAL_FILE
-
-    if (root / JOURNAL_FILE).exists():
+    if (root / WITHDRAWAL_JOURNAL).exists():
         # A withdrawal was interrupted: analysing now could include data that must go.
         raise DatasetError(f"{root}: a participant's withdrawal was interrupted; finish it "
                            f"first: crs-study consent recover --dataset {root}")

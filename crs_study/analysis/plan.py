@@ -16,6 +16,7 @@ from typing import Any
 from crs_study._toml import Section, read_toml
 from crs_study.analysis.glmm_core import MAX_QUADRATURE
 from crs_study.errors import PlanError
+from crs_study.paths import shipped_file
 
 TIMEOUT_POLICIES = ("exclude", "count_as_error")
 GLMM_METHODS = ("laplace", "agq")
@@ -159,8 +160,6 @@ def load_plan(path: str | Path) -> AnalysisPlan:
 
 def default_plan_path() -> Path:
     """The shipped plan that goes with the default protocol."""
-    from crs_study.paths import shipped_file
-
     return shipped_file("analysis/digit_identification.toml")
 
 

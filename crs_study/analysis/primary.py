@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from crs_study.analysis import glmm
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
 from crs_study.errors import AnalysisError
@@ -303,10 +304,8 @@ def _omnibus(trials, conditions, reference, fits: PrimaryFits, n_quadrature: int
 def _profile_odds(full, columns: list[str], level: float,
                   warnings: list[str]) -> pd.DataFrame | None:
     """Profile-likelihood intervals of the odds ratios, or None (Wald then) with a warning."""
-    from crs_study.analysis.glmm import profile_conf_int
-
     try:
-        limits = profile_conf_int(full, level, columns)
+        limits = glmm.profile_conf_int(full, level, columns)
     except GlmmFitError as exc:
         warnings.append(f"GLMM: the profile-likelihood intervals could not be computed "
                         f"({exc}); the odds ratios' ci95 are Wald intervals")
@@ -324,12 +323,10 @@ def _profile_odds(full, columns: list[str], level: float,
 
 def _random_effect_intervals(full, level: float, warnings: list[str]) -> dict:
     """Per random intercept: variance, sd and the profile-likelihood interval of the sd."""
-    from crs_study.analysis.glmm import profile_sd_conf_int
-
     if not len(full.variance_components):
         return {}
     try:
-        table = profile_sd_conf_int(full, level)
+        table = glmm.profile_sd_conf_int(full, level)
     except GlmmFitError as exc:
         warnings.append(f"GLMM: no profile interval for the random-effect standard deviations "
                         f"({exc})")
@@ -391,15 +388,11 @@ def _comparison(test: LrComparison, label: str, odds: pd.DataFrame,
 
 def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, groups: list[str], method: str,
          n_quadrature: int, trials: str | None = None):
-    from crs_study.analysis.glmm import fit_glmm
-
-    return fit_glmm(data, "correct", design_matrix, groups, trials=trials, method=method,
-                    n_quadrature=n_quadrature)
+    return glmm.fit_glmm(data, "correct", design_matrix, groups, trials=trials, method=method,
+                         n_quadrature=n_quadrature)
 
 
 def _lrt(full, reduced):
-    from crs_study.analysis import glmm
-
     return glmm.lrt(full, reduced)
 
 

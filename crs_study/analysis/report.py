@@ -50,6 +50,7 @@ from crs_study.analysis.secondary import secondary_tests
 from crs_study.analysis.sources import select_sources, summarise_sources
 from crs_study.analysis.speed_accuracy import analyse_speed_accuracy
 from crs_study.errors import AnalysisError, ConfigError, DatasetError
+from crs_study.paths import shipped_file
 
 
 @dataclass(frozen=True)
@@ -158,8 +159,6 @@ def resolve_plan(loaded: LoadedData, plan_path: str | Path | None
         notes.append(f"sessions declare different analysis plans {sorted(declared)}; used "
                      f"{sorted(declared)[0]!r}")
     if declared:
-        from crs_study.paths import shipped_file
-
         name = sorted(declared)[0]
         try:
             path = shipped_file(name)

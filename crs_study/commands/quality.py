@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     import os
 
     import crs_study.display  # noqa: F401  (registers every model)
-    from crs_study.display.base import MODELS, get_model  # noqa: F401
+    from crs_study.display.base import MODELS
     from crs_study.errors import DisplayModelError
     from crs_study.quality.criteria import MAX_D_OVER_L, MIN_D_OVER_L
     from crs_study.quality.sweep import (

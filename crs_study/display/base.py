@@ -2,13 +2,13 @@
 
 A model is built once per layout and then evaluated per frame::
 
-    model = get_model("beam", layout)          # or "nearest", "linear", "spline", ...
+    model = get_model("beam", layout)          # crs_study.display: "nearest", "linear", ...
     z = model.surface(setpoints_mm, xy_mm)     # heights (mm) at points (n, 2)
 
 Models register themselves in :data:`MODELS` by name when their module is imported; the
-``crs_study.display`` package imports them all. Collapse (crs-paper.md, Eq. 4, or a solver
-reaching the critical load) is raised as :class:`~crs_study.errors.CollapseError`, never
-returned as a shape.
+``crs_study.display`` package imports them all and looks them up (``get_model``). Collapse
+(crs-paper.md, Eq. 4, or a solver reaching the critical load) is raised as
+:class:`~crs_study.errors.CollapseError`, never returned as a shape.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from typing import ClassVar
 
 import numpy as np
 
-from crs_study.errors import DisplayModelError
 from crs_study.geometry.layout import Layout
 
 
@@ -44,13 +43,3 @@ def register(cls: type[DisplayModel]) -> type[DisplayModel]:
     """Class decorator adding a model to :data:`MODELS`."""
     MODELS[cls.name] = cls
     return cls
-
-
-def get_model(name: str, layout: Layout, **options: object) -> DisplayModel:
-    import crs_study.display  # noqa: F401  (imports every model module, filling MODELS)
-
-    if name not in MODELS:
-        raise DisplayModelError(
-            f"unknown display model {name!r}; known: {', '.join(sorted(MODELS)) or 'none'}"
-        )
-    return MODELS[name](layout, **options)

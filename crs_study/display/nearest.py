@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from crs_study.display.base import DisplayModel, register
+from crs_study.errors import DisplayModelError
 from crs_study.geometry.layout import Layout
 
 #: Circumradius of a lattice cell in pitches: the farthest a point of the display can be from
@@ -33,8 +34,6 @@ def pixel_heights(layout: Layout, setpoints_mm: np.ndarray) -> np.ndarray:
     """The pixel part of a setpoint vector (mm), checked for length."""
     setpoints = np.asarray(setpoints_mm, dtype=float)
     if setpoints.shape != (layout.n_actuators,) and setpoints.shape != (layout.n_pixels,):
-        from crs_study.errors import DisplayModelError
-
         raise DisplayModelError(
             f"{layout.name}: expected {layout.n_actuators} setpoints (or {layout.n_pixels} "
             f"pixel heights), got shape {setpoints.shape!r}"

@@ -61,7 +61,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from crs_study.display.base import DisplayModel, get_model
+from crs_study.display import get_model
+from crs_study.display.base import DisplayModel
 from crs_study.errors import DisplayModelError, RenderError
 from crs_study.geometry.layout import Layout, load_layout
 from crs_study.quality.lattices import (

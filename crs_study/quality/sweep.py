@@ -22,6 +22,7 @@ from pathlib import Path
 
 from crs_study.errors import CrsStudyError
 from crs_study.geometry.layout import load_layout
+from crs_study.quality.criteria import distortion, symmetric_by_default
 
 #: d/l values of the default sweep: the paper's range, and 0.1, 0.2, 0.3 and 1/3 always.
 DEFAULT_D_OVER_L = (0.1, 0.15, 0.2, 0.25, 0.3, 1 / 3, 0.4, 0.5)
@@ -63,8 +64,9 @@ def source_digest() -> str:
     """sha256 over the source of the modules a distortion depends on."""
     root = Path(__file__).resolve().parents[1]
     files = sorted([*root.joinpath("display").glob("*.py"), *root.joinpath("quality").glob("*.py"),
-                    root / "render.py", root / "targets.py", root / "layout.py",
-                    *root.joinpath("devices").glob("*.toml")])
+                    *root.joinpath("rendering").glob("*.py"), root / "stimuli" / "targets.py",
+                    root / "geometry" / "layout.py",
+                    *root.joinpath("data", "devices").glob("*.toml")])
     digest = hashlib.sha256()
     for path in files:
         digest.update(path.name.encode())
@@ -79,8 +81,6 @@ def default_cache_dir() -> Path:
 
 def compute_point(model: str, lattice: str, d_over_l: float, settings: Settings) -> Point:
     """One point; known failures become a note."""
-    from crs_study.quality.criteria import distortion, symmetric_by_default
-
     symmetric = symmetric_by_default(model, lattice)
     order = settings.order if lattice == "1d" or symmetric else max(2, settings.order // 2)
     try:

@@ -52,6 +52,7 @@ from typing import Literal
 
 import numpy as np
 
+from crs_study.display.beam import CompressedBeams
 from crs_study.errors import RenderError
 from crs_study.geometry.layout import Layout
 from crs_study.stimuli.targets import Bump, arc_excess
@@ -157,8 +158,6 @@ class Renderer:
 
     def _longest_feeds(self, heights: np.ndarray) -> np.ndarray:
         if self._beams is None:
-            from crs_study.display.beam import CompressedBeams  # scipy: only when needed
-
             self._beams = CompressedBeams.for_layout(self.layout)
         return self._beams.longest_feeds(heights)
 

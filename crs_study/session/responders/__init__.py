@@ -15,36 +15,33 @@ from __future__ import annotations
 from typing import Any
 
 from crs_study.errors import ConfigError
+from crs_study.geometry.layout import Layout
+from crs_study.protocol.model import Protocol
 from crs_study.session.responders.base import Responder, Response, StimulusRecord, trial_rng
+from crs_study.session.responders.keypad import KeypadResponder
+from crs_study.session.responders.observer import PerceptualObserver
+from crs_study.session.responders.random import RandomResponder
+from crs_study.session.responders.scripted import ScriptedResponder
 
 SPECS = ("keypad", "scripted:FILE", "random", "observer")
 
 __all__ = ["SPECS", "Responder", "Response", "StimulusRecord", "make_responder", "trial_rng"]
 
 
-def make_responder(spec: str, *, seed: int, layout: Any = None, protocol: Any = None,
-                   **options: Any) -> Responder:
+def make_responder(spec: str, *, seed: int, layout: Layout | None = None,
+                   protocol: Protocol | None = None, **options: Any) -> Responder:
     """The responder for ``spec`` (see the module docstring); simulated ones use ``seed``."""
     if spec == "keypad":
-        from crs_study.session.responders.keypad import KeypadResponder
-
         if protocol is not None and "keys" not in options:
             options["keys"] = {protocol.key_for(d): d for d in protocol.digits}
         return KeypadResponder(**options)
     if spec.startswith("scripted:") and len(spec) > len("scripted:"):
-        from crs_study.session.responders.scripted import ScriptedResponder
-
         return ScriptedResponder(spec[len("scripted:"):])
     if spec == "random":
-        from crs_study.session.responders.random import RandomResponder
-
         return RandomResponder(seed, **options)
     if spec == "observer":
-        try:
-            from crs_study.session.responders.observer import PerceptualObserver
-        except ImportError as exc:
-            raise ConfigError(f"the observer responder is not available ({exc}); use "
-                              "--responder random") from None
-
+        if layout is None or protocol is None:
+            raise ConfigError("the observer responder senses the displayed surface: it needs "
+                              "the protocol and the device's layout")
         return PerceptualObserver(layout, protocol, seed, **options)
     raise ConfigError(f"unknown responder {spec!r}; expected one of: {', '.join(SPECS)}")

@@ -15,15 +15,13 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from crs_study.clock import Clock
+from crs_study.geometry.layout import Layout
 from crs_study.protocol import model as protocol_model
-
-if TYPE_CHECKING:  # pragma: no cover
-    from crs_study.clock import Clock
-    from crs_study.geometry.layout import Layout
+from crs_study.protocol.plan import PlannedTrial
 
 
 @dataclass(frozen=True)
@@ -88,7 +86,7 @@ class Responder(ABC):
     simulated: bool = True
 
     @abstractmethod
-    def respond(self, trial: Any, stimulus: StimulusRecord, clock: Clock,
+    def respond(self, trial: PlannedTrial, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         """The response to ``trial``; ``time_limit_s`` counts from stimulus offset."""
 
@@ -97,7 +95,7 @@ class Responder(ABC):
         writes anything; the default has nothing to check."""
         return None
 
-    def begin_trial(self, trial: Any, onset_time: float, clock: Clock) -> None:
+    def begin_trial(self, trial: PlannedTrial, onset_time: float, clock: Clock) -> None:
         """Called just before the stimulus onset (clock time ``onset_time``)."""
         return None
 
@@ -105,7 +103,7 @@ class Responder(ABC):
         """Called after the response (and feedback) of each trial."""
         return None
 
-    def feedback(self, trial: Any, response: Response, correct: bool) -> None:
+    def feedback(self, trial: PlannedTrial, response: Response, correct: bool) -> None:
         """Feedback after a practice trial; the default does nothing."""
         return None
 

@@ -23,9 +23,11 @@ import termios
 import threading
 import time
 import tty
-from typing import Any, TextIO
+from typing import TextIO
 
+from crs_study.clock import Clock
 from crs_study.errors import ConfigError, SessionError
+from crs_study.protocol.plan import PlannedTrial
 from crs_study.session.responders.base import PAUSE_KEYS, Responder, Response, StimulusRecord
 
 QUIT_KEYS = PAUSE_KEYS
@@ -134,12 +136,12 @@ class KeypadResponder(Responder):
         self.output.flush()
 
     # --- the responder interface -------------------------------------------------------------
-    def begin_trial(self, trial: Any, onset_time: float, clock: Any) -> None:
+    def begin_trial(self, trial: PlannedTrial, onset_time: float, clock: Clock) -> None:
         self.open()
         self._drain()  # keys typed between trials do not answer this one
         self._onset = onset_time
 
-    def respond(self, trial: Any, stimulus: StimulusRecord, clock: Any,
+    def respond(self, trial: PlannedTrial, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         self.open()
         onset = stimulus.onset_time if self._onset is None else self._onset
@@ -161,7 +163,7 @@ class KeypadResponder(Responder):
     def end_trial(self) -> None:
         self._onset = None
 
-    def feedback(self, trial: Any, response: Response, correct: bool) -> None:
+    def feedback(self, trial: PlannedTrial, response: Response, correct: bool) -> None:
         if response.digit is None:
             self._say(f"  no answer in time: it was {trial.digit}")
         elif correct:
@@ -169,7 +171,7 @@ class KeypadResponder(Responder):
         else:
             self._say(f"  {response.digit} is wrong: it was {trial.digit}")
 
-    def prompt(self, text: str, clock: Any) -> None:
+    def prompt(self, text: str, clock: Clock) -> None:
         """Show an experimenter prompt and wait for Space or Enter (q pauses)."""
         self.open()
         self._drain()

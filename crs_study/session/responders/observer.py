@@ -75,7 +75,12 @@ from typing import Any
 
 import numpy as np
 
+from crs_study.clock import Clock
+from crs_study.display import get_model
 from crs_study.errors import ConfigError, DisplayModelError
+from crs_study.geometry.layout import Layout, layout_key
+from crs_study.protocol.model import Protocol
+from crs_study.protocol.plan import PlannedTrial
 from crs_study.session.responders.base import (
     Responder,
     Response,
@@ -83,6 +88,7 @@ from crs_study.session.responders.base import (
     respond_at,
     trial_rng,
 )
+from crs_study.stimuli.stimulus import make_stimulus, placement_centre
 
 #: Display model per condition; conditions not listed use the skeleton model ``beam``.
 DEFAULT_MODELS = {"pixel-only": "linear"}
@@ -177,7 +183,7 @@ class PerceptualObserver(Responder):
     name = "observer"
     simulated = True
 
-    def __init__(self, layout: Any, protocol: Any, seed: int, **options: Any) -> None:
+    def __init__(self, layout: Layout, protocol: Protocol, seed: int, **options: Any) -> None:
         known = {f.name for f in fields(ObserverOptions)}
         unknown = sorted(set(options) - known)
         if unknown:
@@ -193,9 +199,6 @@ class PerceptualObserver(Responder):
         ability = np.random.default_rng([self.seed, 1, 0]).standard_normal()
         self.temperature_mm = self.options.temperature_mm * float(
             np.exp(self.options.ability_sd * ability))
-        from crs_study.geometry.layout import layout_key
-        from crs_study.stimuli.stimulus import placement_centre
-
         self._layout_key = layout_key(self.layout)
         o = self.options
         cx, cy = placement_centre(protocol.stimulus, self.layout)
@@ -218,8 +221,6 @@ class PerceptualObserver(Responder):
     def _surface_function(self, model_name: str):
         key = (model_name, self._layout_key, self._points.tobytes())
         if key not in _MODELS:
-            from crs_study.display.base import get_model
-
             model = get_model(model_name, self.layout)
             if model_name in LINEAR_MODELS:
                 # z(s) = z(0) + A s for a model linear in the setpoints: A column by column.
@@ -300,8 +301,6 @@ class PerceptualObserver(Responder):
         """A digit's bump-centre path (drawn frames) at ``level``, resampled and centred."""
         key = (digit, level)
         if key not in self._templates:
-            from crs_study.stimuli.stimulus import make_stimulus
-
             stim = make_stimulus(self.protocol, self.layout, digit, level)
             self._templates[key] = _normalise(stim.centres_mm[stim.drawn],
                                               self.options.path_points)
@@ -323,7 +322,7 @@ class PerceptualObserver(Responder):
         p /= p.sum()
         return (1.0 - o.lapse) * p + o.lapse / n, d
 
-    def respond(self, trial: Any, stimulus: StimulusRecord, clock: Any,
+    def respond(self, trial: PlannedTrial, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         o = self.options
         rng = trial_rng(self.seed, trial.index)
@@ -343,13 +342,11 @@ class PerceptualObserver(Responder):
                           choices[index])
 
 
-def _largest_half_diagonal(protocol: Any, layout: Any) -> float:
+def _largest_half_diagonal(protocol: Protocol, layout: Layout) -> float:
     """How far (mm) the drawn bump centre gets from the placement point, over the protocol's
     digits and levels: the drawn paths themselves, so the window holds the widest digit
     whatever the strokes (a box of digit_width x digit_height pitch is the digits' *average*
     size, crs_study/stimuli/digits.py, and the widest digits exceed it)."""
-    from crs_study.stimuli.stimulus import make_stimulus, placement_centre
-
     centre = np.asarray(placement_centre(protocol.stimulus, layout), dtype=float)
     reach = 0.0
     for level in getattr(protocol, "level_values", (None,)):

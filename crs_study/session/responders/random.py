@@ -9,9 +9,9 @@ uninterrupted one exactly.
 
 from __future__ import annotations
 
-from typing import Any
-
+from crs_study.clock import Clock
 from crs_study.errors import ConfigError
+from crs_study.protocol.plan import PlannedTrial
 from crs_study.session.responders.base import (
     Responder,
     Response,
@@ -35,7 +35,7 @@ class RandomResponder(Responder):
         self.median_s = float(median_s)
         self.sigma = float(sigma)
 
-    def respond(self, trial: Any, stimulus: StimulusRecord, clock: Any,
+    def respond(self, trial: PlannedTrial, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         rng = trial_rng(self.seed, trial.index)
         digit = int(rng.choice(stimulus.digit_choices))

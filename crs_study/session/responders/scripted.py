@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
+from crs_study.clock import Clock
 from crs_study.errors import ConfigError, SessionError
+from crs_study.protocol.plan import PlannedTrial
 from crs_study.session.responders.base import Responder, Response, StimulusRecord, respond_at
 
 DEFAULT_RT_AFTER_OFFSET_S = 0.5
@@ -77,7 +78,7 @@ class ScriptedResponder(Responder):
                               f"{exc}") from None
         self.entries = parse_script(text, str(self.path))
 
-    def respond(self, trial: Any, stimulus: StimulusRecord, clock: Any,
+    def respond(self, trial: PlannedTrial, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         if trial.index >= len(self.entries):
             raise SessionError(f"scripted responses {str(self.path)!r} have "
