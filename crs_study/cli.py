@@ -1,30 +1,33 @@
 """The ``crs-study`` command line: a thin layer of argparse subcommands over the library.
 
-Each subcommand lives in its own module under :mod:`crs_study.commands` and provides
+Each subcommand lives in its own module under :mod:`crs_study.commands` (``dry-run`` in
+``dry_run.py``) and provides
 
-``NAME``
-    the subcommand's name (``"demo"``, ``"run"``, ...);
-``HELP``
-    one line for ``crs-study --help``;
 ``add_arguments(parser)``
     adds its options to an :class:`argparse.ArgumentParser`;
 ``run(args) -> int``
-    does the work and returns the exit status.
+    does the work and returns the exit status;
+
+its docstring is the subcommand's description. :data:`COMMANDS` names the subcommands, in the
+order ``crs-study --help`` lists them, with their one-line help.
 
 Known failures (:class:`~crs_study.errors.CrsStudyError`) print one line on stderr and exit 2;
-``--debug`` shows the traceback instead. Modules import heavy libraries inside ``run`` so that
-``crs-study --help`` stays fast.
+``--debug`` shows the traceback instead.
+
+Start-up: a command's module imports the library it runs at its top (numpy, scipy, pandas,
+matplotlib, as its work needs), so building the parser imports none of them.
+:class:`CommandParser` imports a command's module only when that command is chosen (to parse
+its options, or to show its ``--help``), as pip does with its commands; ``crs-study --help``
+imports none, and ``crs-study validate`` only what validating needs.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import pkgutil
 import sys
 import warnings
 from collections.abc import Sequence
-from types import ModuleType
 
 from crs_study import __version__
 from crs_study.commands import HelpFormatter
@@ -35,27 +38,65 @@ EXIT_KNOWN_ERROR = 2
 #: Exit status after Ctrl-C, as shells expect (128 + SIGINT).
 EXIT_INTERRUPTED = 130
 
-# Order in which subcommands are listed in --help: the main job first, then the pipeline.
-_PREFERRED_ORDER = (
-    "demo", "init", "validate", "run", "dry-run", "analyze", "consent", "device", "quality",
-    "bench",
-)
+#: The subcommands, in the order ``crs-study --help`` lists them (the main job first, then the
+#: pipeline): name -> one line of help. The module of ``name`` is ``crs_study.commands.<name>``
+#: with ``-`` as ``_``.
+COMMANDS: dict[str, str] = {
+    "demo": "dry-run the default protocol with simulated participants, analyse, print the "
+            "headline",
+    "init": "copy the shipped protocols, analysis plans and consent forms into a folder to edit",
+    "validate": "check a protocol and print its plan (trials, duration, frames, wire use)",
+    "run": "run or resume a participant session on a device",
+    "dry-run": "rehearse a protocol: simulated device, simulated participants, virtual clock",
+    "analyze": "analyse datasets: accuracy, GLMM, secondary tests, confusions, speed-accuracy, "
+               "report",
+    "consent": "record consent, list records, withdraw a participant (removes their data)",
+    "device": "check the controllers, neutral pose, sweep, calibrate endpoints, monitor a port",
+    "quality": "display quality D_P and D_S against d/l per model and lattice (chart, table, "
+               "--json)",
+    "bench": "measure speed and accuracy figures against in-run baselines",
+}
 
 
-def _command_modules() -> list[ModuleType]:
-    import crs_study.commands as package
+def command_module(name: str) -> str:
+    """The module of subcommand ``name``: ``crs_study.commands.dry_run`` for ``dry-run``."""
+    return f"crs_study.commands.{name.replace('-', '_')}"
 
-    modules = [
-        importlib.import_module(f"{package.__name__}.{info.name}")
-        for info in pkgutil.iter_modules(package.__path__)
-        if not info.name.startswith("_")
-    ]
-    rank = {name: i for i, name in enumerate(_PREFERRED_ORDER)}
-    return sorted(modules, key=lambda m: (rank.get(m.NAME, len(rank)), m.NAME))
+
+class CommandParser(argparse.ArgumentParser):
+    """A subcommand's parser, completed from its module when the subcommand is chosen.
+
+    argparse hands a chosen subcommand's arguments to its parser's :meth:`parse_known_args`;
+    the module (its ``add_arguments``, ``run`` and docstring) is imported there, once, so only
+    the chosen command pays for the libraries it imports. A command's own subcommands
+    (``consent record``) are parsers of this class too (argparse makes them of the class of
+    their parent), with no ``command``: plain parsers.
+    """
+
+    def __init__(self, *args, command: str | None = None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.command = command
+        self._completed = command is None
+
+    def complete(self) -> None:
+        """Import the subcommand's module and add its options (once)."""
+        if self._completed:
+            return
+        # The one place the CLI imports its commands: each is loaded when chosen (module
+        # docstring), so building the parser stays free of numpy, scipy and matplotlib.
+        module = importlib.import_module(command_module(self.command))
+        self.description = module.__doc__
+        module.add_arguments(self)
+        self.set_defaults(_run=module.run)
+        self._completed = True
+
+    def parse_known_args(self, args=None, namespace=None):
+        self.complete()
+        return super().parse_known_args(args, namespace)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The full parser, with one subparser per module in :mod:`crs_study.commands`."""
+    """The full parser: one subparser per entry of :data:`COMMANDS`, completed when chosen."""
     parser = argparse.ArgumentParser(
         prog="crs-study",
         description="Psychophysics experiments on the continuity reinforcement skeleton "
@@ -65,16 +106,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--debug", action="store_true", help="show the full traceback for known errors"
     )
-    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in _command_modules():
-        sub = subparsers.add_parser(
-            module.NAME,
-            help=module.HELP,
-            description=module.__doc__,
-            formatter_class=HelpFormatter,
-        )
-        module.add_arguments(sub)
-        sub.set_defaults(_run=module.run)
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND",
+                                       parser_class=CommandParser)
+    for name, help_text in COMMANDS.items():
+        subparsers.add_parser(name, help=help_text, command=name, formatter_class=HelpFormatter)
     return parser
 
 

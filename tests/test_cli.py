@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import pkgutil
 import subprocess
 import sys
 
 import pytest
 
-from crs_study.cli import build_parser, main
+import crs_study.commands as commands
+from crs_study.cli import COMMANDS, build_parser, command_module, main
 
 SUBCOMMANDS = ("demo", "init", "validate", "run", "dry-run", "analyze", "consent", "device",
                "quality", "bench")
@@ -46,3 +48,22 @@ def test_every_subcommand_has_help(capsys):
             parser.parse_args([name, "--help"])
         assert exit_info.value.code == 0
         assert "usage: crs-study " + name in capsys.readouterr().out
+
+
+def test_every_command_module_is_a_listed_subcommand():
+    """COMMANDS names each subcommand once; its module is found from the name, so a module
+    the table lacks would be unreachable, and a name without a module would fail at use."""
+    files = {info.name for info in pkgutil.iter_modules(commands.__path__)
+             if not info.name.startswith("_")}
+    assert {command_module(name).rsplit(".", 1)[1] for name in COMMANDS} == files
+
+
+def test_only_the_chosen_command_is_imported():
+    """Building the parser imports no command module; choosing one imports that one only."""
+    code = ("import sys; from crs_study.cli import build_parser; parser = build_parser(); "
+            "print(sorted(m for m in sys.modules if m.startswith('crs_study.commands.'))); "
+            "parser.parse_args(['init', 'somewhere']); "
+            "print(sorted(m for m in sys.modules if m.startswith('crs_study.commands.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert out == ["[]", "['crs_study.commands.init']"]

@@ -13,6 +13,14 @@ per step took 8-35 s there on a busy two-core machine with multithreaded OpenBLA
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
+from crs_study.analysis.load import load_datasets, with_exclusions
+from crs_study.analysis.plan import default_plan_path, load_plan
+from crs_study.analysis.primary import primary_test
+from crs_study.analysis.report import analyze, order_conditions
+from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
 from crs_study.benchmarks import Figure, median_seconds
 
 AREA = "analysis"
@@ -25,15 +33,6 @@ TARGET_LARGE_REPORT_S = 3.0
 
 
 def run(quick: bool) -> list[Figure]:
-    import tempfile
-    from pathlib import Path
-
-    from crs_study.analysis.load import load_datasets, with_exclusions
-    from crs_study.analysis.plan import default_plan_path, load_plan
-    from crs_study.analysis.primary import primary_test
-    from crs_study.analysis.report import analyze, order_conditions
-    from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
-
     participants, repetitions, repeat = (10, 5, 1) if quick else (40, 20, 3)
     label = f"{participants} x {2 * 10 * repetitions} trials"
     with tempfile.TemporaryDirectory() as folder:
@@ -63,14 +62,6 @@ def run(quick: bool) -> list[Figure]:
 
 def _large_report(repeat: int) -> Figure:
     """``analyze`` of 100 participants x 400 trials, against loading it."""
-    import tempfile
-    from pathlib import Path
-
-    from crs_study.analysis.load import load_datasets
-    from crs_study.analysis.plan import default_plan_path
-    from crs_study.analysis.report import analyze
-    from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
-
     with tempfile.TemporaryDirectory() as folder:
         root = write_dataset(Path(folder) / "ds", SyntheticSpec(
             n_participants=100, repetitions=20, seed=2026))

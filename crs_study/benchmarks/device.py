@@ -22,8 +22,23 @@ from __future__ import annotations
 import statistics
 import threading
 import time
+from dataclasses import replace
+
+import numpy as np
 
 from crs_study.benchmarks import Figure, median_seconds
+from crs_study.clock import RealClock
+from crs_study.device.base import BYTE_TIME_S, full_frame_rate_hz, full_frame_wire_time_s
+from crs_study.device.calibration import PulseMap
+from crs_study.device.schedule import wire_plan
+from crs_study.device.serial_device import SerialDevice, SerialOptions
+from crs_study.device.writes import ChannelSplit
+from crs_study.geometry.layout import load_layout
+from crs_study.paths import shipped_file
+from crs_study.protocol import load_protocol
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.stimulus import make_stimulus
 
 AREA = "device"
 DESCRIPTION = "serial device vs the 9600-baud wire: frame rate, software time, latency"
@@ -67,12 +82,6 @@ class PacedPort:
 
 def _achieved_rate(layout, seconds: float) -> tuple[float, float, list[float]]:
     """Frames/s on the busiest port with every channel changing; send() times (s)."""
-    import numpy as np
-
-    from crs_study.clock import RealClock
-    from crs_study.device.base import BYTE_TIME_S
-    from crs_study.device.serial_device import SerialDevice, SerialOptions
-
     ports = [PacedPort(c.name, BYTE_TIME_S) for c in layout.controllers]
     device = SerialDevice(layout, ports, RealClock(),
                           SerialOptions(check_battery=False, refresh_s=0.0))
@@ -95,12 +104,6 @@ def _achieved_rate(layout, seconds: float) -> tuple[float, float, list[float]]:
 
 
 def _digit_frames(layout, condition: str, quick: bool):
-    from crs_study.paths import shipped_file
-    from crs_study.protocol import load_protocol
-    from crs_study.rendering.frames import render_frames
-    from crs_study.rendering.render import Renderer
-    from crs_study.stimuli.stimulus import make_stimulus
-
     protocol = load_protocol(shipped_file("protocols/digit_identification.toml"))
     renderer = Renderer(layout, condition)
     digits = protocol.stimulus.digits[:3] if quick else protocol.stimulus.digits
@@ -110,8 +113,6 @@ def _digit_frames(layout, condition: str, quick: bool):
 
 def _lopsided(layout):
     """The same device with five of B's channels moved to A (24 / 13)."""
-    from dataclasses import replace
-
     acts = list(layout.actuators)
     moved = [i for i, a in enumerate(acts) if a.controller == "B"][:5]
     for channel, i in zip(range(20, 25), moved, strict=True):
@@ -120,10 +121,6 @@ def _lopsided(layout):
 
 
 def _median_latency(layout, stimuli, rate: float) -> tuple[float, float]:
-    import numpy as np
-
-    from crs_study.device.schedule import wire_plan
-
     plans = [wire_plan(layout, frames, rate) for frames in stimuli]
     changed = np.concatenate([p.latency_changed_s for p in plans])
     full = np.concatenate([p.latency_full_s for p in plans])
@@ -131,13 +128,6 @@ def _median_latency(layout, stimuli, rate: float) -> tuple[float, float]:
 
 
 def run(quick: bool) -> list[Figure]:
-    import numpy as np
-
-    from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
-    from crs_study.device.calibration import PulseMap
-    from crs_study.device.writes import ChannelSplit
-    from crs_study.geometry.layout import load_layout
-
     layout = load_layout("crs2d")
     figures = []
 

@@ -57,7 +57,14 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from crs_study.benchmarks import Figure, median_seconds
+from crs_study.display import get_model
+from crs_study.errors import DisplayModelError
+from crs_study.geometry.layout import load_layout
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.targets import Bump
 
 AREA = "display"
 DESCRIPTION = "display models: median time per surface vs error against the FE reference"
@@ -75,8 +82,6 @@ OBSERVER_GRID = 19
 
 
 def _points(dim: str):
-    import numpy as np
-
     if dim == "1d":
         x = np.linspace(-30.0, 150.0, 721)
         return np.column_stack([x, np.zeros_like(x)])
@@ -102,14 +107,6 @@ def _time_per_surface(model, setpoint_list, xy, repeat: int) -> float:
 def speed_accuracy_rows(quick: bool = True) -> list[dict]:
     """One row per (device, model): time per surface (median, s), ratio to ``nearest``, and
     the max and RMS error (mm) against ``reference`` over the scenes."""
-    import numpy as np
-
-    from crs_study.display import get_model
-    from crs_study.errors import DisplayModelError
-    from crs_study.geometry.layout import load_layout
-    from crs_study.rendering.render import Renderer
-    from crs_study.stimuli.targets import Bump
-
     repeat = 3 if quick else 9
     rows = []
     for dim, device, scenes in (("1d", "crs1d", SCENES_1D), ("2d", "crs2d", SCENES_2D)):
@@ -192,14 +189,6 @@ def plot_speed_accuracy(rows: list[dict], ax=None):
 
 def _frames(device: str, count: int = 32):
     """Setpoints of ``count`` CRS frames (bumps at random centres) the beams can show."""
-    import numpy as np
-
-    from crs_study.display import get_model
-    from crs_study.errors import DisplayModelError
-    from crs_study.geometry.layout import load_layout
-    from crs_study.rendering.render import Renderer
-    from crs_study.stimuli.targets import Bump
-
     layout = load_layout(device)
     renderer = Renderer(layout, "crs")
     rng = np.random.default_rng(0)
@@ -236,10 +225,6 @@ def session_frame_seconds(quick: bool) -> dict[str, float]:
     on the observer's 19 x 19 grid; ``2d_surface_64``: profiles plus a 64 x 64 surface;
     ``{dim}_nearest``: the ``nearest`` surface on the same 19 x 19 grid (the baseline).
     """
-    import numpy as np
-
-    from crs_study.display import get_model
-
     repeat = 3 if quick else 9
     out = {}
     for dim, device in (("1d", "crs1d"), ("2d", "crs2d")):

@@ -18,10 +18,18 @@ herd variance of lme4's cbpp example to about 0 (ours: lme4's 0.6423 standard de
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import tempfile
 import warnings
+from pathlib import Path
 
 import numpy as np
 
+from crs_study.analysis.glmm import fit_glmm
+from crs_study.analysis.glmm_reference import load_cbpp
+from crs_study.analysis.glmm_simulate import simulate_trials
+from crs_study.analysis.primary import primary_test
 from crs_study.benchmarks import Figure, median_seconds
 
 AREA = "glmm"
@@ -61,9 +69,6 @@ def _quiet(func):
 
 
 def run(quick: bool) -> list[Figure]:
-    from crs_study.analysis.glmm import fit_glmm
-    from crs_study.analysis.glmm_simulate import simulate_trials
-
     df = simulate_trials(np.random.default_rng(2026), 40, 200, [0.0, 0.7], 0.5)
     repeat = 3 if quick else 7
     slow_repeat = 1 if quick else 3
@@ -124,8 +129,6 @@ def run(quick: bool) -> list[Figure]:
 
 
 def _primary_data():
-    from crs_study.analysis.glmm_simulate import simulate_trials
-
     data = simulate_trials(np.random.default_rng(2026), 40, 200, [0.0, 0.7], 0.5,
                            digit_variance=0.1)
     return data
@@ -134,13 +137,6 @@ def _primary_data():
 def _primary_against_lme4(quick: bool) -> list[Figure]:
     """Our primary test (two crossed fits, every profile interval) against lme4's, timed in
     the same run; without R and lme4 the lme4 figure says so instead of a time."""
-    import shutil
-    import subprocess
-    import tempfile
-    from pathlib import Path
-
-    from crs_study.analysis.primary import primary_test
-
     data = _primary_data()
     trials = data.rename(columns={"participant": "participant_id"})
     trials["correct"] = trials["correct"].astype(float)
@@ -177,9 +173,6 @@ def _primary_against_lme4(quick: bool) -> list[Figure]:
 
 def _cbpp_figures() -> list[Figure]:
     """lme4's cbpp example as 842 0/1 trials: statsmodels' MAP herd SD against ours."""
-    from crs_study.analysis.glmm import fit_glmm
-    from crs_study.analysis.glmm_reference import load_cbpp
-
     cbpp = load_cbpp()
     rows = cbpp.loc[cbpp.index.repeat(cbpp["size"])].reset_index(drop=True)
     rows["sick"] = (rows.groupby(["herd", "period"]).cumcount() < rows["incidence"]).astype(int)

@@ -9,7 +9,12 @@ to the baseline. Target: a 2D CRS frame well under a millisecond (issue 2), here
 
 from __future__ import annotations
 
+import numpy as np
+
 from crs_study.benchmarks import Figure, median_seconds
+from crs_study.geometry.layout import load_layout
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.targets import Bump
 
 AREA = "render"
 DESCRIPTION = "median time to render one frame (target -> setpoints), per device and condition"
@@ -19,12 +24,6 @@ TARGET_2D_CRS_S = 100e-6
 
 
 def run(quick: bool) -> list[Figure]:
-    import numpy as np
-
-    from crs_study.geometry.layout import load_layout
-    from crs_study.rendering.render import Renderer
-    from crs_study.stimuli.targets import Bump
-
     repeat, number = (5, 200) if quick else (15, 2000)
     rng = np.random.default_rng(0)
     figures = []

@@ -22,6 +22,9 @@ import time
 from pathlib import Path
 
 from crs_study.benchmarks import Figure
+from crs_study.paths import shipped_file
+from crs_study.session.runner import run_session
+from crs_study.session.spec import SessionSpec
 
 AREA = "runner"
 DESCRIPTION = "dry-run speed: the default protocol, one simulated participant, vs real time"
@@ -34,10 +37,6 @@ def _responder() -> str:
 
 
 def run(quick: bool) -> list[Figure]:
-    from crs_study.paths import shipped_file
-    from crs_study.session.runner import run_session
-    from crs_study.session.spec import SessionSpec
-
     protocol = shipped_file("protocols/digit_identification.toml")
     responder = _responder()
     repeat = 1 if quick else 3

@@ -30,7 +30,17 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 from crs_study.benchmarks import Figure, median_seconds
+from crs_study.clock import VirtualClock
+from crs_study.device.codec import ServoMove, decode_frame, servo_move_arrays
+from crs_study.device.simulated import SimulatedDevice
+from crs_study.paths import shipped_file
+from crs_study.protocol import load_protocol
+from crs_study.rendering.frames import render_frames
+from crs_study.rendering.render import Renderer
+from crs_study.stimuli.stimulus import make_stimulus
 
 AREA = "simulated"
 DESCRIPTION = "simulated device: per-frame cost of send + displayed_setpoints, speed vs real time"
@@ -50,14 +60,6 @@ def median_cpu_seconds(func: Callable[[], object], repeat: int, number: int) -> 
 
 
 def _digit_frames():
-    import numpy as np
-
-    from crs_study.paths import shipped_file
-    from crs_study.protocol import load_protocol
-    from crs_study.rendering.frames import render_frames
-    from crs_study.rendering.render import Renderer
-    from crs_study.stimuli.stimulus import make_stimulus
-
     protocol = load_protocol(shipped_file("protocols/digit_identification.toml"))
     layout = protocol.layout()
     renderer = Renderer(layout, "crs")
@@ -68,12 +70,6 @@ def _digit_frames():
 
 
 def run(quick: bool) -> list[Figure]:
-    import numpy as np
-
-    from crs_study.clock import VirtualClock
-    from crs_study.device.codec import ServoMove, decode_frame, servo_move_arrays
-    from crs_study.device.simulated import SimulatedDevice
-
     repeat = 5 if quick else 11
     layout, frames = _digit_frames()
     n = len(frames)

@@ -18,7 +18,13 @@ decided the rule (device/writes.py).
 
 from __future__ import annotations
 
+import numpy as np
+
 from crs_study.benchmarks import Figure
+from crs_study.benchmarks.device import _digit_frames
+from crs_study.device.calibration import PulseMap
+from crs_study.device.writes import ChannelSplit, PortWrites, WritePolicy
+from crs_study.geometry.layout import load_layout
 
 AREA = "writes"
 DESCRIPTION = "the refresh riding on a frame vs sent on its own when due: latency and bytes"
@@ -30,10 +36,6 @@ REFRESH_S = 1.0
 
 def _latencies(pulses, times, initial, refresh_alone: bool):
     """Per-frame latency (s) and bytes on one port, the refresh riding or going alone."""
-    import numpy as np
-
-    from crs_study.device.writes import PortWrites, WritePolicy
-
     port = PortWrites(pulses.shape[1], WritePolicy(1, REFRESH_S), initial, -PHASE_S)
     port.wanted = initial  # the pose on the board before the stimulus
     latency = np.zeros(len(times))
@@ -68,13 +70,6 @@ def _latencies(pulses, times, initial, refresh_alone: bool):
 
 
 def run(quick: bool) -> list[Figure]:
-    import numpy as np
-
-    from crs_study.benchmarks.device import _digit_frames
-    from crs_study.device.calibration import PulseMap
-    from crs_study.device.writes import ChannelSplit
-    from crs_study.geometry.layout import load_layout
-
     layout = load_layout("crs2d")
     stimuli, rate = _digit_frames(layout, "crs", quick)
     pulse_map, split = PulseMap.from_layout(layout), ChannelSplit(layout)

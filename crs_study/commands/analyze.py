@@ -12,10 +12,8 @@ import json
 import sys
 
 from crs_study._files import os_errors
+from crs_study.analysis.report import analyze
 from crs_study.errors import AnalysisError
-
-NAME = "analyze"
-HELP = "analyse datasets: accuracy, GLMM, secondary tests, confusions, speed-accuracy, report"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,8 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @os_errors(AnalysisError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    from crs_study.analysis.report import analyze
-
     result = analyze(args.datasets, args.plan, args.out, strict=args.strict,
                      include_simulated=args.include_simulated, responders=args.responder)
     for warning in result.warnings:

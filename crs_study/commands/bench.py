@@ -13,15 +13,14 @@ import os
 import pkgutil
 import platform
 
-NAME = "bench"
-HELP = "measure speed and accuracy figures against in-run baselines"
+import crs_study.benchmarks as benchmarks
+from crs_study.errors import ConfigError
 
 
 def _areas() -> dict[str, object]:
-    import crs_study.benchmarks as package
-
-    modules = [importlib.import_module(f"{package.__name__}.{m.name}")
-               for m in pkgutil.iter_modules(package.__path__) if not m.name.startswith("_")]
+    """Every module of :mod:`crs_study.benchmarks` by its ``AREA`` (a new file is a new area)."""
+    modules = [importlib.import_module(f"{benchmarks.__name__}.{m.name}")
+               for m in pkgutil.iter_modules(benchmarks.__path__) if not m.name.startswith("_")]
     return {m.AREA: m for m in modules}
 
 
@@ -34,8 +33,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from crs_study.errors import ConfigError
-
     areas = _areas()
     if args.list:
         for name, module in sorted(areas.items()):

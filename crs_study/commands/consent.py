@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 
+from crs_study import consent
 from crs_study._files import os_errors
 from crs_study.commands import HelpFormatter
 from crs_study.errors import ConsentError
-
-NAME = "consent"
-HELP = "record consent, list records, withdraw a participant (removes their data)"
+from crs_study.paths import resolve_consent_form
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,14 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @os_errors(ConsentError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
-
-    from crs_study import consent
-
     register = consent.Register(args.register)
     if args.action == "record":
-        from crs_study.paths import resolve_consent_form
-
         form = consent.read_form(resolve_consent_form(args.form))
         record = register.record(form, args.experimenter, args.participant, args.name)
         print(f"consent recorded: participant {record.participant}, form version "

@@ -1,10 +1,10 @@
 """The main job on embedded defaults: rehearse the default protocol and analyse it.
 
 Dry-runs the shipped digit_identification protocol with simulated participants (perceptual
-observers) on the simulated device and a virtual clock, analyses the dataset when the
-analysis is installed, and prints the headline (accuracy per condition with confidence
-intervals, the test, the chart) and where the dataset and the report were written. A new
-output directory is made every time; nothing is overwritten.
+observers) on the simulated device and a virtual clock, analyses the dataset, and prints the
+headline (accuracy per condition with confidence intervals, the test, the chart) and where the
+dataset and the report were written. A new output directory is made every time; nothing is
+overwritten.
 """
 
 from __future__ import annotations
@@ -12,16 +12,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from datetime import datetime
 from pathlib import Path
 
 from crs_study._files import os_errors
-from crs_study.errors import DatasetError
-from crs_study.paths import DEFAULT_PROTOCOL
-
-NAME = "demo"
-HELP = "dry-run the default protocol with simulated participants, analyse, print the headline"
+from crs_study.analysis.report import analyze_dataset
+from crs_study.commands.run import stderr_progress
+from crs_study.errors import DatasetError, SessionError
+from crs_study.paths import DEFAULT_PROTOCOL, resolve_protocol
+from crs_study.protocol import emit_warnings, load_protocol
+from crs_study.session.dry_runs import dry_run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,12 +54,6 @@ def fresh_directory(base: Path | None = None) -> Path:
 
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    from crs_study.commands.run import stderr_progress
-    from crs_study.errors import SessionError
-    from crs_study.paths import resolve_protocol
-    from crs_study.protocol import emit_warnings, load_protocol
-    from crs_study.session.dry_runs import dry_run
-
     out = args.out or fresh_directory()
     if out.exists() and any(out.iterdir()):
         raise SessionError(f"--out {os.fspath(out)!r} exists and is not empty; the demo never "
@@ -71,32 +65,21 @@ def run(args: argparse.Namespace) -> int:
                       responder=args.responder, progress=show)
     summary: dict = {"dataset": os.fspath(out), "participants": len(results),
                      "trials": sum(r.trials_completed for r in results)}
-    try:
-        from crs_study.analysis.report import analyze_dataset
-    except ImportError:
-        analyze_dataset = None
-    if analyze_dataset is None:
-        summary["analysis"] = "unavailable (crs_study.analysis.report is not installed)"
-    else:
-        result = analyze_dataset(out)
-        summary.update(headline=result.headline, report=os.fspath(result.report_path),
-                       results=os.fspath(result.results_path))
-        charts = {p.stem: os.fspath(p) for p in getattr(result, "charts", ())}
-        if charts:
-            summary["charts"] = charts
+    result = analyze_dataset(out)
+    summary.update(headline=result.headline, report=os.fspath(result.report_path),
+                   results=os.fspath(result.results_path))
+    charts = {p.stem: os.fspath(p) for p in result.charts}
+    if charts:
+        summary["charts"] = charts
     if args.json:
         print(json.dumps(summary))
         return 0
     print(f"demo: {summary['participants']} simulated participants, {summary['trials']} trials, "
           f"dataset in {summary['dataset']}")
-    if "headline" in summary:
-        print(summary["headline"])
-        print(f"report: {summary['report']}")
-        print(f"results: {summary['results']}")
-        charts = summary.get("charts", {})
-        for name in ("accuracy", "speed_accuracy"):
-            if name in charts:
-                print(f"chart ({name.replace('_', ' ')}): {charts[name]}")
-    else:
-        print(f"analysis: {summary['analysis']}", file=sys.stderr)
+    print(summary["headline"])
+    print(f"report: {summary['report']}")
+    print(f"results: {summary['results']}")
+    for name in ("accuracy", "speed_accuracy"):
+        if name in charts:
+            print(f"chart ({name.replace('_', ' ')}): {charts[name]}")
     return 0

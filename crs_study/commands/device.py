@@ -14,15 +14,36 @@ way, reports what it saw and exits 0).
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
 import sys
+import time
 import warnings
 from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import serial
 
 from crs_study.commands import HelpFormatter
-from crs_study.paths import DEFAULT_PROTOCOL
+from crs_study.device import calibration, open_device, serial_device
+from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
+from crs_study.device.calibration import calibration_table, previous_default_endpoints
+from crs_study.device.codec import FrameDecoder, Skipped
+from crs_study.device.schedule import channel_balance
+from crs_study.device.serial_device import (
+    MAX_BAUD,
+    MIN_BAUD,
+    DeviceWarning,
+    parse_serial_url,
+)
+from crs_study.errors import DeviceError, DeviceFileError
+from crs_study.geometry.layout import device_file_path, load_layout
+from crs_study.paths import DEFAULT_PROTOCOL, shipped_file
+from crs_study.protocol import load_protocol, wire_budget
+from crs_study.signals import deferred, describe, terminate_as_interrupt
 
-NAME = "device"
 #: ``sweep`` limits: the LSC move time is 0..30000 ms (hardware.md), one frame period a frame.
 SWEEP_MIN_RATE_HZ = 1 / 30
 SWEEP_MAX_RATE_HZ = 100.0
@@ -30,7 +51,6 @@ SWEEP_MAX_S = 600.0
 #: ``monitor`` limits: --seconds at most a day (none: until Ctrl-C), --max-frames at most 1e9.
 MONITOR_MAX_S = 86400.0
 MONITOR_MAX_FRAMES = 10**9
-HELP = "check the controllers, neutral pose, sweep, calibrate endpoints, monitor a port"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,9 +113,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from crs_study.device.serial_device import DeviceWarning
-    from crs_study.signals import terminate_as_interrupt
-
     # SIGTERM and SIGHUP (a kill, a closed terminal) end an action as Ctrl-C does: the device
     # goes to neutral and the ports are released on the way out, never left mid-move
     with warnings.catch_warnings(record=True) as caught, terminate_as_interrupt():
@@ -118,10 +135,6 @@ def _open(args: argparse.Namespace, layout=None):
     """The device of ``--device``, with the options given on the command line: every option
     for serial://; the dead-band and refresh (which the simulator models too) for sim://; an
     option the device cannot honour is refused, never ignored."""
-    from crs_study.device.base import open_device
-    from crs_study.errors import DeviceError
-    from crs_study.geometry.layout import load_layout
-
     layout = layout or load_layout(args.layout)
     flags = {"deadband_us": ("--deadband-us", args.deadband_us),
              "refresh_s": ("--refresh-s", args.refresh_s),
@@ -145,9 +158,6 @@ def _session(device):
     which sends the neutral pose; a second interrupt waits until that is done. A neutral pose
     that could not be confirmed is never reported as success: it is a one-line DeviceError,
     or, when another error is already on its way, a warning."""
-    from crs_study.errors import DeviceError
-    from crs_study.signals import deferred
-
     device.open()
     try:
         yield device
@@ -172,12 +182,6 @@ def _close(device) -> list[str]:
 
 
 def _check(args: argparse.Namespace) -> int:
-    import json
-
-    from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
-    from crs_study.device.schedule import channel_balance
-    from crs_study.paths import shipped_file
-
     device = _open(args)
     layout = device.layout
     with _session(device):
@@ -230,8 +234,6 @@ def _check(args: argparse.Namespace) -> int:
 def _protocol_budget(path: str, layout, options) -> dict:
     """The protocol's stimuli on the wire, with the device's dead-band and refresh (each
     stimulus starts after an idle inter-trial interval: its first frame is full)."""
-    from crs_study.protocol import load_protocol, wire_budget
-
     budget = wire_budget(load_protocol(path), layout, deadband_us=options.deadband_us,
                          refresh_s=options.refresh_s)
     return {c.condition: {
@@ -244,8 +246,6 @@ def _protocol_budget(path: str, layout, options) -> dict:
 
 
 def _neutral(args: argparse.Namespace) -> int:
-    from crs_study.errors import DeviceError
-
     with _session(_open(args)) as device:
         # where the actuators are is unknown (after a crash, anywhere): the slow neutral move
         # close() uses, not the runner's one-frame return to flat
@@ -259,8 +259,6 @@ def _neutral(args: argparse.Namespace) -> int:
 
 
 def _selected(layout, channels: list[str]) -> list[int]:
-    from crs_study.errors import DeviceError
-
     refs = {f"{a.controller}:{a.channel}": a.index for a in layout.actuators}
     if not channels:
         return list(range(layout.n_actuators))
@@ -272,10 +270,6 @@ def _selected(layout, channels: list[str]) -> list[int]:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from crs_study.errors import DeviceError
-
     if not (SWEEP_MIN_RATE_HZ <= args.frame_rate <= SWEEP_MAX_RATE_HZ):
         raise DeviceError(f"--frame-rate: expected {SWEEP_MIN_RATE_HZ:.3g}..{SWEEP_MAX_RATE_HZ:g} "
                           f"frames/s (a frame's move time is at most 30 s), got "
@@ -306,17 +300,6 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    import os
-    from pathlib import Path
-
-    from crs_study.device.calibration import (
-        calibration_table,
-        previous_default_endpoints,
-        write_calibrated_copy,
-    )
-    from crs_study.errors import DeviceError, DeviceFileError
-    from crs_study.geometry.layout import device_file_path
-
     out = Path(args.output)
     if out.exists() and not args.overwrite:
         raise DeviceError(f"--output {out}: already exists; choose another file or --overwrite")
@@ -363,7 +346,7 @@ def _calibrate(args: argparse.Namespace) -> int:
                     print(f"  {key}: zero_us = {found[0]}, full_us = {found[1]}")
             device.send_pulses(neutral, move_ms=300)
     try:
-        new = write_calibrated_copy(device_file_path(args.layout), out, endpoints,
+        new = calibration.write_calibrated_copy(device_file_path(args.layout), out, endpoints,
                                     overwrite=args.overwrite)
     except (OSError, DeviceFileError) as exc:
         # the endpoints took the experimenter a while: print them rather than lose them
@@ -376,8 +359,6 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _adjust(device, neutral, index: int, pulse: int, label: str) -> int | None:
     """Let the experimenter move one channel until it sits where ``label`` says."""
-    from crs_study.errors import DeviceError
-
     steps = {"+": 10, "-": -10, "++": 50, "--": -50, ">": 1, "<": -1}
     while True:
         pulse = min(max(pulse, 500), 2500)
@@ -405,20 +386,6 @@ def _adjust(device, neutral, index: int, pulse: int, label: str) -> int | None:
 
 
 def _monitor(args: argparse.Namespace) -> int:
-    import time
-
-    import serial
-
-    from crs_study.device.codec import FrameDecoder
-    from crs_study.device.serial_device import (
-        MAX_BAUD,
-        MIN_BAUD,
-        parse_serial_url,
-        serial_for_spec,
-    )
-    from crs_study.errors import DeviceError
-    from crs_study.signals import describe
-
     # refused before the port is opened, in one line (a negative or NaN --seconds used to end
     # at once, reporting success; a huge --baud overflowed inside pyserial)
     if args.seconds is not None and not (math.isfinite(args.seconds)
@@ -438,7 +405,9 @@ def _monitor(args: argparse.Namespace) -> int:
             raise DeviceError(f"--port {spec!r}: expected one port, got {len(specs)}")
         spec = specs[0]
     try:
-        port = serial_for_spec(spec, baudrate=args.baud, timeout=0.05, write_timeout=0.5)
+        # looked up on its module: the tests stand a scripted port in for it there
+        port = serial_device.serial_for_spec(spec, baudrate=args.baud, timeout=0.05,
+                                             write_timeout=0.5)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceError(f"--port {spec}: cannot open: {exc}") from None
     decoder = FrameDecoder(args.direction)
@@ -490,8 +459,6 @@ def _monitor(args: argparse.Namespace) -> int:
 
 def _join(runs: list) -> list:
     """Merge skipped runs that touch (a run cut in two by the read boundary)."""
-    from crs_study.device.codec import Skipped
-
     out: list = []
     for run in runs:
         if out and out[-1].offset + len(out[-1].data) == run.offset:

@@ -14,10 +14,11 @@ import os
 from pathlib import Path
 
 from crs_study._files import os_errors
+from crs_study.commands.run import stderr_progress
 from crs_study.errors import DatasetError
-
-NAME = "dry-run"
-HELP = "rehearse a protocol: simulated device, simulated participants, virtual clock"
+from crs_study.paths import resolve_protocol
+from crs_study.protocol import emit_warnings, load_protocol
+from crs_study.session.dry_runs import dry_run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,11 +44,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    from crs_study.commands.run import stderr_progress
-    from crs_study.paths import resolve_protocol
-    from crs_study.protocol import emit_warnings, load_protocol
-    from crs_study.session.dry_runs import dry_run
-
     protocol = resolve_protocol(args.protocol)
     emit_warnings(load_protocol(protocol))  # odd but legal values, once, up front
     results = dry_run(protocol, args.participants, args.out, jobs=args.jobs,

@@ -11,8 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 
-NAME = "init"
-HELP = "copy the shipped protocols, analysis plans and consent forms into a folder to edit"
+from crs_study.paths import copy_defaults
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,8 +20,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from crs_study.paths import copy_defaults
-
     copied = copy_defaults(args.directory)
     for item in copied:
         print(f"{'copied' if item.written else 'unchanged'}  {os.fspath(item.path)}")

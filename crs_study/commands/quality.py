@@ -17,17 +17,34 @@ to use for what is in :mod:`crs_study.benchmarks.display`.
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import sys
 from pathlib import Path
 
-from crs_study._files import os_errors
-from crs_study.errors import CrsStudyError
+from crs_study._files import os_errors, sha256_bytes
+from crs_study.benchmarks.display import (
+    format_table,
+    plot_speed_accuracy,
+    speed_accuracy_rows,
+)
+from crs_study.display import MODELS
+from crs_study.errors import CrsStudyError, DisplayModelError
+from crs_study.geometry.layout import device_file_path, load_layout
+from crs_study.quality.criteria import MAX_D_OVER_L, MIN_D_OVER_L
+from crs_study.quality.lattices import lattice_of
+from crs_study.quality.report import failure_lines, plot_quality, summary_lines, to_csv, to_markdown
+from crs_study.quality.sweep import (
+    DEFAULT_D_OVER_L,
+    DEFAULT_MODELS,
+    Settings,
+    default_cache_dir,
+    sweep,
+)
 
-NAME = "quality"
 #: Upper bounds of the numerical options: beyond them the cost (memory ~ resolution^2 per
 #: surface in 2D) outgrows any gain in accuracy (resolution 100000 was killed out of memory).
 MAX_ORDER, MAX_RESOLUTION, MAX_JOBS = 32, 96, 64
-HELP = "display quality D_P and D_S against d/l per model and lattice (chart, table, --json)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -72,21 +89,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @os_errors(CrsStudyError)  # an unwritable --out or --cache-dir: one line, not a traceback
 def run(args: argparse.Namespace) -> int:
-    import json
-    import os
-
-    import crs_study.display  # noqa: F401  (registers every model)
-    from crs_study.display.base import MODELS
-    from crs_study.errors import DisplayModelError
-    from crs_study.quality.criteria import MAX_D_OVER_L, MIN_D_OVER_L
-    from crs_study.quality.sweep import (
-        DEFAULT_D_OVER_L,
-        DEFAULT_MODELS,
-        Settings,
-        default_cache_dir,
-        sweep,
-    )
-
     args.models = args.models or list(DEFAULT_MODELS)
     args.d_over_l = args.d_over_l or list(DEFAULT_D_OVER_L)
     if args.speed_accuracy:
@@ -120,13 +122,9 @@ def run(args: argparse.Namespace) -> int:
         for p in points:
             if p.D_P is not None:
                 print(json.dumps(p.row()))
-        from crs_study.quality.report import failure_lines
-
         for line in failure_lines(points):
             print(f"quality: {line}", file=sys.stderr)
         return 0
-    from crs_study.quality.report import summary_lines
-
     print("\n".join(summary_lines(points)))
     for path in written:
         print(f"wrote {path}")
@@ -138,11 +136,6 @@ def _device_settings(args: argparse.Namespace) -> dict:
     if args.device is None:
         args.layouts = args.layouts or ["1d", "square", "hex"]
         return {}
-    from crs_study._files import sha256_bytes
-    from crs_study.errors import DisplayModelError
-    from crs_study.geometry.layout import device_file_path, load_layout
-    from crs_study.quality.lattices import lattice_of
-
     layout = load_layout(args.device)  # a malformed file: one line naming key and value
     own = lattice_of(layout)
     if args.layouts not in (None, [own]):
@@ -160,8 +153,6 @@ def _write(points: list, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from crs_study.quality.report import plot_quality, to_csv, to_markdown
-
     out.mkdir(parents=True, exist_ok=True)
     chart = out / "quality.png"
     axes = plot_quality(points)
@@ -175,14 +166,6 @@ def _write(points: list, out: Path) -> list[Path]:
 
 def _speed_accuracy(args: argparse.Namespace) -> int:
     """Time per surface against error versus the reference, chart and table (issue 2, 6)."""
-    import json
-
-    from crs_study.benchmarks.display import (
-        format_table,
-        plot_speed_accuracy,
-        speed_accuracy_rows,
-    )
-
     rows = speed_accuracy_rows(quick=True)
     out = args.out if args.out is not None else (None if args.json else Path("quality"))
     written = []

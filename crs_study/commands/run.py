@@ -17,9 +17,11 @@ from pathlib import Path
 
 from crs_study._files import os_errors
 from crs_study.errors import DatasetError
+from crs_study.paths import resolve_protocol
+from crs_study.protocol import emit_warnings, load_protocol
+from crs_study.session.runner import run_session, seed_check
+from crs_study.session.spec import SessionSpec
 
-NAME = "run"
-HELP = "run or resume a participant session on a device"
 EXIT_INTERRUPTED = 130
 
 
@@ -54,8 +56,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def spec_from_args(args: argparse.Namespace):
-    from crs_study.session.spec import SessionSpec
-
     return SessionSpec(
         protocol=Path(args.protocol), participant=args.participant, dataset=args.out,
         device_url=args.device, session=args.session, responder=args.responder,
@@ -82,8 +82,6 @@ def stderr_progress(enabled: bool):
 
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    from crs_study.session.runner import run_session, seed_check
-
     spec = spec_from_args(args)
     if args.seed_check:
         report = seed_check(spec)
@@ -93,9 +91,6 @@ def run(args: argparse.Namespace) -> int:
             for key, value in report.items():
                 print(f"{key}: {value}")
         return 0
-    from crs_study.paths import resolve_protocol
-    from crs_study.protocol import emit_warnings, load_protocol
-
     # odd but legal values, before anything runs
     emit_warnings(load_protocol(resolve_protocol(spec.protocol)))
     quiet = args.json

@@ -14,9 +14,14 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 
-NAME = "validate"
-HELP = "check a protocol and print its plan (trials, duration, frames, wire use)"
+import numpy as np
+
+from crs_study.paths import resolve_protocol
+from crs_study.protocol import analysis_plan_path, load_protocol, make_plan, wire_budget
+from crs_study.protocol.plan import block_orders, expected_duration_s
+from crs_study.stimuli.stimulus import make_stimulus
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,12 +38,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def summarise(protocol, participant: str = "example", session: int = 1,
               counterbalance: int = 0) -> dict:
     """The plan summary :func:`run` prints, as plain data."""
-    import numpy as np
-
-    from crs_study.protocol import analysis_plan_path, make_plan, wire_budget
-    from crs_study.protocol.plan import block_orders, expected_duration_s
-    from crs_study.stimuli.stimulus import make_stimulus
-
     layout = protocol.layout()
     plan = make_plan(protocol, participant, session, counterbalance)
     levels = protocol.level_values
@@ -124,15 +123,10 @@ def summarise(protocol, participant: str = "example", session: int = 1,
 
 
 def run(args: argparse.Namespace) -> int:
-    from crs_study.paths import resolve_protocol
-    from crs_study.protocol import load_protocol
-
     protocol = load_protocol(resolve_protocol(args.protocol))  # a path, or a shipped name
     summary = summarise(protocol, args.participant, args.session, args.counterbalance)
     plan = summary.pop("_plan")
     if args.list:
-        from dataclasses import asdict
-
         summary["plan_trials"] = [asdict(t) for t in plan.trials]
     if args.json:
         print(json.dumps(summary, indent=2, sort_keys=True, default=str))
