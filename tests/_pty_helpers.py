@@ -16,7 +16,7 @@ import time
 
 import pytest
 
-from crs_study.device import codec
+from crs_study.device import codec, decoder
 
 
 class PtyBoard:
@@ -29,8 +29,8 @@ class PtyBoard:
         self.battery_mv = battery_mv
         self.garbage = garbage
         self.raw = bytearray()
-        self.frames: list[codec.Frame] = []
-        self.decoder = codec.FrameDecoder(codec.Direction.HOST)
+        self.frames: list[decoder.Frame] = []
+        self.decoder = decoder.FrameDecoder(codec.Direction.HOST)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()

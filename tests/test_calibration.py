@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study.device import codec
+from crs_study.device import codec, decoder
 from crs_study.device.calibration import PulseMap, write_calibrated_copy
 from crs_study.errors import DeviceError, DeviceFileError
 from crs_study.geometry.layout import Calibration, device_file_path, load_layout
@@ -117,7 +117,7 @@ def test_no_setpoint_outside_limits_is_ever_encoded(layout1d, cals, stimulus, sh
     assert np.all((pulses >= low) & (pulses <= high))
     assert np.all((pulses >= codec.PULSE_MIN_US) & (pulses <= codec.PULSE_MAX_US))
     frame = codec.servo_move(zip(pm.servo_id, pulses, strict=True), 50)
-    decoded = codec.decode_frame(frame)
+    decoded = decoder.decode_frame(frame)
     assert [p for _, p in decoded.positions] == pulses.tolist()
     # quantisation: at most half a microsecond (plus the clip onto a fractional endpoint) off
     fraction = np.clip(setpoints, 0, pm.travel_mm) / pm.travel_mm
@@ -158,7 +158,8 @@ def test_every_user_converts_millimetres_through_the_one_map(layout2d, monkeypat
     from crs_study.benchmarks.device import PacedPort
     from crs_study.clock import VirtualClock
     from crs_study.device.schedule import wire_plan
-    from crs_study.device.serial_device import SerialDevice, SerialOptions
+    from crs_study.device.serial_device import SerialDevice
+    from crs_study.device.serial_port import SerialOptions
     from crs_study.device.simulated import SimulatedDevice
     from crs_study.geometry.layout import Layout
 
@@ -279,7 +280,8 @@ def test_no_pulse_outside_limits_reaches_either_devices_wire(layout1d, cals, fra
     # SERVO_MOVE that reaches a wire, the neutral pose on close included, stays in range
     from crs_study.benchmarks.device import PacedPort
     from crs_study.clock import VirtualClock
-    from crs_study.device.serial_device import SerialDevice, SerialOptions
+    from crs_study.device.serial_device import SerialDevice
+    from crs_study.device.serial_port import SerialOptions
     from crs_study.device.simulated import SimulatedDevice
 
     acts = tuple(replace(a, calibration=Calibration(zero, full, travel))
@@ -301,7 +303,7 @@ def test_no_pulse_outside_limits_reaches_either_devices_wire(layout1d, cals, fra
                 device.clock.sleep(0.07)
                 if device is serial_device:
                     assert device.wait_sent(1.0)  # every accepted frame written, none merged
-    wire, skipped = codec.decode_all(bytes(port.data))
+    wire, skipped = decoder.decode_all(bytes(port.data))
     received = [f.message for f in wire] + [r.message for r in sim_device.boards[0].received]
     moves = [m for m in received if isinstance(m, codec.ServoMove)]
     assert skipped == [] and sum(m.time_ms == 500 for m in moves) == 2  # both went to neutral

@@ -21,15 +21,13 @@ from crs_study.device.codec import (
     ActionGroupStopped,
     BatteryVoltage,
     Direction,
-    FrameDecoder,
     GetBatteryVoltage,
     MultServoPosRead,
     MultServoUnload,
     ServoMove,
     ServoPositions,
-    decode_all,
-    decode_frame,
 )
+from crs_study.device.decoder import FrameDecoder, decode_all, decode_frame
 from crs_study.errors import DeviceError
 
 VECTOR_ONE_SERVO = bytes.fromhex("55 55 08 03 01 E8 03 01 D0 07")  # servo 1 -> 2000 in 1000 ms

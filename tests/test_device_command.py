@@ -13,7 +13,7 @@ import pytest
 from _pty_helpers import boards_fixture, url_of  # noqa: F401 - the boards fixture
 
 from crs_study.cli import main
-from crs_study.device import codec, protocol_lscsim
+from crs_study.device import codec, decoder, protocol_lscsim
 from crs_study.device.virtual_controller import VirtualController
 from crs_study.geometry.layout import device_file_path, load_layout
 
@@ -27,7 +27,7 @@ def test_neutral_puts_valid_servo_moves_on_both_ttys(boards, capsys):
     for board, channels in zip(pair, (19, 18), strict=True):
         moves = board.wait_for(1)
         # what the tty carried decodes as SERVO_MOVE frames only, nothing skipped
-        frames, skipped = codec.decode_all(bytes(board.raw))
+        frames, skipped = decoder.decode_all(bytes(board.raw))
         assert skipped == [] and len(frames) >= 2  # battery request, then moves
         assert isinstance(frames[0].message, codec.GetBatteryVoltage)
         assert moves and all(m.positions == tuple((ch, 1000) for ch in range(1, channels + 1))
@@ -262,7 +262,7 @@ class _ScriptedPort:
 
 
 def _monitor_through(monkeypatch, port: _ScriptedPort) -> None:
-    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
+    monkeypatch.setattr("crs_study.device.serial_port.serial_for_spec",
                         lambda spec, **kw: port)
 
 
@@ -301,7 +301,7 @@ def test_monitor_on_a_port_that_vanishes_is_one_line(monkeypatch, capsys):
         def close(self) -> None:
             raise OSError(5, "Input/output error")  # closing a pulled-out adapter fails too
 
-    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
+    monkeypatch.setattr("crs_study.device.serial_port.serial_for_spec",
                         lambda spec, **kw: Vanished())
     assert main(["device", "monitor", "--port", "/dev/ttyUSB9"]) == 2
     err = capsys.readouterr().err
@@ -512,7 +512,7 @@ def test_monitor_finds_a_reply_behind_a_false_header_once_the_line_is_quiet(monk
         def close(self) -> None:
             pass
 
-    monkeypatch.setattr("crs_study.device.serial_device.serial_for_spec",
+    monkeypatch.setattr("crs_study.device.serial_port.serial_for_spec",
                         lambda spec, **kw: Port())
     assert main(["device", "monitor", "--port", "loop://", "--direction", "board"]) == 0
     out = capsys.readouterr().out

@@ -13,7 +13,8 @@ from scipy.integrate import quad
 from scipy.linalg import expm
 
 from crs_study.display import get_model
-from crs_study.display.beam import CompressedBeams, fundamental_matrix, no_collapse_number
+from crs_study.display.beam import CompressedBeams
+from crs_study.display.beam_equations import fundamental_matrix, no_collapse_number
 from crs_study.errors import CollapseError, DisplayModelError
 from crs_study.geometry.layout import device_file_path, layout_from_dict, load_layout
 from crs_study.rendering.render import Renderer

@@ -7,7 +7,7 @@ checkable by a pulse pattern: frame k puts pixel 0 (A:1) at 1000 + k us and pixe
 SerialDevice merges (never queues) frames handed over while its wire is busy, so two modes:
 
 * every frame: the test waits after each send until the device's writer has put that frame on
-  the port (``_Port.wait_sent``, the device's own "wire free" wait; baud 115200 so each wait
+  the port (``SerialPort.wait_sent``, the device's own "wire free" wait; baud 115200 so each wait
   is ~1 ms) and then checks all 1000 frames arrive, complete (no bad frames) and in order;
 * free-running: frames handed over as fast as Python can, on a 9600-baud-paced board; the
   board's sequence must be an in-order subsequence that ends with the last frame, with no bad
@@ -23,7 +23,8 @@ import pytest
 
 from crs_study.clock import RealClock, VirtualClock
 from crs_study.device import codec, protocol_lscsim
-from crs_study.device.serial_device import SerialDevice, SerialOptions
+from crs_study.device.serial_device import SerialDevice
+from crs_study.device.serial_port import SerialOptions
 from crs_study.device.simulated import SimulatedDevice
 from crs_study.device.virtual_controller import VirtualController
 from crs_study.device.virtual_pty import VirtualControllerPty

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study.device import codec
+from crs_study.device import codec, decoder
 from crs_study.device.base import BYTE_TIME_S
 from crs_study.device.calibration import PulseMap
 from crs_study.device.schedule import (
@@ -125,7 +125,7 @@ def test_deadband_skips_small_changes_only(layout1d):
     assert split.changed(0, pulses, last, deadband_us=2).tolist() == [3, 4]
     assert split.changed(0, pulses, None).tolist() == list(range(7))
     frame = split.frame(0, pulses, np.array([3, 4]), 67)
-    assert codec.decode_frame(frame) == codec.ServoMove(((4, 1500), (5, 1000)), 67)
+    assert decoder.decode_frame(frame) == codec.ServoMove(((4, 1500), (5, 1000)), 67)
     assert split.frame(0, pulses, np.array([], dtype=int), 67) == b""
 
 

@@ -15,15 +15,10 @@ from _pty_helpers import base0_reversed, boards_fixture, url_of  # noqa: F401 - 
 
 from crs_study.benchmarks.device import PacedPort
 from crs_study.clock import RealClock
-from crs_study.device import codec
+from crs_study.device import codec, decoder
 from crs_study.device.base import BYTE_TIME_S, open_device
-from crs_study.device.serial_device import (
-    OUT_WAITING_LOW_BYTES,
-    DeviceWarning,
-    SerialDevice,
-    SerialOptions,
-    parse_serial_url,
-)
+from crs_study.device.serial_device import DeviceWarning, SerialDevice
+from crs_study.device.serial_port import OUT_WAITING_LOW_BYTES, SerialOptions, parse_serial_url
 from crs_study.errors import DeviceError
 
 FRAME_S = 64 * BYTE_TIME_S  # a full 19-servo frame, 66.7 ms
@@ -329,7 +324,7 @@ def test_writer_waits_for_the_output_buffer_and_reports_one_that_never_drains(la
         assert len(port.writes) == 1
         port.backlog = OUT_WAITING_LOW_BYTES  # drained: the newest frame goes, once
         assert device.wait_sent(1.0) and len(port.writes) == 2
-        assert codec.decode_all(bytes(port.data))[0][-1].message.positions[0] == (1, 1333)
+        assert decoder.decode_all(bytes(port.data))[0][-1].message.positions[0] == (1, 1333)
         port.backlog = 100  # stuck (flow control held, a wedged adapter)
         device.send(np.full(7, 4.0))
         time.sleep(0.5)
@@ -383,5 +378,5 @@ def test_neutral_on_a_failed_port_waits_for_the_write_in_progress(layout1d):
     device.close()
     (first_start, first_end, _), (second_start, _, _) = sorted(port.writes)
     assert second_start >= first_end  # one after the other
-    frames, skipped = codec.decode_all(bytes(port.data))
+    frames, skipped = decoder.decode_all(bytes(port.data))
     assert skipped == [] and frames[-1].message.time_ms == 500  # neutral, whole

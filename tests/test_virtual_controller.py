@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study.device import codec
+from crs_study.device import codec, decoder
 from crs_study.device.virtual_controller import (
     BROWNOUT_BATTERY_MV,
     ServoBank,
@@ -190,7 +190,7 @@ def test_unload_unknown_ids_and_position_read():
     vc.receive(codec.servo_move({30: 1500}, 0), 0.1)  # valid frame, no such channel here
     assert vc.unknown_ids == 1
     reply = vc.receive(codec.mult_servo_pos_read([1, 2]), 0.2)
-    frames = codec.FrameDecoder("board").feed(reply)
+    frames = decoder.FrameDecoder("board").feed(reply)
     assert frames[0].message.positions == ((1, 2000), (2, 1800))
     vc.receive(codec.mult_servo_unload([1]), 0.3)
     assert vc.positions_us(1.0)[0] == pytest.approx(1000.0)  # limp, at rest

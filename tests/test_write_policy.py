@@ -17,11 +17,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from crs_study.clock import VirtualClock
-from crs_study.device import codec
+from crs_study.device import codec, decoder
 from crs_study.device.base import BYTE_TIME_S, default_move_ms
 from crs_study.device.calibration import PulseMap
 from crs_study.device.schedule import simulate_port
-from crs_study.device.serial_device import SerialDevice, SerialOptions
+from crs_study.device.serial_device import SerialDevice
+from crs_study.device.serial_port import SerialOptions
 from crs_study.device.simulated import SimOptions, SimulatedDevice
 from crs_study.device.writes import ChannelSplit, PortWrites, WritePolicy
 from crs_study.errors import DeviceError
@@ -286,7 +287,7 @@ def test_serial_simulated_and_estimate_write_the_same_bytes_at_the_same_times(
         assert [d for _, d in sim] == [d for _, d in real]
         assert [t for t, _ in sim] == pytest.approx([t for t, _ in real], abs=1e-9)
         assert real[0] == (0.0, query)  # asked on open
-        neutral = codec.decode_frame(real[-1][1])
+        neutral = decoder.decode_frame(real[-1][1])
         assert neutral.time_ms == 500 and real[-1][0] == pytest.approx(end)  # and on close
         assert est == real[1:-1]
 
@@ -304,6 +305,6 @@ def test_a_frame_handed_over_the_instant_a_wire_frees_waits_for_the_one_waiting(
     estimated = _estimated_writes(layout, frames, times, options)
     a_real, a_sim, a_est = serial_writes[0], simulated[0], estimated[0]
     assert [d for _, d in a_sim] == [d for _, d in a_real] and a_est == a_real[1:-1]
-    moves = [codec.decode_frame(d) for _, d in a_est]
+    moves = [decoder.decode_frame(d) for _, d in a_est]
     assert [m.positions[0][1] for m in moves] == [1111, 1222, 1333]  # 1, 2, 3 mm on 9 mm
     assert [t for t, _ in a_est] == [0.05, times[2], times[2] + 64 * BYTE_TIME_S]

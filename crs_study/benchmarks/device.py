@@ -31,7 +31,8 @@ from crs_study.clock import RealClock
 from crs_study.device.base import BYTE_TIME_S, full_frame_rate_hz, full_frame_wire_time_s
 from crs_study.device.calibration import PulseMap
 from crs_study.device.schedule import wire_plan
-from crs_study.device.serial_device import SerialDevice, SerialOptions
+from crs_study.device.serial_device import SerialDevice
+from crs_study.device.serial_port import SerialOptions
 from crs_study.device.writes import ChannelSplit
 from crs_study.geometry.layout import load_layout
 from crs_study.paths import shipped_file

@@ -13,7 +13,7 @@ Figures (virtual clock, 2D device, the default protocol's ten digit stimuli, CRS
 * the same for a first presentation (caches cleared before every frame, informative), and
   with every channel changing every frame; target <= 150 us.
 * the codec alone: both full frames encoded and decoded with the vectorised checks
-  (:func:`~crs_study.device.codec.servo_move_arrays`, :func:`~.codec.decode_frame`) against
+  (:func:`~crs_study.device.codec.servo_move_arrays`, :func:`~.decoder.decode_frame`) against
   the element-wise checked round trip; and :meth:`PulseMap.to_pulses` against the ``np.clip``
   formula it replaced (both give the same bytes: tests/test_codec.py, test_calibration.py).
 * simulated seconds per wall second for a 15 frames/s stream, against real time (1 s/s);
@@ -34,7 +34,8 @@ import numpy as np
 
 from crs_study.benchmarks import Figure, median_seconds
 from crs_study.clock import VirtualClock
-from crs_study.device.codec import ServoMove, decode_frame, servo_move_arrays
+from crs_study.device.codec import ServoMove, servo_move_arrays
+from crs_study.device.decoder import decode_frame
 from crs_study.device.simulated import SimulatedDevice
 from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol

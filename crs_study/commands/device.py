@@ -27,17 +27,13 @@ import numpy as np
 import serial
 
 from crs_study.commands import HelpFormatter
-from crs_study.device import calibration, open_device, serial_device
+from crs_study.device import calibration, open_device, serial_port
 from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
 from crs_study.device.calibration import calibration_table, previous_default_endpoints
-from crs_study.device.codec import FrameDecoder, Skipped
+from crs_study.device.decoder import FrameDecoder, Skipped
 from crs_study.device.schedule import channel_balance
-from crs_study.device.serial_device import (
-    MAX_BAUD,
-    MIN_BAUD,
-    DeviceWarning,
-    parse_serial_url,
-)
+from crs_study.device.serial_device import DeviceWarning
+from crs_study.device.serial_port import MAX_BAUD, MIN_BAUD, parse_serial_url
 from crs_study.errors import DeviceError, DeviceFileError
 from crs_study.geometry.layout import device_file_path, load_layout
 from crs_study.paths import DEFAULT_PROTOCOL, shipped_file
@@ -406,8 +402,8 @@ def _monitor(args: argparse.Namespace) -> int:
         spec = specs[0]
     try:
         # looked up on its module: the tests stand a scripted port in for it there
-        port = serial_device.serial_for_spec(spec, baudrate=args.baud, timeout=0.05,
-                                             write_timeout=0.5)
+        port = serial_port.serial_for_spec(spec, baudrate=args.baud, timeout=0.05,
+                                           write_timeout=0.5)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceError(f"--port {spec}: cannot open: {exc}") from None
     decoder = FrameDecoder(args.direction)

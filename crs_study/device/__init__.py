@@ -4,12 +4,16 @@ Layers inside (each module imports only those above it)::
 
     base          the interface (Device, FrameReport), wire constants, the URL registry
     calibration   millimetres to whole-us pulse widths and back (PulseMap)
-    codec         LSC frames as typed data and bytes
+    codec         LSC frames as typed data, and their bytes
+    decoder       bytes back to frames: one frame, or a stream with garbage in it
     writes        the host's write policy: what goes on each port, and when (pure)
     schedule      the estimate of a stimulus's wire use and latency; channel balance
     virtual_controller, protocol_lscsim, virtual_pty    a virtual LSC-24 board, as a pyserial
                   URL and as a pseudo-terminal
-    serial_device, simulated    the two devices
+    serial_port   one board's port: its options, its writer and reader threads
+    serial_device the real device: one port per controller
+    sim_options   what a sim:// URL sets (timings, injected faults)
+    simulated     the simulated device: the same bytes, decoded by virtual boards
 
 ``open_device(url, layout, clock)`` looks the URL's scheme up in the registry filled here:
 ``serial://PORT[,PORT...]`` and ``sim://[?options]``.

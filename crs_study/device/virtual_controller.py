@@ -6,7 +6,7 @@ their last bit arrives), behind a pyserial URL (``lscsim://``, :mod:`.protocol_l
 behind a pseudo-terminal (:mod:`.virtual_pty`).
 
 What it models (hardware.md)
-    * Framing: the streaming :class:`~crs_study.device.codec.FrameDecoder` of the real
+    * Framing: the streaming :class:`~crs_study.device.decoder.FrameDecoder` of the real
       codec; skipped garbage and malformed frames are counted as bad frames and beep.
     * SERVO_MOVE: each servo moves from where it is to the commanded pulse width along a
       straight line in time, taking ``max(T, |dp| / v)`` where ``T`` is the frame's move time
@@ -31,7 +31,6 @@ import numpy as np
 
 from crs_study.device.codec import (
     Direction,
-    FrameDecoder,
     GetBatteryVoltage,
     Message,
     MultServoPosRead,
@@ -40,6 +39,7 @@ from crs_study.device.codec import (
     battery_voltage_reply,
     servo_positions_reply,
 )
+from crs_study.device.decoder import FrameDecoder
 
 #: What a healthy 2S pack reads (mV); the value the board reports unless told otherwise.
 NORMAL_BATTERY_MV = 7400

@@ -30,7 +30,7 @@ from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 from scipy.optimize import brentq
 
 from crs_study.display.base import register
-from crs_study.display.beam import no_collapse_number
+from crs_study.display.beam_equations import no_collapse_number
 from crs_study.display.network import (
     BeamProfiles,
     NetworkModel,

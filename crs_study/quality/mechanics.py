@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from crs_study.display.beam import no_collapse_number  # Eq. 4, one definition (re-exported)
+from crs_study.display.beam_equations import no_collapse_number
 from crs_study.errors import CollapseError, RenderError
 from crs_study.geometry.layout import BeamSection, Layout
 from crs_study.rendering.render import BeamGeometry, split_feed
