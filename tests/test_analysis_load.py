@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from crs_study.analysis.load import load_datasets, with_exclusions
 from crs_study.analysis.plan import Exclusions
+from crs_study.dataset import SessionMetadata
 from crs_study.dataset.schema import TRIAL_COLUMNS
 from crs_study.errors import DatasetError
 
@@ -144,6 +145,48 @@ def test_missing_column_and_missing_dataset(tmp_path):
 def test_missing_sidecar_is_a_warning(small):
     session_files(small)[0][1].unlink()
     assert any("session metadata missing" in w for w in load_datasets(small).warnings)
+
+
+def test_synthetic_sidecars_are_the_runners_format(small):
+    """synthetic wrote a reduced sidecar (19 keys, "Session": "1") that the strict reader of
+    the runner's format refused; it writes a real SessionMetadata now."""
+    for tsv, sidecar in session_files(small):
+        meta = SessionMetadata.read(sidecar)
+        assert meta.to_json() == sidecar.read_text()
+        assert (meta.session, meta.status, meta.trials_completed) == (
+            1, "complete", len(tsv.read_text().splitlines()) - 1)
+    assert not [w for w in load_datasets(small).warnings if "session metadata" in w]
+
+
+@pytest.mark.parametrize(("change", "reason"), [
+    pytest.param({"Experimenter": "AB"}, "unknown key Experimenter", id="unknown-key"),
+    pytest.param({"Seed": "seven"}, "Seed", id="mistyped"),
+    pytest.param({"Clock": "sundial"}, "Clock", id="bad-choice"),
+])
+def test_an_invalid_sidecar_is_read_strictly_a_warning_or_with_strict_an_error(small, change,
+                                                                              reason):
+    """The sidecar is read as the runner's format (SessionMetadata): a key it does not know, or
+    a value of the wrong type, leaves the session's trials unchecked (it was ignored)."""
+    tsv, sidecar = session_files(small)[1]
+    edit_sidecar(sidecar, **change)
+    warnings = [w for w in load_datasets(small).warnings if sidecar.name in w]
+    assert len(warnings) == 1 and "session metadata unreadable (" in warnings[0]
+    assert reason in warnings[0] and warnings[0].endswith("its trials are unchecked")
+    with pytest.raises(DatasetError, match="session metadata unreadable") as info:
+        load_datasets(small, strict=True)
+    assert "\n" not in str(info.value)
+
+
+def test_a_trial_file_stored_where_its_name_does_not_say_is_one_line(small):
+    """Sessions are found by the dataset's own paths module (crs_study.dataset.bids): a file
+    moved by hand under another participant's folder was loaded under its name's label."""
+    tsv, sidecar = session_files(small)[0]
+    other = tsv.parents[2].with_name("sub-99") / "ses-1" / "beh"
+    other.mkdir(parents=True)
+    shutil.move(tsv, other / tsv.name)
+    with pytest.raises(DatasetError, match=r"the file name says sub-01 ses-1 but it is stored "
+                       r"in .*sub-99/ses-1/beh"):
+        load_datasets(small)
 
 
 def test_several_datasets_keep_participants_apart(tmp_path):

@@ -11,7 +11,7 @@ import pytest
 from analysis_fixtures import dataset, explicit_dataset, session_files, write_plan
 from scipy import stats
 
-from crs_study.analysis.report import analyze, analyze_dataset, format_p
+from crs_study.analysis.report import analyze, analyze_dataset, format_p, headline
 from crs_study.cli import main
 
 CONDITIONS = ("pixel-only", "crs")
@@ -97,6 +97,25 @@ def test_headline_reads_like_the_paper(full_run):
     assert f"(mean of {n} participants, 95 % t interval across participants); GLMM" in \
         result.headline
     assert "Wilson" not in result.headline and "penalised" not in result.headline
+
+
+def test_headline_takes_the_kind_of_comparison_from_fields_not_from_method_labels(full_run):
+    """headline() read its flags out of method labels ("no random effect estimable" in the
+    label; a comparison counted as primary when its label began with GLMM or Fisher)."""
+    _, _, result = full_run
+    results = json.loads(json.dumps(result.results))  # as results.json holds them
+    first = results["comparisons"][0]
+    assert (first["primary"], first["test"], first["logistic_regression"]) == (
+        True, "glmm", False)
+    assert all(not c["primary"] for c in results["comparisons"][1:])
+    first["method"] = "a label that says nothing"
+    first["logistic_regression"] = True
+    results["comparisons"][1]["method"] = "GLMM lookalike (a secondary test)"
+    text = headline(results)
+    assert "; GLMM odds ratio (logistic regression: no participant variance estimable) " in text
+    assert text.count("odds ratio") == 1
+    first["test"] = "fisher"
+    assert "; odds ratio (Fisher) (logistic regression" in headline(results)
 
 
 def test_pooled_and_between_participant_accuracy_intervals(full_run):

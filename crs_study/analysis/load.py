@@ -27,6 +27,11 @@ exclusion                      str        the first reason that applies ("" when
                                           practice, device_fault, timeout, anticipation, slow
 =============================  =========  ==================================================
 
+Sessions are found by :func:`crs_study.dataset.bids.find_sessions` (the layout the runner
+writes) and each sidecar is read as :class:`~crs_study.dataset.SessionMetadata`, strictly: a
+missing, unreadable or invalid sidecar leaves its trials unchecked (a warning, or a
+:class:`DatasetError` with ``strict``).
+
 Checks on every session: the sidecar exists and names the same participant, session and task;
 ``TrialsSha256`` equals the sha256 of the ``_beh.tsv`` bytes, ``ProtocolSha256`` and
 ``DeviceFileSha256`` those of the recorded texts; ``TrialsCompleted`` equals the number of
@@ -46,8 +51,8 @@ import pandas as pd
 
 from crs_study._files import os_errors, sha256_bytes
 from crs_study.analysis.plan import Exclusions
-from crs_study.dataset import WITHDRAWAL_JOURNAL
-from crs_study.dataset.schema import MISSING, SESSION_STATUSES, TASK, TRIAL_COLUMNS
+from crs_study.dataset import WITHDRAWAL_JOURNAL, SessionMetadata, SessionPaths, find_sessions
+from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS
 from crs_study.errors import DatasetError
 
 INT_COLUMNS = ("trial_index", "block", "repetition", "frames", "late_frames", "response")
@@ -57,6 +62,11 @@ BOOL_COLUMNS = ("timed_out", "device_fault")
 TEXT_COLUMNS = ("trial_type", "condition", "responder")
 REQUIRED_COLUMNS = ("trial_type", "condition", "digit", "correct", "response")
 EXCLUSION_REASONS = ("practice", "device_fault", "timeout", "anticipation", "slow")
+#: Sidecar keys each session's row of :attr:`LoadedData.sessions` holds (as the sidecar has
+#: them), besides ``Protocol``.
+SESSION_SUMMARY_KEYS = ("Status", "Seed", "SoftwareVersion", "StartTime", "EndTime",
+                        "ConsentFormVersion", "DeviceURL", "Responder", "Clock", "ProtocolPath",
+                        "TrialsSha256")
 
 
 @dataclass(frozen=True)
@@ -94,8 +104,9 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
         names = [str(Path(p)) for p in paths]
     seen: dict[tuple[str, str, str], Path] = {}   # (participant, session, sha256) -> dataset
     for path, name in zip(paths, names, strict=True):
-        for tsv in _session_files(Path(path)):
-            table, meta, problems = _read_session(tsv, name, len(files))
+        for session in _sessions_of(Path(path)):
+            tsv = session.tsv
+            table, meta, problems = _read_session(session, name, len(files))
             key = (meta["participant"], meta["session"], meta.pop("_sha256"))
             if key in seen and seen[key] != Path(path):
                 raise DatasetError(
@@ -134,7 +145,7 @@ def _refuse_repeated_datasets(paths: list[Path]) -> None:
         try:
             stat = path.stat()
         except OSError:
-            continue    # reported as missing by _session_files, with the path as given
+            continue    # reported as missing by _sessions_of, with the path as given
         identity = (stat.st_dev, stat.st_ino)
         if identity in first:
             raise DatasetError(f"{path}: the same dataset as {first[identity]} (given twice); "
@@ -198,47 +209,47 @@ def _dataset_name(path: Path) -> str:
     return str(name) if name else path.resolve().name
 
 
-def _session_files(root: Path) -> list[Path]:
+def _sessions_of(root: Path) -> list[SessionPaths]:
+    """The sessions of the dataset at ``root`` (:func:`crs_study.dataset.bids.find_sessions`)."""
     if not root.is_dir():
         raise DatasetError(f"{root}: no such dataset directory")
     if (root / WITHDRAWAL_JOURNAL).exists():
         # A withdrawal was interrupted: analysing now could include data that must go.
         raise DatasetError(f"{root}: a participant's withdrawal was interrupted; finish it "
                            f"first: crs-study consent recover --dataset {root}")
-    files = sorted(root.glob(f"sub-*/ses-*/beh/sub-*_ses-*_task-{TASK}_beh.tsv"))
-    files += sorted(root.glob(f"sub-*/beh/sub-*_task-{TASK}_beh.tsv"))
-    if not files:
+    sessions = find_sessions(root)
+    if not sessions:
         raise DatasetError(f"{root}: no sessions found (expected "
                            f"sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-{TASK}_beh.tsv)")
-    return files
+    return sessions
 
 
-def _labels(tsv: Path) -> tuple[str, str]:
-    parts = dict(p.split("-", 1) for p in tsv.name.split("_") if "-" in p)
-    return parts.get("sub", ""), parts.get("ses", "")
+def _read_sidecar(paths: SessionPaths) -> tuple[SessionMetadata | None, list[str]]:
+    """The session's sidecar, read strictly (:class:`SessionMetadata`); a missing, unreadable
+    or invalid one is a problem (a warning, or an error with ``strict``), its trials then
+    unchecked."""
+    sidecar = paths.sidecar
+    if not sidecar.exists():
+        return None, [f"{sidecar}: session metadata missing; its trials are unchecked"]
+    try:
+        return SessionMetadata.read(sidecar), []
+    except DatasetError as exc:
+        reason = str(exc).removeprefix(f"{sidecar}: ")
+        return None, [f"{sidecar}: session metadata unreadable ({reason}); its trials are "
+                      "unchecked"]
 
 
-def _read_session(tsv: Path, dataset: str, file_number: int
+def _read_session(paths: SessionPaths, dataset: str, file_number: int
                   ) -> tuple[pd.DataFrame, dict, list[str]]:
     """One session's rows as read (typed later, all files at once) and its metadata."""
-    problems: list[str] = []
-    participant, session = _labels(tsv)
+    tsv = paths.tsv
+    participant = paths.participant
+    session = "" if paths.session is None else str(paths.session)
     with os_errors(DatasetError, "read", tsv):
         data = tsv.read_bytes()
-    sidecar_path = tsv.with_suffix(".json")
-    try:
-        meta = json.loads(sidecar_path.read_text(encoding="utf-8"))
-        if not isinstance(meta, dict):
-            raise ValueError("not an object")
-    except FileNotFoundError:
-        meta = {}
-        problems.append(f"{sidecar_path}: session metadata missing; its trials are unchecked")
-    except (OSError, ValueError) as exc:
-        meta = {}
-        problems.append(f"{sidecar_path}: session metadata unreadable ({exc}); "
-                        "its trials are unchecked")
-    if meta:
-        problems += _check_metadata(meta, tsv, data, participant, session)
+    metadata, problems = _read_sidecar(paths)
+    if metadata is not None:
+        problems += _check_metadata(metadata, paths, data, session)
     try:
         raw = pd.read_csv(io.BytesIO(data), sep="\t", keep_default_na=False,
                           na_values=[MISSING], dtype={c: str for c in TEXT_COLUMNS})
@@ -248,30 +259,28 @@ def _read_session(tsv: Path, dataset: str, file_number: int
     if missing:
         raise DatasetError(f"{tsv}: missing column {missing[0]!r} "
                            f"(expected the columns of crs_study.dataset.schema.TRIAL_COLUMNS)")
-    if meta and "TrialsCompleted" in meta and meta["TrialsCompleted"] != len(raw):
-        problems.append(f"{tsv}: TrialsCompleted is {meta['TrialsCompleted']!r} but the file "
+    if metadata is not None and metadata.trials_completed != len(raw):
+        problems.append(f"{tsv}: TrialsCompleted is {metadata.trials_completed!r} but the file "
                         f"holds {len(raw)} trials (possible tampering)")
     raw.insert(0, "_row", np.arange(2, len(raw) + 2))
     raw.insert(0, "_file", file_number)
     raw.insert(0, "session", session)
     raw.insert(0, "participant", participant)
     raw.insert(0, "dataset", dataset)
+    recorded = metadata.to_dict() if metadata is not None else {}  # the sidecar's own text
     summary = {"dataset": dataset, "participant": participant, "session": session,
                "file": str(tsv), "n_rows": len(raw),
-               **{k: meta.get(k) for k in ("Status", "Seed", "SoftwareVersion", "StartTime",
-                                           "EndTime", "ConsentFormVersion", "DeviceURL",
-                                           "Responder", "Clock", "ProtocolPath",
-                                           "TrialsSha256")}}
-    summary["Protocol"] = meta.get("Protocol")
+               **{k: recorded.get(k) for k in SESSION_SUMMARY_KEYS}}
+    summary["Protocol"] = recorded.get("Protocol")
     summary["_sha256"] = sha256_bytes(data)   # for the copy check; popped by load_datasets
     return raw, summary, problems
 
 
-def _check_metadata(meta: dict, tsv: Path, data: bytes, participant: str,
+def _check_metadata(metadata: SessionMetadata, paths: SessionPaths, data: bytes,
                     session: str) -> list[str]:
     problems = []
-    sidecar = tsv.with_suffix(".json")
-    recorded = meta.get("TrialsSha256")
+    sidecar, tsv = paths.sidecar, paths.tsv
+    recorded = metadata.trials_sha256
     actual = sha256_bytes(data)
     if recorded is None:
         problems.append(f"{sidecar}: TrialsSha256 missing; the trials cannot be verified")
@@ -279,25 +288,22 @@ def _check_metadata(meta: dict, tsv: Path, data: bytes, participant: str,
         problems.append(f"{tsv}: TAMPERED? sha256 is {actual[:16]}... but the session recorded "
                         f"TrialsSha256 {str(recorded)[:16]}...; the file changed after the "
                         "session was written")
-    for text_key, sha_key in (("Protocol", "ProtocolSha256"), ("DeviceFile", "DeviceFileSha256")):
-        text, sha = meta.get(text_key), meta.get(sha_key)
-        if isinstance(text, str) and isinstance(sha, str) and \
-                sha256_bytes(text.encode("utf-8")) != sha:
+    for text, sha, sha_key, text_key in (
+            (metadata.protocol_text, metadata.protocol_sha256, "ProtocolSha256", "Protocol"),
+            (metadata.device_file_text, metadata.device_file_sha256, "DeviceFileSha256",
+             "DeviceFile")):
+        if sha256_bytes(text.encode("utf-8")) != sha:
             problems.append(f"{sidecar}: {sha_key} does not match the recorded {text_key} "
                             "text (possible tampering)")
-    for key, expected in (("Participant", participant), ("Session", session),
-                          ("TaskName", TASK)):
-        value = meta.get(key)
-        if value is not None and str(value).removeprefix("sub-").removeprefix("ses-") \
-                != expected:
+    for key, value, expected in (("Participant", metadata.participant, paths.participant),
+                                 ("Session", str(metadata.session), session),
+                                 ("TaskName", metadata.task_name, TASK)):
+        if value != expected:
             problems.append(f"{sidecar}: {key} is {value!r} but the file name says "
                             f"{expected!r} (possible tampering)")
-    status = meta.get("Status")
-    if status is not None and status not in SESSION_STATUSES:
-        problems.append(f"{sidecar}: Status {status!r} is not one of {list(SESSION_STATUSES)}")
-    elif status in ("running", "interrupted"):
-        problems.append(f"{sidecar}: session status is {status!r}: its "
-                        f"{meta.get('TrialsCompleted', '?')} of {meta.get('TrialsPlanned', '?')} "
+    if metadata.status in ("running", "interrupted"):
+        problems.append(f"{sidecar}: session status is {metadata.status!r}: its "
+                        f"{metadata.trials_completed} of {metadata.trials_planned} "
                         "trials are analysed as they stand")
     return problems
 

@@ -26,6 +26,7 @@ a wrong request (an unknown method, ``n_quadrature`` out of range) raises
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import pandas as pd
@@ -51,7 +52,10 @@ class Comparison:
     ``std_error``, ``p_wald`` and ``ci95_wald`` are None, ``ci95`` holds the one-sided
     unpenalised profile limit (the other end None: infinite), ``p_value`` is the
     likelihood-ratio p at the supremum, and ``penalised`` the penalised fit's odds ratio, Wald
-    interval and p, labelled so and never the primary figure.
+    interval and p, labelled so and never the primary figure. ``test`` names the test
+    (``"glmm"`` or ``"fisher"``, as ``method`` describes it in words) and
+    ``logistic_regression`` says the GLMM had no random effect to estimate (the model is then
+    a logistic regression): fields, so a reader never parses them out of ``method``.
     """
 
     condition: str
@@ -68,6 +72,8 @@ class Comparison:
     ci95_wald: tuple[float, float] | None = None
     separated: bool = False
     penalised: dict | None = None
+    test: Literal["glmm", "fisher"] = "glmm"
+    logistic_regression: bool = False
 
     def to_dict(self) -> dict:
         return {"condition": self.condition, "reference": self.reference,
@@ -76,7 +82,8 @@ class Comparison:
                 "ci95_wald": None if self.ci95_wald is None else list(self.ci95_wald),
                 "p_value": self.p_value, "p_wald": self.p_wald, "p_lr": self.p_lr,
                 "log_odds": self.log_odds, "std_error": self.std_error,
-                "separated": self.separated, "penalised": self.penalised}
+                "separated": self.separated, "penalised": self.penalised, "primary": True,
+                "test": self.test, "logistic_regression": self.logistic_regression}
 
 
 @dataclass(frozen=True)
@@ -377,13 +384,15 @@ def _comparison(test: LrComparison, label: str, odds: pd.DataFrame,
                        "log_odds": float(full.params[column]),
                        "std_error": float(full.bse[column]), "prior": full.penalty,
                        "note": "posterior mode under the prior: not a maximum-likelihood "
-                               "estimate, never the primary figure"})
+                               "estimate, never the primary figure"},
+            logistic_regression=full.method == "glm")
     return Comparison(
         condition=test.condition, reference=test.reference, method=label,
         estimate=float(odds.loc[column, "odds_ratio"]), ci95=ci,
         p_value=floor_p(p_wald if p_lr is None else p_lr), p_wald=floor_p(p_wald),
         p_lr=None if p_lr is None else floor_p(p_lr), log_odds=float(full.params[column]),
-        std_error=float(full.bse[column]), ci_method=how, ci95_wald=wald_ci)
+        std_error=float(full.bse[column]), ci_method=how, ci95_wald=wald_ci,
+        logistic_regression=full.method == "glm")
 
 
 def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, groups: list[str], method: str,
@@ -433,5 +442,5 @@ def _fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: st
                               float(two_by_two.oddsratio), (float(low), float(high)),
                               floor_p(p), log_odds=float(two_by_two.log_oddsratio),
                               std_error=float(two_by_two.log_oddsratio_se),
-                              ci_method="Woolf (Wald on the log odds ratio)"))
+                              ci_method="Woolf (Wald on the log odds ratio)", test="fisher"))
     return tuple(out)

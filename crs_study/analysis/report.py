@@ -12,8 +12,10 @@ sessions' protocol declares as ``[study].analysis_plan``, else the shipped
 ``results.json`` keys: ``headline``, ``warnings`` (list of sentences), ``conditions``
 (per condition ``n_trials, n_correct, accuracy, ci95, p_vs_chance, n_participants``),
 ``reference``, ``comparisons`` (the primary GLMM comparison(s) first, then the secondary
-tests; each ``method, condition, reference, estimate, ci95, p_value``; the GLMM estimate is
-an odds ratio), ``primary`` (omnibus test and the fitted model), ``per_digit``,
+tests; each ``method, condition, reference, estimate, ci95, p_value`` and ``primary`` (true
+for the primary comparisons, which also say their ``test``, ``glmm`` or ``fisher``, and whether
+the GLMM was a ``logistic_regression`` without random effect); the GLMM estimate is an odds
+ratio), ``primary`` (omnibus test and the fitted model), ``per_digit``,
 ``information_transfer`` (per condition ``bits, ci95, ...``), ``speed_accuracy``,
 ``psychometric``, ``exclusions``, ``chance``, ``alpha``, ``plan``, ``datasets``,
 ``sessions``, ``software``, ``generated_at``.
@@ -49,6 +51,7 @@ from crs_study.analysis.report_text import write_report
 from crs_study.analysis.secondary import secondary_tests
 from crs_study.analysis.sources import select_sources, summarise_sources
 from crs_study.analysis.speed_accuracy import analyse_speed_accuracy
+from crs_study.dataset.bids import DERIVATIVES, derivatives_dir
 from crs_study.errors import AnalysisError, ConfigError, DatasetError
 from crs_study.paths import shipped_file
 
@@ -326,11 +329,11 @@ def headline(results: dict) -> str:
             text += f" ({level} {methods[0]})"
         else:
             text += f" ({level} intervals: {'; '.join(dict.fromkeys(methods))})"
-    glmm = [c for c in results["comparisons"] if c["method"].startswith(("GLMM", "Fisher"))]
+    glmm = [c for c in results["comparisons"] if c["primary"]]
     for c in glmm:
-        name = "GLMM odds ratio" if c["method"].startswith("GLMM") else "odds ratio (Fisher)"
+        name = "GLMM odds ratio" if c["test"] == "glmm" else "odds ratio (Fisher)"
         notes = []
-        if "no random effect estimable" in c["method"]:
+        if c["logistic_regression"]:
             notes.append("logistic regression: no participant variance estimable")
         if len(glmm) > 1:
             notes.insert(0, f"{c['condition']} vs {c['reference']}")
@@ -420,12 +423,12 @@ def _out_dir(datasets: list[Path], out_dir: str | Path | None) -> Path:
         return Path(out_dir)
     if len(datasets) > 1:
         raise DatasetError(f"{len(datasets)} datasets and no output directory: give --out DIR")
-    return datasets[0] / "derivatives" / "crs-study"
+    return derivatives_dir(datasets[0])
 
 
 def _derivative_description(out: Path, datasets: list[Path]) -> None:
     """A BIDS derivative's dataset_description.json when writing inside a dataset."""
-    if out.parent.name != "derivatives" or (out / "dataset_description.json").exists():
+    if out.parent.name != DERIVATIVES or (out / "dataset_description.json").exists():
         return
     description = {"Name": "crs-study analysis", "BIDSVersion": "1.9.0",
                    "DatasetType": "derivative",

@@ -50,7 +50,8 @@ DIFFERENCE_DECIMALS = 12
 @dataclass(frozen=True)
 class TestResult:
     """A comparison of ``condition`` with ``reference`` (estimate: condition - reference,
-    or an odds ratio condition/reference for McNemar)."""
+    or an odds ratio condition/reference for McNemar). In ``results.json`` it is marked
+    ``"primary": false`` (the primary comparisons, :class:`~.primary.Comparison`, ``true``)."""
 
     condition: str
     reference: str
@@ -71,7 +72,7 @@ class TestResult:
                 "ci95": None if self.ci95 is None else list(self.ci95),
                 "p_value": self.p_value, "statistic": self.statistic, "n": self.n,
                 "effect_size": self.effect_size, "effect_size_name": self.effect_size_name,
-                **self.extra, "note": self.note}
+                **self.extra, "note": self.note, "primary": False}
 
 
 def participant_differences(by_participant: pd.DataFrame, condition: str,

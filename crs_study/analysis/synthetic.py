@@ -4,7 +4,9 @@ The generating model is the analysis' own: ``logit P(correct) = b_condition + u_
 v_digit`` with ``u ~ N(0, participant_sd^2)`` and ``v ~ N(0, digit_sd^2)``; an error names
 another digit, more often a neighbour; response times are log-normal, errors slower. Files
 follow ``crs_study.dataset.schema`` and the layout in DESIGN.md ("The stored dataset"), with each
-session's ``TrialsSha256`` the sha256 of its ``_beh.tsv`` bytes, so the loader's checks pass.
+session's sidecar a real :class:`~crs_study.dataset.SessionMetadata` (the runner's format,
+read as strictly) whose ``TrialsSha256`` is the sha256 of its ``_beh.tsv`` bytes, so the loader's
+checks pass. The column dictionary is the runner's (:func:`crs_study.dataset.column_dictionary`).
 This is a test and benchmark aid; real datasets come from ``crs-study run`` / ``dry-run``.
 """
 
@@ -12,14 +14,18 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
 
 from crs_study import __version__
 from crs_study._files import sha256_bytes
-from crs_study.dataset import column_dictionary  # the runner's, so both files agree
+from crs_study.dataset import SessionMetadata, SessionPaths, column_dictionary
 from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS
+
+#: The frame rate a synthetic session records (the shipped protocol's).
+SYNTHETIC_FRAME_RATE_HZ = 15.0
 
 
 @dataclass(frozen=True)
@@ -157,22 +163,23 @@ def write_sessions(root: str | Path, sessions: dict[str, list[dict[str, object]]
     protocol_text = ('[study]\nid = "synthetic"\n'
                      'analysis_plan = "analysis/digit_identification.toml"\n')
     device_text = "# synthetic\n"
+    start = datetime(2026, 1, 1, 9, tzinfo=UTC)
     for i, (label, rows) in enumerate(sessions.items()):
-        beh = root / f"sub-{label}" / "ses-1" / "beh"
-        beh.mkdir(parents=True, exist_ok=True)
-        stem = f"sub-{label}_ses-1_task-{TASK}_beh"
-        data = write_tsv(beh / f"{stem}.tsv", columns, rows)
-        sidecar = {
-            "TaskName": TASK, "Protocol": protocol_text,
-            "ProtocolSha256": sha256_bytes(protocol_text.encode()),
-            "ProtocolPath": "protocols/synthetic.toml", "DeviceFile": device_text,
-            "DeviceFileSha256": sha256_bytes(device_text.encode()),
-            "DeviceURL": "sim://", "SoftwareVersion": __version__, "Seed": seed * 1000 + i,
-            "Participant": label, "Session": "1", "ConsentFormVersion": "synthetic",
-            "Responder": "observer", "Clock": "virtual",
-            "StartTime": "2026-01-01T09:00:00Z", "EndTime": "2026-01-01T10:00:00Z",
-            "Status": "complete", "TrialsPlanned": len(rows), "TrialsCompleted": len(rows),
-            "TrialsSha256": sha256_bytes(data),
-        }
-        (beh / f"{stem}.json").write_text(json.dumps(sidecar, indent=2) + "\n")
+        paths = SessionPaths(root, label, 1)
+        paths.beh_dir.mkdir(parents=True, exist_ok=True)
+        data = write_tsv(paths.tsv, columns, rows)
+        metadata = SessionMetadata(
+            task_name=TASK, task_description="Synthetic digit identification",
+            instructions="none: simulated answers", protocol_text=protocol_text,
+            protocol_sha256=sha256_bytes(protocol_text.encode()),
+            protocol_path="protocols/synthetic.toml", study_id="synthetic", study_version="1",
+            device_file_text=device_text, device_file_sha256=sha256_bytes(device_text.encode()),
+            device_url="sim://", software_version=__version__, seed=seed * 1000 + i,
+            counterbalance=i, plan_sha256=sha256_bytes(f"synthetic plan {label}".encode()),
+            stimulus_sha256=None, participant=label, session=1,
+            consent_form_version="synthetic", responder="observer", clock="virtual",
+            frame_rate_hz=SYNTHETIC_FRAME_RATE_HZ, start_time=start,
+            end_time=start + timedelta(hours=1), status="complete", trials_planned=len(rows),
+            trials_completed=len(rows), trials_sha256=sha256_bytes(data))
+        paths.sidecar.write_text(metadata.to_json(), encoding="utf-8")
     return root
