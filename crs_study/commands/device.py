@@ -20,6 +20,7 @@ import os
 import sys
 import time
 import warnings
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,7 +28,7 @@ import numpy as np
 import serial
 
 from crs_study.commands import HelpFormatter
-from crs_study.device import calibration, open_device, serial_port
+from crs_study.device import Device, calibration, open_device, serial_port
 from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
 from crs_study.device.calibration import calibration_table, previous_default_endpoints
 from crs_study.device.decoder import FrameDecoder, Skipped
@@ -35,7 +36,7 @@ from crs_study.device.schedule import channel_balance
 from crs_study.device.serial_device import DeviceWarning
 from crs_study.device.serial_port import MAX_BAUD, MIN_BAUD, parse_serial_url
 from crs_study.errors import DeviceError, DeviceFileError
-from crs_study.geometry.layout import device_file_path, load_layout
+from crs_study.geometry.layout import Layout, device_file_path, load_layout
 from crs_study.paths import DEFAULT_PROTOCOL, shipped_file
 from crs_study.protocol import load_protocol, wire_budget
 from crs_study.signals import deferred, describe, terminate_as_interrupt
@@ -127,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------
 
 
-def _open(args: argparse.Namespace, layout=None):
+def _open(args: argparse.Namespace, layout: Layout | None = None) -> Device:
     """The device of ``--device``, with the options given on the command line: every option
     for serial://; the dead-band and refresh (which the simulator models too) for sim://; an
     option the device cannot honour is refused, never ignored."""
@@ -149,7 +150,7 @@ def _open(args: argparse.Namespace, layout=None):
 
 
 @contextmanager
-def _session(device):
+def _session(device: Device) -> Iterator[Device]:
     """Open ``device``; on the way out (success, error, Ctrl-C, SIGTERM or SIGHUP) close it,
     which sends the neutral pose; a second interrupt waits until that is done. A neutral pose
     that could not be confirmed is never reported as success: it is a one-line DeviceError,
@@ -170,11 +171,11 @@ def _session(device):
                           + (f" (and {len(faults) - 1} more)" if len(faults) > 1 else ""))
 
 
-def _close(device) -> list[str]:
+def _close(device: Device) -> list[str]:
     """Close ``device``; the faults it recorded while doing so."""
-    before = len(getattr(device, "faults", []))
+    before = len(device.faults)
     device.close()
-    return list(getattr(device, "faults", [])[before:])
+    return device.faults[before:]
 
 
 def _check(args: argparse.Namespace) -> int:
@@ -353,7 +354,8 @@ def _calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _adjust(device, neutral, index: int, pulse: int, label: str) -> int | None:
+def _adjust(device: Device, neutral: np.ndarray, index: int, pulse: int, label: str
+            ) -> int | None:
     """Let the experimenter move one channel until it sits where ``label`` says."""
     steps = {"+": 10, "-": -10, "++": 50, "--": -50, ">": 1, "<": -1}
     while True:

@@ -36,7 +36,7 @@ import zlib
 from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from crs_study._files import (
     append_durably,
@@ -67,7 +67,7 @@ class SessionStore:
         self.paths = paths
         self.columns = tuple(columns or schema.TRIAL_COLUMNS)
         self.durable = durable
-        self._lock_handle: Any = None
+        self._lock_handle: TextIO | None = None
         self._hash = hashlib.sha256()
         self._created = False
         self._frames_created = False
