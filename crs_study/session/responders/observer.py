@@ -4,7 +4,7 @@ The perceptual observer (:class:`PerceptualObserver`) answers a trial from what 
 display could sense, never from the true digit:
 
 1. **Surface.** Each sensed frame's displayed setpoints go through the display model of the
-   trial's condition (:func:`crs_study.display.base.get_model`): ``pixel-only`` meets the
+   trial's condition (:func:`crs_study.display.get_model`): ``pixel-only`` meets the
    pixel tips under the stretched fabric of the paper (spandex sewn to every pixel,
    crs-paper.md, Methods), a tent between the pixels: the ``linear`` model. (``nearest``, the
    paper's pixel-only theory, is a staircase that a fabric never shows.) Every other
