@@ -276,6 +276,8 @@ class LiveSession:
             setattr(counts, status, getattr(counts, status) + 1)
             return
         counts.accepted += 1
+        if not self.area.contains(packet.x_mm, packet.y_mm):
+            counts.out_of_area += 1
         self.last_sequence = packet.sequence
         self.last_arrival = datagram.arrival
         self.state = "live"
@@ -290,8 +292,6 @@ class LiveSession:
         start = time.thread_time()
         bump = self.area.bump(packet.x_mm, packet.y_mm, packet.z_mm)
         clamped = False
-        if bump is None:
-            self.packets.out_of_area += 1
         if bump is None or bump.height_mm <= 0.0:
             kind, setpoints = "flat", self.neutral
         else:
