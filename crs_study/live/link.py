@@ -80,10 +80,10 @@ class Listener:
     def fileno(self) -> int:
         return self.sock.fileno()
 
-    def receive(self) -> list[Datagram]:
-        """Every datagram waiting (at most :data:`MAX_BATCH`), oldest first; [] when none."""
+    def receive(self, limit: int = MAX_BATCH) -> list[Datagram]:
+        """Every datagram waiting (at most ``limit``), oldest first; [] when none."""
         raw = []
-        for _ in range(MAX_BATCH):
+        for _ in range(min(limit, MAX_BATCH)):
             try:
                 raw.append(self.sock.recvmsg(MAX_DATAGRAM, 64))
             except (BlockingIOError, InterruptedError):

@@ -47,7 +47,7 @@ from crs_study.layout import Layout, load_layout
 from crs_study.live.area import PAPER_DIAMETER_MM, RecognitionArea
 from crs_study.live.boards import BoardTap, HostModel, ShownFrame
 from crs_study.live.errors import LiveError, PacketError
-from crs_study.live.link import Listener, parse_address
+from crs_study.live.link import MAX_BATCH, Listener, parse_address
 from crs_study.live.packet import decode_packet
 from crs_study.live.record import Recorder
 from crs_study.live.result import FrameCounts, LatencyLog, LiveResult, PacketCounts
@@ -230,7 +230,9 @@ class LiveSession:
             ready, _, _ = select.select([self.listener], [], [],
                                         min(max(wake - now, 0.0), MAX_WAIT_S))
             if ready:
-                for datagram in self.listener.receive():
+                left = (MAX_BATCH if config.max_packets is None
+                        else config.max_packets - self.packets.received)
+                for datagram in self.listener.receive(left):
                     self._take(datagram)
             now = time.monotonic()
             if self.newest is not None and now >= self.next_frame_at:
