@@ -10,7 +10,7 @@ import pytest
 from crs_study.cli import build_parser, main
 
 SUBCOMMANDS = ("demo", "init", "validate", "run", "dry-run", "analyze", "consent", "device",
-               "quality", "bench")
+               "live", "live-send", "quality", "bench")
 
 
 def test_every_subcommand_is_listed_in_order(capsys):

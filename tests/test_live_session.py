@@ -25,6 +25,7 @@ from crs_study.live.sender import send_trace
 from crs_study.live.trace import digit_trace, hold_trace, stroke_trace
 from crs_study.render import Renderer
 from crs_study.targets import Bump
+from tests._pty_helpers import boards_fixture  # noqa: F401  (the ``boards`` fixture)
 
 
 class KeepingTap(BoardTap):
@@ -250,14 +251,10 @@ def test_pty_boards_through_the_serial_code(boards, layout2d):
     x, y, z = trace.xyz[int(last.sequence)]
     centre = session.area.centre_mm
     rendered = Renderer(layout2d, "crs").render(Bump((centre[0] + x, centre[1] + y), 90.0, z))
-    state = dict(neutral=neutral)
     shown = neutral.copy()
     for board, name in ((a, "A"), (b, "B")):
         ids = {a_.channel: a_.index for a_ in layout2d.actuators if a_.controller == name}
         for move in board.moves()[1:-1]:
             for servo, pulse in move.positions:
                 shown[ids[servo]] = pulse
-    assert state and np.max(np.abs(shown - pulse_map.to_pulses(rendered.setpoints))) <= 1
-
-
-from tests._pty_helpers import boards_fixture  # noqa: E402, F401  (the ``boards`` fixture)
+    assert np.max(np.abs(shown - pulse_map.to_pulses(rendered.setpoints))) <= 1
