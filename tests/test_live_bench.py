@@ -31,3 +31,4 @@ def test_bench_live_quick():
         assert 0 < software["value"] < wire and software["target"] == "ratio < 0.01"
         assert all(math.isfinite(f["value"]) for f in figures)
     assert abs(names["pty: host model error, median |landed - predicted|"]["value"]) < 10
+    assert 0 < names["software per packet, warm loop (CPU)"]["value"] < 1.0  # ms
