@@ -72,6 +72,7 @@ class HostModel:
     """Frames land when the device said they would (module docstring)."""
 
     source = "host model"
+    unmatched = 0  # nothing is decoded here
 
     def __init__(self) -> None:
         self.pending: deque[ShownFrame] = deque()
@@ -89,8 +90,6 @@ class HostModel:
 
     def next_due(self) -> float:
         return self.pending[0].host_done if self.pending else math.inf
-
-    unmatched = 0
 
 
 class BoardTap:

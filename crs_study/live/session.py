@@ -339,8 +339,9 @@ class LiveSession:
                 self.frames.lost += 1
             if frame.kind == "close" or not frame.arrivals:
                 continue
+            shown = frame.wrote and not frame.lost
             for arrival in frame.arrivals:
-                self.log.newest.add(frame.done_at - arrival if frame.wrote else math.nan)
+                self.log.newest.add(frame.done_at - arrival if shown else math.nan)
             if frame.kind == "finger" and frame.wrote and not frame.lost:
                 self.log.add(frame, max(frame.bytes_sent) * self.byte_s)
 
