@@ -111,7 +111,7 @@ def test_a_signal_leaves_the_boards_neutral_and_the_ports_free(boards, layout2d,
         assert "listening on" in live.stderr.readline()
         subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--hold",
                               "--centre", "0,0", "--seconds", "0.4"], check=True, timeout=30)
-        assert len(a.moves()) >= 2  # the start's neutral pose, then the bump
+        assert len(a.wait_for(2)) >= 2  # the start's neutral pose, then the bump
         live.send_signal(signum)
         out, err = live.communicate(timeout=30)
     finally:
@@ -174,9 +174,11 @@ def test_the_live_view_in_a_terminal(tmp_path):
             time.sleep(0.1)
         subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--stroke",
                               "--speed-mm-s", "100"], check=True, timeout=30)
-        time.sleep(0.5)
-        screen = _pane(name)
-        assert "state     live" in screen and "73 received" in screen
+        deadline = time.monotonic() + 10
+        while "73 received" not in (screen := _pane(name)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "73 received" in screen  # live, or already flat after the sender's silence
+        assert "state     live (stream" in screen or "state     silent" in screen
         assert "arrival -> last byte on the wire" in screen and "frames/s" in screen
         assert screen.count("crs-study live ") == 1  # redrawn in place, not scrolled
         subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
