@@ -45,6 +45,7 @@ class RecognitionArea:
     #: 2D: hull edge lines (a, b, c), a x + b y + c <= 0 inside, (a, b) unit; 1D: None
     edges: np.ndarray | None
     x_range: tuple[float, float]  # 1D: x limits (layout frame, margin included)
+    edge_rows: tuple[tuple[float, float, float], ...] = ()  # ``edges`` as plain floats
 
     @classmethod
     def for_layout(cls, layout: Layout, margin_mm: float = 0.0,
@@ -67,8 +68,9 @@ class RecognitionArea:
             edges = ConvexHull(xy).equations.copy()
             edges.setflags(write=False)
         x_range = (float(xy[:, 0].min()) - margin_mm, float(xy[:, 0].max()) + margin_mm)
+        rows = () if edges is None else tuple(map(tuple, edges.tolist()))
         return cls(layout, display_centre(layout), float(margin_mm), float(diameter_mm),
-                   float(height), edges, x_range)
+                   float(height), edges, x_range, rows)
 
     def to_layout(self, x_mm: float, y_mm: float) -> tuple[float, float]:
         """A packet's (x_f, y_f) in the device file's frame."""
@@ -79,8 +81,9 @@ class RecognitionArea:
         x, y = self.to_layout(x_mm, y_mm)
         if self.edges is None:
             return self.x_range[0] <= x <= self.x_range[1]
-        e = self.edges
-        return bool(np.all(e[:, 0] * x + e[:, 1] * y + e[:, 2] <= self.margin_mm + 1e-9))
+        limit = self.margin_mm + 1e-9
+        # plain floats: for a handful of edges, numpy's per-call cost is most of the work
+        return all(a * x + b * y + c <= limit for a, b, c in self.edge_rows)
 
     def bump(self, x_mm: float, y_mm: float, z_mm: float) -> Bump | None:
         """The bump under a finger at (x_f, y_f, z_f); None when the finger is outside the
