@@ -52,6 +52,9 @@ COMMANDS: dict[str, str] = {
                "report",
     "consent": "record consent, list records, withdraw a participant (removes their data)",
     "device": "check the controllers, neutral pose, sweep, calibrate endpoints, monitor a port",
+    "live": "drive the display live from finger packets over UDP (the paper's VR link)",
+    "live-send": "send a finger trace (a digit, a stroke, a held finger, a recording) to crs-study "
+                 "live",
     "quality": "display quality D_P and D_S against d/l per model and lattice (chart, table, "
                "--json)",
     "bench": "measure speed and accuracy figures against in-run baselines",

@@ -1,0 +1,165 @@
+"""Finger traces: where a finger is over time, made up or recorded, for ``live-send``.
+
+A :class:`FingerTrace` is samples (t_k, x_k, y_k, z_k): seconds from its start, and the
+packet's coordinates (mm from the recognition area's centre; z the press depth). Made-up
+traces (every one a pure function of its arguments and, for jitter, a seed):
+
+* :func:`digit_trace`: a finger writing a digit with the package's strokes
+  (:mod:`crs_study.digits`): each stroke at constant speed along its arc length (sampled as a
+  session's stimulus is, :func:`crs_study.digits.sample_stroke`), pressing ``press_mm``; between
+  strokes the finger lifts (z = 0: a flat display) and moves straight to the next stroke's
+  start; it rests pressed at the first and the last point for ``hold_s``.
+* :func:`stroke_trace`: one straight stroke at constant speed.
+* :func:`hold_trace`: a finger held still; with :meth:`FingerTrace.jittered` a trembling one
+  (independent Gaussian noise of ``sd_mm`` on x and y per sample).
+
+:meth:`FingerTrace.resampled` gives the trace at another rate (linear interpolation in time).
+A recording made by ``crs-study live --record`` replays as a trace
+(:func:`crs_study.live.record.read_trace`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from crs_study.live.errors import LiveError
+from crs_study.stimuli.digits import arc_lengths, load_digits, point_at
+
+#: The headset's frame rate (Oculus Quest 2, the paper's): packets a second.
+HEADSET_RATE_HZ = 72.0
+#: Highest rate a trace may be sent or resampled at (packets/s).
+MAX_RATE_HZ = 2000.0
+#: Width of a drawn digit per unit of its height (the default protocol's 0.49 / 0.81 pitch).
+DIGIT_ASPECT = 0.49 / 0.81
+
+
+@dataclass(frozen=True, eq=False)
+class FingerTrace:
+    """Samples of a finger: ``times`` (n,) s from the start, increasing; ``xyz`` (n, 3) mm."""
+
+    times: np.ndarray
+    xyz: np.ndarray
+    name: str = "trace"
+
+    def __post_init__(self) -> None:
+        times = np.array(self.times, dtype=float)
+        xyz = np.array(self.xyz, dtype=float).reshape(-1, 3)
+        if times.ndim != 1 or len(times) != len(xyz) or len(times) == 0:
+            raise LiveError(f"trace {self.name}: expected n times and n (x, y, z) samples, "
+                            f"n >= 1, got {times.shape} and {xyz.shape}")
+        if not (np.all(np.isfinite(times)) and np.all(np.isfinite(xyz))):
+            raise LiveError(f"trace {self.name}: expected finite times and positions")
+        if np.any(np.diff(times) <= 0) or times[0] < 0:
+            raise LiveError(f"trace {self.name}: expected times from >= 0, strictly increasing")
+        for array in (times, xyz):
+            array.setflags(write=False)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "xyz", xyz)
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.times[-1])
+
+    def resampled(self, rate_hz: float) -> FingerTrace:
+        """The trace at ``rate_hz`` samples a second from its start to its end (the last
+        sample included), each coordinate interpolated linearly in time."""
+        check_rate(rate_hz)
+        n = int(math.floor(self.duration_s * rate_hz + 1e-9)) + 1
+        times = np.arange(n) / rate_hz
+        xyz = np.column_stack([np.interp(times, self.times, self.xyz[:, i]) for i in range(3)])
+        return FingerTrace(times, xyz, self.name)
+
+    def jittered(self, sd_mm: float, seed: int = 0) -> FingerTrace:
+        """The trace with independent Gaussian noise of ``sd_mm`` added to x and y of every
+        sample (a trembling finger); z is kept."""
+        if not (math.isfinite(sd_mm) and sd_mm >= 0):
+            raise LiveError(f"jitter: expected a standard deviation >= 0 mm, got {sd_mm!r}")
+        noise = np.random.default_rng(seed).normal(0.0, sd_mm, (len(self), 2))
+        xyz = self.xyz.copy()
+        xyz[:, :2] += noise
+        return FingerTrace(self.times, xyz, f"{self.name}, jitter {sd_mm:g} mm")
+
+
+def check_rate(rate_hz: float) -> float:
+    if isinstance(rate_hz, bool) or not isinstance(rate_hz, int | float) \
+            or not (math.isfinite(rate_hz) and 0 < rate_hz <= MAX_RATE_HZ):
+        raise LiveError(f"rate: expected packets a second in (0, {MAX_RATE_HZ:g}], "
+                        f"got {rate_hz!r}")
+    return float(rate_hz)
+
+
+def _positive(name: str, value: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) \
+            or not (math.isfinite(value) and value > 0):
+        raise LiveError(f"{name}: expected a number > 0, got {value!r}")
+    return float(value)
+
+
+def _path(points: np.ndarray, speed_mm_s: float, rate_hz: float) -> np.ndarray:
+    """Points along a polyline at constant speed, one per 1 / rate s, the end included."""
+    length = arc_lengths(points)[-1]
+    n = max(1, int(math.ceil(length * rate_hz / speed_mm_s - 1e-9))) + 1
+    return point_at(points, np.minimum(np.arange(n) * speed_mm_s / rate_hz, length))
+
+
+def _with_times(rows: list[np.ndarray], rate_hz: float, name: str) -> FingerTrace:
+    xyz = np.concatenate(rows)
+    return FingerTrace(np.arange(len(xyz)) / rate_hz, xyz, name)
+
+
+def digit_trace(digit: int, height_mm: float = 60.0, speed_mm_s: float = 30.0,
+                press_mm: float = 5.0, rate_hz: float = HEADSET_RATE_HZ,
+                centre_mm: tuple[float, float] = (0.0, 0.0), hold_s: float = 0.2,
+                strokes_file: str | None = None) -> FingerTrace:
+    """A finger writing ``digit`` (module docstring): the digits of the strokes file average
+    ``height_mm`` high and ``DIGIT_ASPECT`` times that wide, centred at ``centre_mm``."""
+    digits = load_digits(strokes_file)
+    if digit not in digits:
+        raise LiveError(f"digit: expected one of {sorted(digits)}, got {digit!r}")
+    height = _positive("digit height", height_mm)
+    speed = _positive("finger speed", speed_mm_s)
+    rate = check_rate(rate_hz)
+    press = _positive("press depth", press_mm)
+    strokes = digits[digit].scaled(height * DIGIT_ASPECT, height, centre_mm)
+    rows: list[np.ndarray] = []
+
+    def add(points: np.ndarray, z: float) -> None:
+        rows.append(np.column_stack([points, np.full(len(points), z)]))
+
+    held = int(round(hold_s * rate))
+    add(np.repeat(strokes[0][:1], held, axis=0), press)
+    for i, stroke in enumerate(strokes):
+        if i:  # lifted, straight from the last stroke's end to this one's start
+            add(_path(np.array([strokes[i - 1][-1], stroke[0]]), speed, rate)[1:-1], 0.0)
+        add(_path(stroke, speed, rate), press)
+    add(np.repeat(strokes[-1][-1:], held, axis=0), press)
+    return _with_times(rows, rate, f"digit {digit}, {height:g} mm at {speed:g} mm/s")
+
+
+def stroke_trace(start_mm: tuple[float, float], end_mm: tuple[float, float],
+                 speed_mm_s: float = 30.0, press_mm: float = 5.0,
+                 rate_hz: float = HEADSET_RATE_HZ) -> FingerTrace:
+    """One straight stroke from ``start_mm`` to ``end_mm`` at constant speed, pressing."""
+    points = np.array([start_mm, end_mm], dtype=float)
+    if points.shape != (2, 2) or not np.all(np.isfinite(points)) \
+            or np.allclose(points[0], points[1]):
+        raise LiveError(f"stroke: expected two different finite points, got {start_mm!r}, "
+                        f"{end_mm!r}")
+    path = _path(points, _positive("finger speed", speed_mm_s), check_rate(rate_hz))
+    rows = [np.column_stack([path, np.full(len(path), _positive("press depth", press_mm))])]
+    return _with_times(rows, rate_hz, f"stroke at {speed_mm_s:g} mm/s")
+
+
+def hold_trace(centre_mm: tuple[float, float] = (0.0, 0.0), duration_s: float = 2.0,
+               press_mm: float = 5.0, rate_hz: float = HEADSET_RATE_HZ) -> FingerTrace:
+    """A finger held still at ``centre_mm`` for ``duration_s``, pressing ``press_mm``."""
+    rate = check_rate(rate_hz)
+    n = int(math.floor(_positive("duration", duration_s) * rate + 1e-9)) + 1
+    point = np.array([*centre_mm, _positive("press depth", press_mm)], dtype=float)
+    return _with_times([np.tile(point, (n, 1))], rate, f"held {duration_s:g} s")

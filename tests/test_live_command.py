@@ -1,0 +1,195 @@
+"""``crs-study live`` and ``live-send`` as the user meets them: processes, signals, a terminal
+(tmux), one-line errors; the latency summaries and the board tap's bookkeeping."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from crs_study.clock import VirtualClock
+from crs_study.device import open_device
+from crs_study.device.calibration import PulseMap
+from crs_study.live.boards import BoardTap, ShownFrame
+from crs_study.live.latency import Summary
+from tests._pty_helpers import boards_fixture  # noqa: F401  (the ``boards`` fixture)
+
+CLI = [sys.executable, "-m", "crs_study"]
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_summary_is_r_quantile_type_7():
+    # R: quantile(1:100, c(.5, .95, .99)) -> 50.50 95.05 99.01 (type 7, R's default)
+    s = Summary.of(np.arange(1.0, 101.0))
+    assert (s.n, s.median, s.p95, s.p99, s.max) == (100, 50.5, pytest.approx(95.05),
+                                                   pytest.approx(99.01), 100.0)
+    assert Summary.of([]).n == 0 and Summary.of([]).to_json()["median_ms"] is None
+
+
+def test_board_tap_times_frames_and_skips_a_replaced_one(layout2d):
+    clock = VirtualClock()
+    device = open_device("sim://", layout2d, clock, record=True)
+    device.open()
+    tap = BoardTap(layout2d, device.boards, advance=device.displayed_setpoints)
+    frames = []
+    for k, height in enumerate((0.0, 3.0, 4.0, 5.0)):
+        setpoints = np.zeros(layout2d.n_actuators)
+        setpoints[9] = height  # the centre pixel, A:10
+        report = device.send(setpoints, 0)
+        frame = ShownFrame(k, "finger", setpoints, report.commanded_at, report.wire_done_at,
+                           report.bytes_sent)
+        tap.add(frame)
+        frames.append(frame)
+        # frame 0 (the first write: every channel) has 100 ms; 2 and 3 come while 1 is on the
+        # wire, so 3 replaces 2 before it goes
+        clock.advance(0.1 if k == 0 else 0.001)
+    clock.advance(1.0)
+    done = tap.poll(clock.now())
+    assert [f.index for f in done] == [0, 1, 2, 3]
+    assert frames[2].lost and not frames[1].lost and not frames[3].lost  # 2 was replaced
+    assert frames[1].done_at - frames[1].handed_at == pytest.approx(10 * 10 / 9600)  # 1 servo
+    assert frames[1].done_at == pytest.approx(frames[1].host_done)  # as the host predicted
+    assert frames[3].done_at == pytest.approx(frames[3].host_done)
+    # servos in place (0.08 s/cm, hardware.md): frame 3 lands 10.4 ms after frame 1, the servo
+    # then 10.4 / 8 = 1.30 mm up on its way to 3 mm; 3.70 mm more to 5 mm: 29.6 ms
+    wire = 10 * 10 / 9600
+    assert frames[3].done_at - frames[1].done_at == pytest.approx(wire)
+    assert frames[3].in_place_at - frames[3].done_at == pytest.approx((5 - wire / 0.008) * 0.008,
+                                                                      rel=2e-3)
+    assert tap.unmatched == 0
+
+
+def test_live_and_live_send_processes_json(tmp_path):
+    port = free_port()
+    record = tmp_path / "rec.jsonl"
+    live = subprocess.Popen(CLI + ["live", "--device", "sim://", "--listen",
+                                   f"127.0.0.1:{port}", "--max-packets", "40", "--json",
+                                   "--record", str(record)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "listening on" in live.stderr.readline()
+        sent = subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--hold",
+                                     "--seconds", "0.6", "--jitter-mm", "0.5", "--json"],
+                              capture_output=True, text=True, timeout=30)
+        assert sent.returncode == 0, sent.stderr
+        assert json.loads(sent.stdout)["packets"] == 44
+        out, err = live.communicate(timeout=30)
+    finally:
+        live.kill()
+    assert live.returncode == 0, err
+    result = json.loads(out)
+    assert result["stopped_by"] == "max packets" and result["packets"]["received"] == 40
+    assert result["latency_source"] == "boards" and result["arrival_stamps"] == "kernel"
+    assert result["latency"]["wire"]["n"] > 5
+    replay = subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{free_port()}",
+                                   "--replay", str(record)],
+                            capture_output=True, text=True, timeout=30)
+    assert replay.returncode == 0 and "sent 40 packets" in replay.stdout, replay.stderr
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_leaves_the_boards_neutral_and_the_ports_free(boards, layout2d, signum):
+    a, b = boards(2)
+    port = free_port()
+    live = subprocess.Popen(CLI + ["live", "--device", f"serial://{a.path},{b.path}",
+                                   "--listen", f"127.0.0.1:{port}", "--no-view"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "listening on" in live.stderr.readline()
+        subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--hold",
+                              "--centre", "0,0", "--seconds", "0.4"], check=True, timeout=30)
+        assert len(a.wait_for(2)) >= 2  # the start's neutral pose, then the bump
+        live.send_signal(signum)
+        out, err = live.communicate(timeout=30)
+    finally:
+        live.kill()
+    assert live.returncode == 0, err
+    assert f"stopped: {'Ctrl-C' if signum == signal.SIGINT else signum.name}" in out
+    neutral = PulseMap.from_layout(layout2d).to_pulses(layout2d.neutral_setpoints())
+    for board, name in ((a, "A"), (b, "B")):
+        ids = {x.channel: x.index for x in layout2d.actuators if x.controller == name}
+        last = dict(board.wait_for(2)[-1].positions)
+        assert last == {i: neutral[k] for i, k in ids.items()}  # every channel neutral
+    # the ports are free again: another program may open them at once
+    import serial
+
+    serial.Serial(a.path, exclusive=True).close()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["live", "--device", "sim://", "--listen", "nowhere"], "expected HOST:PORT"),
+    (["live", "--device", "sim://", "--silence-s", "0"], "silence_s"),
+    (["live", "--device", "sim://", "--no-battery-check"], "serial:// devices only"),
+    (["live", "--device", "bogus://"], "unknown device URL"),
+    (["live-send", "--digit", "12"], "digit"),
+    (["live-send", "--replay", "/nonexistent.jsonl"], "no such recording"),
+    (["live-send", "--hold", "--to", "x"], "expected HOST:PORT"),
+])
+def test_one_line_errors(argv, message, capsys):
+    from crs_study.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+
+
+def test_a_port_in_use_and_an_existing_recording(tmp_path, capsys):
+    from crs_study.cli import main
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        busy = sock.getsockname()[1]
+        assert main(["live", "--device", "sim://", "--listen", f"127.0.0.1:{busy}"]) == 2
+    assert "in use by another program" in capsys.readouterr().err
+    existing = tmp_path / "r.jsonl"
+    existing.write_text("keep me")
+    assert main(["live", "--device", "sim://", "--listen", f"127.0.0.1:{free_port()}",
+                 "--record", str(existing)]) == 2
+    assert "already exists" in capsys.readouterr().err and existing.read_text() == "keep me"
+
+
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed")
+def test_the_live_view_in_a_terminal(tmp_path):
+    port = free_port()
+    name = f"crs-live-{os.getpid()}"
+    command = " ".join(CLI + ["live", "--device", "sim://", "--listen", f"127.0.0.1:{port}"])
+    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "150", "-y", "20",
+                    f"cd {os.getcwd()} && {command}; sleep 5"], check=True)
+    try:
+        deadline = time.monotonic() + 20
+        while "waiting for packets" not in _pane(name) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--stroke",
+                              "--speed-mm-s", "100"], check=True, timeout=30)
+        deadline = time.monotonic() + 10
+        while "73 received" not in (screen := _pane(name)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "73 received" in screen  # live, or already flat after the sender's silence
+        assert "state     live (stream" in screen or "state     silent" in screen
+        assert "arrival -> last byte on the wire" in screen and "frames/s" in screen
+        assert screen.count("crs-study live ") == 1  # redrawn in place, not scrolled
+        subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
+        deadline = time.monotonic() + 10
+        while "stopped: Ctrl-C" not in _pane(name) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "stopped: Ctrl-C; display neutral, ports released" in _pane(name)
+    finally:
+        subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
+
+
+def _pane(name: str) -> str:
+    return subprocess.run(["tmux", "capture-pane", "-p", "-t", name], capture_output=True,
+                          text=True).stdout
