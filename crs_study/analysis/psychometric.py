@@ -1,7 +1,7 @@
 """Psychometric functions: accuracy against a varied stimulus level, per condition.
 
 ``psi(x) = gamma + (1 - gamma - lambda) F(x; alpha, beta)`` (Wichmann & Hill 2001, Percept.
-Psychophys. 63:1293, Eq. 1) with the guess rate ``gamma = 1 / number of digits`` fixed and
+Psychophys. 63:1293, Eq. 1) with the guess rate ``gamma = 1 / number of symbols`` fixed and
 the lapse rate ``lambda`` free in ``[0, lapse_max]``; ``F`` is the logistic ``1 / (1 +
 exp(-beta (x - alpha)))`` (``beta`` may be negative: accuracy falling with the level, as for
 stroke speed) or the Weibull ``1 - exp(-(x / alpha)^beta)`` (``x > 0``, rising). Parameters

@@ -15,7 +15,8 @@ sessions' protocol declares as ``[study].analysis_plan``, else the shipped
 tests; each ``method, condition, reference, estimate, ci95, p_value`` and ``primary`` (true
 for the primary comparisons, which also say their ``test``, ``glmm`` or ``fisher``, and whether
 the GLMM was a ``logistic_regression`` without random effect); the GLMM estimate is an odds
-ratio), ``primary`` (omnibus test and the fitted model), ``per_digit``,
+ratio), ``primary`` (omnibus test and the fitted model), ``per_digit`` (``per_symbol`` for
+a dataset of another stimulus set: the keys name the symbol as its trials do),
 ``information_transfer`` (per condition ``bits, ci95, ...``), ``speed_accuracy``,
 ``psychometric``, ``exclusions``, ``chance``, ``alpha``, ``plan``, ``datasets``,
 ``sessions``, ``software``, ``generated_at``.
@@ -263,11 +264,12 @@ def run_analyses(loaded: LoadedData, plan: AnalysisPlan) -> tuple[dict, dict]:
                 "headline": shown.get(row["condition"]),
             } for _, row in accuracy.by_condition.iterrows()},
         "accuracy_by_participant": records(by_participant),
-        "accuracy_by_digit": records(accuracy.by_digit),
+        f"accuracy_by_{accuracy.by_symbol.columns[0]}": records(accuracy.by_symbol),
         "comparisons": [c.to_dict() for c in primary.comparisons]
         + [t.to_dict() for t in secondary.tests],
         "primary": {"omnibus": primary.omnibus, "model": primary.model},
-        "per_digit": {c: records(t) for c, t in secondary.per_digit.items()},
+        f"per_{accuracy.by_symbol.columns[0]}": {c: records(t)
+                                                 for c, t in secondary.per_symbol.items()},
         "information_transfer": {c: r.to_dict() for c, r in confusions.items()},
         "speed_accuracy": {
             "rt_column": speed.rt_column,

@@ -7,7 +7,7 @@ frames (every channel of every controller in every frame, the bound the check us
 changed-only frames (channels whose pulse width changes on the rendered frames, first frame
 from neutral excluded from the busiest; :func:`crs_study.device.schedule.wire_plan`).
 A protocol with ``[levels]`` also gets its levels and, per level, the trials of each condition
-and the frames per trial; frames and wire use are then over every (digit, level) stimulus.
+and the frames per trial; frames and wire use are then over every (symbol, level) stimulus.
 """
 
 from __future__ import annotations
@@ -42,9 +42,10 @@ def summarise(protocol, participant: str = "example", session: int = 1,
     plan = make_plan(protocol, participant, session, counterbalance)
     levels = protocol.level_values
     stimuli = {(d, v): make_stimulus(protocol, layout, d, v) for v in levels
-               for d in protocol.digits}
+               for d in protocol.symbols}
+    shown = protocol.symbol_set
 
-    def label(d: int, v: float | None) -> str:
+    def label(d: object, v: float | None) -> str:
         return str(d) if v is None else f"{d}@{v:g}"
 
     frames = {label(d, v): s.n_frames for (d, v), s in stimuli.items()}
@@ -79,10 +80,10 @@ def summarise(protocol, participant: str = "example", session: int = 1,
                                       "test": plan.count("test", c, v)}
                                   for c in protocol.conditions},
                 "frames_per_trial": {
-                    "min": min(stimuli[(d, v)].n_frames for d in protocol.digits),
-                    "max": max(stimuli[(d, v)].n_frames for d in protocol.digits),
+                    "min": min(stimuli[(d, v)].n_frames for d in protocol.symbols),
+                    "max": max(stimuli[(d, v)].n_frames for d in protocol.symbols),
                     "mean": float(np.mean([stimuli[(d, v)].n_frames
-                                           for d in protocol.digits]))}}
+                                           for d in protocol.symbols]))}}
                 for v in protocol.levels.values},
         }
     return {
@@ -90,6 +91,10 @@ def summarise(protocol, participant: str = "example", session: int = 1,
         "sha256": protocol.sha256,
         "study": {"id": protocol.study_id, "version": protocol.version,
                   "title": protocol.title, "device": layout.name},
+        "stimulus_set": {"name": shown.name, "task": shown.task, "column": shown.column,
+                         "symbols": [str(d) for d in protocol.symbols],
+                         "keys": list(protocol.responses.keys),
+                         "chance_rate": protocol.chance_rate},
         "trials": {"total": len(plan), "practice": plan.count("practice"),
                    "test": plan.count("test"), "per_condition": counts,
                    "blocks": len(plan.block_conditions), "breaks": breaks,
@@ -101,7 +106,7 @@ def summarise(protocol, participant: str = "example", session: int = 1,
         "expected_duration_s": seconds,
         "frames_per_trial": {"min": min(frames.values()), "max": max(frames.values()),
                              "mean": float(np.mean(list(frames.values()))),
-                             "per_digit": {str(d): n for d, n in frames.items()}},
+                             f"per_{shown.column}": {str(d): n for d, n in frames.items()}},
         "stimulus_duration_s": {label(d, v): s.duration_s for (d, v), s in stimuli.items()},
         "levels": level_summary,
         "frame_rate_hz": protocol.frame_rate_hz,
@@ -135,12 +140,12 @@ def run(args: argparse.Namespace) -> int:
     if args.list:
         with_levels = protocol.levels is not None
         print()
-        print("index type     block condition   rep digit " + ("   level " if with_levels else "")
-              + "feedback break prompt")
+        print(f"index type     block condition   rep {protocol.symbol_set.column:>5s} "
+              + ("   level " if with_levels else "") + "feedback break prompt")
         for t in plan.trials:
             level = f"{t.level:8g} " if with_levels else ""
             print(f"{t.index:5d} {t.trial_type:8s} {t.block:5d} {t.condition:11s} "
-                  f"{t.repetition:3d} {t.digit:5d} {level}{'yes' if t.feedback else 'no':8s} "
+                  f"{t.repetition:3d} {t.symbol!s:>5s} {level}{'yes' if t.feedback else 'no':8s} "
                   f"{'yes' if t.break_before else '':5s} {t.prompt_before or ''}")
     return 0
 
@@ -156,6 +161,10 @@ def _text(s: dict) -> str:
     ]
     for condition, c in t["per_condition"].items():
         lines.append(f"  {condition}: {c['practice']} practice, {c['test']} test")
+    shown = s["stimulus_set"]
+    lines.append(f"stimulus set {shown['name']} (task {shown['task']}): "
+                 f"{len(shown['symbols'])} symbols shown ({', '.join(shown['symbols'])}), keys "
+                 f"{' '.join(shown['keys'])}; chance {100 * shown['chance_rate']:.1f} %")
     levels = s.get("levels")
     if levels:
         values = ", ".join(f"{v:g}" for v in levels["values"])

@@ -21,11 +21,20 @@ from crs_study.dataset.folder import (
     column_dictionary,
     utc_now,
 )
-from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS, format_value, trial_columns
+from crs_study.dataset.schema import (
+    DEFAULT_TASK,
+    MISSING,
+    TASK,
+    TRIAL_COLUMNS,
+    Task,
+    format_value,
+    trial_columns,
+)
 from crs_study.dataset.session_metadata import SessionMetadata
 from crs_study.dataset.session_store import SessionStore, read_frame_log
 
-__all__ = ["DATASET_LOCK", "MISSING", "TASK", "TRIAL_COLUMNS", "WITHDRAWAL_JOURNAL", "Dataset",
-           "SessionMetadata", "SessionPaths", "SessionStore", "beh_files", "check_label",
+__all__ = ["DATASET_LOCK", "DEFAULT_TASK", "MISSING", "TASK", "TRIAL_COLUMNS",
+           "WITHDRAWAL_JOURNAL", "Dataset", "SessionMetadata", "SessionPaths", "SessionStore",
+           "Task", "beh_files", "check_label",
            "column_dictionary", "derivatives_dir", "find_sessions", "format_value",
            "read_frame_log", "trial_columns", "utc_now"]

@@ -9,7 +9,8 @@ from pathlib import Path
 from crs_study.dataset.folder import Dataset
 from crs_study.errors import SessionError
 from crs_study.paths import resolve_protocol
-from crs_study.session.runner import run_session
+from crs_study.protocol.loader import load_protocol
+from crs_study.session.runner import dataset_task, run_session
 from crs_study.session.spec import Progress, SessionResult, SessionSpec
 
 
@@ -52,7 +53,8 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
                            "random or scripted:FILE")
     labels = simulated_labels(participants, prefix)
     protocol = resolve_protocol(protocol)  # a shipped protocol's name, or a path
-    Dataset(dataset).ensure()
+    shown = load_protocol(protocol, check_device=False).symbol_set  # its task's files
+    Dataset(dataset, task=dataset_task(shown)).ensure()
     specs = [SessionSpec(protocol, label, Path(dataset), device_url, 1, responder,
                          "virtual", i, durable=durable) for i, label in enumerate(labels)]
     results: list[SessionResult] = []
