@@ -229,3 +229,14 @@ def test_any_changed_protocol_reads_back_with_the_same_fields(name, data):
     changed = data.draw(_changed(protocol))
     text = protocol_to_toml(changed)
     assert _same_fields(changed, protocol_from_text(text, protocol.path, check_device=False))
+
+
+def test_the_settled_text_saved_beside_the_original_is_the_same_protocol(tmp_path):
+    """So a session begun in Python resumes from the command line (README, "In Python")."""
+    protocol = load_protocol(tiny_protocol(tmp_path))
+    settled = load_protocol(replace(protocol, design=replace(protocol.design, repetitions=2)))
+    saved = tmp_path / "twice.toml"
+    saved.write_text(settled.text, encoding="utf-8")
+    again = load_protocol(saved)
+    assert again.sha256 == settled.sha256
+    assert replace(again, path=settled.path) == settled
