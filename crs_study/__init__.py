@@ -58,7 +58,7 @@ except PackageNotFoundError:  # running from a source tree that was never instal
 #: The public API: name -> the module that owns it.
 API = {
     "load_protocol": "crs_study.protocol.loader",
-    "make_plan": "crs_study.protocol.plan",
+    "make_plan": "crs_study.api",
     "validate": "crs_study.api",
     "dry_run": "crs_study.session.dry_runs",
     "run_session": "crs_study.api",

@@ -1,10 +1,10 @@
 """The functions of the Python API that join stages (``crs_study`` re-exports them).
 
 The rest of the API is the stages' own functions, re-exported as they are by
-:mod:`crs_study`: :func:`~crs_study.protocol.load_protocol`,
-:func:`~crs_study.protocol.make_plan`, :func:`~crs_study.session.dry_run`,
+:mod:`crs_study`: :func:`~crs_study.protocol.load_protocol`, :func:`~crs_study.session.dry_run`,
 :func:`~crs_study.analysis.load_dataset` and :func:`~crs_study.analysis.analyze`. Here:
 
+* :func:`make_plan`: one participant's trial plan, from any protocol source;
 * :func:`validate`: a protocol checked, and its plan summarised (what ``crs-study validate``
   prints) as a :class:`ProtocolSummary`;
 * :func:`run_session`: one participant's session, begun or resumed, from keyword arguments
@@ -31,9 +31,9 @@ from crs_study.protocol import (
     WireBudget,
     analysis_plan_path,
     load_protocol,
-    make_plan,
     wire_budget,
 )
+from crs_study.protocol import make_plan as plan_of
 from crs_study.protocol.plan import block_orders, expected_duration_s
 from crs_study.session import SessionResult, SessionSpec
 from crs_study.session import run_session as run_spec
@@ -88,6 +88,14 @@ class ProtocolSummary:
         return pd.DataFrame(rows, columns=list(SUMMARY_COLUMNS))
 
 
+def make_plan(protocol: ProtocolSource, participant: str, session: int = 1,
+              counterbalance: int = 0) -> TrialPlan:
+    """The trial plan of ``participant``'s ``session`` at counterbalance index
+    ``counterbalance`` (the order of arrival from 0), as a run of ``protocol`` plays it
+    (deterministic: :mod:`crs_study.protocol.plan`)."""
+    return plan_of(load_protocol(protocol), participant, session, counterbalance)
+
+
 def validate(protocol: ProtocolSource, *, participant: str = "example", session: int = 1,
              counterbalance: int = 0) -> ProtocolSummary:
     """Check a protocol strictly (every key, then against its device) and summarise the plan
@@ -98,7 +106,7 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
     """
     protocol = load_protocol(protocol)
     layout = protocol.layout()
-    plan = make_plan(protocol, participant, session, counterbalance)
+    plan = plan_of(protocol, participant, session, counterbalance)
     levels = protocol.level_values
     stimuli = {(d, v): make_stimulus(protocol, layout, d, v) for v in levels
                for d in protocol.digits}

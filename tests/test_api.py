@@ -114,6 +114,14 @@ def test_run_session_from_keyword_arguments(tiny, tmp_path):
     assert code == 0 and json.loads(out)["status"] == "already-complete"
 
 
+def test_make_plan_from_a_name_a_path_or_an_object(tiny):
+    plan = crs_study.make_plan("pilot", "p01")
+    assert plan == crs_study.make_plan(crs_study.load_protocol("pilot"), "p01", 1, 0)
+    assert len(crs_study.make_plan(tiny.path, "p01")) == 2 * 3 + 2
+    faster = replace(tiny, design=replace(tiny.design, practice_trials=0))
+    assert crs_study.make_plan(faster, "p01").count("practice") == 0
+
+
 def test_validate_is_what_the_command_prints(tiny):
     summary = crs_study.validate(tiny.path, participant="p7")
     code, out = _cli("validate", str(tiny.path), "--participant", "p7", "--json")
