@@ -37,8 +37,8 @@ EXIT_INTERRUPTED = 130
 
 # Order in which subcommands are listed in --help: the main job first, then the pipeline.
 _PREFERRED_ORDER = (
-    "demo", "init", "validate", "run", "dry-run", "analyze", "consent", "device", "quality",
-    "bench",
+    "demo", "init", "validate", "run", "dry-run", "analyze", "power", "consent", "device",
+    "quality", "bench",
 )
 
 

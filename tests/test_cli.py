@@ -9,8 +9,8 @@ import pytest
 
 from crs_study.cli import build_parser, main
 
-SUBCOMMANDS = ("demo", "init", "validate", "run", "dry-run", "analyze", "consent", "device",
-               "quality", "bench")
+SUBCOMMANDS = ("demo", "init", "validate", "run", "dry-run", "analyze", "power", "consent",
+               "device", "quality", "bench")
 
 
 def test_every_subcommand_is_listed_in_order(capsys):

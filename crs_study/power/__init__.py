@@ -1,0 +1,47 @@
+"""Power analysis by simulation: how many participants a protocol needs.
+
+``power(protocol, ...) -> PowerResult`` (:mod:`crs_study.power.api`) applies the analysis
+plan's primary test, exactly as ``analyze`` runs it, to many simulated studies of the
+protocol's design, drawn from a pilot's GLMM fit or from the simulated observer's predicted
+accuracies (or real dry-runs, ``fidelity="full"``), mapped over a local process pool or a
+Dask cluster; the result has the curve with its Monte Carlo intervals, ``to_frame()``,
+``to_json()``, ``plot(ax=None)`` and the one-line ``headline()``.
+
+The stages, in the order they build on each other:
+
+* :mod:`~crs_study.power.design`: the protocol's design and the plan's test; ranges;
+* :mod:`~crs_study.power.model`: the generating model (pilot, parameters);
+  :mod:`~crs_study.power.observer`: the observer's predicted accuracies (mode 2);
+* :mod:`~crs_study.power.simulate`: studies with common random numbers;
+* :mod:`~crs_study.power.laplace`, :mod:`~crs_study.power.maximise`: the primary GLMM
+  fitted to many studies at once, at ``fit_glmm``'s maximum;
+* :mod:`~crs_study.power.study`: the unit of work; :mod:`~crs_study.power.fidelity`: mode 3;
+* :mod:`~crs_study.power.backends`: this process, a process pool, or Dask;
+* :mod:`~crs_study.power.result`: :class:`PowerResult`.
+
+Imports are lazy so that ``crs-study --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+
+_EXPORTS = {
+    "power": "crs_study.power.api",
+    "PowerResult": "crs_study.power.result",
+    "PowerError": "crs_study.power.design",
+    "PowerDesign": "crs_study.power.design",
+    "design_from_protocol": "crs_study.power.design",
+    "GenerativeModel": "crs_study.power.model",
+    "model_from_parameters": "crs_study.power.model",
+    "model_from_pilot": "crs_study.power.model",
+    "model_from_observer": "crs_study.power.observer",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'crs_study.power' has no attribute {name!r}")

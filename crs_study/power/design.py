@@ -11,7 +11,7 @@ method, quadrature points and alpha. :func:`parse_range` reads the ``--participa
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +31,8 @@ class PowerDesign:
     ``conditions`` start with ``reference``; ``repetitions`` is the protocol's (test trials
     per participant in each (condition, digit, level) cell); ``levels`` is ``(None,)`` for a
     protocol without ``[levels]``. ``random_effects``, ``method``, ``n_quadrature`` and
-    ``alpha`` are the plan's: the test :func:`crs_study.analysis.primary.primary_test` runs.
+    ``alpha`` are the plan's: the test :func:`crs_study.analysis.primary.primary_test` runs;
+    ``exclusions`` the plan's exclusion rules (for a pilot's and a dry-run's trials).
     """
 
     conditions: tuple[str, ...]
@@ -46,6 +47,7 @@ class PowerDesign:
     protocol: str = ""
     plan: str = ""
     protocol_path: str | None = None
+    exclusions: Any = field(default=None, compare=False, repr=False)   # the plan's
 
     def __post_init__(self) -> None:
         if self.reference != self.conditions[0] or len(self.conditions) < 2:
@@ -111,7 +113,7 @@ def design_from_protocol(protocol: Any, plan: Any = None) -> PowerDesign:
         random_effects=tuple(primary.random_effects), method=primary.method,
         n_quadrature=int(primary.n_quadrature), alpha=float(plan.alpha),
         protocol=f"{protocol.study_id} {protocol.version}", plan=plan.name,
-        protocol_path=str(Path(protocol.path)))
+        protocol_path=str(Path(protocol.path)), exclusions=plan.exclusions)
 
 
 def _test_trials_per_cell(protocol: Any) -> int:

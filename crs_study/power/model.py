@@ -107,27 +107,22 @@ def model_from_parameters(design: PowerDesign, accuracy: dict[str, float] | None
                                                  strict=True))})
 
 
-def model_from_pilot(design: PowerDesign, dataset: Any, plan: Any = None) -> GenerativeModel:
+def model_from_pilot(design: PowerDesign, dataset: Any) -> GenerativeModel:
     """The primary GLMM fitted to a pilot dataset as ``analyze`` fits it: its sessions (not
-    simulated and human ones together), the plan's exclusions, :func:`fit_primary` with the
-    plan's random effects and method. Errors name ``--pilot``."""
+    simulated and human ones together), the plan's exclusions (``design.exclusions``),
+    :func:`fit_primary` with the plan's random effects and method. Errors name
+    ``--pilot``."""
     from crs_study.analysis.glmm import GlmmFitError
     from crs_study.analysis.load import load_datasets, with_exclusions
-    from crs_study.analysis.plan import AnalysisPlan, default_plan_path, load_plan
+    from crs_study.analysis.plan import Exclusions
     from crs_study.analysis.primary import fit_primary
     from crs_study.errors import CrsStudyError
 
     try:
-        if plan is None:
-            plan = load_plan(default_plan_path())
-        elif not isinstance(plan, AnalysisPlan):
-            plan = load_plan(plan)
         from crs_study.analysis.sources import select_sources
 
         loaded, _, _ = select_sources(load_datasets([dataset]))
-        loaded = with_exclusions(loaded, plan.exclusions)
-    except PowerError:
-        raise
+        loaded = with_exclusions(loaded, design.exclusions or Exclusions())
     except CrsStudyError as exc:
         raise PowerError(f"--pilot {dataset}: {exc}") from None
     trials = loaded.analysed
