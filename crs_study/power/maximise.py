@@ -31,7 +31,7 @@ from crs_study.analysis.glmm_optimise import NEAR_ZERO, SLOPE_TOLERANCE
 from crs_study.power.laplace import BatchLaplace
 
 #: A study's fit is done when no free coordinate of the gradient exceeds this.
-GRADIENT_TOL = 1e-4
+GRADIENT_TOL = 1e-6
 MAX_ITERATIONS = 40
 MIN_START_SIGMA = 0.25
 #: The Hessian is taken afresh by differences every this many iterations (BFGS between):

@@ -292,7 +292,8 @@ def _first(n: np.ndarray, mask: np.ndarray) -> int | None:
 def merge(results: list[TaskResult]) -> dict[str, np.ndarray]:
     """The per-study arrays of the tasks, in study order (axis 1)."""
     ordered = sorted(results, key=lambda r: r.studies[0])
-    keys = ("p_value", "kind", "log_odds", "theta", "converged", "boundary", "reference")
+    keys = ("p_value", "kind", "log_odds", "theta", "converged", "boundary", "reference",
+            "loglike", "loglike_reduced")
     return {k: np.concatenate([getattr(r, k) for r in ordered], axis=1) for k in keys}
 
 

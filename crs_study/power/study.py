@@ -68,7 +68,10 @@ class TaskResult:
     """Per point (axis 0) and study (axis 1): ``p_value`` and ``kind`` per comparison
     (axis 2), ``log_odds`` the full model's estimate per comparison (NaN when none),
     ``theta`` its parameters (fixed effects, then the SDs), ``converged``, ``boundary`` (a
-    variance estimated at 0), ``reference`` (fitted by ``fit_glmm``); ``seconds`` of CPU."""
+    variance estimated at 0), ``reference`` (fitted by ``fit_glmm``), ``loglike`` the full
+    model's maximum and ``loglike_reduced`` each reduced model's (the supremum where
+    separated; binomial constants of the cells included, as lme4's ``logLik`` of
+    ``cbind(successes, failures)``); ``seconds`` of CPU."""
 
     studies: tuple[int, int]
     p_value: np.ndarray
@@ -78,6 +81,8 @@ class TaskResult:
     converged: np.ndarray
     boundary: np.ndarray
     reference: np.ndarray
+    loglike: np.ndarray
+    loglike_reduced: np.ndarray
     seconds: float
 
 
@@ -97,7 +102,9 @@ def run_task(task: PowerTask) -> TaskResult:
            "theta": np.full((len(points), S, n_params), np.nan),
            "converged": np.zeros((len(points), S), dtype=bool),
            "boundary": np.zeros((len(points), S), dtype=bool),
-           "reference": np.zeros((len(points), S), dtype=bool)}
+           "reference": np.zeros((len(points), S), dtype=bool),
+           "loglike": np.full((len(points), S), np.nan),
+           "loglike_reduced": np.full((len(points), S, K), np.nan)}
     for i, (n, r) in enumerate(points):
         Y = cumulative[:, :n, r - 1].astype(float)
         point = test_studies(design, model, Y, r)
@@ -118,7 +125,8 @@ def test_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
     out = {"p_value": np.full((S, K), np.nan), "kind": np.full((S, K), NONE, dtype=np.int8),
            "log_odds": np.full((S, K), np.nan), "theta": np.full((S, n_params), np.nan),
            "converged": np.zeros(S, dtype=bool), "boundary": np.zeros(S, dtype=bool),
-           "reference": np.zeros(S, dtype=bool)}
+           "reference": np.zeros(S, dtype=bool), "loglike": np.full(S, np.nan),
+           "loglike_reduced": np.full((S, K), np.nan)}
     per_condition = Y.sum(axis=(1, 2))                                  # (S, C)
     possible = trials.sum(axis=0) * Y.shape[1]
     separated = ((per_condition == 0) | (per_condition == possible)).any(axis=1)
@@ -128,13 +136,17 @@ def test_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
         full = fit_batch(BatchLaplace(cells, Y[fast]), np.tile(model.start(design),
                                                                (len(fast), 1)))
         needs = full.needs_reference.copy()
-        stats_ = np.empty((len(fast), K))
+        reduced_values = np.empty((len(fast), K))
         for j in range(K):
             reduced = fit_batch(BatchLaplace(cells.without(j + 1), Y[fast]),
                                 np.delete(full.theta, j + 1, axis=1))
             needs |= reduced.needs_reference
-            stats_[:, j] = 2.0 * (full.value - reduced.value)
+            reduced_values[:, j] = reduced.value
+        stats_ = 2.0 * (full.value[:, None] - reduced_values)
+        constant = binomial_constant(Y[fast], trials)
         ok = fast[~needs]
+        out["loglike"][ok] = (full.value + constant)[~needs]
+        out["loglike_reduced"][ok] = (reduced_values + constant[:, None])[~needs]
         out["p_value"][ok] = lr_pvalue(stats_[~needs])
         out["kind"][ok] = LR
         out["log_odds"][ok] = full.theta[~needs, 1:K + 1]
@@ -148,6 +160,14 @@ def test_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
             out[key][s] = value
         out["reference"][s] = True
     return out
+
+
+def binomial_constant(Y: np.ndarray, trials: np.ndarray) -> np.ndarray:
+    """``sum log C(m, y)`` over each study's cells (what ``fit_glmm`` adds to the kernel)."""
+    from scipy.special import gammaln
+
+    m = np.broadcast_to(trials, Y.shape[1:])
+    return (gammaln(m + 1) - gammaln(Y + 1) - gammaln(m - Y + 1)).sum(axis=(1, 2, 3))
 
 
 def lr_pvalue(statistic: np.ndarray) -> np.ndarray:
@@ -186,7 +206,8 @@ def test_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
     n_params = len(design.conditions) + 1 + int(design.digit_effect)
     out = {"p_value": np.full(K, np.nan), "kind": np.full(K, NONE, dtype=np.int8),
            "log_odds": np.full(K, np.nan), "theta": np.full(n_params, np.nan),
-           "converged": False, "boundary": False}
+           "converged": False, "boundary": False, "loglike": np.nan,
+           "loglike_reduced": np.full(K, np.nan)}
     conditions = list(design.conditions)
     try:
         fits = fit_primary(trials, conditions, design.reference, design.random_effects,
@@ -217,10 +238,12 @@ def test_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
             out["p_value"][j] = floor_p(test.test.pvalue)
             out["kind"][j] = SEPARATED if test.separated else LR
             converged = converged and bool(test.reduced.converged)
+            out["loglike_reduced"][j] = test.test.loglike_reduced
         if test.log_odds is not None:
             out["log_odds"][j] = test.log_odds
     if full.separation is None:
         out["theta"] = np.array(theta)
+    out["loglike"] = full.separation.sup_loglike if full.separation else full.loglike
     out["converged"] = converged
     out["boundary"] = bool((variances == 0).any())
     return out
