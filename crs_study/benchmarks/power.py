@@ -102,7 +102,7 @@ def _curve(quick: bool) -> list[Figure]:
 def _fit_primary_seconds(model, design, per_size: int) -> float:
     """Median seconds of fit_primary (full and reduced) over studies of every size."""
     from crs_study.power.simulate import simulate_studies
-    from crs_study.power.study import cells_frame, test_trials
+    from crs_study.power.study import cells_frame, decide_trials
 
     times = []
     cumulative = simulate_studies(model, 7, range(per_size), max(SIZES), design.repetitions)
@@ -111,7 +111,7 @@ def _fit_primary_seconds(model, design, per_size: int) -> float:
             frame = cells_frame(design, cumulative[s, :n, -1].astype(float),
                                 design.cell_trials(design.repetitions))
             start = time.perf_counter()
-            test_trials(design, frame)
+            decide_trials(design, frame)
             times.append(time.perf_counter() - start)
     return float(np.median(times))
 

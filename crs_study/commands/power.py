@@ -111,6 +111,10 @@ class ProgressBar:
         self.stream.flush()
 
 
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     from crs_study.power import PowerError, power
 
@@ -133,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = power(args.protocol, pilot=args.pilot, participants=args.participants,
                        repetitions=args.repetitions, fidelity=args.fidelity, plan=args.plan,
-                       scheduler=args.scheduler, progress=progress, **options)
+                       scheduler=args.scheduler, progress=progress,
+                       notify=None if args.json else _say, **options)
     except CrsStudyError:
         raise
     json_path, png_path = result.save(out)

@@ -6,6 +6,7 @@ The library entry point under ``crs-study power``; see :func:`power`.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,8 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
           repetitions: Any = None, studies: int = 1000, seed: int = DEFAULT_SEED,
           target: float = 0.8, fidelity: str = "model", jobs: int = 1, scheduler: Any = None,
           plan: Any = None, model: GenerativeModel | None = None, draws: int | None = None,
-          progress: Progress | None = None) -> PowerResult:
+          progress: Progress | None = None,
+          notify: Callable[[str], None] | None = None) -> PowerResult:
     """Power of the analysis plan's primary test for a protocol, over a range of N.
 
     Parameters
@@ -53,6 +55,8 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     model : a ready :class:`~crs_study.power.model.GenerativeModel` (overrides pilot and
         observer). draws : observer noise draws per stimulus (mode 2).
     progress : ``progress(done, total, seconds)`` after each unit of work.
+    notify : ``notify(text)`` before a long step that has no progress of its own (the
+        observer's predictions).
 
     Notes
     -----
@@ -86,14 +90,14 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
             from crs_study.power.fidelity import run_full
 
             generating = _observer_model(design, protocol, participant_sd, draws, backend,
-                                         effect_scale)
+                                         effect_scale, notify)
             raw = run_full(design, seed, participants, studies, backend, progress)
             notes.append("fidelity full: every study is dry-runs of the protocol by the "
                          "simulated observer, analysed as analyze does; the model shown is "
                          "the observer's prediction, for comparison")
         else:
             generating = model if model is not None else _generating_model(
-                design, protocol, pilot, effect_scale, participant_sd, draws, backend)
+                design, protocol, pilot, effect_scale, participant_sd, draws, backend, notify)
             if model is not None and effect_scale != 1.0:
                 generating = generating.scaled(effect_scale)
             tasks = [PowerTask(design, generating, seed, participants, reps,
@@ -146,7 +150,7 @@ def _checked(participants, repetitions, studies, seed, target, fidelity, jobs, e
 
 
 def _generating_model(design: PowerDesign, protocol, pilot, effect_scale,
-                      participant_sd, draws, backend: Backend) -> GenerativeModel:
+                      participant_sd, draws, backend: Backend, notify) -> GenerativeModel:
     from dataclasses import replace
 
     if pilot is not None:
@@ -156,13 +160,18 @@ def _generating_model(design: PowerDesign, protocol, pilot, effect_scale,
         if participant_sd is not None:
             generating = replace(generating, participant_sd=float(participant_sd))
         return generating.scaled(effect_scale)
-    return _observer_model(design, protocol, participant_sd, draws, backend, effect_scale)
+    return _observer_model(design, protocol, participant_sd, draws, backend, effect_scale,
+                           notify)
 
 
-def _observer_model(design, protocol, participant_sd, draws, backend, effect_scale):
+def _observer_model(design, protocol, participant_sd, draws, backend, effect_scale, notify):
     from crs_study.power.observer import DEFAULT_DRAWS, model_from_observer, predict
 
     source = protocol if hasattr(protocol, "design") else design.protocol_path
+    if notify:
+        stimuli = len(design.digits) * len(design.conditions) * len(design.levels)
+        notify(f"predicting the simulated observer's accuracy of {stimuli} stimuli "
+               f"({draws or DEFAULT_DRAWS} noise draws each)")
     prediction = predict(source, draws or DEFAULT_DRAWS, backend=backend)
     return model_from_observer(design, source, participant_sd,
                                prediction=prediction).scaled(effect_scale)

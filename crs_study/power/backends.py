@@ -27,6 +27,8 @@ from crs_study.power.design import PowerError
 Progress = Callable[[int, int, float], None]
 
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+#: Seconds to wait for a Dask scheduler before saying it cannot be reached.
+CONNECT_TIMEOUT = 10.0
 
 
 class Backend:
@@ -132,7 +134,7 @@ def _pool(pool, function, tasks) -> Iterator[tuple[int, Any]]:
         raise
 
 
-def connect(scheduler: Any, timeout: float = 10.0):
+def connect(scheduler: Any, timeout: float | None = None):
     """``(client, owned)``: a :class:`distributed.Client` for ``scheduler`` (an address, or a
     client taken as it is); an unreachable address is a :class:`PowerError` naming
     ``--scheduler``."""
@@ -146,7 +148,8 @@ def connect(scheduler: Any, timeout: float = 10.0):
         raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
                          f"tcp://HOST:8786, got {scheduler!r}")
     try:
-        return Client(scheduler, timeout=timeout, set_as_default=False), True
+        return Client(scheduler, timeout=CONNECT_TIMEOUT if timeout is None else timeout,
+                      set_as_default=False), True
     except (OSError, TimeoutError, ValueError) as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise PowerError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there "
@@ -159,7 +162,7 @@ def _dask(client, function, tasks) -> Iterator[tuple[int, Any]]:
     futures = client.map(function, list(tasks), pure=False)
     index = {future.key: i for i, future in enumerate(futures)}
     try:
-        for future in as_completed(futures):
+        for future in as_completed(futures, loop=client.loop):
             yield index[future.key], future.result()
     except BaseException:
         client.cancel(futures)

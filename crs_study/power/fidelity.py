@@ -19,7 +19,7 @@ import numpy as np
 
 from crs_study.power.backends import Backend, Progress
 from crs_study.power.design import PowerDesign
-from crs_study.power.study import TaskResult, test_trials
+from crs_study.power.study import TaskResult, decide_trials
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,7 @@ def run_study(task: FidelityTask) -> TaskResult:
     order = labels(task.seed, task.study, n_max)
     rows = []
     for n in task.participants:
-        rows.append(test_trials(design, trials.loc[trials["participant_id"].isin(order[:n])]))
+        rows.append(decide_trials(design, trials.loc[trials["participant_id"].isin(order[:n])]))
     stack = {key: np.stack([np.asarray(r[key]) for r in rows])[:, None]
              for key in ("p_value", "kind", "log_odds", "theta", "converged", "boundary",
                          "loglike", "loglike_reduced")}

@@ -107,13 +107,13 @@ def run_task(task: PowerTask) -> TaskResult:
            "loglike_reduced": np.full((len(points), S, K), np.nan)}
     for i, (n, r) in enumerate(points):
         Y = cumulative[:, :n, r - 1].astype(float)
-        point = test_studies(design, model, Y, r)
+        point = decide_studies(design, model, Y, r)
         for key, value in point.items():
             out[key][i] = value
     return TaskResult(task.studies, seconds=time.process_time() - start, **out)
 
 
-def test_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
+def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
                  repetitions: int) -> dict[str, np.ndarray]:
     """Test studies ``Y`` (S, P, D, C) of one point as ``analyze`` would; arrays as in
     :class:`TaskResult` (without the point axis)."""
@@ -192,10 +192,10 @@ def cells_frame(design: PowerDesign, Y: np.ndarray, trials: np.ndarray) -> pd.Da
 
 def reference_test(design: PowerDesign, Y: np.ndarray, trials: np.ndarray) -> dict:
     """One study tested by :func:`~crs_study.analysis.primary.fit_primary` on its cells."""
-    return test_trials(design, cells_frame(design, Y, trials))
+    return decide_trials(design, cells_frame(design, Y, trials))
 
 
-def test_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
+def decide_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
     """The primary test of a trial table (0/1 rows, or cells with ``n_trials``) as
     :func:`~crs_study.analysis.primary.primary_test` decides it, without the profiles."""
     from crs_study.analysis.accuracy import floor_p
