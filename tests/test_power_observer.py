@@ -2,7 +2,7 @@
 
 The prediction uses the observer's own decision rule (checked against
 ``PerceptualObserver.choice_probabilities``); mode 2's power is checked against mode 3's on
-the same protocol at two points (``tests/fixtures/power/fidelity_full.csv``, 150 studies of
+the same protocol at two points (``tests/fixtures/power/fidelity_full.csv``, 600 studies of
 real dry-runs made by ``make_fidelity.py``), within the Monte Carlo error of both.
 """
 
@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from _session_helpers import tiny_protocol
+from scipy import stats
 
 from crs_study.power import design_from_protocol, power
 from crs_study.power.observer import _choice_probability, predict, shown_stimulus
@@ -57,34 +58,62 @@ def test_predictions_are_deterministic_and_shaped_by_the_protocol(tmp_path):
 @pytest.fixture(scope="module")
 def mode2():
     """Mode 2 at the fixture's points, many studies (the observer's default prediction)."""
-    return power("digit_identification", participants=make_fidelity.PARTICIPANTS,
+    return power(make_fidelity.PROTOCOL, participants=make_fidelity.PARTICIPANTS,
                  studies=2000, seed=5)
 
 
 def test_mode_2_and_mode_3_agree_within_the_monte_carlo_error(mode2):
-    """At N = 2 and 3 the power from the predicted accuracies and from real dry-runs
-    (analysed as analyze does) differ by less than 2.5 standard errors of the difference."""
+    """At N = 2 and 4 (pilot protocol) the power from the predicted accuracies (2000
+    studies) and from real dry-runs analysed as analyze does (600 studies) cannot be told
+    apart: Fisher's exact test of the two counts p > 0.05, and mode 2's power inside mode
+    3's Clopper-Pearson 95 % interval."""
     full = pd.read_csv(FIXTURES / "fidelity_full.csv")
     table = mode2.to_frame()
     for n in make_fidelity.PARTICIPANTS:
         rows = full.loc[full["n"] == n]
         k3, s3 = int((rows["p_value"] < 0.05).sum()), len(rows)
         row = table.loc[table["participants"] == n].iloc[0]
-        p2, p3 = row["power"], k3 / s3
-        se = np.sqrt(p2 * (1 - p2) / row["studies"] + p3 * (1 - p3) / s3)
-        assert abs(p2 - p3) < 2.5 * se, (n, p2, p3, se)
-        assert 0.3 < p3 < 0.995                               # points that can tell
+        k2, s2 = int(row["significant"]), int(row["studies"])
+        assert 0.15 < k3 / s3 < 0.85                        # points that can tell
+        assert stats.fisher_exact([[k2, s2 - k2], [k3, s3 - k3]]).pvalue > 0.05
+        interval = stats.binomtest(k3, s3).proportion_ci(0.95, method="exact")
+        assert interval.low <= k2 / s2 <= interval.high, (n, k2 / s2, k3 / s3)
 
 
 def test_the_mode_3_fixture_is_what_the_code_makes_now():
-    """Study 0 of the fixture rerun (two real sessions, analysed): the same p-values."""
-    result = power("digit_identification", fidelity="full", participants=(2,), studies=2,
+    """Two studies of the fixture rerun (real sessions, analysed): the same p-values."""
+    result = power(make_fidelity.PROTOCOL, fidelity="full", participants=(2,), studies=2,
                    seed=make_fidelity.SEED)
     stored = pd.read_csv(FIXTURES / "fidelity_full.csv")
     for study in range(2):
         row = stored.loc[(stored["n"] == 2) & (stored["study"] == study)].iloc[0]
         assert result.raw["p_value"][0, study, 0] == pytest.approx(row["p_value"], rel=1e-9)
     assert result.raw["reference"].all() and result.fidelity == "full"
+
+
+def test_the_shown_stimulus_is_what_a_session_displays(tmp_path, monkeypatch):
+    """The displayed setpoints of every test trial of a dry-run session equal the once-shown
+    stimulus's within a servo step (the refresh phase of the wire)."""
+    from crs_study.responders.observer import PerceptualObserver
+    from crs_study.runner import dry_run
+
+    records = []
+    respond = PerceptualObserver.respond
+
+    def recording(self, trial, stimulus, clock, limit):
+        if trial.trial_type == "test":
+            records.append((trial.digit, trial.condition, stimulus.setpoints))
+        return respond(self, trial, stimulus, clock, limit)
+
+    path = tiny_protocol(tmp_path, digits=(1, 4, 7), repetitions=2)
+    monkeypatch.setattr(PerceptualObserver, "respond", recording)
+    dry_run(path, 1, tmp_path / "data")
+    protocol = load_protocol(path)
+    assert len(records) == 12
+    for digit, condition, displayed in records:
+        shown = shown_stimulus(protocol, protocol.layout(), digit, condition, None)
+        assert shown.setpoints.shape == displayed.shape
+        assert np.abs(shown.setpoints - displayed).max() < 0.02
 
 
 def test_mode_2_takes_a_given_participant_sd_and_the_designs_condition_order():
@@ -99,3 +128,25 @@ def test_mode_2_takes_a_given_participant_sd_and_the_designs_condition_order():
     accuracy = model.accuracy()
     assert accuracy[1] > accuracy[0]                 # CRS above pixel-only, as calibrated
     assert model.base.shape == (1, 10, 2) and np.isfinite(model.base).all()
+
+
+def test_participants_differ_as_the_observers_do(tmp_path):
+    """Without a given SD a participant of ability z has the observer's accuracy at the
+    temperature T exp(ability_sd z), every cell (the table interpolated in z)."""
+    from scipy.special import logit
+
+    from crs_study.power.observer import model_from_observer
+
+    path = tiny_protocol(tmp_path, digits=(1, 4, 7))
+    design = design_from_protocol(path)
+    prediction = predict(path, draws=6)
+    model = model_from_observer(design, path, prediction=prediction)
+    for z in (0.0, 0.73, -1.9):
+        direct = logit(prediction.p_correct(prediction.temperature_mm
+                                             * np.exp(prediction.ability_sd * z)))
+        np.testing.assert_allclose(model.participant_logits(z), direct, atol=2e-3)
+    sharp, blunt = model.participant_logits(-2.0), model.participant_logits(2.0)
+    assert (sharp.mean(axis=1) > blunt.mean(axis=1)).all()     # lower temperature: better
+    given = model_from_observer(design, path, participant_sd=0.3, prediction=prediction)
+    assert given.ability is None
+    np.testing.assert_allclose(given.participant_logits(1.0), given.base + 0.3)

@@ -182,3 +182,17 @@ def test_the_fits_recover_the_generating_parameters(design):
     se = estimates.std(axis=0, ddof=1) / np.sqrt(studies)
     expected = np.array([-0.2, 0.7, 0.5**2, 0.6**2 * 9 / 10])
     assert np.all(np.abs(mean - expected) < 2 * se), (mean, expected, se)
+
+
+def test_three_conditions_each_tested_against_the_reference_as_analyze_does():
+    """Two comparisons per study, each the LR test of dropping its own coefficient."""
+    design = PowerDesign(("a", "b", "c"), "a", tuple(range(5)), (None,), 2)
+    model = model_from_parameters(design, {"a": 0.5, "b": 0.6, "c": 0.7},
+                                  participant_sd=0.4, digit_sd=0.3)
+    Y = simulate_studies(model, 8, range(6), 5, 2)[:, :, -1].astype(float)
+    out = decide_studies(design, model, Y, 2)
+    assert not out["reference"].any() and (out["kind"] == LR).all()
+    for s in range(6):
+        expected = decide_trials(design, cells_frame(design, Y[s], design.cell_trials(2)))
+        np.testing.assert_allclose(out["p_value"][s], expected["p_value"], rtol=1e-6)
+        np.testing.assert_allclose(out["log_odds"][s], expected["log_odds"], atol=1e-4)

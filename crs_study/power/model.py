@@ -2,7 +2,9 @@
 
 Every simulated trial of participant ``p`` on digit ``d`` in condition ``c`` (at level ``l``)
 is correct with probability ``expit(base[l, d, c] + sigma_p z_p + sigma_d z_d)``, ``z ~
-N(0, 1)`` drawn per study (:mod:`crs_study.power.simulate`). Three sources fill it:
+N(0, 1)`` drawn per study (:mod:`crs_study.power.simulate`); or, where the model carries an
+``ability`` table (the observer's own participants), ``expit(ability(z_p)[l, d, c] + sigma_d
+z_d)``, the table interpolated linearly in ``z``. Three sources fill it:
 
 * :func:`model_from_pilot` -- the primary GLMM fitted to a pilot dataset: ``base`` is the
   fixed effects (the same for every digit and level), ``sigma_p`` and ``sigma_d`` its random
@@ -32,13 +34,18 @@ from crs_study.power.design import PowerDesign, PowerError
 @dataclass(frozen=True)
 class GenerativeModel:
     """``base`` (L, D, C) log-odds of the typical participant and digit; the SDs on the logit
-    scale; ``source`` and ``details`` say where the numbers come from."""
+    scale; ``ability`` (G, L, D, C) the log-odds of a participant of ability ``z =
+    ability_grid[g]`` (evenly spaced), used instead of ``base + participant_sd z`` when given
+    (``participant_sd`` then only summarises it and starts the fits); ``source`` and
+    ``details`` say where the numbers come from."""
 
     base: np.ndarray = field(repr=False)
     participant_sd: float
     digit_sd: float = 0.0
     source: str = "parameters"
     details: dict = field(default_factory=dict, compare=False)
+    ability: np.ndarray | None = field(default=None, repr=False)
+    ability_grid: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         base = np.asarray(self.base, dtype=float)
@@ -56,9 +63,23 @@ class GenerativeModel:
         """Every condition's difference from the reference (condition 0) times the scale."""
         if not (np.isfinite(effect_scale) and effect_scale >= 0):
             raise PowerError(f"--effect-scale: expected a number >= 0, got {effect_scale!r}")
-        ref = self.base[:, :, :1]
-        base = ref + effect_scale * (self.base - ref)
-        return replace(self, base=base, details={**self.details, "effect_scale": effect_scale})
+        def scale(logits):
+            ref = logits[..., :1]
+            return ref + effect_scale * (logits - ref)
+
+        return replace(self, base=scale(self.base),
+                       ability=None if self.ability is None else scale(self.ability),
+                       details={**self.details, "effect_scale": effect_scale})
+
+    def participant_logits(self, z: float) -> np.ndarray:
+        """The log-odds (L, D, C) of a participant of ability ``z``, typical digits."""
+        if self.ability is None:
+            return self.base + self.participant_sd * z
+        grid = self.ability_grid
+        step = grid[1] - grid[0]
+        g = int(np.clip(np.floor((z - grid[0]) / step), 0, len(grid) - 2))
+        w = (z - grid[g]) / step
+        return (1.0 - w) * self.ability[g] + w * self.ability[g + 1]
 
     def start(self, design: PowerDesign) -> np.ndarray:
         """Warm start of the full model's fit: the GLMM parameters nearest this model
@@ -83,6 +104,9 @@ class GenerativeModel:
     def to_dict(self, design: PowerDesign) -> dict[str, Any]:
         acc = self.accuracy()
         return {"source": self.source, "participant_sd": self.participant_sd,
+                "participants": ("the observer's ability model (temperature T exp(ability_sd "
+                                 "z))" if self.ability is not None else
+                                 "a random intercept with participant_sd"),
                 "digit_sd": self.digit_sd,
                 "accuracy": {c: float(a) for c, a in zip(design.conditions, acc, strict=True)},
                 "log_odds": self.base.tolist(), "details": self.details}

@@ -1,10 +1,11 @@
 """Mode 2: the simulated observer's predicted accuracy of every stimulus, without sessions.
 
 For each (level, digit, condition) of a protocol the stimulus is rendered once and shown
-once on a fresh simulated device, exactly as a session shows it
+once on a fresh simulated device, exactly as a session shows a test trial
 (:class:`crs_study.runner.StimulusCache` for the frames, the runner's presentation for the
-displayed setpoints a hand meets, the display neutral and settled before the onset, as after
-a session's inter-trial interval). The perceptual observer
+displayed setpoints a hand meets, the display neutral since the previous trial's offset, a
+response and an inter-trial interval earlier; tests/test_power_observer.py checks the
+displayed setpoints against a dry-run's). The perceptual observer
 (:class:`crs_study.responders.observer.PerceptualObserver`) then senses it ``draws`` times,
 each with fresh receptor noise, and its decision model gives the probability of naming the
 right digit, ``p = (1 - lapse) softmax(-d / T) + lapse / n`` over the template distances
@@ -12,10 +13,15 @@ right digit, ``p = (1 - lapse) softmax(-d / T) + lapse / n`` over the template d
 ability ``z = 0``) is the mean of that probability over the draws: an integral over the
 sensing noise by Monte Carlo, with its standard error, never a sampled response.
 
-The between-participant SD on the logit scale follows from the observer's own calibration:
-a participant's temperature is ``T exp(ability_sd z)``, ``z ~ N(0, 1)``; with ``f(z)`` the mean
-over cells of ``logit P(correct | z)`` (from the same draws' distances), the SD of ``f(z)``
-over ``z`` (Gauss-Hermite, 40 nodes) is the participant SD of the generating model.
+Participants differ as the observer's do: a simulated participant's temperature is ``T
+exp(ability_sd z)``, ``z ~ N(0, 1)``, and their accuracy of every cell follows from the same
+draws' distances at that temperature, tabulated over ``z`` (the model's ``ability`` table,
+-6 to 6 in steps of 0.05). So a participant's condition effect varies with their ability as
+in a dry-run (for the shipped protocols the CRS effect on the log-odds is 0.95 at z = 0, 1.25
+at z = -2 and 0.66 at z = 2), a spread a random intercept alone leaves out. For reports and
+the fits' start, the summary SD is that of ``f(z)``, the mean over cells of ``logit
+P(correct | z)`` (Gauss-Hermite, 40 nodes). A ``participant_sd`` given instead makes
+participants a random intercept of that SD on the logit scale.
 Timeouts (a response more than the protocol's limit after the offset) are left out: the
 observer's decision times are about 2 s against a 10 s limit.
 """
@@ -151,7 +157,14 @@ def shown_stimulus(protocol: Any, layout: Any, digit: int, condition: str,
 
     frame_times, frames = stimulus_cache(protocol, layout).get(digit, condition, level)
     period = 1.0 / float(protocol.frame_rate_hz)
-    clock = VirtualClock(start=-SETTLE_S)
+    # As between a session's trials: the display went neutral at the last offset, then the
+    # response and the inter-trial interval passed. The gap matters: a write that starts a
+    # refresh interval (1 s) or more after the last full one carries every channel, which
+    # the wire takes a full frame's time to deliver (crs_study.device.schedule); a test
+    # trial's first frame always does.
+    gap = max(SETTLE_S, float(protocol.responses.expected_response_s)
+              + float(protocol.inter_trial_interval_s))
+    clock = VirtualClock(start=-gap)
     with open_device("sim://", layout, clock) as device:
         device.neutral()
         clock.sleep_until(0.0)
@@ -178,6 +191,12 @@ def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: floa
     base = logit(np.clip(accuracy, 1e-6, 1 - 1e-6))
     derived = prediction.participant_sd()
     sd = derived if participant_sd is None else float(participant_sd)
+    grid = ability = None
+    if participant_sd is None:
+        grid = np.round(np.arange(-6.0, 6.0 + 1e-9, 0.05), 10)
+        ability = np.stack([logit(np.clip(prediction.p_correct(
+            prediction.temperature_mm * np.exp(prediction.ability_sd * z)), 1e-6, 1 - 1e-6))
+            for z in grid])[..., order]
     se = prediction.std_error[:, :, order]
     details = {"draws": int(prediction.distances.shape[3]),
                "accuracy_by_condition": {c: float(a) for c, a in zip(
@@ -192,6 +211,9 @@ def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: floa
                                      for k, c in enumerate(design.conditions)},
                "participant_sd_from_calibration": derived,
                "participant_sd_given": participant_sd is not None,
+               "participants": ("the observer's: temperature T exp(ability_sd z), z ~ N(0, 1)"
+                                if participant_sd is None else
+                                f"a random intercept, SD {sd:g} (given)"),
                "temperature_mm": prediction.temperature_mm,
                "ability_sd": prediction.ability_sd, "lapse": prediction.lapse}
-    return GenerativeModel(base, sd, 0.0, "observer", details)
+    return GenerativeModel(base, sd, 0.0, "observer", details, ability, grid)

@@ -13,7 +13,9 @@ each participant's first r repetitions are the same whatever the largest repetit
 asked (``Generator.random`` fills its array in order), and the result of a run is the same
 whichever backend and how many workers run it (the point and the worker take no part in a
 seed). Trial ``(rep, level, d, c)`` of participant ``k`` is correct when ``U < expit(base[l,
-d, c] + sigma_p z_k + sigma_d z_d)``; the cells' successes are summed over levels.
+d, c] + sigma_p z_k + sigma_d z_d)`` (with an ability table, ``ability(z_k)[l, d, c]`` in
+place of ``base + sigma_p z_k``: :meth:`~crs_study.power.model.GenerativeModel.
+participant_logits`); the cells' successes are summed over levels.
 """
 
 from __future__ import annotations
@@ -39,11 +41,15 @@ def simulate_studies(model: GenerativeModel, seed: int, studies: range | list[in
     out = np.empty((len(studies), n_participants, repetitions, D, C), dtype=np.int32)
     for i, study in enumerate(studies):
         z_digit = stream(seed, study, 0).standard_normal(D)
-        logit_study = base + model.digit_sd * z_digit[None, :, None]
+        digit_shift = model.digit_sd * z_digit[None, :, None]
+        logit_study = base + digit_shift
         for k in range(n_participants):
             rng = stream(seed, study, 1, k)
             z = rng.standard_normal()
-            p = expit(logit_study + model.participant_sd * z)
+            if model.ability is None:
+                p = expit(logit_study + model.participant_sd * z)
+            else:
+                p = expit(model.participant_logits(z) + digit_shift)
             hits = rng.random((repetitions, L, D, C)) < p[None]
             out[i, k] = np.cumsum(hits.sum(axis=1), axis=0)
     return out

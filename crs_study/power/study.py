@@ -94,17 +94,7 @@ def run_task(task: PowerTask) -> TaskResult:
     cumulative = simulate_studies(model, task.seed, studies, max(task.participants),
                                   max(task.repetitions))
     points = task.points
-    S, K = len(studies), len(design.comparisons)
-    n_params = len(design.conditions) + 1 + int(design.digit_effect)
-    out = {"p_value": np.full((len(points), S, K), np.nan),
-           "kind": np.full((len(points), S, K), NONE, dtype=np.int8),
-           "log_odds": np.full((len(points), S, K), np.nan),
-           "theta": np.full((len(points), S, n_params), np.nan),
-           "converged": np.zeros((len(points), S), dtype=bool),
-           "boundary": np.zeros((len(points), S), dtype=bool),
-           "reference": np.zeros((len(points), S), dtype=bool),
-           "loglike": np.full((len(points), S), np.nan),
-           "loglike_reduced": np.full((len(points), S, K), np.nan)}
+    out = outcomes(design, (len(points), len(studies)))
     for i, (n, r) in enumerate(points):
         Y = cumulative[:, :n, r - 1].astype(float)
         point = decide_studies(design, model, Y, r)
@@ -113,20 +103,29 @@ def run_task(task: PowerTask) -> TaskResult:
     return TaskResult(task.studies, seconds=time.process_time() - start, **out)
 
 
+def outcomes(design: PowerDesign, shape: tuple[int, ...]) -> dict[str, np.ndarray]:
+    """Empty outcome arrays of :class:`TaskResult`'s fields for ``shape`` (points, studies,
+    or studies, or () for one study): no test, NaN numbers, flags off."""
+    K = len(design.comparisons)
+    n_params = len(design.conditions) + 1 + int(design.digit_effect)
+    return {"p_value": np.full(shape + (K,), np.nan),
+            "kind": np.full(shape + (K,), NONE, dtype=np.int8),
+            "log_odds": np.full(shape + (K,), np.nan),
+            "theta": np.full(shape + (n_params,), np.nan),
+            "converged": np.zeros(shape, dtype=bool), "boundary": np.zeros(shape, dtype=bool),
+            "reference": np.zeros(shape, dtype=bool), "loglike": np.full(shape, np.nan),
+            "loglike_reduced": np.full(shape + (K,), np.nan)}
+
+
 def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
-                 repetitions: int) -> dict[str, np.ndarray]:
+                   repetitions: int) -> dict[str, np.ndarray]:
     """Test studies ``Y`` (S, P, D, C) of one point as ``analyze`` would; arrays as in
     :class:`TaskResult` (without the point axis)."""
     S = len(Y)
     K = len(design.comparisons)
     trials = design.cell_trials(repetitions)
     cells = CellDesign(design.fixed_design(), trials, design.digit_effect)
-    n_params = cells.n_params
-    out = {"p_value": np.full((S, K), np.nan), "kind": np.full((S, K), NONE, dtype=np.int8),
-           "log_odds": np.full((S, K), np.nan), "theta": np.full((S, n_params), np.nan),
-           "converged": np.zeros(S, dtype=bool), "boundary": np.zeros(S, dtype=bool),
-           "reference": np.zeros(S, dtype=bool), "loglike": np.full(S, np.nan),
-           "loglike_reduced": np.full((S, K), np.nan)}
+    out = outcomes(design, (S,))
     per_condition = Y.sum(axis=(1, 2))                                  # (S, C)
     possible = trials.sum(axis=0) * Y.shape[1]
     separated = ((per_condition == 0) | (per_condition == possible)).any(axis=1)
@@ -202,12 +201,8 @@ def decide_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
     from crs_study.analysis.glmm import GlmmFitError
     from crs_study.analysis.primary import _fisher_comparisons, fit_primary
 
-    K = len(design.comparisons)
-    n_params = len(design.conditions) + 1 + int(design.digit_effect)
-    out = {"p_value": np.full(K, np.nan), "kind": np.full(K, NONE, dtype=np.int8),
-           "log_odds": np.full(K, np.nan), "theta": np.full(n_params, np.nan),
-           "converged": False, "boundary": False, "loglike": np.nan,
-           "loglike_reduced": np.full(K, np.nan)}
+    out = outcomes(design, ())
+    del out["reference"]
     conditions = list(design.conditions)
     try:
         fits = fit_primary(trials, conditions, design.reference, design.random_effects,
