@@ -196,3 +196,17 @@ def test_three_conditions_each_tested_against_the_reference_as_analyze_does():
         expected = decide_trials(design, cells_frame(design, Y[s], design.cell_trials(2)))
         np.testing.assert_allclose(out["p_value"][s], expected["p_value"], rtol=1e-6)
         np.testing.assert_allclose(out["log_odds"][s], expected["log_odds"], atol=1e-4)
+
+
+def test_a_studys_outcome_does_not_depend_on_how_the_studies_are_split(design):
+    """Studies 0-9 as one unit of work or as two: the same bits at every point (each study's
+    fits start from its own numbers only, so any chunking gives the same answer)."""
+    model = model_from_parameters(design, {"pixel-only": 0.45, "crs": 0.6},
+                                  participant_sd=0.4, digit_sd=0.3)
+    points = dict(participants=(4, 8, 12), repetitions=(2, 5))
+    whole = run_task(PowerTask(design, model, 3, studies=(0, 10), **points))
+    parts = [run_task(PowerTask(design, model, 3, studies=s, **points))
+             for s in ((0, 4), (4, 10))]
+    for key in ("p_value", "theta", "loglike", "loglike_reduced", "boundary", "reference"):
+        joined = np.concatenate([getattr(p, key) for p in parts], axis=1)
+        assert np.array_equal(joined, getattr(whole, key), equal_nan=True), key

@@ -46,23 +46,29 @@ _SLOPE_STEP = 1e-3  # glmm_optimise._SLOPE_STEP: the slope is read at sigma = 1e
 class BatchFit:
     """The maxima of a batch: ``theta`` (S, n) with sigmas as ``|sigma|``, ``value`` (S,) the
     log-likelihood kernel, ``at_zero`` (S, n) the sigmas estimated at the boundary,
-    ``needs_reference`` (S,) the studies to refit with ``fit_glmm``, ``iterations`` (S,)."""
+    ``needs_reference`` (S,) the studies to refit with ``fit_glmm``, ``iterations`` (S,),
+    ``curvature`` (S, n, n) the last negative-Hessian approximation of the interior fit (a
+    start for a nested model's)."""
 
     theta: np.ndarray
     value: np.ndarray
     at_zero: np.ndarray
     needs_reference: np.ndarray
     iterations: np.ndarray
+    curvature: np.ndarray
 
 
-def _newton(objective: BatchLaplace, theta0: np.ndarray, held: np.ndarray):
+def _newton(objective: BatchLaplace, theta0: np.ndarray, held: np.ndarray,
+            N0: np.ndarray | None = None):
     """Maxima over the free coordinates (``~held``) of every study.
 
     The first step is Newton's with the Hessian by forward differences of the exact
     gradient; later steps update that matrix by BFGS (the secant pairs of the accepted
     steps, skipped where the curvature condition fails), so an iteration costs one
-    evaluation of value and gradient when its full step is taken. Returns ``(theta, value,
-    converged, iterations)``; ``objective.warm`` holds the conditional modes at ``theta``.
+    evaluation of value and gradient when its full step is taken; ``N0`` (S, n, n), a
+    negative Hessian known to be near (a related model's), replaces the first differences.
+    Returns ``(theta, value, converged, iterations, N)`` with ``N`` each study's last
+    matrix; ``objective.warm`` holds the conditional modes at ``theta``.
     """
     theta = theta0.copy()
     S, n = theta.shape
@@ -71,7 +77,8 @@ def _newton(objective: BatchLaplace, theta0: np.ndarray, held: np.ndarray):
     g = np.where(free, g, 0.0)
     converged = np.zeros(S, dtype=bool)
     iterations = np.zeros(S, dtype=int)
-    N = None
+    N = None if N0 is None else N0.copy()
+    N_last = np.zeros((S, n, n))
     active = np.arange(S)
     sub = objective.subset(active)
     for iteration in range(MAX_ITERATIONS):
@@ -82,14 +89,22 @@ def _newton(objective: BatchLaplace, theta0: np.ndarray, held: np.ndarray):
         keep = ~done & ~bad
         if not keep.all():
             objective.warm.put(active[~keep], sub.warm.take(~keep))
+            if N is not None:
+                N_last[active[~keep]] = N[~keep]
             active, th, v, ga = active[keep], th[keep], v[keep], ga[keep]
             sub = sub.subset(np.flatnonzero(keep))
             N = None if N is None else N[keep]
         if not len(active):
             break
         iterations[active] += 1
-        if N is None or iteration % REFRESH_EVERY == 0:
+        if N is None or (iteration and iteration % REFRESH_EVERY == 0):
             N = _negative_hessian(sub, th, ga, free[active])
+        elif iteration == 0:                # N0 given: differences only where it is unusable
+            unusable = np.linalg.eigvalsh(N)[:, 0] <= 0
+            if unusable.any():
+                rows = np.flatnonzero(unusable)
+                N[rows] = _negative_hessian(sub.subset(rows), th[rows], ga[rows],
+                                            free[active][rows])
         step = _solve(N, ga, free[active])
         th_new, v_new, g_new, ok = _line_search(sub, th, v, step)
         g_new = np.where(free[active], g_new, 0.0)
@@ -99,12 +114,15 @@ def _newton(objective: BatchLaplace, theta0: np.ndarray, held: np.ndarray):
         g[active] = np.where(ok[:, None], g_new, ga)
         if not ok.all():                       # no ascent along the step: stalled
             objective.warm.put(active[~ok], sub.warm.take(~ok))
+            N_last[active[~ok]] = N[~ok]
             active, N = active[ok], N[ok]
             sub = sub.subset(np.flatnonzero(ok))
     else:
         objective.warm.put(active, sub.warm)
+        if N is not None:
+            N_last[active] = N
     theta[:, objective.design.n_fixed:] = np.abs(theta[:, objective.design.n_fixed:])
-    return theta, value, converged, iterations
+    return theta, value, converged, iterations, N_last
 
 
 def _negative_hessian(sub: BatchLaplace, theta, g, free) -> np.ndarray:
@@ -204,14 +222,17 @@ def _not_lower(v: np.ndarray, value: np.ndarray) -> np.ndarray:
     return np.isfinite(v) & (v >= value - 1e-12 * (1.0 + np.abs(value)))
 
 
-def fit_batch(objective: BatchLaplace, start: np.ndarray) -> BatchFit:
-    """Maximise every study's likelihood from ``start`` (S, n), boundary checked."""
+def fit_batch(objective: BatchLaplace, start: np.ndarray,
+              curvature: np.ndarray | None = None) -> BatchFit:
+    """Maximise every study's likelihood from ``start`` (S, n), boundary checked;
+    ``curvature`` (S, n, n), a negative Hessian near the start (the full model's at its
+    maximum, for the reduced model), saves the first differences."""
     S, n = start.shape
     k = objective.design.n_fixed
     start = start.copy()
     start[:, k:] = np.maximum(np.abs(start[:, k:]), MIN_START_SIGMA)
     held = np.zeros((S, n), dtype=bool)
-    theta, value, converged, iterations = _newton(objective, start, held)
+    theta, value, converged, iterations, N = _newton(objective, start, held, curvature)
     needs = ~converged
     at_zero = np.zeros((S, n), dtype=bool)
     near = np.zeros((S, n), dtype=bool)
@@ -219,8 +240,8 @@ def fit_batch(objective: BatchLaplace, start: np.ndarray) -> BatchFit:
     check = np.flatnonzero(near.any(axis=1) & converged)
     if len(check):
         sub = objective.subset(check)
-        b_theta, b_value, b_ok, b_iter = _newton(sub, np.where(near[check], 0.0,
-                                                               theta[check]), near[check])
+        b_theta, b_value, b_ok, b_iter, _ = _newton(sub, np.where(near[check], 0.0,
+                                                                  theta[check]), near[check])
         iterations[check] += b_iter
         slopes = _slopes(sub, b_theta, near[check])
         inward = ((slopes > SLOPE_TOLERANCE) & near[check]).any(axis=1)
@@ -233,7 +254,7 @@ def fit_batch(objective: BatchLaplace, start: np.ndarray) -> BatchFit:
         value[rows] = b_value[take_boundary]
         at_zero[rows] = near[check][take_boundary]
         needs[check[~take_boundary & ~keep_interior]] = True
-    return BatchFit(theta, value, at_zero, needs, iterations)
+    return BatchFit(theta, value, at_zero, needs, iterations, N)
 
 
 def _slopes(sub: BatchLaplace, theta: np.ndarray, near: np.ndarray) -> np.ndarray:

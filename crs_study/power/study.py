@@ -95,9 +95,16 @@ def run_task(task: PowerTask) -> TaskResult:
                                   max(task.repetitions))
     points = task.points
     out = outcomes(design, (len(points), len(studies)))
+    previous: dict[int, tuple[int, np.ndarray]] = {}     # per repetitions: (N, curvature)
     for i, (n, r) in enumerate(points):
         Y = cumulative[:, :n, r - 1].astype(float)
-        point = decide_studies(design, model, Y, r)
+        # The full model's curvature at the previous N of the same study, scaled by the
+        # participants (the information grows with them): a per-study start for the fits'
+        # Hessian, so a study's answer still depends on nothing but its own data.
+        last = previous.get(r)
+        start_curvature = None if last is None else last[1] * (n / last[0])
+        point = decide_studies(design, model, Y, r, start_curvature)
+        previous[r] = (n, point.pop("curvature"))
         for key, value in point.items():
             out[key][i] = value
     return TaskResult(task.studies, seconds=time.process_time() - start, **out)
@@ -118,14 +125,19 @@ def outcomes(design: PowerDesign, shape: tuple[int, ...]) -> dict[str, np.ndarra
 
 
 def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
-                   repetitions: int) -> dict[str, np.ndarray]:
+                   repetitions: int, curvature: np.ndarray | None = None
+                   ) -> dict[str, np.ndarray]:
     """Test studies ``Y`` (S, P, D, C) of one point as ``analyze`` would; arrays as in
-    :class:`TaskResult` (without the point axis)."""
+    :class:`TaskResult` (without the point axis), and ``curvature`` (S, n, n) the full
+    model's last negative-Hessian approximation (zeros where none), which a next point may
+    pass back as its start."""
     S = len(Y)
     K = len(design.comparisons)
     trials = design.cell_trials(repetitions)
     cells = CellDesign(design.fixed_design(), trials, design.digit_effect)
     out = outcomes(design, (S,))
+    n_params = cells.n_params
+    out["curvature"] = np.zeros((S, n_params, n_params))
     per_condition = Y.sum(axis=(1, 2))                                  # (S, C)
     possible = trials.sum(axis=0) * Y.shape[1]
     separated = ((per_condition == 0) | (per_condition == possible)).any(axis=1)
@@ -133,12 +145,15 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
     settled = np.zeros(S, dtype=bool)
     if len(fast):
         full = fit_batch(BatchLaplace(cells, Y[fast]), np.tile(model.start(design),
-                                                               (len(fast), 1)))
+                                                               (len(fast), 1)),
+                         None if curvature is None else curvature[fast])
+        out["curvature"][fast] = full.curvature
         needs = full.needs_reference.copy()
         reduced_values = np.empty((len(fast), K))
         for j in range(K):
+            curvature = np.delete(np.delete(full.curvature, j + 1, axis=1), j + 1, axis=2)
             reduced = fit_batch(BatchLaplace(cells.without(j + 1), Y[fast]),
-                                np.delete(full.theta, j + 1, axis=1))
+                                np.delete(full.theta, j + 1, axis=1), curvature)
             needs |= reduced.needs_reference
             reduced_values[:, j] = reduced.value
         stats_ = 2.0 * (full.value[:, None] - reduced_values)
