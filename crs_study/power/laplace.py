@@ -91,7 +91,7 @@ class _Schur:
             self.logdet = self.logdet_A
             return
         self.E = B / A[:, :, None]                                    # (S, P, D)
-        S = -np.einsum("spd,spe->sde", B, self.E)
+        S = -(np.swapaxes(B, 1, 2) @ self.E)      # matmul: ~15x einsum's time here
         idx = np.arange(S.shape[1])
         S[:, idx, idx] += C
         self.S = S
@@ -110,9 +110,9 @@ class _Schur:
         vector = bp.ndim == 2
         bp3 = bp[:, :, None] if vector else bp
         bd3 = bd[:, :, None] if vector else bd
-        rhs = bd3 - np.einsum("spd,spk->sdk", self.E, bp3)
+        rhs = bd3 - np.swapaxes(self.E, 1, 2) @ bp3
         xd = np.linalg.solve(self.S, rhs) if self.S_inv is None else self.S_inv @ rhs
-        xp = bp3 / self.A[:, :, None] - np.einsum("spd,sdk->spk", self.E, xd)
+        xp = bp3 / self.A[:, :, None] - self.E @ xd
         if vector:
             return xp[:, :, 0], xd[:, :, 0]
         return xp, xd
@@ -122,8 +122,8 @@ class _Schur:
         H^-1 digit block (S, D, D))`` (after ``full``)."""
         if self.B is None:
             return 1.0 / self.A, None, None
-        F = np.einsum("spd,sde->spe", self.E, self.S_inv)             # E S^-1
-        Hpp = 1.0 / self.A + np.einsum("spd,spd->sp", F, self.E)
+        F = self.E @ self.S_inv                                       # E S^-1
+        Hpp = 1.0 / self.A + (F * self.E).sum(axis=2)
         return Hpp, -F, self.S_inv
 
 
