@@ -6,7 +6,8 @@ that is removed afterwards), loaded as ``analyze`` loads a dataset, the plan's e
 applied, and the primary test run on its first N participants for every N (participant k is
 the same session at every N). Participants of study ``s`` are labelled ``r<seed>s<s>p01
 ...``: the label makes the plan's seed and so the person, so another ``seed`` gives other
-people. Slow (about a second a session): for checking modes 1 and 2 on a few points, not the default.
+people. Slow (about a second a session): for checking modes 1 and 2 on a few points, not
+the default.
 """
 
 from __future__ import annotations
