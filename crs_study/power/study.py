@@ -34,7 +34,7 @@ from scipy import stats
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
 from crs_study.analysis.glmm_result import P_FLOOR
-from crs_study.analysis.primary import _fisher_comparisons, fit_primary
+from crs_study.analysis.primary import fisher_comparisons, fit_primary
 from crs_study.power.design import PowerDesign
 from crs_study.power.laplace import BatchLaplace, CellDesign
 from crs_study.power.maximise import fit_batch
@@ -228,7 +228,7 @@ def decide_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
         data = trials
         if "n_trials" in trials.columns:      # 0/1 rows for the pooled table
             data = _expand(trials)
-        for j, comparison in enumerate(_fisher_comparisons(data, conditions,
+        for j, comparison in enumerate(fisher_comparisons(data, conditions,
                                                            design.reference, design.alpha)):
             out["p_value"][j], out["kind"][j] = comparison.p_value, FISHER
             out["log_odds"][j] = comparison.log_odds
