@@ -22,6 +22,8 @@ run_session        one participant's session, begun or resumed (:class:`SessionR
 load_dataset       the trials of stored datasets as the analysis sees them
                    (:class:`StudyData`)
 analyze            every analysis of the plan (:class:`Analysis`; the report on request)
+power              participants needed: the plan's primary test on simulated studies
+                   (:class:`PowerResult`)
 =================  ========================================================================
 
 The package is one folder per stage of the pipeline, and a stage imports only the stages
@@ -38,6 +40,7 @@ listed before it (checked: ``[tool.importlinter]`` in pyproject.toml):
 ``protocol``   protocol files, trial plans, the checks against the device
 ``session``    the runner, the trial loop, resume, dry-runs, responders
 ``analysis``   the analysis of stored datasets (it reads the dataset alone)
+``power``, ``live``   power by simulation; the display driven live over UDP
 ``api``        the API functions that join stages (``validate``, ``run_session``)
 ``commands``, ``cli``, ``benchmarks``   the command line and ``crs-study bench``
 
@@ -64,6 +67,7 @@ API = {
     "run_session": "crs_study.api",
     "load_dataset": "crs_study.analysis.study_data",
     "analyze": "crs_study.analysis.report",
+    "power": "crs_study.power.api",
     # what they return
     "Protocol": "crs_study.protocol.model",
     "TrialPlan": "crs_study.protocol.plan",
@@ -72,6 +76,7 @@ API = {
     "SessionResult": "crs_study.session.spec",
     "StudyData": "crs_study.analysis.study_data",
     "Analysis": "crs_study.analysis.report",
+    "PowerResult": "crs_study.power.result",
 }
 
 __all__ = ["CrsStudyError", "__version__", *API]

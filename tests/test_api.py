@@ -24,8 +24,8 @@ from crs_study.dataset import SessionMetadata
 from crs_study.errors import SessionError
 
 API = ["load_protocol", "make_plan", "validate", "dry_run", "run_session", "load_dataset",
-       "analyze", "Protocol", "TrialPlan", "ProtocolSummary", "DryRunResult",
-       "SessionResult", "StudyData", "Analysis"]
+       "analyze", "power", "Protocol", "TrialPlan", "ProtocolSummary", "DryRunResult",
+       "SessionResult", "StudyData", "Analysis", "PowerResult"]
 
 
 def _cli(*argv: str) -> tuple[int, str]:

@@ -253,7 +253,7 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                         "test on the pooled 2 x 2 table of each condition against the reference "
                         "instead, which ignores the repeated measures")
         data = trials.loc[trials["correct"].notna() & trials["condition"].isin(conditions)]
-        return PrimaryResult(_fisher_comparisons(data, conditions, reference, alpha), None,
+        return PrimaryResult(fisher_comparisons(data, conditions, reference, alpha), None,
                              None, tuple(warnings))
     full = fits.full
     warnings += list(fits.warnings)
@@ -427,7 +427,7 @@ def _method_label(model) -> str:
     return f"GLMM correct ~ condition{effects} ({how}{penalty}); odds ratio, LR test"
 
 
-def _fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: str,
+def fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: str,
                         alpha: float) -> tuple[Comparison, ...]:
     """Pooled 2 x 2 tables: Fisher's exact p (``scipy.stats.fisher_exact``); the odds ratio
     and its Woolf interval by ``statsmodels`` ``Table2x2``, after 0.5 is added to every cell
