@@ -11,7 +11,8 @@ import pytest
 from analysis_fixtures import dataset, explicit_dataset, session_files, write_plan
 from scipy import stats
 
-from crs_study.analysis.report import analyze, analyze_dataset, format_p, headline
+from crs_study.analysis.headline import format_p, headline
+from crs_study.analysis.report import analyze, analyze_dataset
 from crs_study.cli import main
 
 CONDITIONS = ("pixel-only", "crs")

@@ -35,6 +35,7 @@ from scipy import stats
 from crs_study.analysis import glmm
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
+from crs_study.analysis.jsonable import json_text
 from crs_study.errors import AnalysisError
 
 GROUP_COLUMNS = {"participant": "participant_id", "digit": "digit"}
@@ -96,7 +97,17 @@ class PrimaryResult:
     warnings: tuple[str, ...] = field(default=())
 
     def to_frame(self) -> pd.DataFrame:
+        """One row per comparison (the fields of :class:`Comparison`)."""
         return pd.DataFrame([c.to_dict() for c in self.comparisons])
+
+    def to_dict(self) -> dict:
+        """``comparisons`` (the primary ones of ``results.json``), ``omnibus`` and ``model``
+        (``results.json``'s ``primary``)."""
+        return {"comparisons": [c.to_dict() for c in self.comparisons],
+                "omnibus": self.omnibus, "model": self.model}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
 
 @dataclass(frozen=True)
