@@ -36,6 +36,7 @@ from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.multitest import multipletests
 
 from crs_study.analysis.accuracy import floor_p, symbol_column_of
+from crs_study.analysis.jsonable import json_text, records
 from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS, PER_SYMBOL_TESTS
 from crs_study.dataset.schema import SYMBOL_COLUMNS, symbol_column
 
@@ -274,14 +275,29 @@ def per_symbol(trials: pd.DataFrame, condition: str, reference: str, correction:
 @dataclass(frozen=True)
 class SecondaryResult:
     """The tests of every condition against the reference; ``per_symbol``: condition -> the
-    :func:`per_symbol` table."""
+    :func:`per_symbol` table; ``symbol_column``: the trials' column of the symbol shown
+    (``digit``, ``symbol``), which names the tables' first column and their key in
+    ``results.json``."""
 
     tests: tuple[TestResult, ...]
     per_symbol: dict[str, pd.DataFrame]
     warnings: tuple[str, ...] = ()
+    symbol_column: str = SYMBOL_COLUMNS[0]
 
     def to_frame(self) -> pd.DataFrame:
+        """One row per test (the fields of :class:`TestResult`)."""
         return pd.DataFrame([t.to_dict() for t in self.tests])
+
+    def to_dict(self) -> dict:
+        """``comparisons`` (the secondary ones of ``results.json``) and
+        ``per_<symbol column>`` (per condition, the rows of its per-symbol table;
+        ``per_digit`` for digit data, as before stimulus sets)."""
+        return {"comparisons": [t.to_dict() for t in self.tests],
+                f"per_{self.symbol_column}": {c: records(t)
+                                              for c, t in self.per_symbol.items()}}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
 
 def secondary_tests(trials: pd.DataFrame, by_participant: pd.DataFrame, conditions: list[str],
@@ -308,4 +324,5 @@ def secondary_tests(trials: pd.DataFrame, by_participant: pd.DataFrame, conditio
         if result.note:
             warnings.append(f"{result.method} ({result.condition} vs {result.reference}): "
                             f"{result.note}")
-    return SecondaryResult(tuple(results), symbol_tables, tuple(warnings))
+    return SecondaryResult(tuple(results), symbol_tables, tuple(warnings),
+                           symbol_column_of(trials))
