@@ -43,6 +43,17 @@ KNOWN_LEVEL_COLUMNS = ("digit_height", "symbol_height", "stroke_speed", "digit_s
                        "stimulus_level")
 
 
+def known_level_columns(symbol_column: str | None) -> tuple[str, ...]:
+    """The level columns to look for, in order, in trials naming the symbol ``symbol_column``
+    (``digit``: the columns looked for before stimulus sets; ``symbol``: its own size column
+    ``symbol_height`` instead of ``digit_height``); every known one when None."""
+    if symbol_column is None:
+        return KNOWN_LEVEL_COLUMNS
+    size = f"{symbol_column}_height"
+    return tuple(c for c in KNOWN_LEVEL_COLUMNS
+                 if c == size or c not in ("digit_height", "symbol_height"))
+
+
 @dataclass(frozen=True)
 class Exclusions:
     """Which trials are left out before any analysis (counts are reported per reason)."""
