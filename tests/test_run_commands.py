@@ -13,10 +13,17 @@ import sys
 import time
 
 import pytest
-from _session_helpers import tiny_protocol
+from _session_helpers import record_consent, tiny_protocol
 
 from crs_study.cli import main
 from crs_study.commands.demo import fresh_directory
+
+
+@pytest.fixture(autouse=True)
+def _consented():
+    """p01: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    record_consent("p01")
+
 
 TSV = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
 SIDECAR = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json"
