@@ -32,6 +32,7 @@ from crs_study.consent.withdrawal import (
     STAGING_DIR,
     participant_paths,
     pending_withdrawal,
+    preview_withdrawal,
     recover_withdrawal,
     running_sessions,
     withdraw,
@@ -41,5 +42,5 @@ from crs_study.consent.withdrawal_plan import DatasetWithdrawal, plan_withdrawal
 __all__ = ["CRASH_ENV", "JOURNAL_FILE", "REGISTER_ENV", "REGISTER_FILE", "STAGING_DIR",
            "ConsentForm", "ConsentRecord", "DatasetWithdrawal", "Register", "check_label",
            "default_register_dir", "generate_label", "participant_paths", "pending_withdrawal",
-           "plan_withdrawal", "read_form", "recover_withdrawal", "require_consent",
-           "running_sessions", "withdraw"]
+           "plan_withdrawal", "preview_withdrawal", "read_form", "recover_withdrawal",
+           "require_consent", "running_sessions", "withdraw"]

@@ -164,6 +164,18 @@ def _check_dataset(dataset: Path) -> None:
                            "dataset's top folder")
 
 
+def preview_withdrawal(participant: str, datasets: Iterable[str | Path]
+                       ) -> list[DatasetWithdrawal]:
+    """What :func:`withdraw` would remove from each dataset, changing nothing (the command
+    line's ``consent withdraw --dry-run``)."""
+    check_label(participant)
+    plans = []
+    for dataset in map(Path, datasets):
+        _check_dataset(dataset)
+        plans.append(plan_withdrawal(dataset, participant))
+    return plans
+
+
 def _begin(dataset: Path, participant: str, register: Register) -> dict:
     """Write the journal under the dataset lock, once no session of the participant runs."""
     with Dataset(dataset).locked():

@@ -21,6 +21,7 @@ rewritten without the participant's label.
 from __future__ import annotations
 
 import json
+import os
 import secrets
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -100,6 +101,18 @@ def _append(dataset: Path, event: dict) -> None:
         append_durably(path, (json.dumps(event, sort_keys=True) + "\n").encode("utf-8"))
 
 
+def participants_by_dataset(datasets: Iterable[str | Path], session_files: Iterable[tuple[str, str]]
+                            ) -> dict[Path, list[str]]:
+    """Each dataset folder -> the labels of the sessions (``(participant, file)`` pairs)
+    stored in it."""
+    pairs = [(label, Path(file).resolve()) for label, file in session_files]
+    out = {}
+    for dataset in map(Path, datasets):
+        root = dataset.resolve()
+        out[dataset] = sorted({label for label, file in pairs if root in file.parents})
+    return out
+
+
 class OutputsRecord:
     """Records one analysis run's outputs in each dataset it read (module docstring).
 
@@ -113,6 +126,11 @@ class OutputsRecord:
         self.id = secrets.token_hex(8)
 
     def begin(self) -> None:
+        """Record the run in each dataset before any output is written. A dataset that cannot
+        be written (a read-only archive) keeps no record: no withdrawal can run there either,
+        and whoever makes it writable again must look for copies of its results by hand."""
+        self.participants = {d: labels for d, labels in self.participants.items()
+                             if os.access(d, os.W_OK)}
         for dataset, labels in self.participants.items():
             with Dataset(dataset).locked():
                 _append(dataset, {"event": "writing", "id": self.id, "time": utc_now(),
