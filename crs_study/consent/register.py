@@ -27,6 +27,7 @@ import string
 import warnings
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from datetime import datetime
 from pathlib import Path
 
 from crs_study._files import append_durably, fsync_dir, os_errors
@@ -83,8 +84,12 @@ def _withdrawal_time(event: dict, line: int) -> str:
     """The time a withdrawal event gives, or words saying it is unknown: a null or malformed
     time still withdraws (it must never reopen the gate)."""
     value = event.get("time")
-    if isinstance(value, str) and value.strip():
-        return value
+    if isinstance(value, str):
+        try:
+            datetime.fromisoformat(value)
+            return value
+        except ValueError:
+            pass
     return f"an unknown time (register line {line} gives {value!r})"
 
 

@@ -22,6 +22,7 @@ from crs_study.dataset.folder import (
     Dataset,
     check_label,
     column_dictionary,
+    dataset_dir,
     is_simulated_label,
     utc_now,
 )
@@ -33,5 +34,5 @@ from crs_study.dataset.session_store import SessionStore, read_frame_log
 __all__ = ["ARRIVALS_FILE", "DATASET_LOCK", "MISSING", "OUTPUTS_REGISTRY", "TASK",
            "TRIAL_COLUMNS", "WITHDRAWAL_JOURNAL", "Dataset", "OutputsRecord", "SessionMetadata",
            "SessionPaths", "SessionStore", "beh_files", "check_label", "column_dictionary",
-           "derivatives_dir", "find_sessions", "format_value", "is_simulated_label",
+           "dataset_dir", "derivatives_dir", "find_sessions", "format_value", "is_simulated_label",
            "read_frame_log", "read_outputs", "trial_columns", "utc_now"]

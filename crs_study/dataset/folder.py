@@ -26,6 +26,7 @@ import csv
 import fcntl
 import io
 import json
+import os
 import re
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -69,6 +70,16 @@ def check_label(label: str) -> str:
         raise SessionError(f"participant label {label!r} is not valid: use letters and digits "
                            "only (BIDS), e.g. p7k2m9q")
     return label
+
+
+def dataset_dir(value: str | os.PathLike[str], option: str = "--out") -> Path:
+    """A dataset folder as the user gave it; an empty name (``--out ''``, which ``Path``
+    would take for the current folder) is a one-line :class:`DatasetError`."""
+    if not os.fspath(value).strip():
+        raise DatasetError(f"{option}: expected a folder, got {os.fspath(value)!r} (which "
+                           "would mean the current folder); name one (it is created when "
+                           "missing), e.g. --out study")
+    return Path(value)
 
 
 def is_simulated_label(label: str) -> bool:
