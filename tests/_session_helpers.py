@@ -120,3 +120,30 @@ def record_consent(*labels: str, register: Path | None = None) -> None:
     form = read_form(shipped_file("consent/consent_form.md"))
     for label in labels:
         Register(register).record(form, "AB", label)
+
+
+def start_command(args, cwd: Path):
+    """``crs-study ARGS`` in its own process, stdout and stderr piped."""
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "crs_study", *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd)
+
+
+def wait_for_stderr(process, needle: str, timeout: float = 60.0) -> str:
+    """Raw reads of stderr until ``needle`` (a buffered readline would hide data from select)."""
+    import os
+    import select
+    import time
+
+    seen = b""
+    deadline = time.monotonic() + timeout
+    while needle.encode() not in seen:
+        assert time.monotonic() < deadline, seen
+        ready, _, _ = select.select([process.stderr], [], [], 0.5)
+        if ready:
+            chunk = os.read(process.stderr.fileno(), 4096)
+            assert chunk, seen
+            seen += chunk
+    return seen.decode()

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import select
 import signal
 import subprocess
 import sys
@@ -15,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from _session_helpers import PauseAt, record_consent, tiny_protocol
+from _session_helpers import PauseAt, record_consent, start_command, tiny_protocol, wait_for_stderr
 
 from crs_study.cli import main
 from crs_study.consent import Register
@@ -80,22 +79,8 @@ def test_withdrawing_01_never_touches_files_that_merely_mention_01(tmp_path, cap
 
 # -- 2. withdrawal during a running session --------------------------------------------------
 
-def _start(args, cwd):
-    return subprocess.Popen([sys.executable, "-m", "crs_study", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=cwd)
-
-
-def _wait_for(process, needle: str, timeout: float = 60.0) -> str:
-    seen = b""
-    deadline = time.monotonic() + timeout
-    while needle.encode() not in seen:
-        assert time.monotonic() < deadline, seen
-        ready, _, _ = select.select([process.stderr], [], [], 0.5)
-        if ready:
-            chunk = os.read(process.stderr.fileno(), 4096)
-            assert chunk, seen
-            seen += chunk
-    return seen.decode()
+_start = start_command
+_wait_for = wait_for_stderr
 
 
 @pytest.mark.parametrize("how", ["register-only", "dataset-wait"])
