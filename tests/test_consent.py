@@ -346,7 +346,8 @@ def test_withdraw_cli_names_each_participant_it_finishes(tmp_path, capsys):
     assert _withdraw_in_subprocess(dataset, tmp_path / "reg", crash_at=2) == -9
     assert main(["consent", "withdraw", "--register", str(tmp_path / "reg"),
                  "--participant", "b2", "--dataset", str(dataset)]) == 0
-    out = capsys.readouterr().out.splitlines()
+    out = [line for line in capsys.readouterr().out.splitlines()  # after the lists
+           if line.startswith("withdrawn ")]
     assert out[0].startswith("withdrawn a1 from") and out[1].startswith("withdrawn b2 from")
 
 

@@ -51,6 +51,9 @@ ARRIVALS_FILE = ".crs-study-arrivals.json"
 #: Labels of simulated participants begin with this, in any case (``sim01``); a person's label
 #: never does (:func:`is_simulated_label`; the consent register refuses such labels).
 SIMULATED_LABEL_PREFIX = "sim"
+#: The labels of crs_study.power's simulated studies (``r<seed>s<study>p<NN>``, made before
+#: the ``sim`` space existed; its fixtures are drawn from them): simulated too.
+_POWER_LABEL = re.compile(r"r[0-9]+s[0-9]+p[0-9]+")
 PARTICIPANT_COLUMNS = ("participant_id", "counterbalance")
 PARTICIPANTS_SIDECAR = {
     "participant_id": {"Description": "Pseudonymous participant label (never a name)"},
@@ -83,14 +86,16 @@ def dataset_dir(value: str | os.PathLike[str], option: str = "--out") -> Path:
 
 
 def is_simulated_label(label: str) -> bool:
-    """Whether ``label`` is in the simulated participants' label space (``sim...``, any case).
+    """Whether ``label`` is in the simulated participants' label space (``sim...``, any case,
+    and power's ``r<seed>s<study>p<NN>``).
 
     The two label spaces never meet: a simulated participant (a dry-run's ``sim01``) is
     never a person, so such a session needs no consent, and a person's label (any other) is
     gated by consent on every device (:mod:`crs_study.consent.gate`).
     """
-    return isinstance(label, str) and label[:len(SIMULATED_LABEL_PREFIX)].lower() \
-        == SIMULATED_LABEL_PREFIX
+    return isinstance(label, str) and (
+        label[:len(SIMULATED_LABEL_PREFIX)].lower() == SIMULATED_LABEL_PREFIX
+        or _POWER_LABEL.fullmatch(label) is not None)
 
 
 def utc_now() -> str:

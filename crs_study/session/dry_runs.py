@@ -38,7 +38,7 @@ def simulated_labels(n: int, prefix: str = "sim") -> list[str]:
     must keep the labels in the simulated participants' label space
     (:func:`crs_study.dataset.is_simulated_label`): a dry-run never runs a person's label."""
     check_participant_count(n)
-    if not is_simulated_label(prefix):
+    if not is_simulated_label(f"{prefix}{n}"):
         raise SessionError(f"prefix {prefix!r}: simulated participants' labels begin with "
                            "'sim' (a person's never do)")
     width = max(2, len(str(n)))
