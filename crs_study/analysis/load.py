@@ -21,7 +21,8 @@ response                       Int64      the symbol reported, ``<NA>`` when tim
 correct                        float64    1.0 / 0.0, NaN when timed out (or 0.0 under the
                                           plan's ``timeouts = "count_as_error"``)
 response_time, ... (seconds)   float64    NaN for ``n/a``
-timed_out, device_fault        bool
+timed_out, device_fault,       bool       (``rerun`` False in sessions written before it existed)
+rerun
 trial_type, condition,         str
 responder
 <level columns>                float64    extra numeric columns (``digit_height``, ...) kept
@@ -69,7 +70,7 @@ from crs_study.errors import DatasetError
 INT_COLUMNS = ("trial_index", "block", "repetition", "frames", "late_frames", "response")
 FLOAT_COLUMNS = ("correct", "response_time", "response_time_from_offset", "onset",
                  "stimulus_duration", "median_wire_latency", "trial_end")
-BOOL_COLUMNS = ("timed_out", "device_fault")
+BOOL_COLUMNS = ("timed_out", "device_fault", "rerun")
 TEXT_COLUMNS = ("trial_type", "condition", "responder")
 #: Required besides the symbol shown (a column of ``SYMBOL_COLUMNS``).
 REQUIRED_COLUMNS = ("trial_type", "condition", "correct", "response")

@@ -116,6 +116,10 @@ def trial_column_docs(task: Task = DEFAULT_TASK) -> dict[str, tuple[str, str]]:
         "timed_out": ("1 when no response came within the protocol's time limit", "0|1"),
         "device_fault": ("1 when a device fault interrupted an earlier attempt of this trial "
                          "(the session stopped and the trial was rerun on resume)", "0|1"),
+        "rerun": ("1 when an earlier attempt of this trial was cut short after its stimulus "
+                  "began (the pause key, a signal, a device fault or a crash stopped the "
+                  "session), so the participant may have felt part of it before this run; the "
+                  "cause is in the session sidecar's Interruptions", "0|1"),
         "frames": ("Frames commanded during the stimulus", "count"),
         "late_frames": ("Frames commanded later than one frame period after their due time",
                         "count"),
@@ -166,6 +170,11 @@ def symbols_are_numbers(column: str) -> bool:
     """True when a dataset's symbols, in ``column``, are whole numbers: the digit column's (ints
     in every dataset since the first); every other set's symbols are text."""
     return column == DIGIT_COLUMN
+
+
+#: Columns added after sessions were first written: a session begun without one is resumed
+#: without it (its file keeps the columns it began with).
+LATER_COLUMNS: tuple[str, ...] = ("rerun",)
 
 
 def trial_columns(level_column: str | None = None, symbol: str = DIGIT_COLUMN
