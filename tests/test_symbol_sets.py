@@ -231,7 +231,7 @@ def test_one_analysis_takes_one_task(letter_dataset, tmp_path):
     dataset = tmp_path / "both"
     shutil.copytree(letter_dataset[0], dataset)
     crs_study.dry_run(tiny_protocol(tmp_path), participants=1, out=dataset, responder="random",
-                      prefix="dig")
+                      prefix="simdig")
     with pytest.raises(DatasetError, match=r"several tasks: digitid .*letterid"):
         load_datasets(dataset)
     letters = load_datasets(dataset, task="letterid")
