@@ -49,7 +49,9 @@ class PowerDesign:
     rules (for a pilot's and a dry-run's trials). ``symbol_column`` is the dataset column of
     the symbol shown (``digit`` or ``symbol``, module docstring), ``noun`` one symbol in words
     (``digit``, ``letter``), ``symbol_keys`` each symbol's position in its stimulus set (the
-    key of its random streams: for the digit set, the digit itself).
+    key of its random streams: for the digit set, the digit itself). Left out, as in a design
+    built by hand, integer symbols are digits (column ``digit``, their own keys) and any
+    others symbols (column ``symbol``, keyed by their order).
     """
 
     conditions: tuple[str, ...]
@@ -65,8 +67,8 @@ class PowerDesign:
     plan: str = ""
     protocol_path: str | None = None
     exclusions: Any = field(default=None, compare=False, repr=False)   # the plan's
-    symbol_column: str = "digit"
-    noun: str = "digit"
+    symbol_column: str = ""
+    noun: str = ""
     symbol_keys: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
@@ -75,9 +77,15 @@ class PowerDesign:
                              f"one, got {self.conditions!r} (reference {self.reference!r})")
         if len(set(self.symbols)) != len(self.symbols) or not self.symbols:
             raise PowerError(f"the design needs distinct symbols, got {self.symbols!r}")
-        if self.symbol_keys is None:      # a design built by hand: integers are their own keys
-            keys = self.symbols if all(isinstance(s, int) for s in self.symbols) else \
-                range(len(self.symbols))
+        # a design built by hand: integers are digits, their own keys; others symbols
+        digits = all(isinstance(s, int | np.integer) and not isinstance(s, bool)
+                     for s in self.symbols)
+        for name, value in (("symbol_column", "digit" if digits else "symbol"),
+                            ("noun", "digit" if digits else "symbol")):
+            if not getattr(self, name):
+                object.__setattr__(self, name, value)
+        if self.symbol_keys is None:
+            keys = self.symbols if digits else range(len(self.symbols))
             object.__setattr__(self, "symbol_keys", tuple(int(k) for k in keys))
         elif len(self.symbol_keys) != len(self.symbols):
             raise PowerError(f"the design needs a stream key per symbol, got "
