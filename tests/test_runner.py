@@ -53,7 +53,7 @@ class Recorder(RandomResponder):
         super().__init__(seed)
         self.prompts, self.records, self.pause_at = [], [], pause_at
 
-    def prompt(self, text, clock):
+    def prompt(self, text, clock, rest_s=None):
         self.prompts.append(text)
 
     def respond(self, trial, stimulus, clock, time_limit_s):
@@ -422,7 +422,7 @@ def test_a_resumed_session_prompts_the_person_first(tmp_path, devices):
         name = "random"  # the same kind as the session began with
         simulated = False
 
-        def prompt(self, text, clock):
+        def prompt(self, text, clock, rest_s=None):
             self.prompts.append(text)
 
     person = Person(seed=1)

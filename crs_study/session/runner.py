@@ -209,6 +209,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             with terminate_as_interrupt(), responder, open_device(
                     spec.device_url, layout, clock, **(device_options or {})) as device:
                 device.neutral()
+                responder.start_session(spec.participant, spec.session, plan, first)
                 if clock_kind == "virtual":
                     clock.sleep_until(0.0)
                     if rows:
