@@ -174,17 +174,22 @@ class SimulatedDevice(Device):
         # every board's servos in one bank (boards hold views): one read per displayed frame
         self._servos = ServoBank.joined([b.servos for b in self.boards])
         names = controller_names(self.layout)
-        for name, at in opts.disconnect_at:
+        shift = opts.fault_shift()  # None: the session met its faults already (once each)
+        disconnects = opts.disconnect_at if shift is not None else ()
+        stalls = opts.stall if shift is not None else ()
+        brownouts = opts.brownout_at if shift is not None else ()
+        t_faults = t0 + (shift or 0.0)
+        for name, at in disconnects:
             for i, wire in enumerate(self._wires):
                 if name in (None, names[i]):
-                    wire.vanish_at = min(wire.vanish_at, t0 + at)
-        for name, channel, at in opts.stall:
-            self.boards[names.index(name)].stall(channel, t0 + at)
-        for name, at in opts.brownout_at:
+                    wire.vanish_at = min(wire.vanish_at, t_faults + at)
+        for name, channel, at in stalls:
+            self.boards[names.index(name)].stall(channel, t_faults + at)
+        for name, at in brownouts:
             for i, board in enumerate(self.boards):
                 if name in (None, names[i]):
-                    board.brownout(t0 + at)
-        times = [w.vanish_at for w in self._wires] + [t0 + at for _, at in opts.brownout_at]
+                    board.brownout(t_faults + at)
+        times = [w.vanish_at for w in self._wires] + [t_faults + at for _, at in brownouts]
         self._fault_at = min(times, default=math.inf)
         self._check_batteries(t0)
 

@@ -85,10 +85,20 @@ def choose_clock(spec: SessionSpec, responder: Responder) -> str:
     if spec.clock == "virtual" and responder.needs_real_clock:
         raise SessionError(f"the {responder.name} responder needs --clock real (a person answers "
                            "in real time)")
-    if spec.clock == "virtual" and not spec.device_url.startswith("sim://"):
-        raise SessionError(f"--clock virtual needs the simulated device (sim://); "
-                           f"{spec.device_url} moves real servos in real time")
+    if spec.clock == "virtual" and not simulated_url(spec.device_url):
+        raise SessionError(f"--clock virtual needs a simulated device (sim:// or "
+                           f"serial://lscsim://A,lscsim://B); {spec.device_url} moves real "
+                           "servos in real time")
     return spec.clock
+
+
+def simulated_url(url: str) -> bool:
+    """True for a device with no real servos behind it: ``sim://`` or ``serial://`` whose every
+    port is a virtual board (``lscsim://NAME``)."""
+    if url.startswith("sim://"):
+        return True
+    ports = url[len("serial://"):].split(",") if url.startswith("serial://") else []
+    return bool(ports) and all(p.startswith("lscsim://") for p in ports)
 
 
 def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
@@ -206,8 +216,11 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         status = "interrupted"
         origin = 0.0
         try:
+            options = dict(device_options or {})
+            if spec.device_url.startswith("sim://"):  # injected faults: once per session
+                options.setdefault("faults_met", len(metadata.faults))
             with terminate_as_interrupt(), responder, open_device(
-                    spec.device_url, layout, clock, **(device_options or {})) as device:
+                    spec.device_url, layout, clock, **options) as device:
                 device.neutral()
                 responder.start_session(spec.participant, spec.session, plan, first)
                 if clock_kind == "virtual":
