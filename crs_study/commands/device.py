@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from crs_study.commands import HelpFormatter
+from crs_study.commands import HelpFormatter, device_boards
+from crs_study.commands.device_boards import describe_message
 from crs_study.device import Device, calibration, open_device, serial_port
 from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
 from crs_study.device.calibration import calibration_table, previous_default_endpoints
@@ -107,6 +108,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="stop after this long (default: until Ctrl-C)")
     monitor.add_argument("--max-frames", type=int, default=None, help="stop after this many")
     monitor.add_argument("--baud", type=int, default=9600)
+    device_boards.add_actions(add, actions)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -181,6 +183,9 @@ def _close(device: Device) -> list[str]:
 def _check(args: argparse.Namespace) -> int:
     device = _open(args)
     layout = device.layout
+    apart = device_boards.told_apart(args.device, layout, args.boards)  # before a servo moves
+    if not apart.ok:
+        raise DeviceError(f"--device {args.device}: {apart.how}")
     with _session(device):
         battery = device.battery_mv()
     balance = channel_balance(layout)
@@ -192,6 +197,7 @@ def _check(args: argparse.Namespace) -> int:
         "balance": balance.describe(), "balanced": balance.balanced,
         "channels_per_controller": balance.counts,
         "rewire": [{"from": a, "to": b, "channels": n} for a, b, n in balance.moves],
+        "told_apart": apart.how,
         "full_frame_ms": full_frame_wire_time_s(layout) * 1e3,
         "full_frame_rate_hz": full_frame_rate_hz(layout),
     }
@@ -208,6 +214,8 @@ def _check(args: argparse.Namespace) -> int:
                                                    else f"{mv / 1000:.2f} V"))
     # the map in use: pinned by the device file, never moved by software (serial_device,
     # "Which channel goes on which controller")
+    print(f"boards told apart {apart.how}" if apart.how.startswith("by ") else
+          f"boards told apart: {apart.how}")
     print("channel map (pinned by the device file; each channel is a servo's wire on a board):")
     for name, channels in report["channels"].items():
         print(f"  {name}: " + ", ".join(channels))
@@ -422,7 +430,7 @@ def _monitor(args: argparse.Namespace) -> int:
                 raise DeviceError(f"--port {spec}: read failed: {exc}") from None
             # an empty read: the line was quiet for the read timeout; frames held back for
             # the bytes after them (a possible false header) are decided now
-            events = [(f.offset, _describe(f.message))
+            events = [(f.offset, describe_message(f.message))
                       for f in (decoder.feed(data) if data else decoder.idle())]
             runs = _join([*held, *decoder.take_skipped()])
             # a run that reaches the end of what was read may go on in the next read
@@ -446,7 +454,7 @@ def _monitor(args: argparse.Namespace) -> int:
             pass  # a vanished port may fail to close; the read error above says why
         last = decoder.flush()
         for f in last:
-            print(f"end of stream: @{f.offset} {_describe(f.message)}")
+            print(f"end of stream: @{f.offset} {describe_message(f.message)}")
         frames += len(last)
         for s in _join([*held, *decoder.take_skipped()]):
             print(f"end of stream: skipped {len(s.data)} byte(s) ({s.reason}): "
@@ -466,15 +474,10 @@ def _join(runs: list) -> list:
     return out
 
 
-def _describe(message) -> str:
-    name = type(message).__name__
-    if hasattr(message, "positions"):
-        servos = " ".join(f"{i}:{p}" for i, p in message.positions)
-        extra = f" in {message.time_ms} ms" if hasattr(message, "time_ms") else ""
-        return f"{name} [{len(message.positions)}]{extra}: {servos}"
-    fields = {k: v for k, v in vars(message).items()}
-    return name + (" " + " ".join(f"{k}={v}" for k, v in fields.items()) if fields else "")
+def _identify(args: argparse.Namespace) -> int:
+    with _session(_open(args)) as device:
+        return device_boards.identify(args, device)
 
 
 _ACTIONS = {"check": _check, "neutral": _neutral, "sweep": _sweep, "calibrate": _calibrate,
-            "monitor": _monitor}
+            "monitor": _monitor, "boards": device_boards.boards, "identify": _identify}
