@@ -27,8 +27,9 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from crs_study.commands import HelpFormatter, device_boards
-from crs_study.commands.device_boards import describe_message
+from crs_study.commands import HelpFormatter
+from crs_study.commands import _device_boards as device_boards
+from crs_study.commands._device_boards import describe_message
 from crs_study.device import Device, calibration, open_device, serial_port
 from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
 from crs_study.device.calibration import calibration_table, previous_default_endpoints
@@ -114,17 +115,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     # SIGTERM and SIGHUP (a kill, a closed terminal) end an action as Ctrl-C does: the device
     # goes to neutral and the ports are released on the way out, never left mid-move
-    with warnings.catch_warnings(record=True) as caught, terminate_as_interrupt():
-        warnings.simplefilter("always", DeviceWarning)
-        try:
+    try:
+        with warnings.catch_warnings(record=True) as caught, terminate_as_interrupt():
+            warnings.simplefilter("always", DeviceWarning)
             return _ACTIONS[args.action](args)
-        finally:
-            for warning in caught:
-                if issubclass(warning.category, DeviceWarning):
-                    print(f"crs-study device: warning: {warning.message}", file=sys.stderr)
-                else:
-                    warnings.warn_explicit(warning.message, warning.category,
-                                           warning.filename, warning.lineno)
+    finally:
+        # shown once the recording has stopped (re-issued inside it, each warning was
+        # recorded again, into the list being read: a loop that never ended)
+        for warning in caught:
+            if issubclass(warning.category, DeviceWarning):
+                print(f"crs-study device: warning: {warning.message}", file=sys.stderr)
+            else:
+                warnings.warn_explicit(warning.message, warning.category,
+                                       warning.filename, warning.lineno)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -161,10 +161,12 @@ class Register:
                 continue
             try:
                 event = json.loads(line)
-                event["event"], event["participant"]  # noqa: B018  (required keys)
-            except (json.JSONDecodeError, KeyError, TypeError):
-                raise ConsentError(f"{self.path}:{number}: not a consent register line: "
-                                   f"{line[:60]!r}") from None
+            except (json.JSONDecodeError, RecursionError):
+                event = None
+            problem = _event_problem(event)
+            if problem:
+                raise ConsentError(f"{self.path}:{number}: not a consent register line "
+                                   f"({problem}): {line[:60]!r}") from None
             events.append(event)
         return events
 
@@ -225,3 +227,22 @@ class Register:
         self._append(self.audit_path, entry)
 
 
+#: The keys each kind of register line must carry, all strings ("name" is optional).
+EVENT_KEYS = {
+    "consent": ("participant", "time", "form_path", "form_version", "form_sha256",
+                "experimenter"),
+    "withdrawal": ("participant", "time"),
+}
+
+
+def _event_problem(event: object) -> str | None:
+    """Why ``event`` is not a register line (None when it is)."""
+    if not isinstance(event, dict):
+        return "expected a JSON object"
+    kind = event.get("event")
+    if kind not in EVENT_KEYS:
+        return f"'event' must be one of {', '.join(EVENT_KEYS)}, got {kind!r}"
+    missing = [k for k in EVENT_KEYS[kind] if not isinstance(event.get(k), str)]
+    if missing:
+        return f"a {kind} line needs the key {missing[0]!r} (a string)"
+    return None

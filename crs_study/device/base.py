@@ -22,7 +22,7 @@ from typing import Self
 import numpy as np
 
 from crs_study.clock import Clock, RealClock
-from crs_study.errors import DeviceError
+from crs_study.errors import CrsStudyWarning, DeviceError
 from crs_study.geometry.layout import Layout
 
 BAUD_RATE = 9600
@@ -30,8 +30,9 @@ BITS_PER_BYTE = 10  # start + 8 data + stop
 BYTE_TIME_S = BITS_PER_BYTE / BAUD_RATE
 
 
-class DeviceWarning(UserWarning):
-    """Something odd but not fatal about the device (no battery answer, unbalanced channels)."""
+class DeviceWarning(CrsStudyWarning):
+    """Something odd but not fatal about the device (no battery answer, unbalanced channels);
+    the command line prints it in one line, like every message of ours."""
 
 
 #: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell); both

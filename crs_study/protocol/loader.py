@@ -45,7 +45,7 @@ from crs_study.protocol.model import (
     Protocol,
     ResponseSpec,
     StimulusSpec,
-    one_line_problem,
+    path_problem,
 )
 from crs_study.protocol.odd_values import protocol_warnings, warning_findings
 from crs_study.protocol.writer import protocol_to_toml
@@ -135,7 +135,7 @@ def _is_its_text(protocol: Protocol) -> bool:
     try:
         data = tomllib.loads(text)
         return protocol_from_dict(data, protocol.path, text, protocol.sha256) == protocol
-    except (tomllib.TOMLDecodeError, ConfigError):
+    except (tomllib.TOMLDecodeError, ConfigError, RecursionError):
         return False
 
 
@@ -205,8 +205,9 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
 
 
 def _one_line(section: Section, key: str) -> str:
+    """A one-line string that can name a file (``device``, ``strokes_file``)."""
     value = section.raw(key)
-    problem = one_line_problem(value)
+    problem = path_problem(value)
     if problem is not None:
         raise section.fail(key, problem)
     return value
