@@ -43,7 +43,7 @@ from crs_study.paths import DEFAULT_PROTOCOL, shipped_file
 from crs_study.protocol import load_protocol, wire_budget
 from crs_study.signals import deferred, describe, terminate_as_interrupt
 
-#: ``sweep`` limits: the LSC move time is 0..30000 ms (hardware.md), one frame period a frame.
+#: ``sweep`` limits: the LSC move time is 0..30000 ms (LSC protocol), one frame period a frame.
 SWEEP_MIN_RATE_HZ = 1 / 30
 SWEEP_MAX_RATE_HZ = 100.0
 SWEEP_MAX_S = 600.0
@@ -304,6 +304,8 @@ def _sweep(args: argparse.Namespace) -> int:
                 setpoints[index] = fraction * actuator.calibration.travel_mm
                 device.send(setpoints, move_ms=period_ms)
                 device.clock.sleep_until(start + (k + 1) / args.frame_rate)
+    print(f"sweep done: {len(chosen)} channel(s) through their range; the display is back in "
+          "its neutral pose")
     return 0
 
 

@@ -87,7 +87,7 @@ from crs_study.device.writes import (
 from crs_study.errors import DeviceError
 from crs_study.geometry.layout import Layout
 
-#: The battery reply ``55 55 04 0F lo hi`` (hardware.md): how long the host waits for it.
+#: The battery reply ``55 55 04 0F lo hi`` (LSC protocol): how long the host waits for it.
 BATTERY_REPLY_BYTES = 6
 
 

@@ -4,7 +4,7 @@
 that reads what the serial code writes, hands it to a
 :class:`~.virtual_controller.VirtualController` and writes the board's replies back. The slave
 side is a real tty path (``/dev/pts/N``): pyserial opens it like any port, which is how
-pyserial's own tests use ptys (hardware.md, "Testing serial code without hardware")::
+pyserial's own tests use ptys (pyserial's test suite)::
 
     with VirtualControllerPty(VirtualController("A", record=True)) as bridge:
         device = open_device(f"serial://{bridge.port}", layout)

@@ -34,7 +34,7 @@ from crs_study.dataset.folder import Dataset
 from crs_study.dataset.session_metadata import Fault, Resume, SessionMetadata, now_utc
 from crs_study.dataset.session_store import SessionStore
 from crs_study.device import open_device
-from crs_study.errors import DeviceError, SessionError
+from crs_study.errors import DatasetError, DeviceError, SessionError
 from crs_study.geometry.layout import Layout, device_file_path
 from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
@@ -256,6 +256,13 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             save_after_failure(state)
             raise DeviceError(f"device fault {where}: {error}; the session is marked "
                               "interrupted: run the same command to resume") from None
+        except DatasetError as error:  # a full disk, a folder gone: the stored trials stay
+            status = "failed"
+            save_after_failure(state)
+            raise DatasetError(
+                f"{error}; the session is paused at trial {len(state.rows) + 1}/{n_trials} "
+                f"with the {len(state.rows)} trials before it stored: fix that (free some "
+                "space) and run the same command to resume") from None
         except BaseException:
             status = "failed"
             save_after_failure(state)  # the first error is the one reported
