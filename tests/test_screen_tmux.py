@@ -76,3 +76,27 @@ def test_screen_layout_keys_break_and_pause_in_tmux(tmp_path):
         assert term.exit_code() == 130
     rows = rows_of(tmp_path)
     assert [r["response"] for r in rows] == ["7"]  # trial 2 was paused, not answered
+
+
+def test_the_experimenter_view_split_to_a_log(tmp_path):
+    """``--experimenter-view LOG``: the participant's terminal shows the instruction and the
+    state only; the experimenter's lines (status, state, what to do) go to the log, timed."""
+    protocol = tiny_protocol(tmp_path, digits=(1, 7), practice=0, iti=0.2)
+    log = tmp_path / "experimenter.log"
+    command = (f"{sys.executable} -m crs_study run {protocol} --participant p01 "
+               f"--device sim:// --out ds --responder keypad --experimenter-view {log}")
+    with Tmux(command, tmp_path) as term:
+        shown = term.wait_for("Waiting for the experimenter")
+        assert "participant p01" not in shown and "Experimenter:" not in shown
+        assert lines(shown)[0].startswith("Rest your fingertips on the display.")
+        term.send("Enter")
+        term.wait_for("ANSWER NOW")
+        term.send("q")
+        term.wait_for("Paused")
+        assert term.exit_code() == 130
+    text = log.read_text()
+    assert re.search(r"^\d\d:\d\d:\d\d participant p01  session 1  block 1/2  trial 1/4  "
+                     r"pixel-only$", text, re.M), text
+    assert re.search(r"^\d\d:\d\d:\d\d experimenter: Pixel-only block: .* -- Space or Enter "
+                     r"continues, q pauses$", text, re.M), text
+    assert "state: ANSWER NOW" in text and "state: Paused" in text

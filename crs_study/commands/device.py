@@ -1,4 +1,5 @@
-"""Work with the display's controllers: check, neutral pose, sweep, calibrate, monitor a port.
+"""Work with the display's controllers: check, identify, neutral pose, sweep, calibrate,
+monitor a port; boards starts virtual ones on pseudo-terminals (no hardware needed).
 
 Device URLs: ``serial://PORT[,PORT...]`` (one port per controller, in device-file order; a
 PORT is a path like /dev/ttyUSB0 or any pyserial URL such as spy:///dev/ttyUSB0 or loop://)

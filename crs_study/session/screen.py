@@ -28,8 +28,10 @@ from typing import TextIO
 
 from crs_study.session.prompts import INSTRUCTIONS
 
-#: Width used when the stream is not a terminal or does not say.
+#: Width used when a terminal does not say.
 DEFAULT_WIDTH = 80
+#: Width of a file or pipe (no wrapping).
+LOG_WIDTH = 10_000
 #: Erase to the end of the line; move the cursor to the top-left; erase below the cursor.
 _CLEAR_LINE, _HOME, _CLEAR_BELOW = "\x1b[K", "\x1b[H", "\x1b[J"
 
@@ -149,6 +151,9 @@ def _isatty(stream: TextIO) -> bool:
 
 
 def _width(stream: TextIO) -> int:
+    """The terminal's width; a file or a pipe is not wrapped (one event, one line)."""
+    if not _isatty(stream):
+        return LOG_WIDTH
     try:
         return os.get_terminal_size(stream.fileno()).columns or DEFAULT_WIDTH
     except (AttributeError, ValueError, OSError):
