@@ -71,12 +71,11 @@ from crs_study.device.codec import BatteryVoltage, Direction, get_battery_voltag
 from crs_study.device.decoder import FrameDecoder
 from crs_study.device.schedule import warn_if_unbalanced
 from crs_study.device.sim_options import SimOptions, controller_names
+from crs_study.device.virtual_boards import board_specs
 from crs_study.device.virtual_controller import (
     ServoBank,
-    ServoSpec,
     VirtualController,
     clear_decode_cache,
-    speed_us_per_s,
 )
 from crs_study.device.writes import (
     ChannelSplit,
@@ -157,15 +156,7 @@ class SimulatedDevice(Device):
         opts = self.options
         self.boards = []
         for c in self.layout.controllers:
-            specs = [ServoSpec() for _ in range(c.channels)]
-            for a in self.layout.actuators:
-                if a.controller == c.name:
-                    cal = a.calibration
-                    specs[a.channel - c.channel_base] = ServoSpec(
-                        rest_us=cal.zero_us,
-                        max_speed_us_s=speed_us_per_s(cal.zero_us, cal.full_us, cal.travel_mm,
-                                                      self.layout.servo_speed_s_per_mm),
-                    )
+            specs = board_specs(self.layout, c.name)
             board = VirtualController(c.name, c.channels, c.channel_base, specs,
                                       opts.battery_mv, t0, record=self.record)
             self.boards.append(board)
