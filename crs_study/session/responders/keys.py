@@ -20,9 +20,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 ESC = "\x1b"
-#: How long after an ``ESC`` the rest of a sequence may arrive; after that it is a lone
-#: Escape (terminals send a key's whole sequence in one write, microseconds apart).
-ESCAPE_TIMEOUT_S = 0.05
+#: How long after an ``ESC`` the rest of a sequence may arrive (vim's ``ttimeoutlen``
+#: default); after that it is a lone Escape (a terminal sends a key's whole sequence in
+#: one write, microseconds apart).
+ESCAPE_TIMEOUT_S = 0.1
 #: The event of a lone Escape (the character itself, as in ``PAUSE_KEYS``).
 LONE_ESCAPE = ESC
 #: Longest sequence kept; anything longer is dropped as one unknown sequence.
