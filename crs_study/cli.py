@@ -103,7 +103,8 @@ class CommandParser(argparse.ArgumentParser):
 
     def error(self, message: str):  # type: ignore[override]
         """A bad option is one line, like every other error (argparse prints the usage
-        first, ten lines for some commands): ``crs-study run: error: ... (--help: usage)``."""
+        first, ten lines for some commands): ``crs-study run: error: ... (see crs-study run
+        --help)``."""
         self.exit(EXIT_KNOWN_ERROR, f"{self.prog}: error: {message} (see {self.prog} "
                   "--help)\n")
 
