@@ -86,9 +86,9 @@ def choose_clock(spec: SessionSpec, responder: Responder) -> str:
         raise SessionError(f"the {responder.name} responder needs --clock real (a person answers "
                            "in real time)")
     if spec.clock == "virtual" and not simulated_url(spec.device_url):
-        raise SessionError(f"--clock virtual needs a simulated device (sim:// or "
-                           f"serial://lscsim://A,lscsim://B); {spec.device_url} moves real "
-                           "servos in real time")
+        raise SessionError(f"--clock virtual needs the simulated device (sim://) or virtual "
+                           f"boards (serial://lscsim://A,lscsim://B); {spec.device_url} moves "
+                           "real servos in real time")
     return spec.clock
 
 
