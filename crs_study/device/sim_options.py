@@ -17,9 +17,11 @@ URL syntax (options may also be given as keyword arguments; keywords win)::
     disconnect_at=3.5    every port vanishes 3.5 s after open(); ``B@3.5``: only port B
     stall=A:3@2.0        channel A:3 stalls 2.0 s after open(); several: ``A:3@2,B:1@4``
     brownout_at=5.0      the servo supply browns out 5.0 s after open(); ``A@5``: board A only
-    fault_period=20      the timed faults (disconnect_at, stall, brownout_at) come back on
-                         every resumed run of a session, the first of them 20 s after the
-                         device opens (their spacing kept); without it they fire once per
+    hang_at=B@2.0        board B stops reading 2.0 s after open(): bytes lost, no answers,
+                         servos hold their last command (seen only by a heartbeat)
+    fault_period=20      the timed faults (disconnect_at, stall, brownout_at, hang_at) come
+                         back on every resumed run of a session, the first of them 20 s after
+                         the device opens (their spacing kept); without it they fire once per
                          session
     faults_met=0         set by the session runner: the device faults the session has met
                          (its sidecar's Faults); with one or more and no fault_period, the
@@ -69,6 +71,7 @@ class SimOptions:
     disconnect_at: tuple[tuple[str | None, float], ...] = ()  # (controller or None = all, s)
     stall: tuple[tuple[str, int, float], ...] = ()  # (controller, channel, s)
     brownout_at: tuple[tuple[str | None, float], ...] = ()
+    hang_at: tuple[tuple[str | None, float], ...] = ()
     fault_period: float | None = None
     faults_met: int = 0
 
@@ -81,7 +84,7 @@ class SimOptions:
         if self.fault_period is None:
             return None
         times = [at for _, at in self.disconnect_at] + [at for *_, at in self.stall] + \
-            [at for _, at in self.brownout_at]
+            [at for _, at in self.brownout_at] + [at for _, at in self.hang_at]
         return self.fault_period - min(times, default=0.0)
 
     @classmethod
@@ -101,7 +104,7 @@ class SimOptions:
                     f"{url!r}: unknown option {key!r}; valid: {', '.join(valid)}"
                 )
             parsed = _PARSERS[key](url, key, raw, layout)
-            if key in ("stall", "disconnect_at", "brownout_at"):
+            if key in ("stall", "disconnect_at", "brownout_at", "hang_at"):
                 # repeated keys add up (``stall=A:1@1&stall=A:2@2``)
                 parsed = values.get(key, ()) + parsed  # type: ignore[operator]
             values[key] = parsed
@@ -177,4 +180,5 @@ _PARSERS = {
     "disconnect_at": _timed,
     "stall": _stalls,
     "brownout_at": _timed,
+    "hang_at": _timed,
 }
