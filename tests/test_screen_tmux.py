@@ -15,7 +15,7 @@ import re
 import sys
 import time
 
-from _session_helpers import tiny_protocol
+from _session_helpers import record_consent, tiny_protocol
 from _tmux import Tmux
 
 
@@ -38,6 +38,7 @@ def lines(screen: str) -> list[str]:
 
 
 def test_screen_layout_keys_break_and_pause_in_tmux(tmp_path):
+    record_consent("p01")  # a person's label: the consent gate holds on sim:// too
     protocol = protocol_with_breaks(tmp_path)
     command = (f"{sys.executable} -m crs_study run {protocol} --participant p01 "
                "--device sim:// --out ds --responder keypad")
@@ -81,6 +82,7 @@ def test_screen_layout_keys_break_and_pause_in_tmux(tmp_path):
 def test_the_experimenter_view_split_to_a_log(tmp_path):
     """``--experimenter-view LOG``: the participant's terminal shows the instruction and the
     state only; the experimenter's lines (status, state, what to do) go to the log, timed."""
+    record_consent("p01")
     protocol = tiny_protocol(tmp_path, digits=(1, 7), practice=0, iti=0.2)
     log = tmp_path / "experimenter.log"
     command = (f"{sys.executable} -m crs_study run {protocol} --participant p01 "

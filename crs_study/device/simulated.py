@@ -448,11 +448,16 @@ class SimulatedDevice(Device):
         return self._ask_batteries(wait=False)
 
     def heartbeat_check(self, asked: object) -> None:
-        """Every board answered (the clock waits for the replies if they are not in yet), or
-        a :class:`DeviceError` names those that did not (a hung board, a vanished port) or
-        read below :data:`LOW_BATTERY_MV`."""
+        """Every board answered (the clock waits for the replies if they are not in yet; a
+        board whose reply did not come is asked once more, as a garbled reply on a noisy line
+        is no hung board), or a :class:`DeviceError` names those that did not (a hung board,
+        a vanished port) or read below :data:`LOW_BATTERY_MV`."""
         arrived, answers = asked  # type: ignore[misc]
         self.clock.sleep_until(max(self.clock.now(), arrived))
+        if None in answers:  # asked once more: a reply garbled on the wire is no hung board
+            again = self._ask_batteries()
+            answers = [mv if mv is not None else other
+                       for mv, other in zip(answers, again, strict=True)]
         silent = [w.board.name for w, mv in zip(self._wires, answers, strict=True) if mv is None]
         if silent:
             self._fault(f"{self.url}: controller(s) {', '.join(silent)} did not answer "
