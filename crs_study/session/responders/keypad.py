@@ -8,11 +8,12 @@ response before the stimulus offset has a negative response time from offset), a
 times are exact to the millisecond on the same monotonic clock the runner uses
 (:class:`~crs_study.clock.RealClock`).
 
-Keys: the protocol's response keys (by default the digits ``0``-``9``) answer; ``q`` or a lone
-Escape asks for a safe pause (as Ctrl-C); arrow and function keys (escape sequences, decoded
-by :class:`~.keys.KeyDecoder`: a numeric keypad with NumLock off sends arrows) and anything
-else are ignored, the screen saying so. At an experimenter prompt, Space or Enter continues;
-keys that arrived before the prompt was shown do not.
+Keys: the protocol's response keys answer (each names a symbol of its stimulus set: the keys
+``0``-``9`` for digits, the letters for the letter set; without a protocol, the default set's
+keys); ``q`` or a lone Escape asks for a safe pause (as Ctrl-C); arrow and function keys
+(escape sequences, decoded by :class:`~.keys.KeyDecoder`: a numeric keypad with NumLock off
+sends arrows) and anything else are ignored, the screen saying so. At an experimenter prompt,
+Space or Enter continues; keys that arrived before the prompt was shown do not.
 
 What the people in the room see is a :class:`~crs_study.session.screen.TerminalScreen`
 (status line, instruction, state), on the output stream or split between a participant's and
@@ -37,6 +38,8 @@ from crs_study.protocol.plan import PlannedTrial, TrialPlan
 from crs_study.session.responders.base import PAUSE_KEYS, Responder, Response, StimulusRecord
 from crs_study.session.responders.keys import Key, KeyDecoder
 from crs_study.session.screen import TerminalScreen
+from crs_study.stimuli.sets import default_set
+from crs_study.stimuli.strokes import Symbol
 
 QUIT_KEYS = PAUSE_KEYS
 CONTINUE_KEYS = frozenset({" ", "\r", "\n"})
@@ -56,9 +59,10 @@ class KeypadResponder(Responder):
     simulated = False
 
     def __init__(self, fd: int | None = None, output: TextIO | None = None,
-                 poll_s: float = 0.02, keys: dict[str, int] | None = None,
+                 poll_s: float = 0.02, keys: dict[str, Symbol] | None = None,
                  screen: TerminalScreen | None = None) -> None:
-        self.keys = dict(keys) if keys is not None else {str(d): d for d in range(10)}
+        self.keys = dict(keys) if keys is not None else \
+            {key: symbol for symbol, key in default_set().keys.items()}
         clash = sorted(set(self.keys) & QUIT_KEYS)
         if clash:
             raise ConfigError(f"keypad: response key {clash[0]!r} is also the pause key; "
@@ -184,16 +188,16 @@ class KeypadResponder(Responder):
         if self._plan is None:  # no session around it (a test): what the trial says
             self.screen.show(trial=trial.index + 1, condition=trial.condition)
         self._show_trial(trial.index)
-        self.screen.show(state="Stimulus playing: feel the digit", note="", experimenter="")
+        self.screen.show(state="Stimulus playing: feel the shape", note="", experimenter="")
 
     def respond(self, trial: PlannedTrial, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         self.open()
         onset = stimulus.onset_time if self._onset is None else self._onset
         deadline = None if time_limit_s is None else stimulus.offset_time + time_limit_s
-        choices = set(stimulus.digit_choices)
+        choices = set(stimulus.symbol_choices)
         limit = "" if time_limit_s is None else f" (within {time_limit_s:g} s)"
-        self.screen.show(state=f"ANSWER NOW: press the digit you felt{limit}")
+        self.screen.show(state=f"ANSWER NOW: press the key of what you felt{limit}")
         while True:
             key = self._next_key(deadline, since=onset)
             if key is None:
@@ -203,12 +207,12 @@ class KeypadResponder(Responder):
                 raise self._pause()
             if key.sequence:
                 self.screen.show(note="an arrow or function key was ignored (is NumLock "
-                                 "off?); answer with a digit key")
+                                 "off?); answer with a response key")
                 continue
-            digit = self.keys.get(key.text)
-            if digit is not None and digit in choices:
+            symbol = self.keys.get(key.text)
+            if symbol is not None and symbol in choices:
                 self.screen.show(state=f"Answer received: {key.text}", note="")
-                return Response(digit, key.time - onset)
+                return Response(symbol, key.time - onset)
 
     def end_trial(self) -> None:
         self._onset = None
@@ -216,12 +220,12 @@ class KeypadResponder(Responder):
         self._next = trial if trial is not None else self._next  # 0-based: the one after
 
     def feedback(self, trial: PlannedTrial, response: Response, correct: bool) -> None:
-        if response.digit is None:
-            note = f"no answer in time: it was {trial.digit}"
+        if response.symbol is None:
+            note = f"no answer in time: it was {trial.symbol}"
         elif correct:
             note = "correct"
         else:
-            note = f"{response.digit} is wrong: it was {trial.digit}"
+            note = f"{response.symbol} is wrong: it was {trial.symbol}"
         self.screen.show(note=note)
 
     def prompt(self, text: str, clock: Clock, rest_s: float | None = None) -> None:
