@@ -4,7 +4,7 @@ Three things, each on its own line (wrapped to the terminal's width, 80 columns 
 
 * the **status line**: participant, session, block, trial and condition
   (``participant p7k2m9q  session 1  block 2/4  trial 13/120  crs``);
-* the **instruction** the participant was given (:data:`~.prompts.INSTRUCTIONS`);
+* the **instruction** the participant was given (the stimulus set's ``instructions``);
 * the **state**: ``Stimulus playing``, ``ANSWER NOW``, ``Paused``, ``Break`` with the rest
   left, ``Continuing`` once Space was pressed, or the experimenter's prompt;
 
@@ -26,8 +26,6 @@ import time
 from dataclasses import dataclass, replace
 from typing import TextIO
 
-from crs_study.session.prompts import INSTRUCTIONS
-
 #: Width used when a terminal does not say.
 DEFAULT_WIDTH = 80
 #: Width of a file or pipe (no wrapping).
@@ -47,7 +45,7 @@ class ScreenState:
     trial: int | None = None
     n_trials: int | None = None
     condition: str = ""
-    instruction: str = INSTRUCTIONS
+    instruction: str = ""  # the stimulus set's instructions (the keypad sets them)
     state: str = "Getting ready"
     note: str = ""
     experimenter: str = ""  # what the experimenter must do now (a prompt), else empty

@@ -30,6 +30,7 @@ import termios
 import threading
 import time
 import tty
+from dataclasses import replace
 from typing import TextIO
 
 from crs_study.clock import Clock
@@ -60,7 +61,8 @@ class KeypadResponder(Responder):
 
     def __init__(self, fd: int | None = None, output: TextIO | None = None,
                  poll_s: float = 0.02, keys: dict[str, Symbol] | None = None,
-                 screen: TerminalScreen | None = None) -> None:
+                 screen: TerminalScreen | None = None, instruction: str | None = None
+                 ) -> None:
         self.keys = dict(keys) if keys is not None else \
             {key: symbol for symbol, key in default_set().keys.items()}
         clash = sorted(set(self.keys) & QUIT_KEYS)
@@ -70,6 +72,9 @@ class KeypadResponder(Responder):
         self.fd = fd  # None: stdin, looked up when the keypad opens
         self.output = output if output is not None else sys.stderr
         self.screen = screen if screen is not None else TerminalScreen(self.output)
+        # the participant's instruction: the stimulus set's (the default set's without one)
+        self.screen.state = replace(self.screen.state, instruction=instruction or
+                                    default_set().instructions)
         self.poll_s = poll_s
         self._keys: queue.Queue[Key] = queue.Queue()
         self._stop = threading.Event()
