@@ -1,0 +1,193 @@
+"""The feed cap: no beam is commanded, or left on the boards, longer than it can stably be.
+
+A beam cannot be made longer than its longest stable shape through its pixel heights, the one
+at the solver's margin of the critical load (0.98 N_cr: :meth:`CompressedBeams.longest_feeds
+<crs_study.display.beam.CompressedBeams.longest_feeds>`); beyond it the ``beam`` model raises
+:class:`~crs_study.errors.CollapseError` (the rule that asks for more, and when:
+:mod:`crs_study.rendering.render`). The cap keeps each beam's total feed at or below that.
+
+What the boards hold is not the setpoint (the wire's slack, :class:`WireSlack`)
+    The host sends whole-microsecond pulses (:class:`~crs_study.device.calibration.PulseMap`
+    rounds to the nearest), and its write policy (:mod:`crs_study.device.writes`) resends a
+    channel only when its pulse moved by more than the dead-band, so a board may hold an older
+    pulse. Each channel's pulse on the board is therefore within ``hold = quantum / 2 +
+    dead-band`` (1.5 us by default: 0.0135 mm on a 9 mm / 1000 us servo) of the exact one.
+    Capped at the longest stable shape alone, 2 of 201 frames of a finger writing 9 collapsed
+    once rounded (a feed of 9.3 um on two servos became 2 x 9 um), and 39 more once the
+    dead-band held a servo's old pulse (feeds left at 1 us on each end of a beam whose pixels
+    had gone flat, where the straight beam takes 3.6 um).
+So, with a :class:`WireSlack`, two rules (Renderer's ``wire``; ``None``: the setpoints reach the
+beams exactly, the cap is the longest stable shape itself, as the quality criteria use it)
+    1. *Room for the slack.* Each beam's total feed F is capped at
+       ``longest(h) - stretch * sum_p |dL/dh_p| hold_p - (hold_start + hold_end)``: the feed
+       on the boards is at most F plus the two ends' hold, and the longest feed for any pixel
+       heights within their hold of h is at least ``longest(h)`` less the pixel term, because
+       the arc length L(h) is convex in h (:meth:`CompressedBeams.longest_feeds`).
+    2. *A feed servo is at rest or clear of it.* A servo's feed at or below its hold (the
+       largest pulse that could be held over a later rest) is set to 0: every pulse a feed
+       servo is sent is then its rest pulse or more than the dead-band away from it, so a
+       command to rest is always written and the boards never keep a feed on a beam the
+       renderer flattened (rule 1 cannot help there: a flat beam's longest feed, ~3.6 um on
+       ``crs2d``, is less than one pulse). Feeds this small are below what the wire shows
+       reliably; setting them to rest is a quantisation, not a clip, and is not reported.
+    Together: whatever the boards hold, F' <= F + hold_start + hold_end <= longest(h'), and
+    ``BeamModel`` solves the decoded setpoints (tests/test_feed_cap.py decodes the simulated
+    boards' pulses). Not covered: the moments while one board has a frame and the other not
+    yet, and servos in motion (transitions, which a sensed surface may skip).
+
+Measured (``crs-study`` at this change): the shipped protocols' digit frames need no cap
+under either rule set (rule 1 caps 0 of their frames), rule 2 sets to rest the feeds of ...
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from crs_study.display.beam import CompressedBeams
+from crs_study.errors import RenderError
+from crs_study.geometry.layout import Layout
+
+#: The LSC-24's pulse resolution (us): SERVO_MOVE carries whole microseconds
+#: (:data:`crs_study.device.calibration.PULSE_QUANTUM_US`; tests check they agree).
+PULSE_QUANTUM_US = 1.0
+#: The write policy's default dead-band (us) (:data:`crs_study.device.writes.DEFAULT_DEADBAND_US`;
+#: tests check they agree).
+WIRE_DEADBAND_US = 1
+#: A feed servo's rest floor is its hold times this: a feed just above the hold must not round
+#: (half to even) onto the dead-band's last pulse.
+_FLOOR_GUARD = 1.0 + 1e-9
+
+
+@dataclass(frozen=True)
+class WireSlack:
+    """How far the pulse a board holds may be from a setpoint's exact pulse (module docstring).
+
+    ``deadband_us``: the device's write-policy dead-band (its ``deadband_us`` option);
+    ``quantum_us``: the pulse resolution.
+    """
+
+    deadband_us: int = WIRE_DEADBAND_US
+    quantum_us: float = PULSE_QUANTUM_US
+
+    def __post_init__(self) -> None:
+        if isinstance(self.deadband_us, bool) or not isinstance(self.deadband_us, int) \
+                or self.deadband_us < 0:
+            raise RenderError(f"wire slack: dead-band: expected a whole number of us >= 0, "
+                              f"got {self.deadband_us!r}")
+        if isinstance(self.quantum_us, bool) or not isinstance(self.quantum_us, int | float) \
+                or not (math.isfinite(self.quantum_us) and self.quantum_us > 0):
+            raise RenderError(f"wire slack: pulse quantum: expected us > 0, "
+                              f"got {self.quantum_us!r}")
+
+    @property
+    def hold_us(self) -> float:
+        """Farthest a board's pulse may be from the exact one: half a quantum of rounding
+        plus the dead-band a held channel may lag by."""
+        return 0.5 * self.quantum_us + self.deadband_us
+
+
+#: The slack of the shipped write policy (whole-us pulses, the default dead-band): a renderer's
+#: default.
+DEFAULT_WIRE = WireSlack()
+
+
+def mm_per_us(layout: Layout) -> np.ndarray:
+    """Each actuator's stroke per microsecond of pulse width (mm), from the device file's
+    calibration (:class:`~crs_study.device.calibration.PulseMap`'s linear map)."""
+    return np.array([a.calibration.travel_mm / abs(a.calibration.full_us - a.calibration.zero_us)
+                     for a in layout.actuators])
+
+
+class FeedCap:
+    """The feed cap of one layout (module docstring). :meth:`apply` per frame."""
+
+    def __init__(self, layout: Layout, wire: WireSlack | None) -> None:
+        self.layout = layout
+        self.wire = wire
+        self.n_pixels = layout.n_pixels
+        self.travel = float(layout.boundary_travel_mm)
+        self.start_servo = [b.start_servo for b in layout.beams]
+        self.end_servo = [b.end_servo for b in layout.beams]
+        self._beams: CompressedBeams | None = None  # built on the first frame that feeds
+        self.height_hold: np.ndarray | None = None
+        self.feed_hold = [0.0] * len(layout.beams)
+        #: each beam's (start, end) feed at or below which the servo is set to rest (rule 2)
+        self.floor: list[tuple[float, float]] | None = None
+        if wire is not None:
+            hold = wire.hold_us * mm_per_us(layout)
+            hold.setflags(write=False)
+            self.height_hold = hold[: self.n_pixels]
+            pairs = list(zip(self.start_servo, self.end_servo, strict=True))
+            self.feed_hold = [float(hold[s] + hold[e]) for s, e in pairs]
+            self.floor = [(float(hold[s]) * _FLOOR_GUARD, float(hold[e]) * _FLOOR_GUARD)
+                          for s, e in pairs]
+
+    @property
+    def beams(self) -> CompressedBeams:
+        if self._beams is None:
+            self._beams = CompressedBeams.for_layout(self.layout)
+        return self._beams
+
+    def limits(self, heights: np.ndarray) -> tuple[list[float], list[float]]:
+        """``(longest, room)`` per beam (mm, >= 0): the longest stable shape's feed for these
+        pixel heights, and the largest feed whose pulses on the boards stay stable (rule 1;
+        ``longest`` itself without a wire)."""
+        if self.height_hold is None:
+            longest = [f if f > 0.0 else 0.0 for f in self.beams.longest_feeds(heights).tolist()]
+            return longest, longest
+        longest, least = self.beams.longest_feeds(heights, self.height_hold)
+        return ([f if f > 0.0 else 0.0 for f in longest.tolist()],
+                [f - h if f - h > 0.0 else 0.0
+                 for f, h in zip(least.tolist(), self.feed_hold, strict=True)])
+
+    def apply(self, setpoints: np.ndarray, starts: list[float], ends: list[float]
+              ) -> tuple[np.ndarray, list[str]]:
+        """Capped setpoints (a copy when anything changes) and one message per beam whose
+        rule asks for more than its longest stable shape.
+
+        ``starts``, ``ends``: each beam's start and end feed in ``setpoints`` (floats). Rule 2
+        first (a feed at rest needs no room: the boards hold exactly its rest pulse), then
+        rule 1 on the feeds left, then rule 2 on the capped ones.
+        """
+        floor = self.floor
+        fed_starts, fed_ends = list(starts), list(ends)
+        asked = [s + e for s, e in zip(starts, ends, strict=True)]
+        if not any(asked):
+            return setpoints, []
+        if floor is not None:
+            for b, (low_start, low_end) in enumerate(floor):
+                if fed_starts[b] <= low_start:
+                    fed_starts[b] = 0.0
+                if fed_ends[b] <= low_end:
+                    fed_ends[b] = 0.0
+        longest, room = self.limits(setpoints[: self.n_pixels])
+        messages = []
+        for b, total in enumerate(asked):
+            if fed_starts[b] + fed_ends[b] > room[b]:
+                start = min(0.5 * room[b], self.travel)  # split_feed of the capped total
+                end = room[b] - start
+                if floor is not None:
+                    start = 0.0 if start <= floor[b][0] else start
+                    end = 0.0 if end <= floor[b][1] else end
+                fed_starts[b], fed_ends[b] = start, end
+            if total > longest[b]:
+                messages.append(
+                    f"beam {b}: feed {total:.4f} mm capped to {fed_starts[b] + fed_ends[b]:.4f}"
+                    f" mm (the longest stable shape through its pixel heights{self._less}; "
+                    f"more would collapse the beam)")
+        out = setpoints
+        for b, (start, end) in enumerate(zip(fed_starts, fed_ends, strict=True)):
+            if start != starts[b] or end != ends[b]:
+                if out is setpoints:
+                    out = setpoints.copy()
+                out[self.start_servo[b]] = start
+                out[self.end_servo[b]] = end
+        return out, messages
+
+    @property
+    def _less(self) -> str:
+        return "" if self.wire is None else (", less the room the boards' whole-us pulses and "
+                                             "dead-band need")
