@@ -1,7 +1,33 @@
 """crs-study: experiment framework for the continuity reinforcement skeleton haptic display.
 
-The public surface is small on purpose. Each folder is a stage of the pipeline, and a stage
-imports only the stages listed before it (checked: ``[tool.importlinter]`` in pyproject.toml):
+The Python API, as a notebook uses it (each name is loaded on first use, so ``import
+crs_study`` stays quick and the command line loads only what a command needs)::
+
+    import dataclasses, crs_study
+    protocol = crs_study.load_protocol("pilot")             # a file, or a shipped name
+    shorter = dataclasses.replace(protocol, design=dataclasses.replace(
+        protocol.design, practice_trials=1))                # checked when it is used
+    crs_study.validate(shorter).to_frame()                  # trials and wire per condition
+    crs_study.dry_run(shorter, participants=4, out="rehearsal")
+    analysis = crs_study.analyze("rehearsal", write=False)
+    analysis.accuracy.to_frame()                            # the accuracy table
+
+=================  ========================================================================
+load_protocol      a protocol file, a shipped protocol's name, or a Protocol changed in
+                   Python, read and checked (:mod:`crs_study.protocol`)
+make_plan          one participant's trial plan (:class:`TrialPlan`)
+validate           a protocol checked and its plan summarised (:class:`ProtocolSummary`)
+dry_run            simulated participants on the simulated device (:class:`DryRunResult`)
+run_session        one participant's session, begun or resumed (:class:`SessionResult`)
+load_dataset       the trials of stored datasets as the analysis sees them
+                   (:class:`StudyData`)
+analyze            every analysis of the plan (:class:`Analysis`; the report on request)
+power              participants needed: the plan's primary test on simulated studies
+                   (:class:`PowerResult`)
+=================  ========================================================================
+
+The package is one folder per stage of the pipeline, and a stage imports only the stages
+listed before it (checked: ``[tool.importlinter]`` in pyproject.toml):
 
 ``geometry``   the device file as a Layout (pixels, beams, servos, calibration)
 ``stimuli``    the bump of Eq. 7, digit strokes, a digit's path over time
@@ -14,12 +40,15 @@ imports only the stages listed before it (checked: ``[tool.importlinter]`` in py
 ``protocol``   protocol files, trial plans, the checks against the device
 ``session``    the runner, the trial loop, resume, dry-runs, responders
 ``analysis``   the analysis of stored datasets (it reads the dataset alone)
+``power``, ``live``   power by simulation; the display driven live over UDP
+``api``        the API functions that join stages (``validate``, ``run_session``)
 ``commands``, ``cli``, ``benchmarks``   the command line and ``crs-study bench``
 
 Below them, the foundations: ``errors``, ``_files``, ``_toml``, ``_toml_lines``, ``clock``,
 ``signals`` and ``paths`` (the shipped protocols, plans and consent forms).
 """
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
 from crs_study.errors import CrsStudyError
@@ -29,4 +58,38 @@ try:
 except PackageNotFoundError:  # running from a source tree that was never installed
     __version__ = "0.0.0+unknown"
 
-__all__ = ["CrsStudyError", "__version__"]
+#: The public API: name -> the module that owns it.
+API = {
+    "load_protocol": "crs_study.protocol.loader",
+    "make_plan": "crs_study.api",
+    "validate": "crs_study.api",
+    "dry_run": "crs_study.session.dry_runs",
+    "run_session": "crs_study.api",
+    "load_dataset": "crs_study.analysis.study_data",
+    "analyze": "crs_study.analysis.report",
+    "power": "crs_study.power.api",
+    # what they return
+    "Protocol": "crs_study.protocol.model",
+    "TrialPlan": "crs_study.protocol.plan",
+    "ProtocolSummary": "crs_study.api",
+    "DryRunResult": "crs_study.session.spec",
+    "SessionResult": "crs_study.session.spec",
+    "StudyData": "crs_study.analysis.study_data",
+    "Analysis": "crs_study.analysis.report",
+    "PowerResult": "crs_study.power.result",
+}
+
+__all__ = ["CrsStudyError", "__version__", *API]
+
+
+def __getattr__(name: str):
+    if name in API:
+        # loaded on first use (see the module docstring); kept once loaded
+        value = getattr(import_module(API[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'crs_study' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(API))

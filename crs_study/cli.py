@@ -50,6 +50,7 @@ COMMANDS: dict[str, str] = {
     "dry-run": "rehearse a protocol: simulated device, simulated participants, virtual clock",
     "analyze": "analyse datasets: accuracy, GLMM, secondary tests, confusions, speed-accuracy, "
                "report",
+    "power": "how many participants: power of the primary test by simulation, as a curve",
     "consent": "record consent, list records, withdraw a participant (removes their data)",
     "device": "check the controllers, neutral pose, sweep, calibrate endpoints, monitor a port",
     "live": "drive the display live from finger packets over UDP (the paper's VR link)",

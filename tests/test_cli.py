@@ -11,8 +11,8 @@ import pytest
 import crs_study.commands as commands
 from crs_study.cli import COMMANDS, build_parser, command_module, main
 
-SUBCOMMANDS = ("demo", "init", "validate", "run", "dry-run", "analyze", "consent", "device",
-               "live", "live-send", "quality", "bench")
+SUBCOMMANDS = ("demo", "init", "validate", "run", "dry-run", "analyze", "power", "consent",
+               "device", "live", "live-send", "quality", "bench")
 
 
 def test_every_subcommand_is_listed_in_order(capsys):

@@ -169,7 +169,7 @@ def test_fit_primary_on_aggregated_counts_equals_trial_rows():
 
 
 def test_a_condition_at_zero_percent_has_an_upper_limit_only():
-    from crs_study.analysis.report import _separated_text
+    from crs_study.analysis.headline import _separated_text
 
     data = simulate_trials(np.random.default_rng(5001), 8, 30, [0.0, -0.7], 0.25)
     data.loc[data["condition"] == "c1", "correct"] = 0

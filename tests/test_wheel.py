@@ -93,6 +93,25 @@ def test_the_library_from_an_empty_folder(installed, tmp_path):
     assert lines[2:] == ["digitid-pilot", "complete 26"]
 
 
+def test_the_python_api_from_an_empty_folder(installed, tmp_path):
+    """Issue 15, point 2: a notebook's session with the wheel alone (a shipped protocol by
+    name, changed in Python, rehearsed and analysed without writing)."""
+    code = (
+        "import dataclasses, crs_study\n"
+        "protocol = crs_study.load_protocol('pilot')\n"
+        "shorter = dataclasses.replace(protocol, design=dataclasses.replace(\n"
+        "    protocol.design, practice_trials=1))\n"
+        "result = crs_study.dry_run(shorter, participants=2, out='ds')\n"
+        "print(len(result), result.trials, result.finished)\n"
+        "table = crs_study.analyze('ds', write=False).accuracy.to_frame()\n"
+        "print(list(table['condition']), int(table['n_trials'].sum()))\n"
+        "print(crs_study.dry_run('pilot', participants=2, out='ds2').trials)\n"
+    )
+    lines = _run([str(installed / "python"), "-c", code], tmp_path).stdout.splitlines()
+    assert lines == ["2 44 True", "['pixel-only', 'crs'] 40", "52"]
+    assert not (tmp_path / "ds" / "derivatives").exists()
+
+
 def test_init_copies_the_shipped_files_to_edit(installed, tmp_path):
     _run([str(installed / "crs-study"), "init", "study"], tmp_path)
     assert (tmp_path / "study" / "consent" / "consent_form.md").read_bytes() == \

@@ -26,6 +26,7 @@ import pandas as pd
 from scipy import stats
 from statsmodels.stats.proportion import proportion_confint
 
+from crs_study.analysis.jsonable import json_text, records
 from crs_study.errors import AnalysisError
 
 #: The smallest p-value reported: below it, a p is shown as this bound with a warning.
@@ -105,7 +106,38 @@ class AccuracyResult:
     between_participants: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     def to_frame(self) -> pd.DataFrame:
+        """The accuracy table: one row per condition (``by_condition``)."""
         return self.by_condition.copy()
+
+    def to_dict(self) -> dict:
+        """The accuracy sections of ``results.json``: ``conditions`` (per condition the
+        pooled counts, accuracy and Wilson interval, ``p_vs_chance``, the participants, the
+        between-participant mean and interval, and what the headline shows),
+        ``accuracy_by_participant`` and ``accuracy_by_digit`` (the tables' rows)."""
+        between = {r["condition"]: {"mean": r["mean"], "ci95": [r["ci_low"], r["ci_high"]],
+                                    "n_participants": int(r["n_participants"]),
+                                    "method": r["method"]}
+                   for r in records(self.between_participants)}
+        shown = {r["condition"]: {"accuracy": r["accuracy"], "ci95": [r["ci_low"], r["ci_high"]],
+                                  "method": r["method"]}
+                 for r in records(headline_accuracy(self))}
+        by_participant = self.by_participant
+        conditions = {
+            row["condition"]: {
+                "n_trials": int(row["n_trials"]), "n_correct": int(row["n_correct"]),
+                "accuracy": float(row["accuracy"]),
+                "ci95": [float(row["ci_low"]), float(row["ci_high"])],
+                "ci95_method": POOLED_CI_METHOD,
+                "p_vs_chance": float(row["p_vs_chance"]),
+                "n_participants": int((by_participant["condition"] == row["condition"]).sum()),
+                "between_participants": between.get(row["condition"]),
+                "headline": shown.get(row["condition"]),
+            } for _, row in self.by_condition.iterrows()}
+        return {"conditions": conditions, "accuracy_by_participant": records(by_participant),
+                "accuracy_by_digit": records(self.by_digit)}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
     def condition_row(self, condition: str) -> pd.Series:
         rows = self.by_condition.loc[self.by_condition["condition"] == condition]
@@ -162,6 +194,9 @@ def between_participant_table(by_participant: pd.DataFrame, conditions: tuple[st
                                        "ci_high", "method"])
 
 
+#: What the ``ci95`` of a condition's accuracy is (results.json ``conditions.<c>.ci95_method``).
+POOLED_CI_METHOD = ("Wilson score interval of the pooled trials (trial level: ignores "
+                    "differences between participants; see between_participants)")
 #: What the headline and the accuracy chart show for a condition (participant level).
 PARTICIPANT_LEVEL = "mean of participant accuracies, t interval across participants"
 

@@ -43,11 +43,14 @@ repetitions of 10 digits) and a warning says so.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 from scipy import special, stats
+
+from crs_study.analysis.jsonable import json_text
 
 LN2 = np.log(2.0)
 
@@ -126,6 +129,51 @@ class ConfusionResult:
                 "bias_correction": self.bias_correction, "bootstrap": self.bootstrap,
                 "labels": [int(x) for x in self.counts.index],
                 "counts": self.counts.to_numpy().tolist(), "note": self.note}
+
+    def to_frame(self) -> pd.DataFrame:
+        """The confusion matrix: counts, the digit shown by row, the digit answered by
+        column."""
+        return self.counts.copy()
+
+
+#: The columns of :meth:`Confusions.to_frame`.
+TRANSFER_COLUMNS = ("condition", "bits", "ci_low", "ci_high", "bits_plugin", "stimulus_bits",
+                    "relative", "n_trials", "n_no_response", "bias_correction")
+
+
+@dataclass(frozen=True, eq=False)
+class Confusions(Mapping[str, ConfusionResult]):
+    """Each condition's :class:`ConfusionResult`, in the analysis' order of conditions."""
+
+    by_condition: dict[str, ConfusionResult]
+
+    def __getitem__(self, condition: str) -> ConfusionResult:
+        return self.by_condition[condition]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.by_condition)
+
+    def __len__(self) -> int:
+        return len(self.by_condition)
+
+    def to_frame(self) -> pd.DataFrame:
+        """Information transfer: one row per condition (:data:`TRANSFER_COLUMNS`; ``ci_low``,
+        ``ci_high`` the bootstrap interval, None without one)."""
+        rows = [{"condition": c, "bits": r.bits,
+                 "ci_low": None if r.ci95 is None else r.ci95[0],
+                 "ci_high": None if r.ci95 is None else r.ci95[1],
+                 "bits_plugin": r.bits_plugin, "stimulus_bits": r.stimulus_bits,
+                 "relative": r.relative, "n_trials": r.n_trials,
+                 "n_no_response": r.n_no_response, "bias_correction": r.bias_correction}
+                for c, r in self.by_condition.items()]
+        return pd.DataFrame(rows, columns=list(TRANSFER_COLUMNS))
+
+    def to_dict(self) -> dict:
+        """``results.json``'s ``information_transfer``: per condition its result."""
+        return {c: r.to_dict() for c, r in self.by_condition.items()}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
 
 def analyse_confusions(trials: pd.DataFrame, conditions: list[str],

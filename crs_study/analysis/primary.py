@@ -35,6 +35,7 @@ from scipy import stats
 from crs_study.analysis import glmm
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
+from crs_study.analysis.jsonable import json_text
 from crs_study.errors import AnalysisError
 
 GROUP_COLUMNS = {"participant": "participant_id", "digit": "digit"}
@@ -96,7 +97,17 @@ class PrimaryResult:
     warnings: tuple[str, ...] = field(default=())
 
     def to_frame(self) -> pd.DataFrame:
+        """One row per comparison (the fields of :class:`Comparison`)."""
         return pd.DataFrame([c.to_dict() for c in self.comparisons])
+
+    def to_dict(self) -> dict:
+        """``comparisons`` (the primary ones of ``results.json``), ``omnibus`` and ``model``
+        (``results.json``'s ``primary``)."""
+        return {"comparisons": [c.to_dict() for c in self.comparisons],
+                "omnibus": self.omnibus, "model": self.model}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
 
 @dataclass(frozen=True)
@@ -242,7 +253,7 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                         "test on the pooled 2 x 2 table of each condition against the reference "
                         "instead, which ignores the repeated measures")
         data = trials.loc[trials["correct"].notna() & trials["condition"].isin(conditions)]
-        return PrimaryResult(_fisher_comparisons(data, conditions, reference, alpha), None,
+        return PrimaryResult(fisher_comparisons(data, conditions, reference, alpha), None,
                              None, tuple(warnings))
     full = fits.full
     warnings += list(fits.warnings)
@@ -416,7 +427,7 @@ def _method_label(model) -> str:
     return f"GLMM correct ~ condition{effects} ({how}{penalty}); odds ratio, LR test"
 
 
-def _fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: str,
+def fisher_comparisons(data: pd.DataFrame, conditions: list[str], reference: str,
                         alpha: float) -> tuple[Comparison, ...]:
     """Pooled 2 x 2 tables: Fisher's exact p (``scipy.stats.fisher_exact``); the odds ratio
     and its Woolf interval by ``statsmodels`` ``Table2x2``, after 0.5 is added to every cell

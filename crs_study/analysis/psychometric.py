@@ -29,6 +29,7 @@ import pandas as pd
 from scipy import optimize, special, stats
 
 from crs_study.analysis.accuracy import wilson_interval
+from crs_study.analysis.jsonable import json_text
 from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
 
 #: A lapse rate within this fraction of ``lapse_max`` counts as at the bound (TNC stops a
@@ -79,7 +80,17 @@ class PsychometricResult:
     warnings: tuple[str, ...] = field(default=())
 
     def to_frame(self) -> pd.DataFrame:
+        """One row per condition's fit (the fields of :class:`PsychometricFit`)."""
         return pd.DataFrame([f.to_dict() for f in self.fits.values()])
+
+    def to_dict(self) -> dict:
+        """``results.json``'s ``psychometric``: the level column, whether the fits were
+        skipped and why, and each condition's fit."""
+        return {"level_column": self.level_column, "skipped": self.skipped, "note": self.note,
+                "fits": {c: f.to_dict() for c, f in self.fits.items()}}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
 
 def sigmoid(x: np.ndarray, function: str, alpha: float, beta: float) -> np.ndarray:

@@ -5,10 +5,12 @@ from __future__ import annotations
 import html
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pandas as pd
 
-from crs_study.analysis.plan import AnalysisPlan
+if TYPE_CHECKING:  # the report's own module imports this one
+    from crs_study.analysis.report import Analysis
 
 REFERENCES = (
     "Wilson EB (1927) Probable inference, the law of succession, and statistical inference. "
@@ -49,14 +51,21 @@ def _fmt(value) -> str:
     return str(value)
 
 
+def _plan_text(plan: dict) -> str:
+    if plan["path"] is None:
+        return f"Plan `{plan['name']}` (given in Python, not read from a file). "
+    return f"Plan `{plan['path']}` (sha256 {plan['sha256'][:12]}...). "
+
+
 def _table(frame: pd.DataFrame) -> list[list[str]]:
     return [[str(c) for c in frame.columns]] + [[_fmt(v) for v in row]
                                                 for row in frame.astype(object).values.tolist()]
 
 
-def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Path],
+def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
                  out: Path) -> list[tuple[str, object]]:
     """The report as ``(kind, content)`` blocks: h1, h2, p, list, table, image."""
+    plan = analysis.plan
     images = {p.stem: os.path.relpath(p, out) for p in charts}
     blocks: list[tuple[str, object]] = [("h1", f"Analysis: {plan.name}"),
                                         ("p", f"**{results['headline']}**")]
@@ -66,7 +75,7 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
     blocks += [("h2", "Data"), ("p", (
         f"{results['n_participants']} participant(s), {len(results['sessions'])} session(s); "
         f"{results['n_trials_analysed']} of {results['n_trials_total']} trials analysed. "
-        f"Plan `{results['plan']['path']}` (sha256 {results['plan']['sha256'][:12]}...). "
+        + _plan_text(results["plan"]) +
         f"Chance level {100 * results['chance']:.1f} %, alpha {results['alpha']:g}."))]
     sources = results.get("sources")
     if sources:
@@ -79,7 +88,7 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
         exclusions.index.name = "excluded because"
         blocks += [("p", "Exclusions declared in the plan (trials per condition):"),
                    ("table", _table(exclusions.reset_index()))]
-    accuracy = parts["accuracy"]
+    accuracy = analysis.accuracy
     blocks += [("h2", "Accuracy"),
                ("p", "Pooled trials: `ci_low`, `ci_high` are the Wilson interval of all the "
                      "condition's trials together (trial level; it ignores differences "
@@ -94,7 +103,7 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
     blocks += [("h2", "Primary test"), ("p", "Mixed-effects logistic regression "
                f"(random effects: {', '.join(plan.primary.random_effects)}; "
                f"{plan.primary.method}); odds ratio against `{results['reference']}`.")]
-    primary = parts["primary"].to_frame()
+    primary = analysis.primary.to_frame()
     if not primary.empty:
         blocks.append(("table", _table(primary[["condition", "reference", "estimate", "ci95",
                                                 "ci_method", "ci95_wald", "p_value",
@@ -119,12 +128,12 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
         omnibus = results["primary"]["omnibus"]
         blocks.append(("p", f"Omnibus likelihood-ratio test of condition: chi2({omnibus['df']})"
                             f" = {omnibus['statistic']:.3f}, p = {_fmt(omnibus['p_value'])}."))
-    secondary = parts["secondary"].to_frame()
+    secondary = analysis.secondary.to_frame()
     if not secondary.empty:
         blocks += [("h2", "Secondary tests"), ("table", _table(secondary[[
             "condition", "method", "estimate", "ci95", "p_value", "effect_size",
             "effect_size_name", "n"]]))]
-    for condition, table in parts["secondary"].per_digit.items():
+    for condition, table in analysis.secondary.per_digit.items():
         blocks += [("p", f"Per digit, `{condition}` against `{results['reference']}` "
                          f"(McNemar mid-p, {plan.secondary.correction} correction):"),
                    ("table", _table(table))]
@@ -132,18 +141,18 @@ def build_blocks(results: dict, parts: dict, plan: AnalysisPlan, charts: list[Pa
     rows = pd.DataFrame([{k: v for k, v in r.to_dict().items()
                           if k in ("condition", "bits", "ci95", "bits_plugin", "stimulus_bits",
                                    "relative", "n_trials", "n_no_response")}
-                         for r in parts["confusions"].values()])
+                         for r in analysis.confusions.values()])
     blocks.append(("table", _table(rows)))
     for stem, path in images.items():
         if stem.startswith("confusion_"):
             blocks.append(("image", path))
-    speed = parts["speed"]
+    speed = analysis.speed_accuracy
     blocks += [("h2", "Speed against accuracy"), ("table", _table(speed.rt_summary)),
                ("table", _table(speed.efficiency_summary))]
     for stem in ("speed_accuracy", "caf"):
         if stem in images:
             blocks.append(("image", images[stem]))
-    psychometric = parts["psychometric"]
+    psychometric = analysis.psychometric
     blocks.append(("h2", "Psychometric functions"))
     if psychometric.skipped:
         blocks.append(("p", psychometric.note))
@@ -207,11 +216,10 @@ def render_html(blocks: list[tuple[str, object]]) -> str:
             + "\n</body></html>\n")
 
 
-def write_report(out: Path, results: dict, parts: dict, plan: AnalysisPlan,
-                 charts: list[Path]) -> Path:
+def write_report(out: Path, results: dict, analysis: Analysis, charts: list[Path]) -> Path:
     """Write ``report.md`` or ``report.html`` (the plan's ``report.format``)."""
-    blocks = build_blocks(results, parts, plan, charts, out)
-    if plan.report.format == "html":
+    blocks = build_blocks(results, analysis, charts, out)
+    if analysis.plan.report.format == "html":
         path = out / "report.html"
         path.write_text(render_html(blocks), encoding="utf-8")
     else:

@@ -33,6 +33,7 @@ from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.multitest import multipletests
 
 from crs_study.analysis.accuracy import floor_p
+from crs_study.analysis.jsonable import json_text, records
 from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
 
 PAIR_KEYS = ("participant_id", "session", "digit", "repetition")
@@ -267,7 +268,17 @@ class SecondaryResult:
     warnings: tuple[str, ...] = ()
 
     def to_frame(self) -> pd.DataFrame:
+        """One row per test (the fields of :class:`TestResult`)."""
         return pd.DataFrame([t.to_dict() for t in self.tests])
+
+    def to_dict(self) -> dict:
+        """``comparisons`` (the secondary ones of ``results.json``) and ``per_digit`` (per
+        condition, the rows of its per-digit table)."""
+        return {"comparisons": [t.to_dict() for t in self.tests],
+                "per_digit": {c: records(t) for c, t in self.per_digit.items()}}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
 
 def secondary_tests(trials: pd.DataFrame, by_participant: pd.DataFrame, conditions: list[str],

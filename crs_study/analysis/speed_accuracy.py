@@ -38,6 +38,7 @@ import pandas as pd
 from scipy import stats
 
 from crs_study.analysis.accuracy import wilson_interval
+from crs_study.analysis.jsonable import json_text, records
 
 MEASURES = ("accuracy", "mean_correct_rt", "ies", "rcs", "bis")
 #: Measures summarised on the log scale when every participant's value is positive.
@@ -58,7 +59,18 @@ class SpeedAccuracyResult:
     warnings: tuple[str, ...] = field(default=())
 
     def to_frame(self) -> pd.DataFrame:
+        """The efficiency summary: one row per condition and measure."""
         return self.efficiency_summary.copy()
+
+    def to_dict(self) -> dict:
+        """``results.json``'s ``speed_accuracy``: the response-time column, the rows of the
+        response-time summary, the conditional accuracy function and the efficiency
+        summary."""
+        return {"rt_column": self.rt_column, "rt_summary": records(self.rt_summary),
+                "caf": records(self.caf), "efficiency": records(self.efficiency_summary)}
+
+    def to_json(self) -> str:
+        return json_text(self.to_dict())
 
 
 def rt_summary(trials: pd.DataFrame, rt: str, conditions: list[str]) -> pd.DataFrame:

@@ -8,11 +8,10 @@ analysis/digit_identification.toml. See analysis/README.md.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from crs_study._files import os_errors
-from crs_study.analysis.report import analyze
+from crs_study.analysis import analyze
 from crs_study.errors import AnalysisError
 
 
@@ -50,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"crs-study analyze: {'WARNING' if loud else 'warning'}: {warning}",
               file=sys.stderr)
     if args.json:
-        print(json.dumps(result.results, indent=2))
+        print(result.to_json(), end="")  # results.json as written
         return 0
     print(result.headline)
     print(f"report:  {result.report_path}")

@@ -16,12 +16,12 @@ from datetime import datetime
 from pathlib import Path
 
 from crs_study._files import os_errors
-from crs_study.analysis.report import analyze_dataset
+from crs_study.analysis import analyze
 from crs_study.commands.run import stderr_progress
 from crs_study.errors import DatasetError, SessionError
-from crs_study.paths import DEFAULT_PROTOCOL, resolve_protocol
+from crs_study.paths import DEFAULT_PROTOCOL
 from crs_study.protocol import emit_warnings, load_protocol
-from crs_study.session.dry_runs import dry_run
+from crs_study.session import dry_run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,17 +58,16 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()):
         raise SessionError(f"--out {os.fspath(out)!r} exists and is not empty; the demo never "
                            "overwrites: choose a new directory")
-    protocol = resolve_protocol(args.protocol)
-    emit_warnings(load_protocol(protocol))  # odd but legal values of a --protocol given
-    show = stderr_progress(not args.json)
-    results = dry_run(protocol, args.participants, out, jobs=args.jobs,
-                      responder=args.responder, progress=show)
-    summary: dict = {"dataset": os.fspath(out), "participants": len(results),
-                     "trials": sum(r.trials_completed for r in results)}
-    result = analyze_dataset(out)
-    summary.update(headline=result.headline, report=os.fspath(result.report_path),
-                   results=os.fspath(result.results_path))
-    charts = {p.stem: os.fspath(p) for p in result.charts}
+    protocol = load_protocol(args.protocol)  # a path or a shipped name, checked once
+    emit_warnings(protocol)  # odd but legal values of a --protocol given
+    rehearsal = dry_run(protocol, args.participants, out, jobs=args.jobs,
+                        responder=args.responder, progress=stderr_progress(not args.json))
+    analysis = analyze(out)  # the report in the dataset's derivatives
+    summary: dict = {"dataset": os.fspath(out), "participants": len(rehearsal),
+                     "trials": rehearsal.trials, "headline": analysis.headline,
+                     "report": os.fspath(analysis.report_path),
+                     "results": os.fspath(analysis.results_path)}
+    charts = {p.stem: os.fspath(p) for p in analysis.charts}
     if charts:
         summary["charts"] = charts
     if args.json:

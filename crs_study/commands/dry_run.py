@@ -9,16 +9,13 @@ command resumes unfinished sessions and leaves finished ones alone.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 from pathlib import Path
 
 from crs_study._files import os_errors
 from crs_study.commands.run import stderr_progress
 from crs_study.errors import DatasetError
-from crs_study.paths import resolve_protocol
 from crs_study.protocol import emit_warnings, load_protocol
-from crs_study.session.dry_runs import dry_run
+from crs_study.session import dry_run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,21 +41,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
-    protocol = resolve_protocol(args.protocol)
-    emit_warnings(load_protocol(protocol))  # odd but legal values, once, up front
-    results = dry_run(protocol, args.participants, args.out, jobs=args.jobs,
-                      responder=args.responder, device_url=args.device,
-                      progress=stderr_progress(not args.json), durable=args.fsync)
-    trials = sum(r.trials_completed for r in results)
-    session_s = sum(r.session_seconds for r in results)
+    protocol = load_protocol(args.protocol)  # a path or a shipped name, checked once
+    emit_warnings(protocol)  # odd but legal values, once, up front
+    result = dry_run(protocol, args.participants, args.out, jobs=args.jobs,
+                     responder=args.responder, device_url=args.device,
+                     progress=stderr_progress(not args.json), durable=args.fsync)
     if args.json:
-        print(json.dumps({
-            "dataset": os.fspath(args.out), "participants": len(results), "trials": trials,
-            "session_seconds": session_s,
-            "sessions": [{"participant": r.participant, "status": r.status,
-                          "trials_completed": r.trials_completed,
-                          "late_frames": r.late_frames} for r in results]}))
+        print(result.to_json())
     else:
-        print(f"dry-run: {len(results)} participants, {trials} trials "
-              f"({session_s / 60:.1f} min of simulated session time) in {args.out}")
-    return 0 if all(r.status in ("complete", "already-complete") for r in results) else 130
+        print(f"dry-run: {len(result)} participants, {result.trials} trials "
+              f"({result.session_seconds / 60:.1f} min of simulated session time) in "
+              f"{args.out}")
+    return 0 if result.finished else 130

@@ -17,7 +17,6 @@ from pathlib import Path
 
 from crs_study._files import os_errors
 from crs_study.errors import DatasetError
-from crs_study.paths import resolve_protocol
 from crs_study.protocol import emit_warnings, load_protocol
 from crs_study.session.runner import run_session, seed_check
 from crs_study.session.spec import SessionSpec
@@ -92,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{key}: {value}")
         return 0
     # odd but legal values, before anything runs
-    emit_warnings(load_protocol(resolve_protocol(spec.protocol)))
+    emit_warnings(load_protocol(spec.protocol))
     quiet = args.json
     show = stderr_progress(not quiet)
     result = run_session(spec, progress=show)

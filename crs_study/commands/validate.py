@@ -13,15 +13,8 @@ and the frames per trial; frames and wire use are then over every (digit, level)
 from __future__ import annotations
 
 import argparse
-import json
-from dataclasses import asdict
 
-import numpy as np
-
-from crs_study.paths import resolve_protocol
-from crs_study.protocol import analysis_plan_path, load_protocol, make_plan, wire_budget
-from crs_study.protocol.plan import block_orders, expected_duration_s
-from crs_study.stimuli.stimulus import make_stimulus
+from crs_study.api import validate
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,109 +28,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--list", action="store_true", help="also list every planned trial")
 
 
-def summarise(protocol, participant: str = "example", session: int = 1,
-              counterbalance: int = 0) -> dict:
-    """The plan summary :func:`run` prints, as plain data."""
-    layout = protocol.layout()
-    plan = make_plan(protocol, participant, session, counterbalance)
-    levels = protocol.level_values
-    stimuli = {(d, v): make_stimulus(protocol, layout, d, v) for v in levels
-               for d in protocol.digits}
-
-    def label(d: int, v: float | None) -> str:
-        return str(d) if v is None else f"{d}@{v:g}"
-
-    frames = {label(d, v): s.n_frames for (d, v), s in stimuli.items()}
-
-    seconds = expected_duration_s(protocol, plan, layout)
-    breaks = sum(t.break_before for t in plan.trials)
-    prompts = sum(t.prompt_before is not None for t in plan.trials)
-
-    wire = wire_budget(protocol, layout)
-    changed = {c.condition: {
-        "mean_bytes_per_frame": c.mean_bytes_per_frame,
-        "busiest_frame_wire_ms": c.busiest_frame_wire_ms,
-        "busiest_frame_budget_percent": c.busiest_frame_budget_percent,
-        "max_rate_hz": c.changed_only_rate_hz,
-        "median_latency_ms": c.latency_ms_median,
-    } for c in wire.conditions}
-
-    counts = {c: {"practice": plan.count("practice", c), "test": plan.count("test", c)}
-              for c in protocol.conditions}
-    schemes = protocol.design.counterbalancing
-    by_index = block_orders(protocol)
-    orders = sorted(set(by_index))
-    plan_file = analysis_plan_path(protocol)
-    level_summary = None
-    if protocol.levels is not None:
-        level_summary = {
-            "parameter": protocol.levels.parameter, "column": protocol.levels.column,
-            "units": protocol.levels.units, "values": list(protocol.levels.values),
-            "width_to_height": protocol.levels.width_to_height,
-            "per_level": {f"{v:g}": {
-                "per_condition": {c: {"practice": plan.count("practice", c, v),
-                                      "test": plan.count("test", c, v)}
-                                  for c in protocol.conditions},
-                "frames_per_trial": {
-                    "min": min(stimuli[(d, v)].n_frames for d in protocol.digits),
-                    "max": max(stimuli[(d, v)].n_frames for d in protocol.digits),
-                    "mean": float(np.mean([stimuli[(d, v)].n_frames
-                                           for d in protocol.digits]))}}
-                for v in protocol.levels.values},
-        }
-    return {
-        "protocol": str(protocol.path),
-        "sha256": protocol.sha256,
-        "study": {"id": protocol.study_id, "version": protocol.version,
-                  "title": protocol.title, "device": layout.name},
-        "trials": {"total": len(plan), "practice": plan.count("practice"),
-                   "test": plan.count("test"), "per_condition": counts,
-                   "blocks": len(plan.block_conditions), "breaks": breaks,
-                   "experimenter_prompts": prompts},
-        "block_orders": {"counterbalancing": schemes, "cycle": len(by_index),
-                         "by_counterbalance": [{"k_mod_cycle": k, "order": list(o)}
-                                               for k, o in enumerate(by_index)],
-                         "orders": [list(o) for o in orders]},
-        "expected_duration_s": seconds,
-        "frames_per_trial": {"min": min(frames.values()), "max": max(frames.values()),
-                             "mean": float(np.mean(list(frames.values()))),
-                             "per_digit": {str(d): n for d, n in frames.items()}},
-        "stimulus_duration_s": {label(d, v): s.duration_s for (d, v), s in stimuli.items()},
-        "levels": level_summary,
-        "frame_rate_hz": protocol.frame_rate_hz,
-        "wire": {
-            "full_frame_bytes": wire.full_frame_bytes,
-            "full_frame_busiest_controller_ms": wire.full_frame_busiest_controller_ms,
-            "full_frame_budget_percent": wire.full_frame_budget_percent,
-            "full_frame_max_rate_hz": wire.full_frame_max_rate_hz,
-            "changed_only": changed,
-        },
-        "checks": list(protocol.checks),
-        "warnings": list(protocol.warnings),
-        "analysis_plan": {"path": protocol.analysis_plan, "found": plan_file is not None},
-        "example_plan": {"participant": participant, "session": session,
-                         "counterbalance": counterbalance, "seed": plan.seed,
-                         "blocks": list(plan.block_conditions)},
-        "_plan": plan,
-    }
-
-
 def run(args: argparse.Namespace) -> int:
-    protocol = load_protocol(resolve_protocol(args.protocol))  # a path, or a shipped name
-    summary = summarise(protocol, args.participant, args.session, args.counterbalance)
-    plan = summary.pop("_plan")
-    if args.list:
-        summary["plan_trials"] = [asdict(t) for t in plan.trials]
+    summary = validate(args.protocol, participant=args.participant, session=args.session,
+                       counterbalance=args.counterbalance)  # a path, or a shipped name
     if args.json:
-        print(json.dumps(summary, indent=2, sort_keys=True, default=str))
+        print(summary.to_json(trials=args.list))
         return 0
-    print(_text(summary))
+    print(_text(summary.to_dict()))
     if args.list:
-        with_levels = protocol.levels is not None
+        with_levels = summary.protocol.levels is not None
         print()
         print("index type     block condition   rep digit " + ("   level " if with_levels else "")
               + "feedback break prompt")
-        for t in plan.trials:
+        for t in summary.plan.trials:
             level = f"{t.level:8g} " if with_levels else ""
             print(f"{t.index:5d} {t.trial_type:8s} {t.block:5d} {t.condition:11s} "
                   f"{t.repetition:3d} {t.digit:5d} {level}{'yes' if t.feedback else 'no':8s} "

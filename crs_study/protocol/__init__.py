@@ -11,7 +11,9 @@ The stage, in the order its modules build on each other:
 * :mod:`~crs_study.protocol.odd_values`: odd but legal values, as warnings;
 * :mod:`~crs_study.protocol.wire`: the protocol's stimuli on the wire (``validate``,
   ``device check``);
-* :mod:`~crs_study.protocol.loader`: TOML to the model, strictly; :func:`load_protocol`.
+* :mod:`~crs_study.protocol.writer`: the model back to TOML, for a protocol changed in Python;
+* :mod:`~crs_study.protocol.loader`: TOML to the model, strictly; :func:`load_protocol` (a
+  file, a shipped protocol's name, or a protocol changed in Python).
 
 Errors are one-line :class:`~crs_study.errors.ProtocolError` s carrying the file, the line and
 the key path as attributes; the line locator is :mod:`crs_study._toml_lines`.
@@ -25,7 +27,12 @@ from crs_study.protocol.feasibility import (
     check_on_device,
     collapse_delta,
 )
-from crs_study.protocol.loader import as_protocol_error, load_protocol, protocol_from_dict
+from crs_study.protocol.loader import (
+    as_protocol_error,
+    load_protocol,
+    protocol_from_dict,
+    protocol_from_text,
+)
 from crs_study.protocol.model import (
     COUNTERBALANCING,
     FEEDBACK,
@@ -61,6 +68,7 @@ from crs_study.protocol.odd_values import (
 )
 from crs_study.protocol.plan import PlannedTrial, TrialPlan, make_plan
 from crs_study.protocol.wire import ConditionWire, WireBudget, wire_budget
+from crs_study.protocol.writer import protocol_to_toml
 
 __all__ = [
     "COUNTERBALANCING", "FEEDBACK", "LEVEL_PARAMETERS", "MAX_LEVELS", "MIN_FRAME_RATE_HZ",
@@ -71,6 +79,7 @@ __all__ = [
     "Protocol", "ResponseSpec", "StimulusSpec", "TrialPlan", "WireBudget",
     "analysis_plan_path", "as_protocol_error", "check_feasibility", "check_on_device",
     "collapse_delta", "consent_form_path", "emit_warnings", "find_line", "load_protocol",
-    "make_plan", "protocol_from_dict", "protocol_warnings", "toml_syntax_message",
+    "make_plan", "protocol_from_dict", "protocol_from_text", "protocol_to_toml",
+    "protocol_warnings", "toml_syntax_message",
     "warning_findings", "wire_budget",
 ]

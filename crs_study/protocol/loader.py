@@ -24,6 +24,8 @@ legal values (:mod:`crs_study.protocol.odd_values`).
 from __future__ import annotations
 
 import hashlib
+import os
+import tomllib
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -32,6 +34,7 @@ from crs_study._toml import Section, parse_toml
 from crs_study._toml_lines import locate, one_line
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import BUILTIN_DEVICES
+from crs_study.paths import resolve_protocol
 from crs_study.protocol.feasibility import check_on_device
 from crs_study.protocol.model import (
     OPTIONAL_KEYS,
@@ -44,37 +47,96 @@ from crs_study.protocol.model import (
     StimulusSpec,
     one_line_problem,
 )
-from crs_study.protocol.odd_values import protocol_warnings
+from crs_study.protocol.odd_values import protocol_warnings, warning_findings
+from crs_study.protocol.writer import protocol_to_toml
 from crs_study.stimuli.digits import load_digits
 
 
-def load_protocol(path: str | Path, *, check_device: bool = True) -> Protocol:
-    """Read, validate and check a protocol file; every problem is a one-line ProtocolError.
+def load_protocol(source: str | os.PathLike[str] | Protocol, *,
+                  check_device: bool = True) -> Protocol:
+    """Read, validate and check a protocol; every problem is a one-line ProtocolError.
+
+    ``source`` is a protocol file, a shipped protocol's name (``"pilot"``,
+    :func:`crs_study.paths.resolve_protocol`), or a :class:`Protocol` object. An object
+    whose fields are those of its text (as loaded) comes back as it is, once its device
+    checks have run; one changed in Python (:func:`dataclasses.replace`) is written as TOML
+    (:func:`crs_study.protocol.writer.protocol_to_toml`) and read back from that text, with
+    every check a file gets: the result's ``text`` and ``sha256`` are then those of the
+    protocol that runs (a session stores them), its ``path`` still the original file's (for
+    the files it names: consent form, analysis plan).
 
     ``check_device=False`` skips :func:`~crs_study.protocol.feasibility.check_on_device` and
     the warnings (only for tools that inspect a protocol's keys; a runner must never skip
     it).
     """
-    path = Path(path)
-    source = str(path)
+    if isinstance(source, Protocol):
+        return _settled(source, check_device)
+    path = resolve_protocol(source)
+    source_name = str(path)
     try:
         raw = path.read_bytes()
         text = raw.decode("utf-8")
     except FileNotFoundError:
-        raise ProtocolError(f"{source}: no such protocol file") from None
+        raise ProtocolError(f"{source_name}: no such protocol file") from None
     except IsADirectoryError:
-        raise ProtocolError(f"{source}: expected a protocol file, got a directory") from None
+        raise ProtocolError(f"{source_name}: expected a protocol file, got a directory") \
+            from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise ProtocolError(f"{source}: cannot read: {one_line(exc)}") from None
+        raise ProtocolError(f"{source_name}: cannot read: {one_line(exc)}") from None
+    return protocol_from_text(text, path, hashlib.sha256(raw).hexdigest(),
+                              check_device=check_device)
+
+
+def protocol_from_text(text: str, path: Path, sha256: str | None = None, *,
+                       check_device: bool = True) -> Protocol:
+    """The protocol of TOML ``text`` read from ``path`` (``sha256``: of its bytes, by default
+    of the text as UTF-8), checked as :func:`load_protocol` checks a file."""
+    source = str(path)
     data = parse_toml(text, source, ProtocolError)
+    sha256 = sha256 or hashlib.sha256(text.encode("utf-8")).hexdigest()
     try:
-        protocol = protocol_from_dict(data, path, text, hashlib.sha256(raw).hexdigest())
+        protocol = protocol_from_dict(data, path, text, sha256)
         if check_device:
             checks = check_on_device(protocol)
             protocol = replace(protocol, checks=checks, warnings=protocol_warnings(protocol))
     except ConfigError as exc:
         raise as_protocol_error(exc, source, text) from None
     return protocol
+
+
+def _settled(protocol: Protocol, check_device: bool) -> Protocol:
+    """``protocol`` as its own text gives it (see :func:`load_protocol`).
+
+    Problems with a protocol changed in Python name it ``FILE (changed in Python)`` and no
+    line: the lines of the written text are in no file the user has."""
+    if _is_its_text(protocol):
+        if protocol.checks or not check_device:
+            return protocol
+        return protocol_from_text(protocol.text, protocol.path, protocol.sha256,
+                                  check_device=check_device)
+    label = f"{protocol.path} (changed in Python)"
+    try:
+        settled = protocol_from_text(protocol_to_toml(protocol), protocol.path,
+                                     check_device=check_device)
+    except ConfigError as error:
+        error.source, error.line = label, None
+        raise
+    if settled.warnings:
+        settled = replace(settled, warnings=tuple(
+            replace(f, line=None).describe(label) for f in warning_findings(settled)))
+    return settled
+
+
+def _is_its_text(protocol: Protocol) -> bool:
+    """True when reading ``protocol.text`` gives ``protocol`` (no field changed since)."""
+    text = protocol.text
+    if hashlib.sha256(text.encode("utf-8")).hexdigest() != protocol.sha256:
+        return False
+    try:
+        data = tomllib.loads(text)
+        return protocol_from_dict(data, protocol.path, text, protocol.sha256) == protocol
+    except (tomllib.TOMLDecodeError, ConfigError):
+        return False
 
 
 def as_protocol_error(error: ConfigError, source: str, text: str) -> ProtocolError:

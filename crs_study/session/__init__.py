@@ -12,7 +12,7 @@
 
 from crs_study.session.dry_runs import dry_run, simulated_labels
 from crs_study.session.runner import run_session, seed_check
-from crs_study.session.spec import SessionResult, SessionSpec
+from crs_study.session.spec import DryRunResult, SessionResult, SessionSpec
 
-__all__ = ["SessionResult", "SessionSpec", "dry_run", "run_session", "seed_check",
+__all__ = ["DryRunResult", "SessionResult", "SessionSpec", "dry_run", "run_session", "seed_check",
            "simulated_labels"]

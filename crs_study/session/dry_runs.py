@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 from crs_study.dataset.folder import Dataset
 from crs_study.errors import SessionError
 from crs_study.paths import resolve_protocol
+from crs_study.protocol import Protocol, load_protocol
 from crs_study.session.runner import run_session
-from crs_study.session.spec import Progress, SessionResult, SessionSpec
+from crs_study.session.spec import DryRunResult, Progress, SessionResult, SessionSpec
 
 
 def simulated_labels(n: int, prefix: str = "sim") -> list[str]:
@@ -25,12 +27,17 @@ def _dry_run_one(spec: SessionSpec) -> SessionResult:
     return run_session(spec)
 
 
-def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, jobs: int = 1,
-            responder: str = "observer", device_url: str = "sim://", prefix: str = "sim",
-            progress: Progress | None = None, durable: bool = False) -> list[SessionResult]:
-    """Session 1 of ``participants`` simulated participants on a virtual clock.
+def dry_run(protocol: str | os.PathLike[str] | Protocol, participants: int,
+            out: str | os.PathLike[str], *, jobs: int = 1, responder: str = "observer",
+            device_url: str = "sim://", prefix: str = "sim", progress: Progress | None = None,
+            durable: bool = False) -> DryRunResult:
+    """Session 1 of ``participants`` simulated participants on a virtual clock, stored in the
+    dataset ``out``; returns the sessions' results (:class:`DryRunResult`).
 
-    ``protocol`` is a protocol file or a shipped protocol's name (``"pilot"``).
+    ``protocol`` is a protocol file, a shipped protocol's name (``"pilot"``) or a
+    :class:`~crs_study.protocol.Protocol` object; one changed in Python
+    (``dataclasses.replace``) is checked and settled once, before anything is written
+    (:func:`~crs_study.protocol.load_protocol`), and each session stores the text it runs.
 
     Participant i (from 0) gets counterbalance index i, so the protocol's block orders are
     balanced across the N. With ``jobs > 1`` sessions run in that many worker processes (each
@@ -51,9 +58,11 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
         raise SessionError("a dry-run has no person at the keypad: use --responder observer, "
                            "random or scripted:FILE")
     labels = simulated_labels(participants, prefix)
-    protocol = resolve_protocol(protocol)  # a shipped protocol's name, or a path
-    Dataset(dataset).ensure()
-    specs = [SessionSpec(protocol, label, Path(dataset), device_url, 1, responder,
+    # a shipped protocol's name, or a path (each session loads it); an object is settled now
+    protocol = load_protocol(protocol) if isinstance(protocol, Protocol) else \
+        resolve_protocol(protocol)
+    Dataset(out).ensure()
+    specs = [SessionSpec(protocol, label, Path(out), device_url, 1, responder,
                          "virtual", i, durable=durable) for i, label in enumerate(labels)]
     results: list[SessionResult] = []
 
@@ -80,4 +89,4 @@ def dry_run(protocol: str | Path, participants: int, dataset: str | Path, *, job
                     future.cancel()
                 raise
     order = {label: i for i, label in enumerate(labels)}
-    return sorted(results, key=lambda r: order[r.participant])
+    return DryRunResult(Path(out), tuple(sorted(results, key=lambda r: order[r.participant])))

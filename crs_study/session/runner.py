@@ -36,7 +36,7 @@ from crs_study.dataset.session_store import SessionStore
 from crs_study.device import open_device
 from crs_study.errors import DeviceError, SessionError
 from crs_study.geometry.layout import Layout, device_file_path
-from crs_study.paths import recorded_path, resolve_protocol
+from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.protocol.plan import TrialPlan, make_plan
@@ -98,7 +98,7 @@ def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
                           "serial:///dev/ttyUSB0[,/dev/ttyUSB1] or sim://")
     dataset = Dataset(spec.dataset)
     dataset.session_paths(spec.participant, spec.session)  # checks label and session
-    protocol = load_protocol(resolve_protocol(spec.protocol))
+    protocol = load_protocol(spec.protocol)  # a file, a shipped name or a Protocol object
     layout = protocol.layout()
     known = dataset.participants() if (spec.dataset / "participants.tsv").exists() else {}
     if spec.participant in known:

@@ -1,21 +1,34 @@
-"""What a session is asked to do (:class:`SessionSpec`) and how it ended (:class:`SessionResult`).
+"""What a session is asked to do (:class:`SessionSpec`) and how it ended (:class:`SessionResult`,
+and for a dry-run's many sessions :class:`DryRunResult`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import json
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
+
+from crs_study.protocol.model import Protocol
 
 #: Where a session reports its progress (one line at a time), e.g. to stderr.
 Progress = Callable[[str], None]
+#: How a session ended well: played to the end now, or found complete and left alone.
+FINISHED = ("complete", "already-complete")
 
 
 @dataclass(frozen=True)
 class SessionSpec:
-    """What ``crs-study run`` asks for."""
+    """What ``crs-study run`` asks for.
 
-    protocol: Path  # the protocol file, or a shipped protocol's name (crs_study.paths)
+    ``protocol`` is a protocol file, a shipped protocol's name or a
+    :class:`~crs_study.protocol.Protocol` object (one changed in Python runs as
+    :func:`~crs_study.protocol.load_protocol` settles it); ``dataset`` a folder (a string
+    is taken as a path).
+    """
+
+    protocol: str | os.PathLike[str] | Protocol
     participant: str
     dataset: Path
     device_url: str = "sim://"
@@ -26,6 +39,9 @@ class SessionSpec:
     consent_register: Path | None = None
     #: fsync every trial (True) or only when the session stops (dry-runs: see SessionStore)
     durable: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "dataset", Path(self.dataset))
 
 
 @dataclass(frozen=True)
@@ -44,3 +60,58 @@ class SessionResult:
     tsv: Path
     sidecar: Path
     message: str = ""
+
+    def to_dict(self) -> dict:
+        """The fields as plain JSON values (paths as strings)."""
+        return {k: os.fspath(v) if isinstance(v, Path) else v for k, v in asdict(self).items()}
+
+
+@dataclass(frozen=True)
+class DryRunResult(Sequence[SessionResult]):
+    """The sessions of a dry-run (:func:`crs_study.session.dry_run`), in participant order.
+
+    A sequence of :class:`SessionResult` (``len``, indexing, unpacking), with the dataset
+    they were stored in and the totals ``crs-study dry-run`` prints.
+    """
+
+    dataset: Path
+    sessions: tuple[SessionResult, ...]
+
+    def __getitem__(self, index):
+        return self.sessions[index]
+
+    def __len__(self) -> int:
+        return len(self.sessions)
+
+    @property
+    def trials(self) -> int:
+        """Trials stored in the sessions (completed, by this run or an earlier one)."""
+        return sum(r.trials_completed for r in self.sessions)
+
+    @property
+    def session_seconds(self) -> float:
+        """Session time this run covered (simulated time on a virtual clock)."""
+        return sum(r.session_seconds for r in self.sessions)
+
+    @property
+    def finished(self) -> bool:
+        """Every session complete (now or before); False when one was interrupted."""
+        return all(r.status in FINISHED for r in self.sessions)
+
+    def to_frame(self):
+        """One row per session: the fields of :class:`SessionResult` (paths as strings)."""
+        import pandas as pd  # only here: a session needs no pandas
+
+        return pd.DataFrame([r.to_dict() for r in self.sessions],
+                            columns=[*SessionResult.__dataclass_fields__])
+
+    def to_dict(self) -> dict:
+        """The summary ``crs-study dry-run --json`` prints."""
+        return {"dataset": os.fspath(self.dataset), "participants": len(self.sessions),
+                "trials": self.trials, "session_seconds": self.session_seconds,
+                "sessions": [{"participant": r.participant, "status": r.status,
+                              "trials_completed": r.trials_completed,
+                              "late_frames": r.late_frames} for r in self.sessions]}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())

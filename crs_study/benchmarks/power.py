@@ -1,0 +1,214 @@
+"""Bench area ``power``: the three speed figures of issue 16, each against a baseline of the
+same run.
+
+1. The default curve (the shipped protocol, the simulated observer, 10 sample sizes 4..40 x
+   1000 studies, every core) in at most 60 s, beside the time the plain loop of
+   :func:`~crs_study.analysis.primary.fit_primary` over the same 10,000 studies would take
+   (its median per study, measured here on a sample, times 10,000).
+2. Per simulated study, at least 100x faster than the same simulate-and-refit loop with lme4:
+   the studies of the curve's sizes, one process each side; lme4 refits every study's
+   trials (0/1 rows, as simr's ``powerSim`` refits the simulated response) with ``refit`` of
+   the full and the reduced ``glmer``, timed inside ``Rscript`` (printed beside ours; the
+   aggregated ``cbind`` form, kinder to lme4, as a second figure). Without ``Rscript`` and
+   lme4 the figure says so.
+3. A Dask ``LocalCluster`` on loopback with 2 workers at least 1.6x the throughput of the same
+   cluster with 1 worker (the same studies; cluster start-up not timed).
+
+``--quick`` runs each on fewer studies (no targets judged for 1 and 2).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from crs_study.benchmarks import Figure
+from crs_study.power import model_from_parameters, power
+from crs_study.power.design import design_from_protocol
+from crs_study.power.simulate import simulate_studies
+from crs_study.power.study import cells_frame, decide_trials
+
+AREA = "power"
+DESCRIPTION = "power by simulation: default curve, per-study cost vs lme4, Dask scaling"
+
+TARGET_CURVE_SECONDS = 60.0
+TARGET_LME4_RATIO = 100.0
+TARGET_DASK_RATIO = 1.6
+#: Figures 2 and 3 use given numbers near the observer's predictions for the shipped
+#: protocol (45 % and 68 % correct, participant SD 0.42, digits' SD 0.29), so they time the
+#: fits alone.
+_OBSERVER_LIKE = {"pixel-only": 0.453, "crs": 0.676}
+SIZES = tuple(range(4, 41, 4))
+#: Studies per point of each figure: (quick, full).
+CURVE_STUDIES = (100, 1000)
+PER_STUDY_STUDIES = (50, 200)
+DASK_STUDIES = (100, 400)
+
+_LME4_SCRIPT = r"""
+suppressPackageStartupMessages(library(lme4))
+args <- commandArgs(TRUE)
+d <- read.csv(args[1])
+form <- args[2]
+d$participant <- factor(d$participant); d$digit <- factor(d$digit)
+d$condition <- factor(d$condition, levels = c("pixel-only", "crs"))
+total <- 0; n <- 0
+for (key in unique(d$study)) {
+  s <- d[d$study == key, ]
+  if (form == "trials") {
+    # one row per trial, as simr refits the simulated response of the data's rows
+    rows <- s[rep(seq_len(nrow(s)), s$trials), ]
+    rows$y <- as.integer(ave(rows$trials, rows$participant, rows$digit, rows$condition,
+                             FUN = seq_along) <= rows$successes)
+    full <- glmer(y ~ condition + (1 | participant) + (1 | digit), rows, binomial)
+    reduced <- glmer(y ~ 1 + (1 | participant) + (1 | digit), rows, binomial)
+    newresp <- rows$y
+  } else {
+    full <- glmer(cbind(successes, trials - successes) ~ condition + (1 | participant) +
+                  (1 | digit), s, binomial)
+    reduced <- glmer(cbind(successes, trials - successes) ~ 1 + (1 | participant) +
+                     (1 | digit), s, binomial)
+    newresp <- cbind(s$successes, s$trials - s$successes)
+  }
+  # the loop simr runs: refit both models to the study's response, then the LR test
+  total <- total + system.time(suppressWarnings(suppressMessages({
+    f <- refit(full, newresp); r <- refit(reduced, newresp)
+    p <- pchisq(2 * (logLik(f) - logLik(r)), 1, lower.tail = FALSE)
+  })))[["elapsed"]]
+  n <- n + 1
+}
+cat(sprintf("per_study %.6f %d\n", total / n, n))
+"""
+
+
+def run(quick: bool) -> list[Figure]:
+    figures = _curve(quick)
+    figures += _per_study(quick)
+    figures += _dask(quick)
+    return figures
+
+
+def _curve(quick: bool) -> list[Figure]:
+    """Figure 1: the default curve, every core, against the plain fit_primary loop."""
+
+    studies = CURVE_STUDIES[not quick]
+    jobs = os.cpu_count() or 1
+    start = time.perf_counter()
+    result = power("digit_identification", participants=SIZES, studies=studies, jobs=jobs)
+    seconds = time.perf_counter() - start
+    per_study = _fit_primary_seconds(result.model, result.design, 3 if quick else 10)
+    loop = per_study * studies * len(SIZES)
+    name = f"default curve, {len(SIZES)} sizes x {studies} studies, {jobs} jobs"
+    if quick:
+        return [Figure(AREA, name, seconds, "s", "fit_primary loop (extrapolated)", loop)]
+    return [Figure(AREA, name, seconds, "s", "fit_primary loop (extrapolated)", loop,
+                   f"value <= {TARGET_CURVE_SECONDS:g} s", seconds <= TARGET_CURVE_SECONDS)]
+
+
+def _fit_primary_seconds(model, design, per_size: int) -> float:
+    """Median seconds of fit_primary (full and reduced) over studies of every size."""
+
+    times = []
+    cumulative = simulate_studies(model, 7, range(per_size), max(SIZES), design.repetitions)
+    for n in SIZES:
+        for s in range(per_size):
+            frame = cells_frame(design, cumulative[s, :n, -1].astype(float),
+                                design.cell_trials(design.repetitions))
+            start = time.perf_counter()
+            decide_trials(design, frame)
+            times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def _studies_csv(model, design, per_size: int, path: Path) -> None:
+    import pandas as pd
+
+
+    cumulative = simulate_studies(model, 11, range(per_size), max(SIZES), design.repetitions)
+    frames = []
+    for n in SIZES:
+        for s in range(per_size):
+            frame = cells_frame(design, cumulative[s, :n, -1].astype(float),
+                                design.cell_trials(design.repetitions))
+            frames.append(frame.assign(study=f"{n}_{s}").rename(columns={
+                "participant_id": "participant", "correct": "successes",
+                "n_trials": "trials"}))
+    pd.concat(frames).to_csv(path, index=False)
+
+
+def _per_study(quick: bool) -> list[Figure]:
+    """Figure 2: seconds per study, ours in one process against lme4's refit loop."""
+
+    design = design_from_protocol("digit_identification")
+    model = model_from_parameters(design, _OBSERVER_LIKE,
+                                  participant_sd=0.42, digit_sd=0.29)
+    studies = PER_STUDY_STUDIES[not quick]
+    start = time.perf_counter()
+    power("digit_identification", model=model, participants=SIZES, studies=studies, jobs=1)
+    ours = (time.perf_counter() - start) / (studies * len(SIZES))
+    rscript = shutil.which("Rscript")
+    per_size = 1 if quick else 3
+    timed = {}
+    if rscript:
+        with tempfile.TemporaryDirectory() as folder:
+            csv, script = Path(folder) / "studies.csv", Path(folder) / "refit.R"
+            _studies_csv(model, design, per_size, csv)
+            script.write_text(_LME4_SCRIPT)
+            for form in ("trials", "cells"):
+                try:
+                    run = subprocess.run([rscript, str(script), str(csv), form],
+                                         capture_output=True, text=True, timeout=1800,
+                                         check=False)
+                except (OSError, subprocess.TimeoutExpired):
+                    continue
+                for line in run.stdout.splitlines():
+                    if line.startswith("per_study "):
+                        timed[form] = float(line.split()[1])
+    name = "per study (10 sizes 4..40), one process"
+    if "trials" not in timed:
+        return [Figure(AREA, f"{name}; lme4 not timed (no Rscript with lme4)", ours, "s",
+                       "ours", ours)]
+    judged = {} if quick else {"target": f"ratio >= {TARGET_LME4_RATIO:g}",
+                               "passed": timed["trials"] / ours >= TARGET_LME4_RATIO}
+    figures = [Figure(AREA, f"{name}: lme4 refit loop (0/1 rows, as simr) / ours",
+                      timed["trials"], "s", "ours", ours, **judged)]
+    if "cells" in timed:
+        figures.append(Figure(AREA, f"{name}: lme4 refit loop (cbind cells) / ours",
+                              timed["cells"], "s", "ours", ours))
+    return figures
+
+
+def _dask(quick: bool) -> list[Figure]:
+    """Figure 3: studies per second on a LocalCluster, 2 workers against 1."""
+    from distributed import Client, LocalCluster
+
+
+    design = design_from_protocol("digit_identification")
+    model = model_from_parameters(design, _OBSERVER_LIKE,
+                                  participant_sd=0.42, digit_sd=0.29)
+    studies = DASK_STUDIES[not quick]
+    rates, busy = {}, 0.0
+    for workers in (1, 2):
+        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                          host="127.0.0.1", dashboard_address=None) as cluster, \
+                Client(cluster) as client:
+            power("digit_identification", model=model, participants=(4,), studies=50,
+                  scheduler=client)                                         # warm the workers
+            start = time.perf_counter()
+            result = power("digit_identification", model=model, participants=SIZES,
+                           studies=studies, scheduler=client)
+            wall = time.perf_counter() - start
+            rates[workers] = studies / wall
+            busy = result.cpu_seconds / wall
+    ratio = rates[2] / rates[1]
+    return [Figure(AREA, f"Dask LocalCluster throughput, 2 workers / 1 ({studies} studies)",
+                   rates[2], "1/s", "1 worker", rates[1],
+                   f"ratio >= {TARGET_DASK_RATIO:g}", ratio >= TARGET_DASK_RATIO),
+            # how much of two cores the 2-worker run got: below ~1.8 the machine was shared
+            Figure(AREA, "2-worker run: CPU seconds per wall second", busy, "cores",
+                   "2 workers", 2.0)]

@@ -1,0 +1,176 @@
+"""``power()``: how many participants a protocol needs, by simulation.
+
+The library entry point under ``crs-study power``; see :func:`power`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from crs_study.power.backends import Backend, Progress, open_backend
+from crs_study.power.design import PowerDesign, PowerError, design_from_protocol, parse_range
+from crs_study.power.fidelity import run_full
+from crs_study.power.model import GenerativeModel, model_from_pilot
+from crs_study.power.observer import DEFAULT_DRAWS, model_from_observer, predict
+from crs_study.power.result import PowerResult, merge
+from crs_study.power.study import PowerTask, run_task
+
+#: Studies per unit of work: fixed (never derived from the number of workers), so the
+#: batches, and with them every number, are the same on any backend.
+STUDIES_PER_TASK = 50
+DEFAULT_SEED = 20260116
+FIDELITIES = ("model", "full")
+
+
+def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float = 1.0,
+          participant_sd: float | None = None, participants: Any = "4:40:4",
+          repetitions: Any = None, studies: int = 1000, seed: int = DEFAULT_SEED,
+          target: float = 0.8, fidelity: str = "model", jobs: int = 1, scheduler: Any = None,
+          plan: Any = None, model: GenerativeModel | None = None, draws: int | None = None,
+          progress: Progress | None = None,
+          notify: Callable[[str], None] | None = None) -> PowerResult:
+    """Power of the analysis plan's primary test for a protocol, over a range of N.
+
+    Parameters
+    ----------
+    protocol : a protocol file, a shipped protocol's name or a loaded ``Protocol``.
+    pilot : a pilot dataset (mode 1): the primary GLMM fitted to it generates the studies,
+        new participants and digits drawn for each (simr's ``extend``). Default (mode 2):
+        the simulated observer's predicted accuracy of every stimulus on the simulated
+        device plus a between-participant SD (:mod:`crs_study.power.observer`).
+    effect_scale : multiplies the condition effect(s) of the generating model.
+    participant_sd : between-participant SD (logit scale) of mode 2; default: from the
+        observer's calibration. With a pilot it replaces the pilot's estimate.
+    participants, repetitions : ranges (``"4:40:4"``, ``"3:10"``, a number or a list);
+        repetitions default to the protocol's.
+    studies : simulated studies per point. seed : the run's seed (the same seed gives the
+        same answer on any backend and any number of workers).
+    target : the power sought (the one-line answer and the chart's line).
+    fidelity : ``"model"`` (modes 1 and 2: trials drawn from the model) or ``"full"`` (mode
+        3: every study is real dry-runs of the protocol, analysed as ``analyze`` does: slow,
+        for checking the model on a few points).
+    jobs : local worker processes. scheduler : a Dask scheduler address or ``Client``.
+    plan : the analysis plan (default: the protocol's, as ``analyze`` picks it).
+    model : a ready :class:`~crs_study.power.model.GenerativeModel` (overrides pilot and
+        observer). draws : observer noise draws per stimulus (mode 2).
+    progress : ``progress(done, total, seconds)`` after each unit of work.
+    notify : ``notify(text)`` before a long step that has no progress of its own (the
+        observer's predictions).
+
+    Notes
+    -----
+    Each study is tested exactly as ``analyze`` tests a dataset: the plan's GLMM ``correct ~
+    condition + (1 | participant) [+ (1 | digit)]``, its likelihood-ratio test, alpha from
+    the plan, separation and failures handled as there and counted in the result
+    (:mod:`crs_study.power.study`). The power at each point carries its Clopper-Pearson 95 %
+    interval (Monte Carlo error). Participant k is the same simulated person at every N
+    (common random numbers, :mod:`crs_study.power.simulate`), so the curve rises smoothly.
+    """
+    started, cpu_started = time.perf_counter(), time.process_time()
+    checks = _checked(participants, repetitions, studies, seed, target, fidelity, jobs,
+                      effect_scale, participant_sd)
+    participants, repetitions_given, studies = checks
+    design = design_from_protocol(protocol, plan)   # a protocol or plan error names its file
+    reps = repetitions_given or (design.repetitions,)
+    notes: list[str] = []
+    if fidelity == "full":
+        if repetitions_given and reps != (design.repetitions,):
+            raise PowerError(f"--repetitions: --fidelity full runs the protocol as written "
+                             f"({design.repetitions} repetitions); drop --repetitions or "
+                             "edit the protocol")
+        if pilot is not None or model is not None:
+            raise PowerError("--pilot: --fidelity full runs the simulated observer's "
+                             "sessions; a pilot's effect applies to --fidelity model")
+        if effect_scale != 1.0:
+            raise PowerError("--effect-scale: --fidelity full runs the simulated observer's "
+                             "sessions as they are; the scale applies to --fidelity model")
+    with open_backend(jobs, scheduler) as backend:      # an unreachable scheduler fails here
+        if fidelity == "full":
+
+            generating = _observer_model(design, protocol, participant_sd, draws, backend,
+                                         effect_scale, notify)
+            raw = run_full(design, seed, participants, studies, backend, progress)
+            notes.append("fidelity full: every study is dry-runs of the protocol by the "
+                         "simulated observer, analysed as analyze does; the model shown is "
+                         "the observer's prediction, for comparison")
+        else:
+            generating = model if model is not None else _generating_model(
+                design, protocol, pilot, effect_scale, participant_sd, draws, backend, notify)
+            if model is not None and effect_scale != 1.0:
+                generating = generating.scaled(effect_scale)
+            tasks = [PowerTask(design, generating, seed, participants, reps,
+                               (start, min(start + STUDIES_PER_TASK, studies)))
+                     for start in range(0, studies, STUDIES_PER_TASK)]
+            results = backend.map(run_task, tasks, progress, weight=lambda t: t.n_studies)
+            raw = merge(results)
+            raw["cpu_seconds"] = sum(r.seconds for r in results)
+        where = backend.describe()
+    points = tuple((n, r) for r in (reps if fidelity == "model" else (design.repetitions,))
+                   for n in participants)
+    cpu = raw.pop("cpu_seconds", 0.0) + (time.process_time() - cpu_started)
+    if design.method != "laplace":
+        notes.append(f"the plan's method is {design.method!r}: every study was fitted by "
+                     "fit_glmm itself (the batched fits do the Laplace approximation only)")
+    return PowerResult(design, generating, points, raw, seed=seed, target=target,
+                       fidelity=fidelity, backend=where,
+                       seconds=time.perf_counter() - started, cpu_seconds=cpu,
+                       notes=tuple(notes))
+
+
+def _checked(participants, repetitions, studies, seed, target, fidelity, jobs, effect_scale,
+             participant_sd):
+    """Every option checked before anything runs (one line naming the option)."""
+    import math
+
+    participants = parse_range(participants, "--participants", 2)
+    repetitions = None if repetitions is None else parse_range(repetitions, "--repetitions",
+                                                                1)
+    if isinstance(studies, bool) or not isinstance(studies, int) or studies < 2:
+        raise PowerError(f"--studies: expected a whole number >= 2, got {studies!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise PowerError(f"--seed: expected a whole number >= 0, got {seed!r}")
+    if not isinstance(target, int | float) or not 0 < target < 1:
+        raise PowerError(f"--target: expected a power between 0 and 1 (e.g. 0.8), "
+                         f"got {target!r}")
+    if fidelity not in FIDELITIES:
+        raise PowerError(f"--fidelity: expected one of {', '.join(FIDELITIES)}, "
+                         f"got {fidelity!r}")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise PowerError(f"--jobs: expected a whole number >= 1, got {jobs!r}")
+    if not isinstance(effect_scale, int | float) or not math.isfinite(effect_scale) \
+            or effect_scale < 0:
+        raise PowerError(f"--effect-scale: expected a number >= 0, got {effect_scale!r}")
+    if participant_sd is not None and (not isinstance(participant_sd, int | float)
+                                       or not math.isfinite(participant_sd)
+                                       or participant_sd < 0):
+        raise PowerError(f"--participant-sd: expected a number >= 0, got {participant_sd!r}")
+    return participants, repetitions, studies
+
+
+def _generating_model(design: PowerDesign, protocol, pilot, effect_scale,
+                      participant_sd, draws, backend: Backend, notify) -> GenerativeModel:
+    from dataclasses import replace
+
+    if pilot is not None:
+
+        generating = model_from_pilot(design, pilot)
+        if participant_sd is not None:
+            generating = replace(generating, participant_sd=float(participant_sd))
+        return generating.scaled(effect_scale)
+    return _observer_model(design, protocol, participant_sd, draws, backend, effect_scale,
+                           notify)
+
+
+def _observer_model(design, protocol, participant_sd, draws, backend, effect_scale, notify):
+
+    source = protocol if hasattr(protocol, "design") else design.protocol_path
+    if notify:
+        stimuli = len(design.digits) * len(design.conditions) * len(design.levels)
+        notify(f"predicting the simulated observer's accuracy of {stimuli} stimuli "
+               f"({draws or DEFAULT_DRAWS} noise draws each)")
+    prediction = predict(source, draws or DEFAULT_DRAWS, backend=backend)
+    return model_from_observer(design, source, participant_sd,
+                               prediction=prediction).scaled(effect_scale)

@@ -1,0 +1,169 @@
+"""Where the units of work run: this process, a local process pool, or a Dask cluster.
+
+:func:`map_tasks` maps one pure function over the tasks and returns the results in the
+tasks' order, whatever order they finish in. The function and each task are the same on
+every backend, and a task carries its own seeds (:mod:`crs_study.power.simulate`), so the
+answer is the same wherever it ran (STYLE.md point 18: Dask's ``client.map``, numpy's
+``SeedSequence``).
+
+* ``jobs = 1``, no scheduler: in this process, one task after another;
+* ``jobs > 1``: a :class:`concurrent.futures.ProcessPoolExecutor` of ``jobs`` spawned
+  processes (each with single-threaded BLAS, so the pool does not oversubscribe the cores);
+* ``scheduler``: a Dask distributed scheduler's address (``tcp://HOST:8786``) or a
+  :class:`distributed.Client`; every worker needs crs-study installed (the same version).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+from crs_study.power.design import PowerError
+
+#: Progress callback: (units of work done, units in all, seconds elapsed).
+Progress = Callable[[int, int, float], None]
+
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+#: Seconds to wait for a Dask scheduler before saying it cannot be reached.
+CONNECT_TIMEOUT = 10.0
+
+
+class Backend:
+    """An open backend: this process, a process pool or a Dask client, kept for several
+    maps (the pool's processes start once). Use as a context manager (:func:`open_backend`).
+    """
+
+    def __init__(self, jobs: int = 1, scheduler: Any = None):
+        if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+            raise PowerError(f"--jobs: expected a whole number >= 1, got {jobs!r}")
+        self.jobs, self.scheduler = jobs, scheduler
+        self.pool = self.client = None
+        self._owned = False
+        self._stack = contextlib.ExitStack()
+
+    def __enter__(self) -> Backend:
+        if self.scheduler is not None:
+            self.client, self._owned = connect(self.scheduler)
+        elif self.jobs > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._stack.enter_context(single_threaded_blas())
+            self.pool = self._stack.enter_context(ProcessPoolExecutor(
+                max_workers=self.jobs, mp_context=multiprocessing.get_context("spawn")))
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        if self.client is not None and self._owned:
+            self.client.close()
+        self._stack.close()
+
+    def map(self, function: Callable[[Any], Any], tasks: Sequence[Any],
+            progress: Progress | None = None,
+            weight: Callable[[Any], int] = lambda task: 1) -> list[Any]:
+        """``[function(t) for t in tasks]`` in the tasks' order; ``progress`` is called after
+        each task with the summed ``weight`` of the tasks done."""
+        total = sum(weight(t) for t in tasks)
+        start = time.perf_counter()
+        results: list[Any] = [None] * len(tasks)
+        done = 0
+        for index, result in self._completed(function, tasks):
+            results[index] = result
+            done += weight(tasks[index])
+            if progress:
+                progress(done, total, time.perf_counter() - start)
+        return results
+
+    def _completed(self, function, tasks) -> Iterator[tuple[int, Any]]:
+        if self.client is not None:
+            yield from _dask(self.client, function, tasks)
+        elif self.pool is not None and len(tasks) > 1:
+            yield from _pool(self.pool, function, tasks)
+        else:
+            for index, task in enumerate(tasks):
+                yield index, function(task)
+
+    def describe(self) -> str:
+        """The backend in a few words (for the result's JSON)."""
+        if self.client is not None:
+            return f"dask {self.client.scheduler.address}"
+        return "this process" if self.pool is None else f"local process pool, {self.jobs} jobs"
+
+
+def open_backend(jobs: int = 1, scheduler: Any = None) -> Backend:
+    """``with open_backend(jobs, scheduler) as backend: backend.map(...)``."""
+    return Backend(jobs, scheduler)
+
+
+def map_tasks(function: Callable[[Any], Any], tasks: Sequence[Any], *, jobs: int = 1,
+              scheduler: Any = None, progress: Progress | None = None,
+              weight: Callable[[Any], int] = lambda task: 1) -> list[Any]:
+    """One map on a backend opened for it (see :class:`Backend`)."""
+    with open_backend(jobs, scheduler) as backend:
+        return backend.map(function, tasks, progress, weight)
+
+
+@contextlib.contextmanager
+def single_threaded_blas() -> Iterator[None]:
+    """Processes started inside see one BLAS thread each (restored afterwards)."""
+    saved = {name: os.environ.get(name) for name in _THREAD_VARIABLES}
+    os.environ.update(dict.fromkeys(_THREAD_VARIABLES, "1"))
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _pool(pool, function, tasks) -> Iterator[tuple[int, Any]]:
+    from concurrent.futures import as_completed
+
+    futures = {pool.submit(function, task): index for index, task in enumerate(tasks)}
+    try:
+        for future in as_completed(futures):
+            yield futures[future], future.result()
+    except BaseException:
+        for future in futures:
+            future.cancel()
+        raise
+
+
+def connect(scheduler: Any, timeout: float | None = None):
+    """``(client, owned)``: a :class:`distributed.Client` for ``scheduler`` (an address, or a
+    client taken as it is); an unreachable address is a :class:`PowerError` naming
+    ``--scheduler``."""
+    try:
+        from distributed import Client
+    except ImportError as exc:  # pragma: no cover - a dependency of crs-study
+        raise PowerError(f"--scheduler needs the dask[distributed] packages ({exc})") from None
+    if isinstance(scheduler, Client):
+        return scheduler, False
+    if not isinstance(scheduler, str) or "://" not in scheduler:
+        raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
+                         f"tcp://HOST:8786, got {scheduler!r}")
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT if timeout is None else timeout,
+                      set_as_default=False), True
+    except (OSError, TimeoutError, ValueError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise PowerError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there "
+                         f"({reason})") from None
+
+
+def _dask(client, function, tasks) -> Iterator[tuple[int, Any]]:
+    from distributed import as_completed
+
+    futures = client.map(function, list(tasks), pure=False)
+    index = {future.key: i for i, future in enumerate(futures)}
+    try:
+        for future in as_completed(futures, loop=client.loop):
+            yield index[future.key], future.result()
+    except BaseException:
+        client.cancel(futures)
+        raise

@@ -1,0 +1,216 @@
+"""Mode 2: the simulated observer's predicted accuracy of every stimulus, without sessions.
+
+For each (level, digit, condition) of a protocol the stimulus is rendered once and shown
+once on a fresh simulated device, exactly as a session shows a test trial
+(:class:`crs_study.session.trials.TrialFrames` for the frames, the runner's presentation for the
+displayed setpoints a hand meets, the display neutral since the previous trial's offset, a
+response and an inter-trial interval earlier; tests/test_power_observer.py checks the
+displayed setpoints against a dry-run's). The perceptual observer
+(:class:`crs_study.session.responders.observer.PerceptualObserver`) then senses it ``draws`` times,
+each with fresh receptor noise, and its decision model gives the probability of naming the
+right digit, ``p = (1 - lapse) softmax(-d / T) + lapse / n`` over the template distances
+``d``. The predicted accuracy of the typical participant (``T`` the calibrated temperature,
+ability ``z = 0``) is the mean of that probability over the draws: an integral over the
+sensing noise by Monte Carlo, with its standard error, never a sampled response.
+
+Participants differ as the observer's do: a simulated participant's temperature is ``T
+exp(ability_sd z)``, ``z ~ N(0, 1)``, and their accuracy of every cell follows from the same
+draws' distances at that temperature, tabulated over ``z`` (the model's ``ability`` table,
+-6 to 6 in steps of 0.05). So a participant's condition effect varies with their ability as
+in a dry-run (for the shipped protocols the CRS effect on the log-odds is 0.95 at z = 0, 1.25
+at z = -2 and 0.66 at z = 2), a spread a random intercept alone leaves out. For reports and
+the fits' start, the summary SD is that of ``f(z)``, the mean over cells of ``logit
+P(correct | z)`` (Gauss-Hermite, 40 nodes). A ``participant_sd`` given instead makes
+participants a random intercept of that SD on the logit scale.
+Timeouts (a response more than the protocol's limit after the offset) are left out: the
+observer's decision times are about 2 s against a 10 s limit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.special import logit
+
+from crs_study.clock import VirtualClock
+from crs_study.device import open_device
+from crs_study.paths import resolve_protocol
+from crs_study.power.backends import Backend
+from crs_study.power.design import PowerDesign, PowerError
+from crs_study.power.model import GenerativeModel
+from crs_study.protocol import load_protocol
+from crs_study.session.responders.base import StimulusRecord
+from crs_study.session.responders.observer import ObserverOptions, PerceptualObserver
+from crs_study.session.runner import SETTLE_S
+from crs_study.session.trials import present, trial_frames
+
+#: Noise draws per stimulus: the per-condition accuracy's Monte Carlo SE is about 0.3 /
+#: sqrt(draws x digits), under 0.01 for ten digits.
+DEFAULT_DRAWS = 200
+
+
+@dataclass(frozen=True)
+class ObserverPrediction:
+    """``accuracy`` (L, D, C) predicted P(correct) of the typical participant, ``std_error``
+    its Monte Carlo SE, ``distances`` (L, D, C, draws, choices) the template distances of
+    every draw (NaN: too short a path, a guess), and the observer's decision constants."""
+
+    accuracy: np.ndarray = field(repr=False)
+    std_error: np.ndarray = field(repr=False)
+    distances: np.ndarray = field(repr=False)
+    correct_choice: np.ndarray = field(repr=False)
+    temperature_mm: float
+    ability_sd: float
+    lapse: float
+
+    def p_correct(self, temperature: float) -> np.ndarray:
+        """P(correct) per cell for a participant of ``temperature`` (mean over draws)."""
+        return _choice_probability(self.distances, self.correct_choice, temperature,
+                                   self.lapse).mean(axis=-1)
+
+    def participant_sd(self, nodes: int = 40) -> float:
+        """SD over participants of the mean cell log-odds (module docstring)."""
+        if self.ability_sd == 0:
+            return 0.0
+        z, weights = np.polynomial.hermite_e.hermegauss(nodes)
+        weights = weights / weights.sum()
+        f = np.array([np.mean(logit(np.clip(self.p_correct(
+            self.temperature_mm * np.exp(self.ability_sd * zi)), 1e-9, 1 - 1e-9)))
+            for zi in z])
+        mean = float(weights @ f)
+        return float(np.sqrt(weights @ (f - mean) ** 2))
+
+
+def _choice_probability(distances: np.ndarray, correct: np.ndarray, temperature: float,
+                        lapse: float) -> np.ndarray:
+    """The observer's Luce choice rule with lapses (``PerceptualObserver.
+    choice_probabilities``) for the right digit, per draw: ``(L, D, C, draws)``."""
+    n = distances.shape[-1]
+    guess = ~np.isfinite(distances).all(axis=-1)
+    d = np.where(np.isfinite(distances), distances, 0.0)
+    logits = -(d - d.min(axis=-1, keepdims=True)) / temperature
+    p = np.exp(logits)
+    p /= p.sum(axis=-1, keepdims=True)
+    p = (1.0 - lapse) * p + lapse / n
+    right = np.take_along_axis(p, correct[..., None, None].repeat(p.shape[-2], axis=-2),
+                               axis=-1)[..., 0]
+    return np.where(guess, 1.0 / n, right)
+
+
+def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: Any = None,
+            **observer_options: Any) -> ObserverPrediction:
+    """The observer's predictions for every stimulus of ``protocol`` (module docstring).
+
+    The noise of draw ``j`` of cell (level ``l``, digit ``d``, condition ``c``) comes from
+    ``default_rng([seed, l, d, c, j])``, so the answer is the same on any backend: the
+    (level, digit) pairs are mapped like the studies (``backend``: an open
+    :class:`~crs_study.power.backends.Backend`; None: in this process).
+    """
+
+    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 2:
+        raise PowerError(f"--draws: expected a whole number >= 2, got {draws!r}")
+    if not hasattr(protocol, "design"):
+        protocol = load_protocol(resolve_protocol(protocol))
+    options = ObserverOptions(**observer_options)
+    levels, digits, conditions = protocol.level_values, protocol.digits, protocol.conditions
+    tasks = [(str(protocol.path), li, int(digit), draws, seed, observer_options)
+             for li in range(len(levels)) for digit in digits]
+    cells = (backend or Backend()).map(_cell_distances, tasks)
+    shape = (len(levels), len(digits), len(conditions))
+    distances = np.stack(cells).reshape(shape + cells[0].shape[1:])
+    choices = [int(d) for d in digits]
+    correct = np.broadcast_to(np.array([choices.index(int(d)) for d in digits])[None, :, None],
+                              shape).copy()
+    per_draw = _choice_probability(distances, correct, options.temperature_mm, options.lapse)
+    return ObserverPrediction(per_draw.mean(axis=-1),
+                              per_draw.std(axis=-1, ddof=1) / np.sqrt(draws), distances,
+                              correct, options.temperature_mm, options.ability_sd,
+                              options.lapse)
+
+
+def _cell_distances(task: tuple) -> np.ndarray:
+    """Template distances (C, draws, choices) of one (level, digit) in every condition."""
+
+    path, li, digit, draws, seed, options = task
+    protocol = load_protocol(path)
+    layout = protocol.layout()
+    level = protocol.level_values[li]
+    observer = PerceptualObserver(layout, protocol, 0, **options)
+    observer.temperature_mm = observer.options.temperature_mm        # ability z = 0
+    choices = tuple(int(d) for d in protocol.digits)
+    out = np.full((len(protocol.conditions), draws, len(choices)), np.nan)
+    for ci, condition in enumerate(protocol.conditions):
+        record = shown_stimulus(protocol, layout, digit, condition, level)
+        for j in range(draws):
+            path_ = observer.peak_path(record, np.random.default_rng([seed, li, digit, ci, j]))
+            out[ci, j] = observer.choice_probabilities(path_, choices, level)[1]
+    return out
+
+
+def shown_stimulus(protocol: Any, layout: Any, digit: int, condition: str,
+                   level: float | None):
+    """What a hand meets when one stimulus is shown on a fresh simulated device: the
+    runner's frames and presentation (its ``StimulusRecord``)."""
+
+    frame_times, frames = trial_frames(protocol, layout).get(digit, condition, level)
+    period = 1.0 / float(protocol.frame_rate_hz)
+    # As between a session's trials: the display went neutral at the last offset, then the
+    # response and the inter-trial interval passed. The gap matters: a write that starts a
+    # refresh interval (1 s) or more after the last full one carries every channel, which
+    # the wire takes a full frame's time to deliver (crs_study.device.schedule); a test
+    # trial's first frame always does.
+    gap = max(SETTLE_S, float(protocol.responses.expected_response_s)
+              + float(protocol.inter_trial_interval_s))
+    clock = VirtualClock(start=-gap)
+    with open_device("sim://", layout, clock) as device:
+        device.neutral()
+        clock.sleep_until(0.0)
+        shown = present(device, clock, frame_times, frames, period)
+    return StimulusRecord(layout, condition, frame_times + period, shown.displayed,
+                          tuple(int(d) for d in protocol.digits), shown.onset, shown.offset)
+
+
+def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: float | None = None,
+                        draws: int = DEFAULT_DRAWS, prediction: ObserverPrediction | None = None
+                        ) -> GenerativeModel:
+    """The generating model of mode 2: ``logit`` of the predicted accuracy per (level,
+    digit, condition) in the design's condition order, and the participant SD (given, else
+    the observer's calibration)."""
+    if prediction is None:
+        prediction = predict(protocol, draws)
+    if not hasattr(protocol, "design"):
+
+        protocol = load_protocol(resolve_protocol(protocol))
+    order = [list(protocol.conditions).index(c) for c in design.conditions]
+    accuracy = prediction.accuracy[:, :, order]
+    base = logit(np.clip(accuracy, 1e-6, 1 - 1e-6))
+    derived = prediction.participant_sd()
+    sd = derived if participant_sd is None else float(participant_sd)
+    grid = ability = None
+    if participant_sd is None:
+        grid = np.round(np.arange(-6.0, 6.0 + 1e-9, 0.05), 10)
+        ability = np.stack([logit(np.clip(prediction.p_correct(
+            prediction.temperature_mm * np.exp(prediction.ability_sd * z)), 1e-6, 1 - 1e-6))
+            for z in grid])[..., order]
+    se = prediction.std_error[:, :, order]
+    details = {"draws": int(prediction.distances.shape[3]),
+               "accuracy_by_condition": {c: float(a) for c, a in zip(
+                   design.conditions, accuracy.mean(axis=(0, 1)), strict=True)},
+               "accuracy_std_error_by_condition": {c: float(np.sqrt((s ** 2).sum()) / s.size)
+                                                   for c, s in zip(design.conditions,
+                                                                   np.moveaxis(se, 2, 0),
+                                                                   strict=True)},
+               "accuracy_by_digit": {c: dict(zip(map(str, design.digits),
+                                                  accuracy[:, :, k].mean(axis=0).tolist(),
+                                                  strict=True))
+                                     for k, c in enumerate(design.conditions)},
+               "participant_sd_from_calibration": derived,
+               "participant_sd_given": participant_sd is not None,
+               "participants": ("the observer's: temperature T exp(ability_sd z), z ~ N(0, 1)"
+                                if participant_sd is None else
+                                f"a random intercept, SD {sd:g} (given)"),
+               "temperature_mm": prediction.temperature_mm,
+               "ability_sd": prediction.ability_sd, "lapse": prediction.lapse}
+    return GenerativeModel(base, sd, 0.0, "observer", details, ability, grid)

@@ -1,0 +1,33 @@
+"""Bench area ``power``: every figure against a baseline of the same run (tiny sizes here;
+the real figures come from ``crs-study bench power``)."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from crs_study.benchmarks import power as bench
+from crs_study.power import observer
+
+
+@pytest.mark.slow
+def test_the_figures_and_their_baselines(monkeypatch):
+    monkeypatch.setattr(bench, "SIZES", (4, 8))
+    monkeypatch.setattr(bench, "CURVE_STUDIES", (20, 20))
+    monkeypatch.setattr(bench, "PER_STUDY_STUDIES", (20, 20))
+    monkeypatch.setattr(bench, "DASK_STUDIES", (100, 100))
+
+    monkeypatch.setattr(observer, "DEFAULT_DRAWS", 4)
+    figures = bench.run(quick=True)
+    curve, per_study, *rest = figures
+    assert curve.name == "default curve, 2 sizes x 20 studies, 2 jobs" or "jobs" in curve.name
+    assert curve.baseline_name == "fit_primary loop (extrapolated)" and curve.baseline > 0
+    assert curve.passed is None                         # quick: no target judged
+    assert per_study.baseline_name == "ours" and per_study.baseline > 0
+    if shutil.which("Rscript"):
+        assert per_study.name.endswith("lme4 refit loop (0/1 rows, as simr) / ours")
+        assert per_study.value > per_study.baseline      # lme4 is slower per study
+    dask, busy = rest[-2:]
+    assert dask.baseline_name == "1 worker" and dask.target == "ratio >= 1.6"
+    assert 0 < busy.value <= 2.2 and busy.baseline == 2.0

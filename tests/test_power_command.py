@@ -1,0 +1,108 @@
+"""``crs-study power`` as a user meets it: one line, two files, a progress bar; bad input is
+one line naming the option, with nothing written."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from _session_helpers import tiny_protocol
+
+from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
+from crs_study.cli import main
+from crs_study.power import backends
+
+
+@pytest.fixture(scope="module")
+def protocol(tmp_path_factory):
+    return tiny_protocol(tmp_path_factory.mktemp("protocol"), digits=(1, 4, 7))
+
+
+def _args(protocol, out, *extra):
+    return ["power", str(protocol), "--draws", "4", "--studies", "20", "--participants",
+            "2:4:2", "--jobs", "1", "--out", str(out), *extra]
+
+
+def test_the_answer_in_one_line_the_json_and_the_chart(protocol, tmp_path, capsys):
+    out = tmp_path / "result"
+    assert main(_args(protocol, out, "--studies", "120")) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert lines[0].startswith(("80 % power at N = ", "80 % power not reached by N = 4"))
+    assert "120 studies per point" in lines[0]
+    assert lines[1:] == [f"results: {out / 'power.json'}", f"chart:   {out / 'power.png'}"]
+    data = json.loads((out / "power.json").read_text())
+    assert data["headline"] == lines[0] and data["model"]["source"] == "observer"
+    assert [p["participants"] for p in data["points"]] == [2, 4]
+    assert (out / "power.png").read_bytes()[:4] == b"\x89PNG"
+    progress = [line for line in captured.err.splitlines() if line.startswith("[")]
+    assert progress[-1].startswith("[" + "#" * 30 + "] 100 %  120/120 studies")
+    assert len(progress) == 3 and "s left" in progress[0]      # a line per task done
+    assert captured.err.startswith("predicting the simulated observer's accuracy of 6 "
+                                   "stimuli (4 noise draws each)")
+
+
+def test_json_on_stdout_and_no_progress(protocol, tmp_path, capsys):
+    assert main(_args(protocol, tmp_path / "r", "--json")) == 0
+    captured = capsys.readouterr()
+    data = json.loads(captured.out)
+    assert data["studies_per_point"] == 20 and data["seed"] == 20260116
+    assert captured.err == ""
+
+
+@pytest.mark.parametrize("extra, message", [
+    pytest.param(["--participants", "1:4"], "--participants: expected at least 2 "
+                 "participants (the participant variance needs two), got 1", id="N-below-2"),
+    pytest.param(["--participants", "x:y"], "--participants: expected N, A:B or A:B:STEP "
+                 "with whole numbers (e.g. 4:40:4), got 'x:y'", id="non-numeric-range"),
+    pytest.param(["--participants", "8:4"], "--participants: expected A:B:STEP with A <= B "
+                 "and STEP >= 1, got '8:4'", id="reversed-range"),
+    pytest.param(["--repetitions", "0:2"], "--repetitions: expected values of at least 1, "
+                 "got 0", id="no-repetitions"),
+    pytest.param(["--studies", "many"], "--studies: expected a whole number, got 'many'",
+                 id="studies"),
+    pytest.param(["--target", "80"], "--target: expected a power between 0 and 1 (e.g. "
+                 "0.8), got 80.0", id="target"),
+    pytest.param(["--effect-scale", "-1"], "--effect-scale: expected at least 0, got '-1'",
+                 id="effect-scale"),
+    pytest.param(["--fidelity", "exact"], "--fidelity: expected one of model, full, got "
+                 "'exact'", id="fidelity"),
+    pytest.param(["--fidelity", "full", "--repetitions", "2"], "--repetitions: --fidelity "
+                 "full runs the protocol as written (1 repetitions)", id="full-repetitions"),
+    pytest.param(["--scheduler", "nowhere"], "--scheduler: expected a Dask scheduler "
+                 "address such as tcp://HOST:8786, got 'nowhere'", id="scheduler"),
+    pytest.param(["--pilot", "no-such-dataset"], "--pilot: no-such-dataset is not a "
+                 "dataset folder", id="pilot-missing"),
+])
+def test_bad_input_is_one_line_naming_the_option_and_nothing_is_written(
+        protocol, tmp_path, capsys, extra, message):
+    out = tmp_path / "never"
+    assert main(_args(protocol, out, *extra)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"crs-study power: error: {message}")
+    assert not out.exists()
+
+
+def test_a_pilot_without_both_conditions_writes_nothing(protocol, tmp_path, capsys):
+    pilot = write_dataset(tmp_path / "pilot", SyntheticSpec(
+        n_participants=2, repetitions=1, digits=(1, 4, 7), accuracy={"crs": 0.6}))
+    out = tmp_path / "never"
+    assert main(_args(protocol, out, "--pilot", str(pilot))) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--pilot" in err[0] and "['pixel-only']" in err[0]
+    assert not out.exists()
+
+
+def test_an_unreachable_scheduler_writes_nothing(protocol, tmp_path, capsys, monkeypatch):
+    import socket
+
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    monkeypatch.setattr(backends, "CONNECT_TIMEOUT", 2.0)
+    out = tmp_path / "never"
+    assert main(_args(protocol, out, "--scheduler", f"tcp://127.0.0.1:{port}")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--scheduler tcp://127.0.0.1:{port}: cannot reach" in err[0]
+    assert not out.exists()
