@@ -1,5 +1,8 @@
-"""The fast path of a bump (crs_study.rendering.bump_path) renders what the general path does,
-to the last bit, and what the renderer rendered before the fast path existed.
+"""The fast path of a bump (crs_study.rendering.bump_path and the dense feed cap) renders what
+the general path does, and what the renderer rendered before the fast path existed, within
+``TOLERANCE_MM``: the sums run in another order (rounding, measured at most 4e-14 mm over these
+draws), seven orders of magnitude below a pulse quantum (1 us = 0.009 mm on a 9 mm / 1000 us
+servo), and the clip and cap messages are the same.
 
 The oracle ``renderer_before`` is the renderer's limit and feed cap as they were at commit
 90d7b34 (before the fast path and the wire's slack), over the unchanged condition functions
@@ -18,6 +21,9 @@ from crs_study.errors import RenderError
 from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.render import CONDITIONS, BeamGeometry, Renderer, split_feed
 from crs_study.stimuli.targets import Bump
+
+#: What the fast path may differ by from the general one (mm; module docstring).
+TOLERANCE_MM = 1e-10
 
 coordinate = st.floats(-120.0, 120.0, allow_nan=False)
 bumps = st.builds(
@@ -82,7 +88,7 @@ def test_without_the_wire_the_fast_path_renders_what_the_renderer_did_before(
     layout = layouts[device]
     expected, expected_messages = renderer_before(layout, condition, bump)
     result = Renderer(layout, condition, wire=None).render(bump)
-    assert result.setpoints.tobytes() == expected.tobytes()  # to the last bit, signs of 0 too
+    np.testing.assert_allclose(result.setpoints, expected, rtol=0, atol=TOLERANCE_MM)
     assert result.clamped == expected_messages
 
 
@@ -96,7 +102,7 @@ def test_the_fast_path_renders_what_the_general_path_does(layouts, bump, conditi
     renderer = Renderer(layout, condition, wire=wire)
     fast = renderer.render(bump)
     general = general_path(renderer, bump)
-    assert fast.setpoints.tobytes() == general.setpoints.tobytes()
+    np.testing.assert_allclose(fast.setpoints, general.setpoints, rtol=0, atol=TOLERANCE_MM)
     assert fast.clamped == general.clamped
     again = renderer.render_bump(bump.centre_mm, bump.diameter_mm, bump.height_mm)
     assert again.setpoints.tobytes() == fast.setpoints.tobytes()

@@ -239,9 +239,7 @@ class CompressedBeams:
         length = np.sum(self._grid_weights * np.sqrt(1.0 + (slope / self.d) ** 2), axis=-1)
         return _State(coef, slope, second, length)
 
-    def longest_feeds(self, pixel_heights_mm: np.ndarray,
-                      height_slack_mm: np.ndarray | None = None
-                      ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    def longest_feeds(self, pixel_heights_mm: np.ndarray) -> np.ndarray:
         """Largest total feed (mm) per beam that :meth:`solve` can show for these pixel heights.
 
         The longest stable shape is the one at N = margin N_cr (the length grows with N);
@@ -249,24 +247,25 @@ class CompressedBeams:
         L(margin N_cr) / (1 - margin N_cr / EA), so the feed at most that less the span S,
         less ``LENGTH_TOLERANCE_MM`` (so the root is bracketed strictly). With every pixel at
         base this is ~margin N_cr S / EA (the straight beam's elastic shortening). One
-        (nq x n_pix) product per beam: the renderer's feed cap (:mod:`crs_study.rendering`).
-
-        With ``height_slack_mm`` (one per pixel), also the least of these feeds over all pixel
-        heights h' with |h' - h| <= slack (the heights the boards may hold): ``(longest,
-        least)``. L(h) = sum_q w_q sqrt(1 + (T h)_q^2) is convex in h, so it lies above its
-        tangent plane: L(h') >= L(h) - sum_p |dL/dh_p| slack_p, which ``least`` takes.
+        (nq x n_pix) product per beam: the renderer's feed cap (:mod:`crs_study.rendering.render`).
         """
         heights = np.asarray(pixel_heights_mm, dtype=float)[self._pixel_index] * self._pixel_real
         top = np.matmul(self._top_slopes, heights[:, :, None])[..., 0]
-        root = np.sqrt(1.0 + top * top)
-        longest = np.einsum("bq,bq->b", self._grid_weights, root) * self._top_stretch \
-            - self._top_offset
-        if height_slack_mm is None:
-            return longest
-        slack = np.asarray(height_slack_mm, dtype=float)[self._pixel_index] * self._pixel_real
-        gradient = np.einsum("bq,bqp->bp", self._grid_weights * top / root, self._top_slopes)
-        np.abs(gradient, out=gradient)
-        return longest, longest - self._top_stretch * np.einsum("bp,bp->b", gradient, slack)
+        length = np.einsum("bq,bq->b", self._grid_weights, np.sqrt(1.0 + top * top))
+        return length * self._top_stretch - self._top_offset
+
+    def longest_operator(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`longest_feeds` as arrays over the layout's pixels: ``(slopes, weights,
+        offset)``, with longest = ``weights @ sqrt(1 + (slopes @ h)^2) - offset`` per beam.
+
+        ``slopes`` (B, nq, n_pixels): dy/ds at each node of the shape at margin N_cr per mm
+        of each pixel's height (0 for the pixels off the beam); ``weights`` (B, nq): the
+        quadrature weights (mm) times the steel's stretch; ``offset`` (B,): S + tolerance.
+        """
+        slopes = np.zeros(self._top_slopes.shape[:2] + (self.layout.n_pixels,))
+        for b, j in zip(*np.nonzero(self.pixel_map >= 0), strict=True):
+            slopes[b, :, self.pixel_map[b, j]] += self._top_slopes[b, :, j]
+        return slopes, self._grid_weights * self._top_stretch[:, None], self._top_offset.copy()
 
     def solve(self, setpoints_mm: np.ndarray, check_yield_curvature: bool = True,
               model: str = "beam") -> BeamProfiles:

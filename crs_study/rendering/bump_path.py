@@ -34,24 +34,27 @@ import numpy as np
 from crs_study.geometry.layout import Layout
 from crs_study.stimuli.targets import _SLOPE_PER_PANEL, _panel_rule
 
-_TWO_PI = 2.0 * np.pi
+_TWO_PI = 2.0 * math.pi
+#: rho's floor (mm): hypot(p, q) > 0 where p = q = 0 (the integrand is 0 there)
+_LEAST_OFFSET_MM = 1e-300
+#: below this steepest slope 1 / c overflows and the excess is below 1e-290 mm: 0
+_LEAST_AMPLITUDE = 1e-150
 
 
 class BumpPath:
     """Setpoints of the ``pixel-only`` or ``crs`` condition for a bump, before limits.
 
-    Build once per layout. :meth:`setpoints` returns a new vector (actuator order) and leaves
-    each beam's start and end feed in :attr:`starts` and :attr:`ends` (floats, beam order)
-    for the limits.
+    Build once per layout. :meth:`parts` gives the pixel heights and each beam's start and
+    end feed as Python floats (the limits work on those); :meth:`setpoints` puts them into a
+    vector in actuator order.
     """
 
     def __init__(self, layout: Layout, crs: bool) -> None:
         self.crs = crs
         self.n_actuators = layout.n_actuators
         self.n_pixels = layout.n_pixels
-        xy = np.asarray(layout.pixel_xy, dtype=float)
-        self._px = np.ascontiguousarray(xy[:, 0])
-        self._py = np.ascontiguousarray(xy[:, 1])
+        self._pixels = tuple((float(x), float(y)) for x, y in np.asarray(layout.pixel_xy,
+                                                                          dtype=float).tolist())
         self._boundary_travel = float(layout.boundary_travel_mm)
         lines = []
         for beam in layout.beams:
@@ -61,41 +64,68 @@ class BumpPath:
             scale = straight if straight > 0 else 1.0
             lines.append((sx, sy, dx / scale, dy / scale, straight))
         self._lines = tuple(lines)
-        self._start_servo = np.array([b.start_servo for b in layout.beams], dtype=np.intp)
-        self._end_servo = np.array([b.end_servo for b in layout.beams], dtype=np.intp)
-        #: each beam's start and end feed in the last :meth:`setpoints` (empty: no feeds)
-        self.starts: list[float] = []
-        self.ends: list[float] = []
+        self._servos = tuple((b.start_servo, b.end_servo) for b in layout.beams)
+        self._rest = [0.0] * (self.n_actuators - self.n_pixels)
+        self._rules: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
 
-    def setpoints(self, cx: float, cy: float, diameter: float, height: float) -> np.ndarray:
-        """Raw setpoints (mm) of a bump centred at (cx, cy) (layout frame, mm), Eq. 7.
+    def parts(self, cx: float, cy: float, diameter: float, height: float
+              ) -> tuple[list[float], list[float], list[float]]:
+        """``(pixel heights, start feeds, end feeds)`` (mm) of a bump centred at (cx, cy)
+        (layout frame, mm), Eq. 7.
 
         Pixel heights ``z_f / 2 [1 + cos(2 pi rho / l)]`` inside the support, 0 outside (as
-        :meth:`Bump.height`); with ``crs`` each beam's feed, the arc excess of
+        :meth:`Bump.height`, in Python floats: 19 pixels cost less so than as numpy calls);
+        with ``crs`` each beam's feed, the arc excess of
         :func:`~crs_study.stimuli.targets.arc_excess` split by
-        :func:`~crs_study.rendering.render.split_feed`.
+        :func:`~crs_study.rendering.render.split_feed`; without, no feeds (empty lists).
         """
-        out = np.zeros(self.n_actuators)
-        z = out[: self.n_pixels]
-        rho = np.hypot(self._px - cx, self._py - cy)
-        np.multiply(rho, _TWO_PI, out=z)
-        z /= diameter
-        np.cos(z, out=z)
-        z += 1.0
-        z *= 0.5 * height
-        z[rho > 0.5 * diameter] = 0.0
-        if self.crs and self._lines:
-            totals = self._feeds(cx, cy, diameter, height)
-            travel = self._boundary_travel
-            self.starts = starts = [min(0.5 * t, travel) for t in totals]
-            self.ends = ends = [t - s for t, s in zip(totals, starts, strict=True)]
-            out[self._start_servo] = starts
-            out[self._end_servo] = ends
-        return out
+        half, radius = 0.5 * height, 0.5 * diameter
+        heights = []
+        for x, y in self._pixels:
+            rho = math.hypot(x - cx, y - cy)
+            heights.append(half * (1.0 + math.cos(_TWO_PI * rho / diameter)) if rho <= radius
+                           else 0.0)
+        if not (self.crs and self._lines):
+            return heights, [], []
+        travel = self._boundary_travel
+        starts, ends = [], []
+        for total in self._feeds(cx, cy, diameter, height):
+            start = min(0.5 * total, travel)
+            starts.append(start)
+            ends.append(total - start)
+        return heights, starts, ends
+
+    def setpoints(self, heights: list[float], starts: list[float], ends: list[float]
+                  ) -> np.ndarray:
+        """:meth:`parts` as a setpoint vector (actuator order; feeds 0 where none)."""
+        values = heights + self._rest
+        # no feeds (pixel-only): every boundary servo at rest
+        for (start_servo, end_servo), start, end in zip(self._servos, starts, ends,
+                                                        strict=False):
+            values[start_servo] = start
+            values[end_servo] = end
+        return np.array(values)
+
+    def _rule(self, panels: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """The chord's quadrature rule for ``panels`` panels: nodes as a column, weights, and
+        the weights' sum (cached per rule)."""
+        rule = self._rules.get(panels)
+        if rule is None:
+            nodes, weights = _panel_rule(panels)
+            rule = self._rules[panels] = (np.ascontiguousarray(nodes[:, None]),
+                                          np.ascontiguousarray(weights), float(weights.sum()))
+        return rule
 
     def _feeds(self, cx: float, cy: float, diameter: float, height: float) -> list[float]:
-        """Arc excess along every beam line (:func:`~crs_study.stimuli.targets.arc_excess`,
-        operation for operation: its docstring has the formula)."""
+        """Arc excess along every beam line: :func:`~crs_study.stimuli.targets.arc_excess`'s
+        chord and quadrature (its docstring has the formula), with the integrand as
+
+            sqrt(1 + s^2) - 1 = c hypot(t, 1/c) - 1,   s = c t,  c = pi z_f / l,
+            t = sin(2 pi rho / l) p / rho,             rho = hypot(p, q),
+
+        so that sum_n w_n [...] = c sum_n w_n hypot(t_n, 1/c) - sum_n w_n: 9 numpy calls
+        (against 19), the last subtraction in floats per beam. The cancellation costs
+        ~1e-15 of the chord's length (tests/test_render_bump_path.py's tolerance)."""
         radius = 0.5 * diameter
         radius_sq = radius * radius
         mids, widths, offsets = [], [], []
@@ -114,27 +144,21 @@ class BumpPath:
             hi = (hi if hi < span else span) if hi >= 0.0 else 0.0
             widths.append(0.5 * (hi - lo))
             mids.append(0.5 * (lo + hi) - along)
-            offsets.append(offset_sq)
-        if height == 0.0 or not any(widths):
-            return [0.0] * len(widths)  # what the integral gives: slope 0 or no chord
-        nodes, weights = _panel_rule(max(1, math.ceil(np.pi * height / diameter
-                                                      / _SLOPE_PER_PANEL)))
-        columns = np.array((widths, mids, offsets))[:, :, None]  # (3, beams, 1)
-        width_col = columns[0]
-        p = width_col * nodes
-        p += columns[1]
-        rho = p * p
-        rho += columns[2]
-        np.sqrt(rho, out=rho)
-        np.maximum(rho, 1e-300, out=rho)  # rho = 0 only where p = 0
-        wavenumber = _TWO_PI / diameter
-        slope = np.sin(wavenumber * rho)
-        slope *= (-0.5 * height * wavenumber)
-        p /= rho
-        slope *= p
-        slope *= slope
-        root = 1.0 + slope
-        np.sqrt(root, out=root)
-        root += 1.0
-        slope /= root
-        return (columns[0, :, 0] * (slope @ weights)).tolist()
+            # the centre's distance from the line, > 0 so that rho = 0 nowhere
+            offsets.append(max(math.sqrt(offset_sq), _LEAST_OFFSET_MM))
+        amplitude = math.pi * height / diameter  # c, the steepest slope
+        if not amplitude > _LEAST_AMPLITUDE or not any(widths):
+            return [0.0] * len(widths)  # no slope or no chord: no excess (below 1e-290 mm)
+        nodes, weights, weight_sum = self._rule(max(1, math.ceil(amplitude / _SLOPE_PER_PANEL)))
+        width_row, mid_row, offset_row = np.array((widths, mids, offsets))
+        p = nodes * width_row  # (nodes, beams): signed distance from the foot of the centre
+        p += mid_row
+        rho = np.hypot(p, offset_row)
+        phase = rho * (_TWO_PI / diameter)
+        np.sin(phase, out=phase)
+        phase *= p
+        phase /= rho  # t
+        np.hypot(phase, 1.0 / amplitude, out=phase)
+        sums = (weights @ phase).tolist()
+        return [width * (amplitude * total - weight_sum)
+                for width, total in zip(widths, sums, strict=True)]

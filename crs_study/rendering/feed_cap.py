@@ -22,7 +22,9 @@ beams exactly, the cap is the longest stable shape itself, as the quality criter
        ``longest(h) - stretch * sum_p |dL/dh_p| hold_p - (hold_start + hold_end)``: the feed
        on the boards is at most F plus the two ends' hold, and the longest feed for any pixel
        heights within their hold of h is at least ``longest(h)`` less the pixel term, because
-       the arc length L(h) is convex in h (:meth:`CompressedBeams.longest_feeds`).
+       the arc length ``L(h) = sum_q w_q sqrt(1 + (T h)_q^2)`` is convex in h and so lies
+       above its tangent plane: ``L(h') >= L(h) - sum_p |dL/dh_p| |h'_p - h_p|``, with
+       ``dL/dh_p = sum_q w_q (T h)_q / sqrt(1 + (T h)_q^2) T_qp``.
     2. *A feed servo is at rest or clear of it.* A servo's feed at or below its hold (the
        largest pulse that could be held over a later rest) is set to 0: every pulse a feed
        servo is sent is then its rest pulse or more than the dead-band away from it, so a
@@ -35,8 +37,15 @@ beams exactly, the cap is the longest stable shape itself, as the quality criter
     boards' pulses). Not covered: the moments while one board has a frame and the other not
     yet, and servos in motion (transitions, which a sensed surface may skip).
 
-Measured (``crs-study`` at this change): the shipped protocols' digit frames need no cap
-under either rule set (rule 1 caps 0 of their frames), rule 2 sets to rest the feeds of ...
+MEASURED_PLACEHOLDER
+
+How it is computed (the live link's budget: issue 18)
+    :meth:`CompressedBeams.longest_operator` gives the longest shape's slopes per mm of each
+    pixel's height; here they become one dense matrix for all beams (slopes at every node =
+    one product with the pixel heights) and one for every beam's length and gradient terms,
+    so a frame's cap is two matrix products and four ufuncs on arrays of a few hundred
+    numbers, and the rules run on Python floats. It equals ``longest_feeds`` to rounding
+    (sums in another order: ~1e-13 mm; tests/test_feed_cap.py).
 """
 
 from __future__ import annotations
@@ -89,8 +98,8 @@ class WireSlack:
         return 0.5 * self.quantum_us + self.deadband_us
 
 
-#: The slack of the shipped write policy (whole-us pulses, the default dead-band): a renderer's
-#: default.
+#: The slack of the shipped write policy (whole-us pulses, the default dead-band): a
+#: renderer's default.
 DEFAULT_WIRE = WireSlack()
 
 
@@ -102,25 +111,33 @@ def mm_per_us(layout: Layout) -> np.ndarray:
 
 
 class FeedCap:
-    """The feed cap of one layout (module docstring). :meth:`apply` per frame."""
+    """The feed cap of one layout (module docstring): :meth:`apply` per frame.
+
+    The beams' tables (:class:`CompressedBeams`, ~0.2 s) are built on the first frame that
+    feeds a beam.
+    """
 
     def __init__(self, layout: Layout, wire: WireSlack | None) -> None:
         self.layout = layout
         self.wire = wire
         self.n_pixels = layout.n_pixels
         self.travel = float(layout.boundary_travel_mm)
-        self.start_servo = [b.start_servo for b in layout.beams]
-        self.end_servo = [b.end_servo for b in layout.beams]
-        self._beams: CompressedBeams | None = None  # built on the first frame that feeds
+        self.n_beams = len(layout.beams)
+        self._beams: CompressedBeams | None = None
+        self._slopes: np.ndarray | None = None  # (B nq, n_pixels)
+        self._lengths: np.ndarray | None = None  # (B + gradient rows, B nq [+ B nq])
+        self._buffer: np.ndarray | None = None
+        self._offset: list[float] = []
+        self._rows: list[tuple[int, int]] = []  # each beam's gradient rows in the product
         self.height_hold: np.ndarray | None = None
-        self.feed_hold = [0.0] * len(layout.beams)
+        self.feed_hold = [0.0] * self.n_beams
         #: each beam's (start, end) feed at or below which the servo is set to rest (rule 2)
         self.floor: list[tuple[float, float]] | None = None
         if wire is not None:
             hold = wire.hold_us * mm_per_us(layout)
             hold.setflags(write=False)
             self.height_hold = hold[: self.n_pixels]
-            pairs = list(zip(self.start_servo, self.end_servo, strict=True))
+            pairs = [(b.start_servo, b.end_servo) for b in layout.beams]
             self.feed_hold = [float(hold[s] + hold[e]) for s, e in pairs]
             self.floor = [(float(hold[s]) * _FLOOR_GUARD, float(hold[e]) * _FLOOR_GUARD)
                           for s, e in pairs]
@@ -131,41 +148,75 @@ class FeedCap:
             self._beams = CompressedBeams.for_layout(self.layout)
         return self._beams
 
+    def _build(self) -> None:
+        """The two matrices of the module docstring, from the beams' longest shapes."""
+        slopes, weights, offset = self.beams.longest_operator()
+        n_beams, nq, n_pixels = slopes.shape
+        nodes = n_beams * nq
+        gradient = [] if self.height_hold is None else [
+            (b, p) for b, beam in enumerate(self.layout.beams) for p in beam.pixels]
+        lengths = np.zeros((n_beams + len(gradient), nodes * (2 if gradient else 1)))
+        for b in range(n_beams):
+            lengths[b, b * nq:(b + 1) * nq] = weights[b]  # sum_q w_q sqrt(1 + top_q^2)
+        for row, (b, p) in enumerate(gradient, start=n_beams):  # stretch |dL/dh_p| hold_p
+            lengths[row, nodes + b * nq: nodes + (b + 1) * nq] = \
+                weights[b] * slopes[b, :, p] * self.height_hold[p]
+        self._rows = [(n_beams + sum(len(x.pixels) for x in self.layout.beams[:b]),
+                       n_beams + sum(len(x.pixels) for x in self.layout.beams[: b + 1]))
+                      for b in range(n_beams)] if gradient else []
+        self._slopes = np.ascontiguousarray(slopes.reshape(nodes, n_pixels))
+        self._lengths = lengths
+        self._buffer = np.empty(lengths.shape[1])
+        self._offset = offset.tolist()
+
     def limits(self, heights: np.ndarray) -> tuple[list[float], list[float]]:
-        """``(longest, room)`` per beam (mm, >= 0): the longest stable shape's feed for these
-        pixel heights, and the largest feed whose pulses on the boards stay stable (rule 1;
-        ``longest`` itself without a wire)."""
-        if self.height_hold is None:
-            longest = [f if f > 0.0 else 0.0 for f in self.beams.longest_feeds(heights).tolist()]
-            return longest, longest
-        longest, least = self.beams.longest_feeds(heights, self.height_hold)
-        return ([f if f > 0.0 else 0.0 for f in longest.tolist()],
-                [f - h if f - h > 0.0 else 0.0
-                 for f, h in zip(least.tolist(), self.feed_hold, strict=True)])
+        """``(longest, room)`` per beam (mm, >= 0) for pixel heights ``heights`` (n_pixels,):
+        the longest stable shape's feed, and the largest feed whose pulses on the boards stay
+        stable (rule 1; ``longest`` itself without a wire)."""
+        if self._slopes is None:
+            self._build()
+        top = self._slopes @ heights  # every node's slope
+        buffer = self._buffer
+        nodes = top.shape[0]
+        root = np.hypot(top, 1.0, out=buffer[:nodes])  # sqrt(1 + top^2)
+        if self._rows:
+            np.divide(top, root, out=buffer[nodes:])
+        terms = (self._lengths @ buffer).tolist()
+        longest, room = [], []
+        for b, offset in enumerate(self._offset):
+            feed = terms[b] - offset
+            longest.append(feed if feed > 0.0 else 0.0)
+            if self._rows:
+                start, end = self._rows[b]
+                for term in terms[start:end]:
+                    feed -= term if term > 0.0 else -term
+                feed -= self.feed_hold[b]
+                room.append(feed if feed > 0.0 else 0.0)
+        return longest, (room if self._rows else longest)
 
-    def apply(self, setpoints: np.ndarray, starts: list[float], ends: list[float]
-              ) -> tuple[np.ndarray, list[str]]:
-        """Capped setpoints (a copy when anything changes) and one message per beam whose
-        rule asks for more than its longest stable shape.
+    def apply(self, heights: np.ndarray, starts: list[float], ends: list[float]
+              ) -> tuple[list[float], list[float], list[str]]:
+        """Each beam's capped (start, end) feeds and one message per beam whose rule asks for
+        more than its longest stable shape.
 
-        ``starts``, ``ends``: each beam's start and end feed in ``setpoints`` (floats). Rule 2
-        first (a feed at rest needs no room: the boards hold exactly its rest pulse), then
-        rule 1 on the feeds left, then rule 2 on the capped ones.
+        ``heights``: the pixel heights (n_pixels,); ``starts``, ``ends``: each beam's start
+        and end feed (mm). Rule 2 first (a feed at rest needs no room: the boards hold exactly
+        its rest pulse), then rule 1 on the feeds left, then rule 2 on the capped ones. The
+        lists returned are new; equal to the ones given when nothing changed.
         """
+        if not (any(starts) or any(ends)):
+            return starts, ends, []
         floor = self.floor
         fed_starts, fed_ends = list(starts), list(ends)
-        asked = [s + e for s, e in zip(starts, ends, strict=True)]
-        if not any(asked):
-            return setpoints, []
         if floor is not None:
             for b, (low_start, low_end) in enumerate(floor):
                 if fed_starts[b] <= low_start:
                     fed_starts[b] = 0.0
                 if fed_ends[b] <= low_end:
                     fed_ends[b] = 0.0
-        longest, room = self.limits(setpoints[: self.n_pixels])
+        longest, room = self.limits(heights)
         messages = []
-        for b, total in enumerate(asked):
+        for b in range(self.n_beams):
             if fed_starts[b] + fed_ends[b] > room[b]:
                 start = min(0.5 * room[b], self.travel)  # split_feed of the capped total
                 end = room[b] - start
@@ -173,19 +224,13 @@ class FeedCap:
                     start = 0.0 if start <= floor[b][0] else start
                     end = 0.0 if end <= floor[b][1] else end
                 fed_starts[b], fed_ends[b] = start, end
+            total = starts[b] + ends[b]
             if total > longest[b]:
                 messages.append(
                     f"beam {b}: feed {total:.4f} mm capped to {fed_starts[b] + fed_ends[b]:.4f}"
                     f" mm (the longest stable shape through its pixel heights{self._less}; "
                     f"more would collapse the beam)")
-        out = setpoints
-        for b, (start, end) in enumerate(zip(fed_starts, fed_ends, strict=True)):
-            if start != starts[b] or end != ends[b]:
-                if out is setpoints:
-                    out = setpoints.copy()
-                out[self.start_servo[b]] = start
-                out[self.end_servo[b]] = end
-        return out, messages
+        return fed_starts, fed_ends, messages
 
     @property
     def _less(self) -> str:

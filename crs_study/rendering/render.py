@@ -204,19 +204,22 @@ class Renderer:
         if self._line_y is not None:
             cy = self._line_y  # y_f is ignored on a line of pixels
         path = self._bump
-        raw = path.setpoints(cx, cy, diameter, height)
-        starts, ends = path.starts, path.ends
+        heights, starts, ends = path.parts(cx, cy, diameter, height)
         if height > self._pixel_upper or (starts and max(max(starts), max(ends))
                                           > self._feed_upper):
-            return self.limit(raw)  # something to clip: the general limits
+            return self.limit(path.setpoints(heights, starts, ends))  # something to clip
         # nothing lies outside its range (pixels <= z_f, feeds >= 0): limit() would clip
         # nothing, so only the cap is left
-        if self._cap is None:
-            return Rendering(raw, ())
-        capped, messages = self._cap.apply(raw, starts, ends)
+        if self._cap is None or not starts:
+            return Rendering(path.setpoints(heights, starts, ends), ())
+        setpoints = path.setpoints(heights, starts, ends)
+        capped_starts, capped_ends, messages = self._cap.apply(
+            setpoints[: self.layout.n_pixels], starts, ends)
         if messages and self.policy == "error":
             raise RenderError(f"{self.condition}: {messages[0]}")
-        return Rendering(capped, tuple(messages))
+        if capped_starts != starts or capped_ends != ends:
+            setpoints = path.setpoints(heights, capped_starts, capped_ends)
+        return Rendering(setpoints, tuple(messages))
 
     def limit(self, raw: np.ndarray) -> Rendering:
         """Apply the clamp policy and the feed cap to a raw setpoint vector."""
@@ -232,11 +235,16 @@ class Renderer:
         capped = clipped
         if self._cap is not None:
             g = self._geometry
-            capped, cap_messages = self._cap.apply(
-                clipped, clipped[g.start_servo].tolist(), clipped[g.end_servo].tolist())
+            starts, ends = clipped[g.start_servo].tolist(), clipped[g.end_servo].tolist()
+            capped_starts, capped_ends, cap_messages = self._cap.apply(
+                clipped[: self.layout.n_pixels], starts, ends)
             if cap_messages and self.policy == "error":
                 raise RenderError(f"{self.condition}: {cap_messages[0]}")
             messages += cap_messages
+            if capped_starts != starts or capped_ends != ends:
+                capped = clipped.copy()
+                capped[g.start_servo] = capped_starts
+                capped[g.end_servo] = capped_ends
         if not messages and capped is clipped:
             return Rendering(raw, ())
         return Rendering(capped, tuple(messages))
