@@ -26,9 +26,12 @@ from crs_study.display.beam import CompressedBeams
 from crs_study.errors import CollapseError, RenderError
 from crs_study.live.area import RecognitionArea
 from crs_study.live.trace import digit_trace
+from crs_study.protocol import load_protocol
 from crs_study.rendering import feed_cap
 from crs_study.rendering.feed_cap import FeedCap, WireSlack, mm_per_us
+from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
+from crs_study.stimuli.stimulus import make_stimulus
 
 #: Virtual seconds between frames: the wire carries any frame and the servos arrive (a full
 #: 9 mm stroke takes 72 ms) well within it.
@@ -178,3 +181,11 @@ def test_wire_slack_checks_its_numbers():
     with pytest.raises(RenderError, match=r"pulse quantum: expected us > 0, got 0"):
         WireSlack(1, 0)
     assert WireSlack(2).hold_us == 2.5
+
+
+def test_the_frame_cache_keeps_renderings_for_another_wire_apart(layout2d):
+    stimulus = make_stimulus(load_protocol("pilot"), layout2d, 4, None)
+    exact = render_frames(stimulus, Renderer(layout2d, "crs", wire=None))
+    roomy = render_frames(stimulus, Renderer(layout2d, "crs"))
+    assert not np.array_equal(exact, roomy)  # the cap's room and rule 2 change some feeds
+    assert np.array_equal(roomy, render_frames(stimulus, Renderer(layout2d, "crs")))

@@ -44,6 +44,7 @@ from crs_study.session.prompts import INSTRUCTIONS, TASK_DESCRIPTION, resume_pro
 from crs_study.session.responders import Responder, make_responder
 from crs_study.session.resume import (
     Fingerprints,
+    check_frames,
     check_resume,
     check_rows,
     check_same_kind_of_run,
@@ -193,6 +194,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             check_same_kind_of_run(stored, spec, responder.name, clock_kind, paths.sidecar)
         rows = store.recover_rows()
         check_rows(rows, plan, paths.tsv)
+        check_frames(paths.frame_log, rows, plan, trial_frames(protocol, layout))
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials)
         faults = {f.trial for f in metadata.faults}
