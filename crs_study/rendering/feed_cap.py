@@ -125,10 +125,10 @@ class FeedCap:
         self.n_beams = len(layout.beams)
         self._beams: CompressedBeams | None = None
         self._slopes: np.ndarray | None = None  # (B nq, n_pixels)
-        self._lengths: np.ndarray | None = None  # (B + gradient rows, B nq [+ B nq])
-        self._buffer: np.ndarray | None = None
+        self._terms: np.ndarray | None = None  # (B, nq, 1 + pixels a beam)
+        self._buffer: np.ndarray | None = None  # (B, 1 or 2, nq)
         self._offset: list[float] = []
-        self._rows: list[tuple[int, int]] = []  # each beam's gradient rows in the product
+        self._n_gradient: list[int] = []  # pixels on each beam (0 without a wire)
         self.height_hold: np.ndarray | None = None
         self.feed_hold = [0.0] * self.n_beams
         #: each beam's (start, end) feed at or below which the servo is set to rest (rule 2)
@@ -149,25 +149,24 @@ class FeedCap:
         return self._beams
 
     def _build(self) -> None:
-        """The two matrices of the module docstring, from the beams' longest shapes."""
+        """The products of the module docstring, from the beams' longest shapes."""
         slopes, weights, offset = self.beams.longest_operator()
         n_beams, nq, n_pixels = slopes.shape
-        nodes = n_beams * nq
-        gradient = [] if self.height_hold is None else [
-            (b, p) for b, beam in enumerate(self.layout.beams) for p in beam.pixels]
-        lengths = np.zeros((n_beams + len(gradient), nodes * (2 if gradient else 1)))
-        for b in range(n_beams):
-            lengths[b, b * nq:(b + 1) * nq] = weights[b]  # sum_q w_q sqrt(1 + top_q^2)
-        for row, (b, p) in enumerate(gradient, start=n_beams):  # stretch |dL/dh_p| hold_p
-            lengths[row, nodes + b * nq: nodes + (b + 1) * nq] = \
-                weights[b] * slopes[b, :, p] * self.height_hold[p]
-        self._rows = [(n_beams + sum(len(x.pixels) for x in self.layout.beams[:b]),
-                       n_beams + sum(len(x.pixels) for x in self.layout.beams[: b + 1]))
-                      for b in range(n_beams)] if gradient else []
-        self._slopes = np.ascontiguousarray(slopes.reshape(nodes, n_pixels))
-        self._lengths = lengths
-        self._buffer = np.empty(lengths.shape[1])
+        pixels = [beam.pixels for beam in self.layout.beams] if self.height_hold is not None \
+            else [() for _ in self.layout.beams]
+        # per beam, columns: its length's weights, then per pixel on it the weights of
+        # stretch |dL/dh_p| hold_p (applied to top / sqrt(1 + top^2))
+        terms = np.zeros((n_beams, nq, 1 + max(len(p) for p in pixels)))
+        terms[:, :, 0] = weights
+        for b, beam_pixels in enumerate(pixels):
+            for j, p in enumerate(beam_pixels, start=1):
+                terms[b, :, j] = weights[b] * slopes[b, :, p] * self.height_hold[p]
+        self._slopes = np.ascontiguousarray(slopes.reshape(n_beams * nq, n_pixels))
+        self._terms = terms
+        # per beam: row 0 sqrt(1 + top^2) at its nodes, row 1 top / sqrt(1 + top^2)
+        self._buffer = np.empty((n_beams, 2 if self.height_hold is not None else 1, nq))
         self._offset = offset.tolist()
+        self._n_gradient = [len(p) for p in pixels]
 
     def limits(self, heights: np.ndarray) -> tuple[list[float], list[float]]:
         """``(longest, room)`` per beam (mm, >= 0) for pixel heights ``heights`` (n_pixels,):
@@ -175,24 +174,26 @@ class FeedCap:
         stable (rule 1; ``longest`` itself without a wire)."""
         if self._slopes is None:
             self._build()
-        top = self._slopes @ heights  # every node's slope
         buffer = self._buffer
-        nodes = top.shape[0]
-        root = np.hypot(top, 1.0, out=buffer[:nodes])  # sqrt(1 + top^2)
-        if self._rows:
-            np.divide(top, root, out=buffer[nodes:])
-        terms = (self._lengths @ buffer).tolist()
+        top = (self._slopes @ heights).reshape(buffer.shape[0], buffer.shape[2])  # slopes
+        root = np.hypot(top, 1.0, out=buffer[:, 0])  # sqrt(1 + top^2)
+        if self.height_hold is None:
+            longest = [total - offset for (total,), offset in
+                       zip((buffer @ self._terms)[:, 0].tolist(), self._offset, strict=True)]
+            longest = [feed if feed > 0.0 else 0.0 for feed in longest]
+            return longest, longest
+        np.divide(top, root, out=buffer[:, 1])
         longest, room = [], []
-        for b, offset in enumerate(self._offset):
-            feed = terms[b] - offset
+        for (length, gradient), offset, n, hold in zip(
+                (buffer @ self._terms).tolist(), self._offset, self._n_gradient,
+                self.feed_hold, strict=True):
+            feed = length[0] - offset
             longest.append(feed if feed > 0.0 else 0.0)
-            if self._rows:
-                start, end = self._rows[b]
-                for term in terms[start:end]:
-                    feed -= term if term > 0.0 else -term
-                feed -= self.feed_hold[b]
-                room.append(feed if feed > 0.0 else 0.0)
-        return longest, (room if self._rows else longest)
+            for term in gradient[1:n + 1]:
+                feed -= term if term > 0.0 else -term
+            feed -= hold
+            room.append(feed if feed > 0.0 else 0.0)
+        return longest, room
 
     def apply(self, heights: np.ndarray, starts: list[float], ends: list[float]
               ) -> tuple[list[float], list[float], list[str]]:
