@@ -32,7 +32,10 @@ steel's elastic shortening, ~N_cr S / EA, a few micrometres), and tall bumps who
 exceeds what the pixel heights can guide. So the total feed of each beam is capped at
 :meth:`~crs_study.display.beam.CompressedBeams.longest_feeds` (the beam then shows its longest
 stable shape) and the cap is reported in :attr:`Rendering.clamped` like any clip, or raised
-under ``policy="error"``. Measured (``crs-study`` at commit of this change): the shipped digit
+under ``policy="error"``. By default (``wire``) the cap also leaves room for what the boards
+hold instead of the setpoints (whole-us pulses, the write policy's dead-band), so that the
+pulses they keep never collapse a beam either (:mod:`~crs_study.rendering.feed_cap`).
+Measured (``crs-study`` at commit of this change, before the wire's room): the shipped digit
 stimuli need no cap (0 of 537 frames); bump centres uniform in the 2D pixel hull need it in
 0/3000 frames at z_f = 1 mm and 35/3000 at 5 mm; centres beyond the hull, where the flat-beam
 case lives, in ~23 %. ``cap_feed=False`` keeps the paper's rule unchanged (the quality
@@ -144,7 +147,7 @@ class Renderer:
     policy's dead-band), which the feed cap leaves room for (:mod:`~crs_study.rendering.
     feed_cap`); ``None``: the setpoints reach the beams exactly (the cap is then the longest
     stable shape itself). A :class:`Bump` under a built-in condition takes the fast path of
-    :mod:`~crs_study.rendering.bump_path` (the same setpoints to the last bit).
+    :mod:`~crs_study.rendering.bump_path` (the same setpoints within 1e-10 mm).
     """
 
     def __init__(self, layout: Layout, condition: str, policy: ClampPolicy = "clip",
