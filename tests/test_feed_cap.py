@@ -25,6 +25,7 @@ from crs_study.device.calibration import PulseMap
 from crs_study.display.beam import CompressedBeams
 from crs_study.errors import CollapseError, RenderError
 from crs_study.live.area import RecognitionArea
+from crs_study.live.session import LiveSession
 from crs_study.live.trace import digit_trace
 from crs_study.protocol import load_protocol
 from crs_study.rendering import feed_cap
@@ -189,3 +190,9 @@ def test_the_frame_cache_keeps_renderings_for_another_wire_apart(layout2d):
     roomy = render_frames(stimulus, Renderer(layout2d, "crs"))
     assert not np.array_equal(exact, roomy)  # the cap's room and rule 2 change some feeds
     assert np.array_equal(roomy, render_frames(stimulus, Renderer(layout2d, "crs")))
+
+
+def test_a_live_session_leaves_room_for_its_devices_dead_band(layout2d):
+    for deadband in (0, 1, 3):
+        device = open_device(f"sim://?deadband_us={deadband}", layout2d, VirtualClock())
+        assert LiveSession(device).renderer.wire == WireSlack(deadband)
