@@ -11,7 +11,7 @@ frames of the trials so far with what it renders for them and refuses in one lin
 from __future__ import annotations
 
 import pytest
-from _session_helpers import PauseAt, tiny_protocol
+from _session_helpers import PauseAt, record_consent, tiny_protocol
 
 from crs_study.errors import SessionError
 from crs_study.protocol.plan import plan_seed
@@ -32,6 +32,7 @@ def older_renderer(layout, condition):
 @pytest.fixture
 def paused_by_older_software(tmp_path, monkeypatch):
     """A tiny session paused at trial 4 by software that rendered with the older cap."""
+    record_consent("p01")  # a person's label passes the consent gate on sim:// too
     protocol = tiny_protocol(tmp_path)
     spec = SessionSpec(protocol, "p01", tmp_path / "dataset", "sim://", 1, "random", "virtual",
                        counterbalance=1)
@@ -59,6 +60,7 @@ def test_a_session_rendered_otherwise_is_refused_in_one_line(paused_by_older_sof
 
 def test_the_same_software_resumes_its_own_session(tmp_path, monkeypatch):
     monkeypatch.setattr(trials, "_trial_frames", {})
+    record_consent("p01")
     spec = SessionSpec(tiny_protocol(tmp_path), "p01", tmp_path / "dataset", "sim://", 1,
                        "random", "virtual", counterbalance=1)
     paused = run_session(spec, responder=PauseAt(plan_seed("tiny", "1.0.0", "p01", 1),
