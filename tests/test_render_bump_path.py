@@ -16,10 +16,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from crs_study.device.calibration import PulseMap
 from crs_study.display.beam import CompressedBeams
 from crs_study.errors import RenderError
+from crs_study.protocol import load_protocol
 from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.render import CONDITIONS, BeamGeometry, Renderer, split_feed
+from crs_study.stimuli.stimulus import make_stimulus
 from crs_study.stimuli.targets import Bump
 
 #: What the fast path may differ by from the general one (mm; module docstring).
@@ -131,3 +134,20 @@ def test_a_bump_subclass_or_a_registered_condition_takes_the_general_path(layout
     finally:
         CONDITIONS.pop("test-traced")
     assert len(calls) == 1
+
+
+def test_the_shipped_protocols_frames_put_the_same_pulses_on_the_wire(layout2d):
+    """Every frame of the default protocol: the fast path's setpoints round to the very pulses
+    the general path's do (the wire cannot tell the paths apart)."""
+    protocol = load_protocol("digit_identification")
+    pulse_map = PulseMap.from_layout(layout2d)
+    for condition in ("crs", "pixel-only"):
+        renderer = Renderer(layout2d, condition)
+        for digit in protocol.digits:
+            stimulus = make_stimulus(protocol, layout2d, digit, None)
+            for k in range(stimulus.n_frames):
+                target = stimulus.target(k)
+                fast = renderer.render(target).setpoints
+                general = general_path(renderer, target).setpoints
+                np.testing.assert_array_equal(pulse_map.to_pulses(fast),
+                                              pulse_map.to_pulses(general))
