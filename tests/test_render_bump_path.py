@@ -143,8 +143,8 @@ def test_the_shipped_protocols_frames_put_the_same_pulses_on_the_wire(layout2d):
     pulse_map = PulseMap.from_layout(layout2d)
     for condition in ("crs", "pixel-only"):
         renderer = Renderer(layout2d, condition)
-        for digit in protocol.digits:
-            stimulus = make_stimulus(protocol, layout2d, digit, None)
+        for symbol in protocol.symbols:
+            stimulus = make_stimulus(protocol, layout2d, symbol, None)
             for k in range(stimulus.n_frames):
                 target = stimulus.target(k)
                 fast = renderer.render(target).setpoints

@@ -49,7 +49,7 @@ def paused_by_older_software(tmp_path, monkeypatch):
 def test_a_session_rendered_otherwise_is_refused_in_one_line(paused_by_older_software):
     spec = paused_by_older_software
     with pytest.raises(SessionError, match=r"frames\.tsv\.gz: cannot resume: trial \d+ \(crs, "
-                                           r"digit \d\) was shown with other setpoints than "
+                                           r"\d\) was shown with other setpoints than "
                                            r"this software renders") as caught:
         run_session(spec)
     assert "\n" not in str(caught.value)
