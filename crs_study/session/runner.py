@@ -66,6 +66,7 @@ from crs_study.session.responders import Responder, make_responder
 from crs_study.session.responders.keypad import PauseRequested
 from crs_study.session.resume import (
     Fingerprints,
+    check_frames,
     check_resume,
     check_rows,
     check_same_kind_of_run,
@@ -239,6 +240,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         began = store.started_trial()  # what the previous run noted, before this one does
         rows = store.recover_rows()
         check_rows(rows, plan, paths.tsv, protocol.symbol_set.column)
+        check_frames(paths.frame_log, rows, plan, trial_frames(protocol, layout))
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials, len(rows), began)
         faults = {f.trial for f in metadata.faults}
