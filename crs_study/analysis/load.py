@@ -48,6 +48,13 @@ the rows beyond them are within that lag
 makes), the disagreement is the interruption's, and the torn row is left out. Any other
 disagreement (more rows than the lag, recorded rows rewritten, a complete session with fewer
 rows) remains a tampering alarm.
+
+No session is left out silently. A trial file that cannot be read (a folder or a named pipe
+in its place, an OS error, bytes that are not UTF-8) leaves its session out with a warning
+naming the participant; a session or participant the dataset shows existed but whose trial
+file is gone (:func:`crs_study.dataset.evidence.missing_sessions`: participants.tsv, the
+sidecar, sourcedata, the record of analysis outputs) is a warning of possible tampering.
+Each is a :class:`DatasetError` with ``strict``.
 """
 
 from __future__ import annotations
@@ -60,9 +67,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from crs_study._files import os_errors, sha256_bytes
+from crs_study._files import sha256_bytes
 from crs_study.analysis.plan import Exclusions
 from crs_study.dataset import WITHDRAWAL_JOURNAL, SessionMetadata, SessionPaths, find_sessions
+from crs_study.dataset.evidence import missing_sessions, not_a_regular_file
 from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS
 from crs_study.dataset.session_store import StoppedSession, explained_by_interruption
 from crs_study.errors import DatasetError
@@ -116,9 +124,16 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
         names = [str(Path(p)) for p in paths]
     seen: dict[tuple[str, str, str], Path] = {}   # (participant, session, sha256) -> dataset
     for path, name in zip(paths, names, strict=True):
+        accounted: set[tuple[str, str]] = set()
         for session in _sessions_of(Path(path)):
             tsv = session.tsv
-            table, meta, problems, notes = _read_session(session, name, len(files))
+            accounted.add((session.participant, "" if session.session is None
+                           else str(session.session)))
+            try:
+                table, meta, problems, notes = _read_session(session, name, len(files))
+            except _Unreadable as exc:
+                warnings += _raise_if_strict([str(exc)], strict)
+                continue
             key = (meta["participant"], meta["session"], meta.pop("_sha256"))
             if key in seen and seen[key] != Path(path):
                 raise DatasetError(
@@ -130,6 +145,10 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
             warnings += _raise_if_strict(problems, strict) + notes
             frames.append(table)
             sessions.append(meta)
+        warnings += _raise_if_strict(missing_sessions(path, accounted, TASK), strict)
+    if not frames:
+        raise DatasetError(f"no readable session in {', '.join(map(str, paths))}: "
+                           f"{warnings[0] if warnings else 'none found'}")
     trials, problems = _typed(pd.concat(frames, ignore_index=True), files)
     warnings += _raise_if_strict(problems, strict)
     several = len(paths) > 1
@@ -243,6 +262,10 @@ def _read_sidecar(paths: SessionPaths) -> tuple[SessionMetadata | None, list[str
     sidecar = paths.sidecar
     if not sidecar.exists():
         return None, [f"{sidecar}: session metadata missing; its trials are unchecked"]
+    why = not_a_regular_file(sidecar)
+    if why is not None:   # a named pipe would block the read forever
+        return None, [f"{sidecar}: session metadata unreadable ({why}); its trials are "
+                      "unchecked"]
     try:
         return SessionMetadata.read(sidecar), []
     except DatasetError as exc:
@@ -251,14 +274,41 @@ def _read_sidecar(paths: SessionPaths) -> tuple[SessionMetadata | None, list[str
                       "unchecked"]
 
 
+class _Unreadable(DatasetError):
+    """A session's trial file that cannot be read at all: the session is left out, with a
+    warning (an error with ``strict``)."""
+
+
+def _read_trial_file(paths: SessionPaths) -> bytes:
+    """The bytes of the session's trial file; :class:`_Unreadable` (naming the participant)
+    when it is not a regular file, cannot be read, or is not UTF-8 text."""
+    tsv = paths.tsv
+    why = not_a_regular_file(tsv)
+    if why is None:
+        try:
+            data = tsv.read_bytes()
+        except OSError as exc:
+            why = exc.strerror or type(exc).__name__
+        else:
+            try:
+                data.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                why = f"not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start})"
+            else:
+                return data
+    session = "" if paths.session is None else f" ses-{paths.session}"
+    raise _Unreadable(f"{tsv}: the trial file of sub-{paths.participant}{session} cannot be "
+                      f"read ({why}): participant {paths.participant!r}'s session is left out "
+                      "of the analysis")
+
+
 def _read_session(paths: SessionPaths, dataset: str, file_number: int
                   ) -> tuple[pd.DataFrame, dict, list[str]]:
     """One session's rows as read (typed later, all files at once) and its metadata."""
     tsv = paths.tsv
     participant = paths.participant
     session = "" if paths.session is None else str(paths.session)
-    with os_errors(DatasetError, "read", tsv):
-        data = tsv.read_bytes()
+    data = _read_trial_file(paths)
     metadata, problems = _read_sidecar(paths)
     notes: list[str] = []
     stopped = None if metadata is None else explained_by_interruption(data, metadata)
