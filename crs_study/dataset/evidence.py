@@ -35,11 +35,12 @@ import stat
 from collections.abc import Collection
 from pathlib import Path
 
-from crs_study.dataset.bids import PARTICIPANTS_TSV, SOURCEDATA, BidsName
+from crs_study.dataset.bids import PARTICIPANTS_TSV, SOURCEDATA, BidsName, beh_files
 from crs_study.dataset.outputs import read_outputs
 
-#: A session as (participant, session label), the session "" for a dataset without sessions.
-SessionKey = tuple[str, str]
+#: A session as (participant, session label, task), the session "" for a dataset without
+#: sessions.
+SessionKey = tuple[str, str, str]
 
 
 def not_a_regular_file(path: Path) -> str | None:
@@ -59,29 +60,33 @@ def not_a_regular_file(path: Path) -> str | None:
     return "not a regular file"
 
 
-def session_traces(root: str | Path, task: str) -> dict[SessionKey, list[str]]:
-    """Sessions the dataset at ``root`` shows existed, each with the traces that show it
-    (paths relative to ``root``): sidecars of ``task`` and files under ``sourcedata/``."""
+def session_traces(root: str | Path, task: str | None) -> dict[SessionKey, list[str]]:
+    """Sessions of ``task`` (None: of every task) the dataset at ``root`` shows existed, each
+    with the traces that show it (paths relative to ``root``): sidecars and files under
+    ``sourcedata/``."""
     root = Path(root)
     found: dict[SessionKey, list[str]] = {}
-    patterns = (f"sub-*/ses-*/beh/sub-*_task-{task}_beh.json",
-                f"sub-*/beh/sub-*_task-{task}_beh.json",
-                f"{SOURCEDATA}/sub-*/ses-*/sub-*_task-{task}_*",
-                f"{SOURCEDATA}/sub-*/sub-*_task-{task}_*")
+    label = "*" if task is None else task
+    patterns = (f"sub-*/ses-*/beh/sub-*_task-{label}_beh.json",
+                f"sub-*/beh/sub-*_task-{label}_beh.json",
+                f"{SOURCEDATA}/sub-*/ses-*/sub-*_task-{label}_*",
+                f"{SOURCEDATA}/sub-*/sub-*_task-{label}_*")
     for pattern in patterns:
         for path in sorted(root.glob(pattern)):
             name = BidsName.parse(path.name)
-            if name is None or name.task != task:
+            if name is None or name.task is None or task not in (None, name.task):
                 continue
-            key = (name.participant, name.session or "")
+            key = (name.participant, name.session or "", name.task)
             found.setdefault(key, []).append(str(path.relative_to(root)))
     return found
 
 
-def missing_sessions(root: str | Path, accounted: Collection[SessionKey], task: str
+def missing_sessions(root: str | Path, accounted: Collection[SessionKey], task: str | None
                      ) -> list[str]:
-    """A warning for each session or participant the dataset at ``root`` shows existed but
-    ``accounted`` (the sessions read, or reported unreadable) does not hold.
+    """A warning for each session of ``task`` (None: of every task) or participant the
+    dataset at ``root`` shows existed but ``accounted`` (the sessions read, or reported
+    unreadable) does not hold; a participant with a trial file of another task has a
+    session.
 
     One line each, naming the participant and the traces: a session with a trace is
     "missing (possible tampering)"; a participant of ``participants.tsv`` or of the outputs
@@ -89,10 +94,11 @@ def missing_sessions(root: str | Path, accounted: Collection[SessionKey], task: 
     """
     root = Path(root)
     warnings = []
-    have = {participant for participant, _ in accounted}
+    have = {participant for participant, _, _ in accounted}
+    have |= {BidsName.parse(tsv.name).participant for tsv in beh_files(root, None)}
     traced = session_traces(root, task)
-    for (participant, session), traces in sorted(traced.items()):
-        if (participant, session) in accounted:
+    for (participant, session, of_task), traces in sorted(traced.items()):
+        if (participant, session, of_task) in accounted:
             continue
         where = f"sub-{participant}" + (f" ses-{session}" if session else "")
         shown = ", ".join(traces[:3]) + (f" and {len(traces) - 3} more" if len(traces) > 3
@@ -101,7 +107,7 @@ def missing_sessions(root: str | Path, accounted: Collection[SessionKey], task: 
                         "session was recorded: its trials are missing (possible tampering: "
                         "deleted by hand?); restore them from a backup, or withdraw the "
                         "participant with crs-study consent withdraw")
-    gone = {participant for participant, _ in traced} | have
+    gone = {participant for participant, _, _ in traced} | have
     listed, unread = _listed(root)
     warnings += unread
     for participant, source in listed:
