@@ -142,7 +142,7 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
     found = {Path(p): _sessions_of(Path(p), task) for p in paths}
     _refuse_several_tasks(found)
     for path, name in zip(paths, names, strict=True):
-        accounted: set[tuple[str, str]] = set()
+        accounted: set[tuple[str, str, str]] = set()
         for session in found[Path(path)]:
             tsv = session.tsv
             accounted.add((session.participant, "" if session.session is None
@@ -333,8 +333,9 @@ def _read_trial_file(paths: SessionPaths) -> bytes:
 
 
 def _read_session(paths: SessionPaths, dataset: str, file_number: int
-                  ) -> tuple[pd.DataFrame, dict, list[str]]:
-    """One session's rows as read (typed later, all files at once) and its metadata."""
+                  ) -> tuple[pd.DataFrame, dict, list[str], list[str]]:
+    """One session's rows as read (typed later, all files at once), its metadata, its
+    problems (failed checks) and notes (an interruption, a warning even with ``strict``)."""
     tsv = paths.tsv
     participant = paths.participant
     session = "" if paths.session is None else str(paths.session)
