@@ -75,7 +75,12 @@ import pandas as pd
 from crs_study._files import sha256_bytes
 from crs_study.analysis.plan import Exclusions
 from crs_study.dataset import WITHDRAWAL_JOURNAL, SessionMetadata, SessionPaths, find_sessions
-from crs_study.dataset.evidence import missing_sessions, not_a_regular_file
+from crs_study.dataset.evidence import (
+    UnreadableSession,
+    missing_sessions,
+    not_a_regular_file,
+    read_trial_file,
+)
 from crs_study.dataset.schema import (
     MISSING,
     SYMBOL_COLUMNS,
@@ -149,7 +154,7 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
                            else str(session.session), session.task))
             try:
                 table, meta, problems, notes = _read_session(session, name, len(files))
-            except _Unreadable as exc:
+            except UnreadableSession as exc:
                 warnings += _raise_if_strict([str(exc)], strict)
                 continue
             key = (meta["participant"], meta["session"], meta.pop("_sha256"))
@@ -304,34 +309,6 @@ def _read_sidecar(paths: SessionPaths) -> tuple[SessionMetadata | None, list[str
                       "unchecked"]
 
 
-class _Unreadable(DatasetError):
-    """A session's trial file that cannot be read at all: the session is left out, with a
-    warning (an error with ``strict``)."""
-
-
-def _read_trial_file(paths: SessionPaths) -> bytes:
-    """The bytes of the session's trial file; :class:`_Unreadable` (naming the participant)
-    when it is not a regular file, cannot be read, or is not UTF-8 text."""
-    tsv = paths.tsv
-    why = not_a_regular_file(tsv)
-    if why is None:
-        try:
-            data = tsv.read_bytes()
-        except OSError as exc:
-            why = exc.strerror or type(exc).__name__
-        else:
-            try:
-                data.decode("utf-8")
-            except UnicodeDecodeError as exc:
-                why = f"not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start})"
-            else:
-                return data
-    session = "" if paths.session is None else f" ses-{paths.session}"
-    raise _Unreadable(f"{tsv}: the trial file of sub-{paths.participant}{session} cannot be "
-                      f"read ({why}): participant {paths.participant!r}'s session is left out "
-                      "of the analysis")
-
-
 def _read_session(paths: SessionPaths, dataset: str, file_number: int
                   ) -> tuple[pd.DataFrame, dict, list[str], list[str]]:
     """One session's rows as read (typed later, all files at once), its metadata, its
@@ -339,7 +316,7 @@ def _read_session(paths: SessionPaths, dataset: str, file_number: int
     tsv = paths.tsv
     participant = paths.participant
     session = "" if paths.session is None else str(paths.session)
-    data = _read_trial_file(paths)
+    data = read_trial_file(paths)
     metadata, problems = _read_sidecar(paths)
     notes: list[str] = []
     stopped = None if metadata is None else explained_by_interruption(data, metadata)

@@ -21,6 +21,10 @@ journal that stops the analysis; so a trace without a readable session is never 
 withdrawal leaves, and is reported (:func:`missing_sessions`). Deleting every trace as well
 is not caught: the dataset cannot vouch for what it no longer holds.
 
+A trial file that cannot be read at all (a folder or a named pipe in its place, an OS error,
+bytes that are not UTF-8; :func:`read_trial_file`) is an :class:`UnreadableSession`: the
+analysis leaves that session out with a warning naming the participant.
+
 Not used: the count of arrivals (:data:`~crs_study.dataset.folder.ARRIVALS_FILE`). It holds
 no labels (on purpose: a withdrawal must leave no label behind), and a withdrawal lowers the
 participants without lowering it, so a count above the participants cannot tell a withdrawal
@@ -35,8 +39,15 @@ import stat
 from collections.abc import Collection
 from pathlib import Path
 
-from crs_study.dataset.bids import PARTICIPANTS_TSV, SOURCEDATA, BidsName, beh_files
+from crs_study.dataset.bids import (
+    PARTICIPANTS_TSV,
+    SOURCEDATA,
+    BidsName,
+    SessionPaths,
+    beh_files,
+)
 from crs_study.dataset.outputs import read_outputs
+from crs_study.errors import DatasetError
 
 #: A session as (participant, session label, task), the session "" for a dataset without
 #: sessions.
@@ -58,6 +69,34 @@ def not_a_regular_file(path: Path) -> str | None:
     if stat.S_ISFIFO(mode):
         return "a named pipe, not a file"
     return "not a regular file"
+
+
+class UnreadableSession(DatasetError):
+    """A session's trial file that cannot be read at all: the session is left out, with a
+    warning (an error with ``strict``)."""
+
+
+def read_trial_file(paths: SessionPaths) -> bytes:
+    """The bytes of the session's trial file; :class:`UnreadableSession` (naming the participant)
+    when it is not a regular file, cannot be read, or is not UTF-8 text."""
+    tsv = paths.tsv
+    why = not_a_regular_file(tsv)
+    if why is None:
+        try:
+            data = tsv.read_bytes()
+        except OSError as exc:
+            why = exc.strerror or type(exc).__name__
+        else:
+            try:
+                data.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                why = f"not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start})"
+            else:
+                return data
+    session = "" if paths.session is None else f" ses-{paths.session}"
+    raise UnreadableSession(f"{tsv}: the trial file of sub-{paths.participant}{session} cannot be "
+                      f"read ({why}): participant {paths.participant!r}'s session is left out "
+                      "of the analysis")
 
 
 def session_traces(root: str | Path, task: str | None) -> dict[SessionKey, list[str]]:
