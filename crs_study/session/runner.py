@@ -53,7 +53,7 @@ from crs_study.dataset.session_metadata import (
     SessionMetadata,
     now_utc,
 )
-from crs_study.dataset.session_store import UNDURABLE_SIDECAR_EVERY, SessionStore
+from crs_study.dataset.session_store import SessionStore, sidecar_lag
 from crs_study.device import open_device
 from crs_study.errors import ConsentError, DatasetError, DeviceError, SessionError
 from crs_study.geometry.layout import Layout, device_file_path
@@ -66,6 +66,7 @@ from crs_study.session.responders import Responder, make_responder
 from crs_study.session.responders.keypad import PauseRequested
 from crs_study.session.resume import (
     Fingerprints,
+    check_frames,
     check_resume,
     check_rows,
     check_same_kind_of_run,
@@ -244,11 +245,12 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             check_same_kind_of_run(stored, spec, responder.name, clock_kind, paths.sidecar)
         # The sidecar lags the trial file by a row at most, or by the trials between two
         # sidecar writes of a session written without per-trial durability (a dry-run).
-        lag = UNDURABLE_SIDECAR_EVERY if stored is not None and stored.virtual_clock else 1
+        lag = sidecar_lag(stored) if stored is not None else 1
         store.check_resumable(stored, sidecar_lag=lag)
         began = store.started_trial()  # what the previous run noted, before this one does
         rows = store.recover_rows()
         check_rows(rows, plan, paths.tsv, protocol.symbol_set.column)
+        check_frames(paths.frame_log, rows, plan, trial_frames(protocol, layout))
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials, len(rows), began)
         faults = {f.trial for f in metadata.faults}
