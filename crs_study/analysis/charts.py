@@ -127,7 +127,10 @@ def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> 
                     yerr=[[acc - 100 * float(row["accuracy_ci_low"])],
                           [100 * float(row["accuracy_ci_high"]) - acc]],
                     fmt="D", color=colour, ms=8, capsize=4, lw=2, label=condition)
-    ax.set_xlabel(f"mean correct {result.rt_column.replace('_', ' ')} (s)")
+    # the dots are each participant's mean, the diamonds the participants' geometric mean:
+    # the axis says both, as the legend does
+    ax.set_xlabel(f"{result.rt_column.replace('_', ' ')} of correct trials (s): dots mean, "
+                  "diamonds geometric mean", fontsize=8)
     ax.set_ylabel("correct (%)")
     ax.set_ylim(0, 100)
     _legend(ax, fontsize=8, title="condition (geometric mean RT, pooled\naccuracy; 95 % CI)",

@@ -268,7 +268,7 @@ def _dataset_name(path: Path) -> str:
     description = path / "dataset_description.json"
     try:
         name = json.loads(description.read_text(encoding="utf-8")).get("Name")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         name = None
     return str(name) if name else path.resolve().name
 
@@ -431,10 +431,11 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
             out[column] = values.astype(object).where(values.notna(), np.nan)
         elif column in INT_COLUMNS or column == symbol:
             numbers = _numbers(values, column, where)
-            fraction = numbers.notna() & (numbers % 1 != 0)
+            # a whole number an int64 holds: 1e308 or 99999999999999999999 is no trial's count
+            fraction = numbers.notna() & ((numbers % 1 != 0) | (numbers.abs() >= 2.0 ** 53))
             if fraction.any():
                 raise DatasetError(f"{where(fraction)}: column {column!r}: expected a whole "
-                                   f"number, got {values[fraction].iloc[0]!r}")
+                                   f"number below 2**53, got {values[fraction].iloc[0]!r}")
             out[column] = numbers.astype("Int64")
         elif column in FLOAT_COLUMNS:
             out[column] = _numbers(values, column, where)

@@ -84,7 +84,9 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
                    ("table", _table(pd.DataFrame(sources["sessions"])))]
         blocks += [("p", note) for note in sources["notes"]]
     exclusions = pd.DataFrame(results["exclusions"]).T
-    if not exclusions.empty:
+    if not exclusions.empty:  # conditions in the plan's order, as in every other table
+        order = [c for c in plan.conditions if c in exclusions.columns]
+        exclusions = exclusions[order + [c for c in exclusions.columns if c not in order]]
         exclusions.index.name = "excluded because"
         blocks += [("p", "Exclusions declared in the plan (trials per condition):"),
                    ("table", _table(exclusions.reset_index()))]

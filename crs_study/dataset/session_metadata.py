@@ -356,6 +356,9 @@ class SessionMetadata(_Record):
             data = json.loads(text)
         except ValueError as exc:
             raise DatasetError(f"{source}: not a readable session sidecar: {exc}") from None
+        except RecursionError:  # json recurses once per level of nesting
+            raise DatasetError(f"{source}: not a readable session sidecar: arrays or objects "
+                               "nested too deeply") from None
         return cls.from_dict(data, source)
 
     @classmethod

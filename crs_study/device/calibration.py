@@ -3,7 +3,7 @@
 :meth:`PulseMap.to_pulses` is the one map from millimetres to pulse widths: both devices and
 the wire estimate use it, and the ``device calibrate`` command starts each channel from it.
 Each actuator's :class:`~crs_study.geometry.layout.Calibration` (the device file's numbers) maps
-stroke to pulse width linearly (hardware.md, "Linear PWM servos")::
+stroke to pulse width linearly (linear PWM servos: pulse width in proportion to stroke)::
 
     pulse = zero_us + (full_us - zero_us) * mm / travel_mm,   mm in [0, travel_mm]
 

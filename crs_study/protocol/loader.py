@@ -47,7 +47,7 @@ from crs_study.protocol.model import (
     Protocol,
     ResponseSpec,
     StimulusSpec,
-    one_line_problem,
+    path_problem,
     table_keys,
 )
 from crs_study.protocol.odd_values import protocol_warnings, warning_findings
@@ -139,7 +139,7 @@ def _is_its_text(protocol: Protocol) -> bool:
     try:
         data = tomllib.loads(text)
         return protocol_from_dict(data, protocol.path, text, protocol.sha256) == protocol
-    except (tomllib.TOMLDecodeError, ConfigError):
+    except (tomllib.TOMLDecodeError, ConfigError, RecursionError):
         return False
 
 
@@ -212,8 +212,9 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
 
 
 def _one_line(section: Section, key: str) -> str:
+    """A one-line string that can name a file (``device``, ``strokes_file``)."""
     value = section.raw(key)
-    problem = one_line_problem(value)
+    problem = path_problem(value)
     if problem is not None:
         raise section.fail(key, problem)
     return value

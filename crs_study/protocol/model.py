@@ -113,6 +113,22 @@ def one_line_problem(value: Any) -> str | None:
     return problem
 
 
+#: Longest file name (one path component) and path every common file system takes (NAME_MAX,
+#: PATH_MAX on Linux); a longer value can name no file.
+NAME_MAX, PATH_MAX = 255, 4096
+
+
+def path_problem(value: Any) -> str | None:
+    """Why ``value`` is not a one-line string that can name a file (None when it is)."""
+    problem = one_line_problem(value)
+    if problem is None:
+        longest = max(len(part.encode("utf-8", "surrogatepass")) for part in value.split("/"))
+        if longest > NAME_MAX or len(value.encode("utf-8", "surrogatepass")) > PATH_MAX:
+            problem = (f"expected a file name of at most {NAME_MAX} bytes a component and "
+                       f"{PATH_MAX} in all, got {len(value)} characters ({value[:40]!r}...)")
+    return problem
+
+
 def _fail(key_path: str, problem: str | None) -> None:
     if problem is not None:
         raise ProtocolError(problem, key_path=key_path)
@@ -323,7 +339,8 @@ class Protocol:
         _fail("study.version", one_line_problem(self.version))
         _fail("study.title", string_problem(self.title))
         for key in ("device", "consent_form", "consent_form_version", "analysis_plan"):
-            _fail(f"study.{key}", one_line_problem(getattr(self, key)))
+            check = one_line_problem if key == "consent_form_version" else path_problem
+            _fail(f"study.{key}", check(getattr(self, key)))
         names = self.conditions
         if not isinstance(names, list | tuple):
             _fail("conditions.names", f"expected an array, got {names!r}")

@@ -55,7 +55,7 @@ from crs_study.dataset.session_metadata import (
 )
 from crs_study.dataset.session_store import SessionStore, sidecar_lag
 from crs_study.device import open_device
-from crs_study.errors import ConsentError, DeviceError, SessionError
+from crs_study.errors import ConsentError, DatasetError, DeviceError, SessionError
 from crs_study.geometry.layout import Layout, device_file_path
 from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
@@ -110,10 +110,20 @@ def choose_clock(spec: SessionSpec, responder: Responder) -> str:
     if spec.clock == "virtual" and responder.needs_real_clock:
         raise SessionError(f"the {responder.name} responder needs --clock real (a person answers "
                            "in real time)")
-    if spec.clock == "virtual" and not spec.device_url.startswith("sim://"):
-        raise SessionError(f"--clock virtual needs the simulated device (sim://); "
-                           f"{spec.device_url} moves real servos in real time")
+    if spec.clock == "virtual" and not simulated_url(spec.device_url):
+        raise SessionError(f"--clock virtual needs the simulated device (sim://) or virtual "
+                           f"boards (serial://lscsim://A,lscsim://B); {spec.device_url} moves "
+                           "real servos in real time")
     return spec.clock
+
+
+def simulated_url(url: str) -> bool:
+    """True for a device with no real servos behind it: ``sim://`` or ``serial://`` whose every
+    port is a virtual board (``lscsim://NAME``)."""
+    if url.startswith("sim://"):
+        return True
+    ports = url[len("serial://"):].split(",") if url.startswith("serial://") else []
+    return bool(ports) and all(p.startswith("lscsim://") for p in ports)
 
 
 def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
@@ -255,9 +265,13 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         status = "interrupted"
         origin = 0.0
         try:
+            options = dict(device_options or {})
+            if spec.device_url.startswith("sim://"):  # injected faults: once per session
+                options.setdefault("faults_met", len(metadata.faults))
             with terminate_as_interrupt(), responder, open_device(
-                    spec.device_url, layout, clock, **(device_options or {})) as device:
+                    spec.device_url, layout, clock, **options) as device:
                 device.neutral()
+                responder.start_session(spec.participant, spec.session, plan, first)
                 if clock_kind == "virtual":
                     clock.sleep_until(0.0)
                     if rows:
@@ -309,6 +323,14 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             save_after_failure(state)
             raise DeviceError(f"device fault {where}: {error}; the session is marked "
                               "interrupted: run the same command to resume") from None
+        except DatasetError as error:  # a full disk, a folder gone: the stored trials stay
+            status = "failed"
+            record_interruption(state, "error", f"{type(error).__name__}: {error}")
+            save_after_failure(state)
+            raise DatasetError(
+                f"{error}; the session is paused at trial {len(state.rows) + 1}/{n_trials} "
+                f"with the {len(state.rows)} trials before it stored: fix that (free some "
+                "space) and run the same command to resume") from None
         except BaseException as error:
             status = "failed"
             record_interruption(state, "error", f"{type(error).__name__}: {error}")

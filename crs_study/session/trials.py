@@ -182,7 +182,11 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
     """Play ``trial``, collect its response and store it durably (the module docstring)."""
     protocol = state.protocol
     if trial.prompt_before or trial.break_before:
-        responder.prompt(trial.prompt_before or BREAK_PROMPT, clock)
+        text = trial.prompt_before or BREAK_PROMPT
+        if trial.break_before:  # the rest it is meant to be: the keypad counts it down
+            responder.prompt(text, clock, rest_s=float(protocol.design.break_duration_s))
+        else:
+            responder.prompt(text, clock)
     if trial.break_before and not responder.needs_real_clock:  # a person rests until ready
         clock.sleep(float(protocol.design.break_duration_s))
     level = trial.level
