@@ -217,7 +217,7 @@ def column_dictionary() -> dict[str, Any]:
     dataset, and only sessions of protocols with ``[levels]`` hold them.
     """
     columns: dict[str, Any] = {}
-    described = {**schema.TRIAL_COLUMNS, **schema.LEVEL_COLUMNS}
+    described = {**schema.TRIAL_COLUMNS, **schema.LEVEL_COLUMNS, **schema.ADAPTIVE_COLUMNS}
     for name, (description, units) in described.items():
         entry: dict[str, Any] = {"LongName": name.replace("_", " "), "Description": description}
         if units in _LEVEL_TEXT:

@@ -62,14 +62,38 @@ LEVEL_COLUMNS: dict[str, tuple[str, str]] = {
 }
 
 
-def trial_columns(level_column: str | None = None) -> tuple[str, ...]:
-    """A session TSV's columns: :data:`TRIAL_COLUMNS`, with ``level_column`` after ``digit``."""
+#: Adaptive columns: a session whose protocol has an ``[adaptive]`` table records, after the
+#: level column, the state of the block's procedure once the trial's response is given
+#: (:mod:`crs_study.adaptive`); n/a on practice trials, which no procedure sees.
+ADAPTIVE_COLUMNS: dict[str, tuple[str, str]] = {
+    "adaptive_estimate": ("The block's threshold estimate after this trial, in the level's "
+                          "units: the level at the protocol's target rate (QUEST+: posterior "
+                          "mean; staircase: mean of the last reversals on its scale); n/a "
+                          "before there is one", "as the level column"),
+    "adaptive_ci_low": ("Lower end of the estimate's 95 % interval (QUEST+: posterior "
+                        "quantile; staircase: Student t over the last reversals)",
+                        "as the level column"),
+    "adaptive_ci_high": ("Upper end of the estimate's 95 % interval", "as the level column"),
+    "adaptive_reversal": ("1 when this trial's response reversed the track's direction "
+                          "(the staircase's reversal levels are these trials' levels)", "0|1"),
+    "adaptive_reversals": ("Reversals of the block's track so far, this trial included",
+                           "count"),
+}
+
+
+def trial_columns(level_column: str | None = None, adaptive: bool = False
+                  ) -> tuple[str, ...]:
+    """A session TSV's columns: :data:`TRIAL_COLUMNS`, with ``level_column`` after ``digit``
+    and, for an adaptive protocol, :data:`ADAPTIVE_COLUMNS` after it."""
     names = list(TRIAL_COLUMNS)
     if level_column is None:
+        if adaptive:
+            raise ValueError("adaptive columns need the level column")
         return tuple(names)
     if level_column not in LEVEL_COLUMNS:
         raise ValueError(f"expected a level column {sorted(LEVEL_COLUMNS)}, got {level_column!r}")
-    names.insert(names.index("digit") + 1, level_column)
+    at = names.index("digit") + 1
+    names[at:at] = [level_column, *(ADAPTIVE_COLUMNS if adaptive else ())]
     return tuple(names)
 
 

@@ -8,9 +8,12 @@ indent, a final newline), so a sidecar read and written again is byte for byte t
 
 Reading is strict: a key the format does not have, a key it needs that is missing, or a value
 of the wrong type is a one-line :class:`~crs_study.errors.DatasetError` naming the file and the
-key. One key may be absent: ``StimulusSha256`` (sidecars begun by software older than the
+key. Two keys may be absent: ``StimulusSha256`` (sidecars begun by software older than the
 stimulus fingerprint lack it; read as None, and the runner then records null: it cannot vouch
-for trials drawn by older software).
+for trials drawn by older software) and ``AdaptiveStateSha256`` (written only for adaptive
+protocols: the fingerprint of the procedures' state after ``TrialsCompleted`` trials,
+:meth:`crs_study.adaptive.AdaptiveRun.fingerprint`; a resume replays the recorded responses
+and must reach it).
 
 The JSON keys are BIDS-style CamelCase; entries of ``Resumes`` have ``Time``, ``AtTrial``,
 ``DeviceURL``, ``SoftwareVersion``; entries of ``Faults`` ``trial``, ``time``, ``message``
@@ -36,7 +39,9 @@ ClockKind = Literal["real", "virtual"]
 STATUSES: tuple[str, ...] = ("running", "interrupted", "complete")
 CLOCKS: tuple[str, ...] = ("real", "virtual")
 #: Keys a sidecar written by older software may lack (read as None).
-OPTIONAL_KEYS = frozenset({"StimulusSha256"})
+OPTIONAL_KEYS = frozenset({"StimulusSha256", "AdaptiveStateSha256"})
+#: Keys left out of the JSON when None (so a fixed protocol's sidecar is what it always was).
+OMITTED_WHEN_NONE = frozenset({"AdaptiveStateSha256"})
 
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _LABEL = re.compile(r"[A-Za-z0-9]+")
@@ -147,7 +152,8 @@ class _Record:
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object (plain types), keys in their written order."""
-        return {key: _dump(getattr(self, attribute)) for key, attribute, _ in self._KEYS}
+        return {key: _dump(getattr(self, attribute)) for key, attribute, _ in self._KEYS
+                if not (key in OMITTED_WHEN_NONE and getattr(self, attribute) is None)}
 
     @classmethod
     def _parse(cls, data: Any, path: str = "") -> Any:
@@ -254,6 +260,7 @@ class SessionMetadata(_Record):
     trials_sha256: str | None
     resumes: tuple[Resume, ...] = ()
     faults: tuple[Fault, ...] = ()
+    adaptive_state_sha256: str | None = None
 
     _KEYS = (
         ("TaskName", "task_name", _label),
@@ -284,6 +291,8 @@ class SessionMetadata(_Record):
         ("TrialsPlanned", "trials_planned", _whole(0)),
         ("TrialsCompleted", "trials_completed", _whole(0)),
         ("TrialsSha256", "trials_sha256", _or_none(_sha256)),  # the _beh.tsv bytes, last write
+        # the adaptive procedures' state after TrialsCompleted trials (adaptive protocols)
+        ("AdaptiveStateSha256", "adaptive_state_sha256", _or_none(_sha256)),
         ("Resumes", "resumes", _entries(Resume, "Resumes")),  # one per resume
         ("Faults", "faults", _entries(Fault, "Faults")),     # device faults during trials
     )
@@ -347,10 +356,12 @@ class SessionMetadata(_Record):
         return {key: getattr(self, by_key[key]) for key in FINGERPRINTS}
 
     def with_progress(self, status: Status, trials_completed: int, trials_sha256: str,
-                      end_time: datetime | None) -> SessionMetadata:
+                      end_time: datetime | None, adaptive_state_sha256: str | None = None
+                      ) -> SessionMetadata:
         """A copy with the session's progress updated (what each sidecar write changes)."""
         return replace(self, status=status, trials_completed=trials_completed,
-                       trials_sha256=trials_sha256, end_time=end_time)
+                       trials_sha256=trials_sha256, end_time=end_time,
+                       adaptive_state_sha256=adaptive_state_sha256)
 
 
 #: What a stored session must match to be resumed: JSON key -> how a message names it.

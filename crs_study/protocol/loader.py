@@ -7,7 +7,9 @@ size in pixel pitches, the bump, stroke speed, placement, frame rate), ``[condit
 (repetitions, blocking, counterbalancing, run constraint, practice, breaks, inter-trial
 interval) and ``[responses]`` (keys, time limit, feedback). An optional ``[levels]`` table
 varies one stimulus parameter across trials (a psychometric study,
-:class:`~crs_study.protocol.model.LevelSpec`).
+:class:`~crs_study.protocol.model.LevelSpec`); an optional ``[adaptive]`` table lets a
+staircase or QUEST+ choose it trial by trial instead
+(:class:`~crs_study.adaptive.spec.AdaptiveSpec`).
 
 Reading is strict (:mod:`crs_study._toml`): each table declares its keys
 (:data:`~crs_study.protocol.model.TABLE_KEYS`), so a stray key is refused first, named with
@@ -32,6 +34,7 @@ from typing import Any
 
 from crs_study._toml import Section, parse_toml
 from crs_study._toml_lines import locate, one_line
+from crs_study.adaptive.spec import AdaptiveSpec, QuestPlusSpec, StaircaseSpec
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import BUILTIN_DEVICES
 from crs_study.paths import resolve_protocol
@@ -45,6 +48,7 @@ from crs_study.protocol.model import (
     Protocol,
     ResponseSpec,
     StimulusSpec,
+    adaptive_levels,
     one_line_problem,
 )
 from crs_study.protocol.odd_values import protocol_warnings, warning_findings
@@ -174,6 +178,12 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     levels_table = table("levels") if root.has("levels") else None
     if levels_table is None:
         root.raw("levels", None)
+    adaptive_table = table("adaptive") if root.has("adaptive") else None
+    if adaptive_table is None:
+        root.raw("adaptive", None)
+    elif levels_table is not None:
+        raise root.fail("adaptive", "a protocol either crosses fixed [levels] with its "
+                        "trials or lets [adaptive] choose them: remove one of the two tables")
     root.done()
 
     study_fields: dict[str, Any] = {
@@ -191,7 +201,9 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     prompts_table.done()
     conditions_table.done()
     levels = _levels(levels_table) if levels_table is not None else None
-    stimulus = _stimulus(stimulus_table, path, levels)
+    adaptive = _adaptive(adaptive_table) if adaptive_table is not None else None
+    stimulus = _stimulus(stimulus_table, path,
+                         levels if adaptive is None else adaptive_levels(adaptive))
     design = _design(design_table)
     if design.ordering == "interleaved" and prompts:
         raise conditions_table.fail(
@@ -201,7 +213,7 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     responses = _responses(responses_table, stimulus.digits)
     return Protocol(path=path, text=text, sha256=sha256, conditions=names,
                     condition_prompts=prompts, stimulus=stimulus, design=design,
-                    responses=responses, levels=levels, **study_fields)
+                    responses=responses, levels=levels, adaptive=adaptive, **study_fields)
 
 
 def _one_line(section: Section, key: str) -> str:
@@ -233,6 +245,66 @@ def _levels(table: Section) -> LevelSpec:
     width = table.raw("width_to_height", ... if parameter == "digit_height_pitch" else None)
     table.done()
     return LevelSpec(parameter, values, width)
+
+
+def _adaptive(table: Section) -> AdaptiveSpec:
+    """The ``[adaptive]`` table and its procedure's sub-table (protocols/README.md)."""
+    def sub(name: str, required: tuple[str, ...]) -> dict | None:
+        if not table.has(name):
+            table.raw(name, None)
+            return None
+        section = table.table(name, keys=TABLE_KEYS[f"adaptive.{name}"])
+        for key in required:
+            section.raw(key)  # a missing required key is named with its line
+        values = {key: section.raw(key) for key in section.data}
+        section.done()
+        return values
+
+    staircase = sub("staircase", ("rule", "start", "steps"))
+    quest_plus = sub("quest_plus", ("thresholds", "slopes", "lapse_rates"))
+    staircase = StaircaseSpec(**staircase) if staircase is not None else None
+    quest_plus = QuestPlusSpec(**quest_plus) if quest_plus is not None else None
+    parameter = table.raw("parameter")
+    values = table.raw("values")
+    # a varied height needs the digits' shape; with another parameter the key is refused
+    width = table.raw("width_to_height", ... if parameter == "digit_height_pitch" else None)
+    table.done()
+    return LevelSpec(parameter, values, width)
+
+
+def _adaptive(table: Section) -> AdaptiveSpec:
+    """The ``[adaptive]`` table and its procedure's sub-table (protocols/README.md)."""
+    def sub(name: str) -> dict | None:
+        if not table.has(name):
+            table.raw(name, None)
+            return None
+        section = table.table(name, keys=TABLE_KEYS[f"adaptive.{name}"])
+        values = {key: section.raw(key, ...) if key in required else section.raw(key, ...)
+                  for key in section.data}
+        for key in required:
+            section.raw(key)  # a missing required key is named with its line
+        section.done()
+        return values
+
+    required = ("rule", "start", "steps")
+    staircase = sub("staircase")
+    if staircase is not None:
+        staircase = StaircaseSpec(**staircase)
+    required = ("thresholds", "slopes", "lapse_rates")
+    quest_plus = sub("quest_plus")
+    if quest_plus is not None:
+        quest_plus = QuestPlusSpec(**quest_plus)
+    parameter = table.raw("parameter")
+    spec = AdaptiveSpec(
+        parameter, table.raw("procedure"), table.raw("trials"), table.raw("min"),
+        table.raw("max"), table.raw("scale"), table.raw("levels"),
+        target_rate=table.raw("target_rate", None),
+        practice_level=table.raw("practice_level", None),
+        width_to_height=table.raw("width_to_height",
+                                  ... if parameter == "digit_height_pitch" else None),
+        staircase=staircase, quest_plus=quest_plus)
+    table.done()
+    return spec
 
 
 def _check_strokes_file(table: Section, strokes_file: str, digits: tuple[int, ...]) -> None:

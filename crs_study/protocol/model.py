@@ -3,7 +3,10 @@
 A :class:`Protocol` holds one table of the file per part: ``[study]`` (its own fields),
 ``[stimulus]`` (:class:`~crs_study.stimuli.stimulus.StimulusSpec`, from the stimulus layer),
 ``[conditions]``, ``[design]`` (:class:`DesignSpec`), ``[responses]`` (:class:`ResponseSpec`)
-and the optional ``[levels]`` (:class:`LevelSpec`). Every dataclass checks its fields on
+and the optional ``[levels]`` (:class:`LevelSpec`) or ``[adaptive]``
+(:class:`~crs_study.adaptive.spec.AdaptiveSpec`, from the adaptive layer: a procedure
+chooses each test trial's level; ``Protocol.levels`` then lists every level it can show, so
+what is checked or drawn per level covers them). Every dataclass checks its fields on
 construction: a wrong type or a value out of range is a one-line
 :class:`~crs_study.errors.ProtocolError` carrying the protocol key at fault (``key_path``),
 whether the value came from a file (:mod:`crs_study.protocol.loader` adds the file and the
@@ -20,6 +23,7 @@ from pathlib import Path
 from typing import Any, Literal, get_args
 
 from crs_study._toml import integer_problem, number_problem, string_problem
+from crs_study.adaptive.spec import AdaptiveSpec, QuestPlusSpec, StaircaseSpec
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import Layout, load_layout
 from crs_study.paths import shipped_file
@@ -269,6 +273,8 @@ class Protocol:
     design: DesignSpec
     responses: ResponseSpec
     levels: LevelSpec | None = None  # None: every trial shows the [stimulus] values
+    #: a procedure chooses each test trial's level (``levels`` is then derived from it)
+    adaptive: AdaptiveSpec | None = None
     #: what the device checks passed (:func:`crs_study.protocol.feasibility.check_on_device`)
     checks: tuple[str, ...] = field(default=(), compare=False)
     #: odd but legal values, one line each (``FILE:LINE: key: ...``;
@@ -302,6 +308,9 @@ class Protocol:
             _fail(f"conditions.prompts.{name}", one_line_problem(prompt))
         _freeze(self, conditions=tuple(names),
                 condition_prompts=tuple((n, p) for n, p in self.condition_prompts))
+        if self.adaptive is not None:
+            _check_adaptive(self)
+            _freeze(self, levels=adaptive_levels(self.adaptive))
 
     @property
     def level_values(self) -> tuple[float | None, ...]:
@@ -360,9 +369,54 @@ class Protocol:
         return _layout(self.device)
 
 
+def adaptive_levels(spec: AdaptiveSpec) -> LevelSpec:
+    """Every level an adaptive procedure can show, as the :class:`LevelSpec` the rest of the
+    pipeline reads (feasibility, stimulus fingerprint, frames, the observer). Its values are
+    the adaptive spec's (checked there, up to
+    :data:`~crs_study.adaptive.spec.MAX_ADAPTIVE_LEVELS` of them), so ``LevelSpec``'s own
+    checks (at most :data:`MAX_LEVELS` levels of a crossed design) are not run."""
+    levels = object.__new__(LevelSpec)
+    _freeze(levels, parameter=spec.parameter, values=spec.shown_levels(),
+            width_to_height=spec.width_to_height)
+    return levels
+
+
+def _check_adaptive(protocol: Protocol) -> None:
+    """What ``[adaptive]`` asks of the other tables: blocked conditions, one block each (its
+    own track), a target above chance, the digits' shape when their height adapts."""
+    spec, design = protocol.adaptive, protocol.design
+    if not isinstance(spec, AdaptiveSpec):
+        _fail("adaptive", f"expected an adaptive spec, got {spec!r}")
+    if design.ordering != "blocked":
+        _fail("design.ordering", "an adaptive procedure runs one track per block (the "
+              f"skeleton is mounted by hand): expected \"blocked\", got {design.ordering!r}")
+    if design.repetitions != 1:
+        _fail("design.repetitions", "with [adaptive], each condition's block is one track of "
+              f"adaptive.trials trials: expected 1, got {design.repetitions!r}")
+    chance = 1.0 / len(protocol.stimulus.digits)
+    if spec.rate <= chance:
+        key = "adaptive.target_rate" if spec.target_rate is not None else \
+            "adaptive.staircase.rule"
+        _fail(key, f"the target rate {spec.rate:.4g} is at or below chance (1 / "
+              f"{len(protocol.stimulus.digits)} digits = {chance:.4g}); expected a rate above it")
+    ratio = spec.width_to_height
+    if spec.parameter == "digit_height_pitch":
+        low_ratio, high_ratio = WIDTH_TO_HEIGHT_RANGE
+        _fail("adaptive.width_to_height", number_problem(ratio, minimum=low_ratio,
+                                                         maximum=high_ratio))
+        low, high = NUMBER_RANGES["digit_width_pitch"][:2]
+        for key, level in (("min", spec.minimum), ("max", spec.maximum)):
+            if not low <= level * ratio <= high:
+                _fail(f"adaptive.{key}", f"the width {level * ratio:g} pitch (width_to_height "
+                      f"{ratio:g} x {level:g}) is outside {low:g}-{high:g}")
+    elif ratio is not None:
+        _fail("adaptive.width_to_height", "only used with parameter = "
+              f"\"digit_height_pitch\", got parameter = {spec.parameter!r}")
+
+
 #: The keys of each table (``""``: the top level); a key outside them is refused at once.
 TABLE_KEYS: dict[str, tuple[str, ...]] = {
-    "": ("study", "stimulus", "conditions", "design", "responses", "levels"),
+    "": ("study", "stimulus", "conditions", "design", "responses", "levels", "adaptive"),
     "study": ("id", "version", "title", "device", "consent_form", "consent_form_version",
               "analysis_plan"),
     "stimulus": tuple(f.name for f in fields(StimulusSpec)),
@@ -370,6 +424,11 @@ TABLE_KEYS: dict[str, tuple[str, ...]] = {
     "design": tuple(f.name for f in fields(DesignSpec)),
     "responses": tuple(f.name for f in fields(ResponseSpec)),
     "levels": tuple(f.name for f in fields(LevelSpec)),
+    "adaptive": ("parameter", "procedure", "trials", "min", "max", "scale", "levels",
+                 "target_rate", "practice_level", "width_to_height", "staircase",
+                 "quest_plus"),
+    "adaptive.staircase": tuple(f.name for f in fields(StaircaseSpec)),
+    "adaptive.quest_plus": tuple(f.name for f in fields(QuestPlusSpec)),
 }
 
 _LAYOUTS: dict[str, Layout] = {}

@@ -99,12 +99,29 @@ def check_same_kind_of_run(stored: SessionMetadata, spec: SessionSpec, responder
                 "another --session")
 
 
-def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path) -> None:
-    """The stored rows are the plan's first trials, in order (else the file is another's)."""
+def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path, *,
+               may_skip: bool = False) -> None:
+    """The stored rows are the plan's first trials, in order (else the file is another's).
+
+    ``may_skip``: an adaptive protocol's rows may leave out trials (those a finished staircase
+    skipped: :func:`crs_study.session.adaptive.rebuild` checks which); their indices still
+    rise."""
     if len(rows) > len(plan.trials):
         raise SessionError(f"{tsv}: {len(rows)} rows but the plan has {len(plan.trials)} trials")
+    previous = -1
     for k, row in enumerate(rows):
-        trial = plan.trials[k]
+        index = k
+        if may_skip:
+            try:
+                index = int(row["trial_index"])
+            except ValueError:
+                index = -1
+            if not previous < index < len(plan.trials):
+                raise SessionError(f"{tsv}: row {k + 1} holds trial_index "
+                                   f"{row['trial_index']!r} after {previous}; the file does not "
+                                   "belong to this plan")
+            previous = index
+        trial = plan.trials[index]
         stored = (row["trial_index"], row["condition"], row["digit"])
         wanted = (str(trial.index), trial.condition, str(trial.digit))
         if stored != wanted:

@@ -40,6 +40,7 @@ from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.protocol.plan import TrialPlan, make_plan
+from crs_study.session.adaptive import choose, rebuild
 from crs_study.session.prompts import INSTRUCTIONS, TASK_DESCRIPTION, resume_prompt
 from crs_study.session.responders import Responder, make_responder
 from crs_study.session.resume import (
@@ -115,9 +116,11 @@ def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
 
 
 def session_columns(protocol: Protocol) -> tuple[str, ...]:
-    """The session TSV's columns: the schema's, plus the level column when levels vary."""
+    """The session TSV's columns: the schema's, plus the level column when levels vary (and
+    the adaptive columns when a procedure chooses them)."""
     levels = protocol.levels
-    return schema.trial_columns(levels.column if levels is not None else None)
+    return schema.trial_columns(levels.column if levels is not None else None,
+                                adaptive=protocol.adaptive is not None)
 
 
 def seed_check(spec: SessionSpec) -> dict[str, str | int]:
@@ -177,8 +180,10 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         if stored is not None and stored.is_complete:
             # Never rewritten: checked read-only (no torn-tail cut), then left alone.
             rows = store.verify_complete(stored.trials_sha256)
-            check_rows(rows, plan, paths.tsv)
-            if len(rows) != n_trials:
+            check_rows(rows, plan, paths.tsv, may_skip=protocol.adaptive is not None)
+            if protocol.adaptive is not None:  # trials a finished staircase skipped
+                rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar, complete=True)
+            elif len(rows) != n_trials:
                 raise SessionError(
                     f"{paths.sidecar}: the session is marked complete but holds {len(rows)} "
                     f"of {n_trials} planned trials; a completed session is never rewritten: "
@@ -192,19 +197,23 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         if stored is not None:
             check_same_kind_of_run(stored, spec, responder.name, clock_kind, paths.sidecar)
         rows = store.recover_rows()
-        check_rows(rows, plan, paths.tsv)
+        check_rows(rows, plan, paths.tsv, may_skip=protocol.adaptive is not None)
+        run = rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar)
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials)
         faults = {f.trial for f in metadata.faults}
-        state = SessionState(spec, protocol, layout, plan, store, metadata, rows, faults)
+        state = SessionState(spec, protocol, layout, plan, store, metadata, rows, faults,
+                             adaptive=run,
+                             adaptive_sha256=None if run is None else run.fingerprint())
         resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
         clock: Clock = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
         frames = trial_frames(protocol, layout)
         store.create()
         save(state, "running", final=True)
-        first = len(rows)
+        first = int(rows[-1]["trial_index"]) + 1 if rows else 0  # (= len(rows) unless skipped)
         status = "interrupted"
         origin = 0.0
+        current = first  # the plan index of the trial under way (a skipped one never is)
         try:
             with terminate_as_interrupt(), responder, open_device(
                     spec.device_url, layout, clock, **(device_options or {})) as device:
@@ -222,17 +231,21 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                 if first and not responder.simulated:
                     responder.prompt(resume_prompt(plan, first), clock)
                 for k in range(first, n_trials):
+                    trial = choose(plan.trials[k], run)
+                    if trial is None:  # its block's staircase has finished
+                        continue
+                    current = k
                     if progress:
                         progress(f"sub-{spec.participant} ses-{spec.session}: trial "
                                  f"{k + 1}/{n_trials}")
                     state.in_trial = True
-                    run_trial(state, device, responder, clock, origin, frames, plan.trials[k])
+                    run_trial(state, device, responder, clock, origin, frames, trial)
                     state.in_trial = False
                 status = "complete"
         except KeyboardInterrupt:
             status = "interrupted"
         except DeviceError as error:
-            k = len(state.rows)
+            k = current if state.in_trial else len(state.rows)
             where = f"at trial {k + 1}/{n_trials}" if state.in_trial else \
                 f"before trial {k + 1}/{n_trials}"
             if state.in_trial:
@@ -253,7 +266,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             save(state, "complete", final=True)
         done = len(state.rows)
         return SessionResult(
-            status, spec.participant, spec.session, n_trials, done, done - first,
+            status, spec.participant, spec.session, n_trials, done, done - len(rows),
             state.late_frames, (clock.now() - origin) - resume_at,
             time.perf_counter() - wall_start, paths.tsv, paths.sidecar,
             f"session {spec.session} of participant {spec.participant}: {done}/{n_trials} "

@@ -6,6 +6,7 @@ import contextlib
 import signal
 from dataclasses import dataclass, field
 
+from crs_study.adaptive import AdaptiveRun
 from crs_study.dataset.session_metadata import SessionMetadata, Status, now_utc
 from crs_study.dataset.session_store import SessionStore
 from crs_study.errors import CrsStudyError
@@ -30,6 +31,9 @@ class SessionState:
     faults: set[int] = field(default_factory=set)
     late_frames: int = 0
     in_trial: bool = False  # a device fault now interrupts a trial (rerun with device_fault)
+    adaptive: AdaptiveRun | None = None  # the blocks' procedures ([adaptive] protocols)
+    #: the procedures' fingerprint after ``rows`` (set with each stored row)
+    adaptive_sha256: str | None = None
 
 
 def ignore_interrupts() -> contextlib.AbstractContextManager[None]:
@@ -43,7 +47,7 @@ def save(state: SessionState, status: Status, final: bool = False) -> None:
         state.store.sync()
     state.metadata = state.metadata.with_progress(
         status, len(state.rows), state.store.trials_sha256,
-        now_utc() if status != "running" else None)
+        now_utc() if status != "running" else None, state.adaptive_sha256)
     state.store.write_sidecar(state.metadata, final=final)
 
 
