@@ -27,7 +27,8 @@ BIAS_CORRECTIONS = ("miller-madow", "none")
 BOOTSTRAP_UNITS = ("participant", "trial")
 PSYCHOMETRIC_FUNCTIONS = ("logistic", "weibull")
 REPORT_FORMATS = ("markdown", "html")
-CHARTS = ("accuracy", "confusion", "speed_accuracy", "caf", "psychometric")
+CHARTS = ("accuracy", "confusion", "speed_accuracy", "caf", "psychometric", "tracks",
+          "thresholds")
 #: Columns a protocol may vary; the first present with more than one value is the level.
 KNOWN_LEVEL_COLUMNS = ("digit_height", "stroke_speed", "digit_size", "stimulus_level")
 

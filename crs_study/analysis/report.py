@@ -48,6 +48,7 @@ from crs_study.analysis.jsonable import to_jsonable
 from crs_study.analysis.plan import AnalysisPlan
 from crs_study.analysis.primary import PrimaryResult, primary_test
 from crs_study.analysis.psychometric import PsychometricResult, analyse_psychometric
+from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
 from crs_study.analysis.report_text import write_report
 from crs_study.analysis.secondary import SecondaryResult, secondary_tests
 from crs_study.analysis.sources import summarise_sources
@@ -58,7 +59,7 @@ from crs_study.errors import AnalysisError, DatasetError
 
 #: The charts :meth:`Analysis.plot` draws by name (``confusion``: one per condition, through
 #: :func:`crs_study.analysis.charts.plot_confusion` and ``Analysis.confusions[condition]``).
-PLOTS = ("accuracy", "speed_accuracy", "caf", "psychometric")
+PLOTS = ("accuracy", "speed_accuracy", "caf", "psychometric", "tracks", "thresholds")
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,9 @@ class Analysis:
         What the reader must know, one sentence each (as ``results.json`` lists them).
     files : ReportFiles or None
         What ``analyze(write=True)`` wrote (:meth:`write` returns its own).
+    thresholds : ThresholdResult or None
+        Adaptive sessions' thresholds per participant and condition and their paired
+        comparison (else ``skipped``).
     """
 
     data: StudyData
@@ -112,6 +116,7 @@ class Analysis:
     warnings: tuple[str, ...]
     content: dict = field(repr=False)  # results.json's, but ``charts``: see to_dict()
     files: ReportFiles | None = None
+    thresholds: ThresholdResult | None = None
 
     @property
     def plan(self) -> AnalysisPlan:
@@ -152,7 +157,9 @@ class Analysis:
         draw = {"accuracy": lambda: charts.plot_accuracy(self.accuracy, ax),
                 "speed_accuracy": lambda: charts.plot_speed_accuracy(self.speed_accuracy, ax),
                 "caf": lambda: charts.plot_caf(self.speed_accuracy, ax),
-                "psychometric": lambda: charts.plot_psychometric(self.psychometric, ax)}
+                "psychometric": lambda: charts.plot_psychometric(self.psychometric, ax),
+                "tracks": lambda: charts.plot_tracks(self.thresholds, ax),
+                "thresholds": lambda: charts.plot_thresholds(self.thresholds, ax)}
         if chart not in draw:
             raise AnalysisError(f"no chart {chart!r}; expected one of {', '.join(PLOTS)} "
                                 "(a confusion matrix: charts.plot_confusion("
@@ -298,6 +305,10 @@ def run_analyses(data: StudyData) -> Analysis:
         trials, conditions, chance, psych_plan.level_column, psych_plan.function,
         psych_plan.lapse_max, psych_plan.threshold, psych_plan.bootstrap, plan.seed, alpha)
     warnings += psychometric.warnings
+    thresholds = analyse_thresholds(data.all_trials, trials, data.sessions, conditions,
+                                    reference, chance, psych_plan.lapse_max,
+                                    psych_plan.bootstrap, plan.seed, alpha)
+    warnings += thresholds.warnings
     tables = accuracy.to_dict()
     primary_part, secondary_part = primary.to_dict(), secondary.to_dict()
     results = {
@@ -314,6 +325,7 @@ def run_analyses(data: StudyData) -> Analysis:
         "information_transfer": Confusions(confusions).to_dict(),
         "speed_accuracy": speed.to_dict(),
         "psychometric": psychometric.to_dict(),
+        "thresholds": thresholds.to_dict(),
         "warnings": warnings,
     }
     results["headline"] = headline(results)
@@ -337,7 +349,8 @@ def run_analyses(data: StudyData) -> Analysis:
         results["warnings"].append(f"results.json: non-finite values written as null at "
                                    f"{', '.join(non_finite[:5])}")
     return Analysis(data, accuracy, primary, secondary, Confusions(confusions), speed,
-                    psychometric, results["headline"], tuple(results["warnings"]), results)
+                    psychometric, results["headline"], tuple(results["warnings"]), results,
+                    thresholds=thresholds)
 
 
 def draw_charts(analysis: Analysis, folder: Path) -> list[Path]:
@@ -359,6 +372,11 @@ def draw_charts(analysis: Analysis, folder: Path) -> list[Path]:
     if "psychometric" in wanted and analysis.psychometric.fits:
         files.append(charts.save(charts.plot_psychometric(analysis.psychometric),
                                  folder / "psychometric.png"))
+    adaptive = analysis.thresholds is not None and not analysis.thresholds.skipped
+    for name in ("tracks", "thresholds"):
+        if name in wanted and adaptive:
+            draw = charts.plot_tracks if name == "tracks" else charts.plot_thresholds
+            files.append(charts.save(draw(analysis.thresholds), folder / f"{name}.png"))
     return files
 
 
