@@ -195,7 +195,7 @@ def plot_tracks(result: ThresholdResult, ax: Axes | None = None) -> Axes:
     ax = _axes(ax, (6.0, 4.0))
     colours = _conditions(result)
     tracks = result.tracks
-    for (participant, condition), track in tracks.groupby(["participant_id", "condition"]):
+    for (_, condition), track in tracks.groupby(["participant_id", "condition"]):
         colour = colours.get(condition, "k")
         ax.plot(track["trial"], track["level"], color=colour, alpha=0.3, lw=0.8)
         reversals = track[track["reversal"]]

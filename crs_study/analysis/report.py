@@ -48,12 +48,12 @@ from crs_study.analysis.jsonable import to_jsonable
 from crs_study.analysis.plan import AnalysisPlan
 from crs_study.analysis.primary import PrimaryResult, primary_test
 from crs_study.analysis.psychometric import PsychometricResult, analyse_psychometric
-from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
 from crs_study.analysis.report_text import write_report
 from crs_study.analysis.secondary import SecondaryResult, secondary_tests
 from crs_study.analysis.sources import summarise_sources
 from crs_study.analysis.speed_accuracy import SpeedAccuracyResult, analyse_speed_accuracy
 from crs_study.analysis.study_data import DatasetPaths, StudyData, load_dataset
+from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
 from crs_study.dataset.bids import DERIVATIVES, derivatives_dir
 from crs_study.errors import AnalysisError, DatasetError
 

@@ -105,8 +105,9 @@ class ThresholdComparison:
         else:
             size = (f"{self.mean_difference:+.3g} {column} from the {self.reference} "
                     f"threshold (95 % CI {self.ci95[0]:+.3g} to {self.ci95[1]:+.3g})")
-        return (f"{self.condition} threshold ({self.method}) is {size}; paired t({self.n_pairs - 1})"
-                f" = {self.t:.3g}, p = {self.pvalue:.3g}, {self.n_pairs} participants")
+        return (f"{self.condition} threshold ({self.method}) is {size}; paired "
+                f"t({self.n_pairs - 1}) = {self.t:.3g}, p = {self.pvalue:.3g}, "
+                f"{self.n_pairs} participants")
 
 
 @dataclass(frozen=True)
@@ -258,14 +259,15 @@ def _paired(table: pd.DataFrame, method: str, condition: str, reference: str,
     pairs = wide[[reference, condition]].dropna()
     if len(pairs) < 2:
         return None
-    diff = design.to_axis(pairs[condition].to_numpy()) - design.to_axis(pairs[reference].to_numpy())
+    ours, theirs = design.to_axis(pairs[condition].to_numpy()), \
+        design.to_axis(pairs[reference].to_numpy())
+    diff = ours - theirs
     n = len(diff)
     mean, se = float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(n))
     half = float(stats.t.ppf(1 - alpha / 2, n - 1)) * se
     with _warnings.catch_warnings():
         _warnings.simplefilter("ignore")  # a zero spread makes t infinite: reported as is
-        test = stats.ttest_rel(design.to_axis(pairs[condition].to_numpy()),
-                               design.to_axis(pairs[reference].to_numpy()))
+        test = stats.ttest_rel(ours, theirs)
         wilcoxon = stats.wilcoxon(diff).pvalue if np.any(diff != 0) and n >= 6 else None
     ratio = ratio_ci = None
     if design.scale == "log":
