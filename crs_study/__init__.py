@@ -40,7 +40,7 @@ listed before it (checked: ``[tool.importlinter]`` in pyproject.toml):
 ``protocol``   protocol files, trial plans, the checks against the device
 ``session``    the runner, the trial loop, resume, dry-runs, responders
 ``analysis``   the analysis of stored datasets (it reads the dataset alone)
-``power``, ``live``   power by simulation; the display driven live over UDP
+``power_analysis``, ``live``   power by simulation; the display driven live over UDP
 ``api``        the API functions that join stages (``validate``, ``run_session``)
 ``commands``, ``cli``, ``benchmarks``   the command line and ``crs-study bench``
 
@@ -67,7 +67,7 @@ API = {
     "run_session": "crs_study.api",
     "load_dataset": "crs_study.analysis.study_data",
     "analyze": "crs_study.analysis.report",
-    "power": "crs_study.power.api",
+    "power": "crs_study.power_analysis.api",
     # what they return
     "Protocol": "crs_study.protocol.model",
     "TrialPlan": "crs_study.protocol.plan",
@@ -76,7 +76,7 @@ API = {
     "SessionResult": "crs_study.session.spec",
     "StudyData": "crs_study.analysis.study_data",
     "Analysis": "crs_study.analysis.report",
-    "PowerResult": "crs_study.power.result",
+    "PowerResult": "crs_study.power_analysis.result",
 }
 
 __all__ = ["CrsStudyError", "__version__", *API]

@@ -14,6 +14,7 @@ from scipy import stats
 from crs_study.analysis.headline import format_p, headline
 from crs_study.analysis.report import analyze, analyze_dataset
 from crs_study.cli import main
+from crs_study.paths import data_dir
 
 CONDITIONS = ("pixel-only", "crs")
 
@@ -162,6 +163,17 @@ def test_default_output_is_a_bids_derivative_and_the_protocol_plan_is_used(tmp_p
     description = json.loads((out / "dataset_description.json").read_text())
     assert description["DatasetType"] == "derivative"
     assert result.results["plan"]["path"].endswith("analysis/digit_identification.toml")
+
+
+def test_the_shipped_plan_is_named_without_the_install_location(tmp_path, monkeypatch):
+    # From a folder without analysis/, the shipped plan is used; it is named by its place in
+    # the package, not the install location (which can name the user's home folder).
+    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    monkeypatch.chdir(tmp_path)
+    result = analyze_dataset(root)
+    assert result.results["plan"]["path"] == "crs_study/data/analysis/digit_identification.toml"
+    for written in (result.results_path, *result.results_path.parent.glob("report.*")):
+        assert str(data_dir()) not in written.read_text()
 
 
 def test_html_report(tmp_path):

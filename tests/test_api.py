@@ -55,6 +55,21 @@ def test_import_crs_study_loads_no_numerical_library():
     assert done.stdout.strip() == "[]"
 
 
+def test_no_api_name_is_also_a_subpackage():
+    """Importing a submodule sets the package's attribute of that name to the module: a
+    subpackage ``crs_study.power`` once replaced the ``power`` function after any
+    ``import crs_study.power...`` (seen as an order-dependent failure of the test above).
+    Each API name is checked after every stage of the package has been imported."""
+    code = ("import pkgutil, importlib, crs_study\n"
+            "for m in pkgutil.walk_packages(crs_study.__path__, 'crs_study.'):\n"
+            "    if m.name != 'crs_study.__main__':  # that one runs the command line\n"
+            "        importlib.import_module(m.name)\n"
+            "print(sorted(n for n in crs_study.API if not callable(getattr(crs_study, n))))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, check=True)
+    assert done.stdout.strip() == "[]"
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     return crs_study.load_protocol(tiny_protocol(tmp_path_factory.mktemp("protocol")))

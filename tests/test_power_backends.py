@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crs_study.power import PowerError, backends, design_from_protocol, model_from_parameters, power
+from crs_study.power_analysis import (
+    PowerError,
+    backends,
+    design_from_protocol,
+    model_from_parameters,
+    power,
+)
 
 
 @pytest.fixture(scope="module")

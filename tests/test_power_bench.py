@@ -8,7 +8,7 @@ import shutil
 import pytest
 
 from crs_study.benchmarks import power as bench
-from crs_study.power import observer
+from crs_study.power_analysis import observer
 
 
 @pytest.mark.slow

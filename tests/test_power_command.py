@@ -10,7 +10,7 @@ from _session_helpers import tiny_protocol
 
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
 from crs_study.cli import main
-from crs_study.power import backends
+from crs_study.power_analysis import backends
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The batched Laplace likelihood and fits of crs_study.power against the GLMM's own.
+"""The batched Laplace likelihood and fits of crs_study.power_analysis against the GLMM's own.
 
 Outside references: the objective is ``glmm_core``'s (``CrossedFactors`` / ``SingleFactor``,
 whose maxima tests/test_glmm_lme4_corpus.py checks against lme4 1.1-31 and glmmTMB on 65
@@ -17,8 +17,8 @@ from scipy.special import expit, gammaln
 
 from crs_study.analysis.glmm import fit_glmm
 from crs_study.analysis.glmm_core import BinomialData, CrossedFactors, SingleFactor
-from crs_study.power.laplace import BatchLaplace, CellDesign
-from crs_study.power.maximise import fit_batch
+from crs_study.power_analysis.laplace import BatchLaplace, CellDesign
+from crs_study.power_analysis.maximise import fit_batch
 
 X2 = np.array([[1.0, 0.0], [1.0, 1.0]])
 X3 = np.array([[1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, 0.0, 1.0]])

@@ -19,8 +19,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crs_study.power import design_from_protocol, model_from_parameters
-from crs_study.power.study import PowerTask, run_task
+from crs_study.power_analysis import design_from_protocol, model_from_parameters
+from crs_study.power_analysis.study import PowerTask, run_task
 
 HERE = Path(__file__).parent / "fixtures" / "power"
 sys.path.insert(0, str(HERE))

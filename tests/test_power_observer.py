@@ -17,8 +17,8 @@ import pytest
 from _session_helpers import tiny_protocol
 from scipy import stats
 
-from crs_study.power import design_from_protocol, power
-from crs_study.power.observer import (
+from crs_study.power_analysis import design_from_protocol, power
+from crs_study.power_analysis.observer import (
     _choice_probability,
     model_from_observer,
     predict,

@@ -7,7 +7,7 @@ import pytest
 
 from crs_study.analysis.report import analyze
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
-from crs_study.power import PowerError, design_from_protocol, model_from_pilot, power
+from crs_study.power_analysis import PowerError, design_from_protocol, model_from_pilot, power
 
 
 @pytest.fixture(scope="module")

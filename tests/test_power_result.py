@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from crs_study.power import PowerDesign, model_from_parameters
-from crs_study.power.result import PowerResult
-from crs_study.power.study import FISHER, LR, SEPARATED, WALD
+from crs_study.power_analysis import PowerDesign, model_from_parameters
+from crs_study.power_analysis.result import PowerResult
+from crs_study.power_analysis.study import FISHER, LR, SEPARATED, WALD
 
 DESIGN = PowerDesign(("pixel-only", "crs"), "pixel-only", tuple(range(10)), (None,), 5)
 MODEL = model_from_parameters(DESIGN, {"pixel-only": 0.5, "crs": 0.6}, participant_sd=0.4)

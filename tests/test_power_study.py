@@ -14,9 +14,9 @@ from scipy import stats
 
 from crs_study.analysis import primary
 from crs_study.analysis.glmm import GlmmFitError, fit_glmm, lrt
-from crs_study.power import PowerDesign, design_from_protocol, model_from_parameters
-from crs_study.power.simulate import simulate_studies
-from crs_study.power.study import (
+from crs_study.power_analysis import PowerDesign, design_from_protocol, model_from_parameters
+from crs_study.power_analysis.simulate import simulate_studies
+from crs_study.power_analysis.study import (
     FISHER,
     LR,
     SEPARATED,

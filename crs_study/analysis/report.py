@@ -56,6 +56,7 @@ from crs_study.analysis.study_data import DatasetPaths, StudyData, load_dataset
 from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
 from crs_study.dataset.bids import DERIVATIVES, derivatives_dir
 from crs_study.errors import AnalysisError, DatasetError
+from crs_study.paths import recorded_path
 
 #: The charts :meth:`Analysis.plot` draws by name (``confusion``: one per condition, through
 #: :func:`crs_study.analysis.charts.plot_confusion` and ``Analysis.confusions[condition]``).
@@ -336,7 +337,8 @@ def run_analyses(data: StudyData) -> Analysis:
     # each sentence once, in order
     results["warnings"] = list(dict.fromkeys(list(data.warnings) + results["warnings"]))
     plan_file = data.plan_path
-    results["plan"] = {"name": plan.name, "path": None if plan_file is None else str(plan_file),
+    results["plan"] = {"name": plan.name,
+                       "path": None if plan_file is None else recorded_path(plan_file),
                        "sha256": None if plan_file is None else sha256_file(plan_file)}
     results["datasets"] = [{"path": str(d.resolve()), "name": name} for d, name in
                            zip(data.datasets, pd.unique(data.all_trials["dataset"]),

@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from crs_study.benchmarks import Figure
-from crs_study.power import model_from_parameters, power
-from crs_study.power.design import design_from_protocol
-from crs_study.power.simulate import simulate_studies
-from crs_study.power.study import cells_frame, decide_trials
+from crs_study.power_analysis import model_from_parameters, power
+from crs_study.power_analysis.design import design_from_protocol
+from crs_study.power_analysis.simulate import simulate_studies
+from crs_study.power_analysis.study import cells_frame, decide_trials
 
 AREA = "power"
 DESCRIPTION = "power by simulation: default curve, per-study cost vs lme4, Dask scaling"

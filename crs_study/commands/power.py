@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from crs_study.errors import CrsStudyError
-from crs_study.power import PowerError, power
+from crs_study.power_analysis import PowerError, power
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -36,9 +36,9 @@ from scipy import stats
 
 from crs_study import __version__
 from crs_study._files import os_errors, write_atomically
-from crs_study.power.design import PowerDesign, PowerError
-from crs_study.power.model import GenerativeModel
-from crs_study.power.study import FISHER, NONE, SEPARATED, WALD, TaskResult
+from crs_study.power_analysis.design import PowerDesign, PowerError
+from crs_study.power_analysis.model import GenerativeModel
+from crs_study.power_analysis.study import FISHER, NONE, SEPARATED, WALD, TaskResult
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 :func:`map_tasks` maps one pure function over the tasks and returns the results in the
 tasks' order, whatever order they finish in. The function and each task are the same on
-every backend, and a task carries its own seeds (:mod:`crs_study.power.simulate`), so the
+every backend, and a task carries its own seeds (:mod:`crs_study.power_analysis.simulate`), so the
 answer is the same wherever it ran (STYLE.md point 18: Dask's ``client.map``, numpy's
 ``SeedSequence``).
 
@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
-from crs_study.power.design import PowerError
+from crs_study.power_analysis.design import PowerError
 
 #: Progress callback: (units of work done, units in all, seconds elapsed).
 Progress = Callable[[int, int, float], None]

@@ -10,13 +10,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from crs_study.power.backends import Backend, Progress, open_backend
-from crs_study.power.design import PowerDesign, PowerError, design_from_protocol, parse_range
-from crs_study.power.fidelity import run_full
-from crs_study.power.model import GenerativeModel, model_from_pilot
-from crs_study.power.observer import DEFAULT_DRAWS, model_from_observer, predict
-from crs_study.power.result import PowerResult, merge
-from crs_study.power.study import PowerTask, run_task
+from crs_study.power_analysis.backends import Backend, Progress, open_backend
+from crs_study.power_analysis.design import (
+    PowerDesign,
+    PowerError,
+    design_from_protocol,
+    parse_range,
+)
+from crs_study.power_analysis.fidelity import run_full
+from crs_study.power_analysis.model import GenerativeModel, model_from_pilot
+from crs_study.power_analysis.observer import DEFAULT_DRAWS, model_from_observer, predict
+from crs_study.power_analysis.result import PowerResult, merge
+from crs_study.power_analysis.study import PowerTask, run_task
 
 #: Studies per unit of work: fixed (never derived from the number of workers), so the
 #: batches, and with them every number, are the same on any backend.
@@ -40,7 +45,7 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     pilot : a pilot dataset (mode 1): the primary GLMM fitted to it generates the studies,
         new participants and digits drawn for each (simr's ``extend``). Default (mode 2):
         the simulated observer's predicted accuracy of every stimulus on the simulated
-        device plus a between-participant SD (:mod:`crs_study.power.observer`).
+        device plus a between-participant SD (:mod:`crs_study.power_analysis.observer`).
     effect_scale : multiplies the condition effect(s) of the generating model.
     participant_sd : between-participant SD (logit scale) of mode 2; default: from the
         observer's calibration. With a pilot it replaces the pilot's estimate.
@@ -54,7 +59,7 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
         for checking the model on a few points).
     jobs : local worker processes. scheduler : a Dask scheduler address or ``Client``.
     plan : the analysis plan (default: the protocol's, as ``analyze`` picks it).
-    model : a ready :class:`~crs_study.power.model.GenerativeModel` (overrides pilot and
+    model : a ready :class:`~crs_study.power_analysis.model.GenerativeModel` (overrides pilot and
         observer). draws : observer noise draws per stimulus (mode 2).
     progress : ``progress(done, total, seconds)`` after each unit of work.
     notify : ``notify(text)`` before a long step that has no progress of its own (the
@@ -65,9 +70,9 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     Each study is tested exactly as ``analyze`` tests a dataset: the plan's GLMM ``correct ~
     condition + (1 | participant) [+ (1 | digit)]``, its likelihood-ratio test, alpha from
     the plan, separation and failures handled as there and counted in the result
-    (:mod:`crs_study.power.study`). The power at each point carries its Clopper-Pearson 95 %
-    interval (Monte Carlo error). Participant k is the same simulated person at every N
-    (common random numbers, :mod:`crs_study.power.simulate`), so the curve rises smoothly.
+    (:mod:`crs_study.power_analysis.study`). The power at each point carries its Clopper-Pearson
+    95 % interval (Monte Carlo error). Participant k is the same simulated person at every N
+    (common random numbers, :mod:`crs_study.power_analysis.simulate`), so the curve rises smoothly.
     """
     started, cpu_started = time.perf_counter(), time.process_time()
     checks = _checked(participants, repetitions, studies, seed, target, fidelity, jobs,

@@ -20,10 +20,10 @@ import numpy as np
 
 from crs_study.analysis.load import load_datasets, with_exclusions
 from crs_study.analysis.plan import Exclusions
-from crs_study.power.backends import Backend, Progress
-from crs_study.power.design import PowerDesign
-from crs_study.power.result import merge
-from crs_study.power.study import TaskResult, decide_trials
+from crs_study.power_analysis.backends import Backend, Progress
+from crs_study.power_analysis.design import PowerDesign
+from crs_study.power_analysis.result import merge
+from crs_study.power_analysis.study import TaskResult, decide_trials
 from crs_study.session.dry_runs import dry_run, simulated_labels
 
 

@@ -2,7 +2,7 @@
 
 Every simulated trial of participant ``p`` on digit ``d`` in condition ``c`` (at level ``l``)
 is correct with probability ``expit(base[l, d, c] + sigma_p z_p + sigma_d z_d)``, ``z ~
-N(0, 1)`` drawn per study (:mod:`crs_study.power.simulate`); or, where the model carries an
+N(0, 1)`` drawn per study (:mod:`crs_study.power_analysis.simulate`); or, where the model carries an
 ``ability`` table (the observer's own participants), ``expit(ability(z_p)[l, d, c] + sigma_d
 z_d)``, the table interpolated linearly in ``z``. Three sources fill it:
 
@@ -10,9 +10,9 @@ z_d)``, the table interpolated linearly in ``z``. Three sources fill it:
   fixed effects (the same for every digit and level), ``sigma_p`` and ``sigma_d`` its random
   intercepts' SDs; new participants and digit effects are drawn for every study, as simr's
   ``extend`` + ``powerSim`` do (Green & MacLeod 2016, Methods Ecol. Evol. 7:493);
-* :func:`crs_study.power.observer.model_from_observer` -- the simulated observer's predicted
-  accuracy of every (level, digit, condition) on the simulated device (``sigma_d = 0``: the
-  digits' differences are in ``base``), plus a between-participant SD;
+* :func:`crs_study.power_analysis.observer.model_from_observer` -- the simulated observer's
+  predicted accuracy of every (level, digit, condition) on the simulated device
+  (``sigma_d = 0``: the digits' differences are in ``base``), plus a between-participant SD;
 * :func:`model_from_parameters` -- given numbers (recovery tests, closed forms).
 
 ``effect_scale`` multiplies every condition's difference from the reference, ``base[..., c]
@@ -34,7 +34,7 @@ from crs_study.analysis.plan import Exclusions
 from crs_study.analysis.primary import fit_primary
 from crs_study.analysis.sources import select_sources
 from crs_study.errors import CrsStudyError
-from crs_study.power.design import PowerDesign, PowerError
+from crs_study.power_analysis.design import PowerDesign, PowerError
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Maximum-likelihood fits of many studies at once, at the maximum ``fit_glmm`` finds.
 
-:func:`fit_batch` maximises :class:`~crs_study.power.laplace.BatchLaplace` for every study of
-a batch by Newton's method: the exact gradient, the Hessian by forward differences of it, a
+:func:`fit_batch` maximises :class:`~crs_study.power_analysis.laplace.BatchLaplace` for every
+study of a batch by Newton's method: the exact gradient, the Hessian by forward differences of it, a
 step-halving line search, every study on its own and frozen once its gradient is below
 ``GRADIENT_TOL`` (far inside lme4's convergence check, ``2 max |g| < 2e-3``, and inside the
 ``2e-5`` that :mod:`crs_study.analysis.glmm_optimise` accepts). Sigmas are unconstrained, as
@@ -14,7 +14,7 @@ slope above ``SLOPE_TOLERANCE`` and a boundary fit no lower: the boundary is the
 inward slope and an interior optimum higher than the boundary: the interior one; an inward
 slope and no higher interior optimum is where ``maximise`` restarts from interior points: such
 a study is marked ``needs_reference`` and refitted by ``fit_glmm`` itself, as is every study
-whose Newton iteration stalls (:mod:`crs_study.power.study`).
+whose Newton iteration stalls (:mod:`crs_study.power_analysis.study`).
 
 Starting values: the generating parameters (a power simulation knows them), each sigma at
 least ``MIN_START_SIGMA`` (at sigma = 0 the gradient of an even function is 0 whatever the
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from crs_study.analysis.glmm_optimise import NEAR_ZERO, SLOPE_TOLERANCE
-from crs_study.power.laplace import BatchLaplace
+from crs_study.power_analysis.laplace import BatchLaplace
 
 #: A study's fit is done when no free coordinate of the gradient exceeds this.
 GRADIENT_TOL = 1e-6

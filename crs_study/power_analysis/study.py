@@ -2,7 +2,7 @@
 
 :func:`run_task` is a pure function of a :class:`PowerTask` (design, model, seed, the points
 and a range of study numbers) to a small :class:`TaskResult`; the backends map it over a
-process pool or a Dask cluster (:mod:`crs_study.power.backends`, STYLE.md point 18).
+process pool or a Dask cluster (:mod:`crs_study.power_analysis.backends`, STYLE.md point 18).
 
 Each simulated study is tested as ``analyze`` tests a dataset
 (:func:`crs_study.analysis.primary.primary_test`): the full GLMM ``correct ~ condition +
@@ -11,7 +11,7 @@ the likelihood-ratio p of each comparison; a separated condition tested at the s
 reduced model that cannot be fitted: the Wald p; a full model that cannot be fitted: Fisher's
 exact test on the pooled table. A study's outcome records which of these it was (``KINDS``).
 
-Two paths give those fits. The fast path (:mod:`crs_study.power.maximise`) fits all studies
+Two paths give those fits. The fast path (:mod:`crs_study.power_analysis.maximise`) fits all studies
 of a point at once, from the generating parameters, to the maximum ``fit_glmm`` finds (its
 boundary rule included); a study it does not settle (a condition at 0 % or 100 %, where
 ``fit_glmm`` tests at the supremum; a Newton iteration that stalls; a boundary where
@@ -35,11 +35,11 @@ from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
 from crs_study.analysis.glmm_result import P_FLOOR
 from crs_study.analysis.primary import fisher_comparisons, fit_primary
-from crs_study.power.design import PowerDesign
-from crs_study.power.laplace import BatchLaplace, CellDesign
-from crs_study.power.maximise import fit_batch
-from crs_study.power.model import GenerativeModel
-from crs_study.power.simulate import simulate_studies
+from crs_study.power_analysis.design import PowerDesign
+from crs_study.power_analysis.laplace import BatchLaplace, CellDesign
+from crs_study.power_analysis.maximise import fit_batch
+from crs_study.power_analysis.model import GenerativeModel
+from crs_study.power_analysis.simulate import simulate_studies
 
 #: How each comparison of a study was tested (index = the code stored in ``kind``).
 KINDS = ("lr", "separated", "wald", "fisher", "none")

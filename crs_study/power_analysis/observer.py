@@ -37,9 +37,9 @@ from scipy.special import logit
 from crs_study.clock import VirtualClock
 from crs_study.device import open_device
 from crs_study.paths import resolve_protocol
-from crs_study.power.backends import Backend
-from crs_study.power.design import PowerDesign, PowerError
-from crs_study.power.model import GenerativeModel
+from crs_study.power_analysis.backends import Backend
+from crs_study.power_analysis.design import PowerDesign, PowerError
+from crs_study.power_analysis.model import GenerativeModel
 from crs_study.protocol import load_protocol
 from crs_study.session.responders.base import StimulusRecord
 from crs_study.session.responders.observer import ObserverOptions, PerceptualObserver
@@ -106,7 +106,7 @@ def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: A
     The noise of draw ``j`` of cell (level ``l``, digit ``d``, condition ``c``) comes from
     ``default_rng([seed, l, d, c, j])``, so the answer is the same on any backend: the
     (level, digit) pairs are mapped like the studies (``backend``: an open
-    :class:`~crs_study.power.backends.Backend`; None: in this process).
+    :class:`~crs_study.power_analysis.backends.Backend`; None: in this process).
     """
 
     if isinstance(draws, bool) or not isinstance(draws, int) or draws < 2:

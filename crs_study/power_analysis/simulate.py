@@ -14,7 +14,7 @@ asked (``Generator.random`` fills its array in order), and the result of a run i
 whichever backend and how many workers run it (the point and the worker take no part in a
 seed). Trial ``(rep, level, d, c)`` of participant ``k`` is correct when ``U < expit(base[l,
 d, c] + sigma_p z_k + sigma_d z_d)`` (with an ability table, ``ability(z_k)[l, d, c]`` in
-place of ``base + sigma_p z_k``: :meth:`~crs_study.power.model.GenerativeModel.
+place of ``base + sigma_p z_k``: :meth:`~crs_study.power_analysis.model.GenerativeModel.
 participant_logits`); the cells' successes are summed over levels.
 """
 
@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit
 
-from crs_study.power.model import GenerativeModel
+from crs_study.power_analysis.model import GenerativeModel
 
 
 def stream(seed: int, *key: int) -> np.random.Generator:
