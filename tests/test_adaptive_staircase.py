@@ -63,7 +63,8 @@ def test_estimate_is_the_mean_of_the_last_reversals_with_t_interval():
     assert stair.reversals >= 4
     estimate, low, high = stair.estimate()
     assert estimate == pytest.approx(10 ** np.mean(last))
-    half = 3.182446305284263 * np.std(last, ddof=1) / 2  # t(0.975, 3), scipy.stats.t.ppf
+    # t(0.975, 3) (scipy.stats.t.ppf) over n/2 = 2 effective reversals
+    half = 3.182446305284263 * np.std(last, ddof=1) / np.sqrt(2)
     assert (low, high) == pytest.approx((10 ** (np.mean(last) - half),
                                          10 ** (np.mean(last) + half)))
 

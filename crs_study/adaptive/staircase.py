@@ -25,8 +25,13 @@ step ``target / (1 - target)`` times the harder one, which converges to ``target
 Stopping differs from PsychoPy (which stops when both its trial and reversal counts are
 reached): a track stops after the block's ``trials``, or earlier at ``stop_reversals``
 reversals when that is set. The estimate is the mean on the difficulty axis (a geometric
-mean on a log scale) of the last ``estimate_reversals`` reversal levels, with a Student t
-95 % interval over them (Wetherill & Levitt 1965).
+mean on a log scale) of the last ``estimate_reversals`` reversal levels (Wetherill & Levitt
+1965, Br J Math Stat Psychol 18:1). Its 95 % interval is ``mean +- t(n-1) sd / sqrt(n/2)``
+over those n levels: a peak and the valley after it belong to one excursion of the track,
+so n reversals carry about n/2 independent pieces of information (Wetherill & Levitt
+average them in pairs); the plain ``sd / sqrt(n)`` covered the true threshold in 87 % of
+200 simulated 60-trial sessions, ``sd / sqrt(n/2)`` in 95 %
+(tests/test_adaptive_recovery.py).
 """
 
 from __future__ import annotations
@@ -150,15 +155,15 @@ class Staircase:
 
     def estimate(self) -> tuple[float, float, float]:
         """``(estimate, ci_low, ci_high)`` as levels: the mean of the last
-        ``estimate_reversals`` reversals on the axis, with its t interval (NaN when there
-        are fewer than two reversals)."""
+        ``estimate_reversals`` reversals on the axis, with its t interval over n/2 effective
+        reversals (module docstring; NaN when there are fewer than two reversals)."""
         last = self.reversal_axis[-self.spec.staircase.estimate_reversals:]
         if len(last) < 2:
             return math.nan, math.nan, math.nan
         n = len(last)
         mean = sum(last) / n
         sd = math.sqrt(sum((u - mean) ** 2 for u in last) / (n - 1))
-        half = t_quantile(n - 1) * sd / math.sqrt(n)
+        half = t_quantile(n - 1) * sd / math.sqrt(n / 2)
         ends = sorted((self.spec.from_axis(mean - half), self.spec.from_axis(mean + half)))
         return self.spec.from_axis(mean), ends[0], ends[1]
 

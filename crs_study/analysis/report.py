@@ -326,9 +326,11 @@ def run_analyses(data: StudyData) -> Analysis:
         "information_transfer": Confusions(confusions).to_dict(),
         "speed_accuracy": speed.to_dict(),
         "psychometric": psychometric.to_dict(),
-        "thresholds": thresholds.to_dict(),
         "warnings": warnings,
     }
+    if not thresholds.skipped:  # (results.json of fixed-level studies is as it was)
+        results = {**{k: v for k, v in results.items() if k != "warnings"},
+                   "thresholds": thresholds.to_dict(), "warnings": warnings}
     results["headline"] = headline(results)
     kinds = sorted(set(data.sources["kind"]))
     results["sources"] = {"kind": kinds[0] if len(kinds) == 1 else "mixed",

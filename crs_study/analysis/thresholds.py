@@ -26,6 +26,7 @@ signed-rank test (``scipy.stats.wilcoxon``) beside it.
 
 from __future__ import annotations
 
+import re
 import tomllib
 import warnings as _warnings
 from dataclasses import dataclass, field
@@ -34,7 +35,6 @@ import numpy as np
 import pandas as pd
 from scipy import special, stats
 
-from crs_study.adaptive.spec import RULE_TARGETS
 from crs_study.analysis.jsonable import json_text
 from crs_study.analysis.psychometric import fit_counts, level_effect_pvalue
 
@@ -59,13 +59,20 @@ class AdaptiveDesign:
         return 10.0 ** np.asarray(u, float) if self.scale == "log" else np.asarray(u, float)
 
 
+def rule_target(rule: str | None) -> float | None:
+    """The rate a fixed ``1-up-N-down`` rule converges to, ``0.5^(1/N)`` (Levitt 1971,
+    Table I); None for another rule (its target rate is in the protocol)."""
+    match = re.fullmatch(r"1-up-(\d+)-down", rule or "")
+    return 0.5 ** (1.0 / int(match.group(1))) if match else None
+
+
 def design_from_protocol(text: str) -> AdaptiveDesign | None:
     """The procedure of a protocol's text (None without ``[adaptive]``)."""
     table = tomllib.loads(text).get("adaptive")
     if not table:
         return None
     stair = table.get("staircase") or {}
-    rate = RULE_TARGETS.get(stair.get("rule"), table.get("target_rate"))
+    rate = rule_target(stair.get("rule")) or table.get("target_rate")
     parameter = table["parameter"]
     column = {"digit_height_pitch": "digit_height", "stroke_speed_mm_s": "stroke_speed"}
     return AdaptiveDesign(table["procedure"], column[parameter], table["scale"], float(rate),

@@ -374,5 +374,8 @@ FINGERPRINTS: dict[str, str] = {
     "StimulusSha256": "stimulus (the bump paths this software draws)",
 }
 
-#: Every key of the sidecar, in written order.
-SIDECAR_KEYS: tuple[str, ...] = tuple(key for key, _, _ in SessionMetadata._KEYS)
+#: Every key of the sidecar, in written order (``AdaptiveStateSha256``, written only for
+#: adaptive protocols after ``TrialsSha256``, is :data:`ADAPTIVE_SIDECAR_KEYS`).
+SIDECAR_KEYS: tuple[str, ...] = tuple(key for key, _, _ in SessionMetadata._KEYS
+                                      if key not in OMITTED_WHEN_NONE)
+ADAPTIVE_SIDECAR_KEYS: tuple[str, ...] = tuple(OMITTED_WHEN_NONE)

@@ -211,6 +211,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         store.create()
         save(state, "running", final=True)
         first = int(rows[-1]["trial_index"]) + 1 if rows else 0  # (= len(rows) unless skipped)
+        stored_before = len(rows)
         status = "interrupted"
         origin = 0.0
         current = first  # the plan index of the trial under way (a skipped one never is)
@@ -266,7 +267,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             save(state, "complete", final=True)
         done = len(state.rows)
         return SessionResult(
-            status, spec.participant, spec.session, n_trials, done, done - len(rows),
+            status, spec.participant, spec.session, n_trials, done, done - stored_before,
             state.late_frames, (clock.now() - origin) - resume_at,
             time.perf_counter() - wall_start, paths.tsv, paths.sidecar,
             f"session {spec.session} of participant {spec.participant}: {done}/{n_trials} "
