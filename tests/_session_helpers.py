@@ -89,6 +89,8 @@ def adaptive_protocol(directory: Path, name: str = "adaptive.toml", *,
                          study_id=study_id)
     text = path.read_text(encoding="utf-8")
     text = re.sub(r"(?m)^digit_(height|width)_pitch\s*=.*\n", "", text)
+    text = re.sub(r"(?m)^analysis_plan\s*=.*$",
+                  'analysis_plan = "analysis/digit_size_adaptive.toml"', text)
     table = (f'\n[adaptive]\nparameter = "digit_height_pitch"\nwidth_to_height = 0.605\n'
              f'procedure = "{procedure}"\ntrials = {trials}\nmin = 0.4\nmax = 1.2\n'
              f'scale = "log"\nlevels = {levels}\n')

@@ -53,6 +53,7 @@ class RecoveryResult:
     bias: float  # mean (estimate - truth) on the difficulty axis
     bias_ci95: tuple[float, float]
     missing: int  # sessions without an estimate (a staircase with < 2 reversals)
+    median_width: float  # of the 95 % intervals, on the difficulty axis
 
     @property
     def coverage(self) -> float:
@@ -92,4 +93,4 @@ def recovery(spec: AdaptiveSpec, n_choices: int = 10, sessions: int = 200,
     half = float(stats.t.ppf(0.975, len(error) - 1) * error.std(ddof=1) / math.sqrt(len(error)))
     bias = float(error.mean())
     return RecoveryResult(spec.procedure, sessions, covered, bias, (bias - half, bias + half),
-                          int(np.sum(~ok)))
+                          int(np.sum(~ok)), float(np.median((high - low)[ok])))
