@@ -68,7 +68,7 @@ def run(quick: bool) -> list[Figure]:
     stair = dataclasses.replace(quest, procedure="staircase", quest_plus=None,
                                 target_rate=None, staircase=StaircaseSpec(
                                     "1-up-2-down", quest.grid()[-1], (2, 1)))
-    make_track(quest, 10).next_level  # imports and first use, outside the timing
+    _ = make_track(quest, 10).next_level  # imports and first use, outside the timing
     waits, history = _block(quest, np.random.default_rng(7))
     baseline = statistics.median(_block(stair, np.random.default_rng(7))[0])
     start = time.perf_counter()
