@@ -177,3 +177,25 @@ def test_another_state_fingerprint_is_refused_on_resume(tmp_path):
     with pytest.raises(SessionError, match=r"cannot resume: the adaptive procedures' state "
                                            r"after \d+ trials differs"):
         run_session(spec(protocol, tmp_path / "d", "random"))
+
+
+def test_an_adaptive_stroke_speed_runs_with_the_observer(tmp_path):
+    """A staircase on the stroke speed: correct answers make the strokes faster, and the
+    observer answers from what the display showed at that speed."""
+    protocol = adaptive_protocol(tmp_path, procedure="staircase", trials=8)
+    text = protocol.read_text()
+    text = text.replace('parameter = "digit_height_pitch"\nwidth_to_height = 0.605\n',
+                        'parameter = "stroke_speed_mm_s"\n')
+    text = text.replace("min = 0.4\nmax = 1.2", "min = 20.0\nmax = 80.0")
+    text = text.replace("start = 1.2", "start = 20.0")
+    text = text.replace("stroke_speed_mm_s = 60.0\n", "digit_height_pitch = 0.81\n"
+                        "digit_width_pitch = 0.49\n")
+    protocol.write_text(text)
+    loaded = load_protocol(protocol)
+    assert loaded.adaptive.grid()[0] == 80.0  # the hardest level first: the fastest
+    result = run_session(spec(protocol, tmp_path / "d"))
+    assert result.status == "complete"
+    rows = [r for r in rows_of(files(tmp_path / "d")[0]) if r["trial_type"] == "test"]
+    speeds = [float(r["stroke_speed"]) for r in rows if r["block"] == "0"]
+    first_correct = rows[0]["correct"] == "1"
+    assert speeds[0] == 20.0 and (speeds[1] > 20.0) == first_correct
