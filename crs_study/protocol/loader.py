@@ -262,47 +262,17 @@ def _adaptive(table: Section) -> AdaptiveSpec:
 
     staircase = sub("staircase", ("rule", "start", "steps"))
     quest_plus = sub("quest_plus", ("thresholds", "slopes", "lapse_rates"))
-    staircase = StaircaseSpec(**staircase) if staircase is not None else None
-    quest_plus = QuestPlusSpec(**quest_plus) if quest_plus is not None else None
-    parameter = table.raw("parameter")
-    values = table.raw("values")
-    # a varied height needs the digits' shape; with another parameter the key is refused
-    width = table.raw("width_to_height", ... if parameter == "digit_height_pitch" else None)
-    table.done()
-    return LevelSpec(parameter, values, width)
-
-
-def _adaptive(table: Section) -> AdaptiveSpec:
-    """The ``[adaptive]`` table and its procedure's sub-table (protocols/README.md)."""
-    def sub(name: str) -> dict | None:
-        if not table.has(name):
-            table.raw(name, None)
-            return None
-        section = table.table(name, keys=TABLE_KEYS[f"adaptive.{name}"])
-        values = {key: section.raw(key, ...) if key in required else section.raw(key, ...)
-                  for key in section.data}
-        for key in required:
-            section.raw(key)  # a missing required key is named with its line
-        section.done()
-        return values
-
-    required = ("rule", "start", "steps")
-    staircase = sub("staircase")
-    if staircase is not None:
-        staircase = StaircaseSpec(**staircase)
-    required = ("thresholds", "slopes", "lapse_rates")
-    quest_plus = sub("quest_plus")
-    if quest_plus is not None:
-        quest_plus = QuestPlusSpec(**quest_plus)
     parameter = table.raw("parameter")
     spec = AdaptiveSpec(
         parameter, table.raw("procedure"), table.raw("trials"), table.raw("min"),
         table.raw("max"), table.raw("scale"), table.raw("levels"),
         target_rate=table.raw("target_rate", None),
         practice_level=table.raw("practice_level", None),
+        # a varied height needs the digits' shape; with another parameter the key is refused
         width_to_height=table.raw("width_to_height",
                                   ... if parameter == "digit_height_pitch" else None),
-        staircase=staircase, quest_plus=quest_plus)
+        staircase=StaircaseSpec(**staircase) if staircase is not None else None,
+        quest_plus=QuestPlusSpec(**quest_plus) if quest_plus is not None else None)
     table.done()
     return spec
 
