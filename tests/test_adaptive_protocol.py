@@ -166,3 +166,19 @@ def test_any_adaptive_values_load_or_fail_in_one_line(tmp_path_factory, values):
         protocol_from_text(text, tmp_path_factory.mktemp("h") / "p.toml", check_device=False)
     except ProtocolError as error:
         assert "\n" not in str(error) and error.key_path is not None
+
+
+def test_an_adaptive_speed_range_warns_at_its_bound(tmp_path):
+    """Odd values of an adaptive level name the bound they concern, not [levels]."""
+    text = TEXT.replace('parameter = "digit_height_pitch"    # column digit_height (pitches) '
+                        'in the dataset\nwidth_to_height = 0.605             # the shipped '
+                        "digits' shape, 0.49 / 0.81\n", 'parameter = "stroke_speed_mm_s"\n')
+    text = text.replace("min = 0.25", "min = 20.0").replace("max = 1.5", "max = 120.0")
+    text = text.replace("stroke_speed_mm_s = 20.0\n", "digit_height_pitch = 0.81\n"
+                        "digit_width_pitch = 0.49\n")
+    path = tmp_path / "speed.toml"
+    path.write_text(text)
+    protocol = load_protocol(path)
+    assert protocol.adaptive.grid()[0] == 120.0
+    fast = [w for w in protocol.warnings if "is fast" in w]
+    assert fast and all(": adaptive.max: at stroke_speed_mm_s = " in w for w in fast)

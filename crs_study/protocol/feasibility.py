@@ -55,7 +55,7 @@ from crs_study.errors import (
     RenderError,
 )
 from crs_study.geometry.layout import Layout
-from crs_study.protocol.model import Protocol, consent_form_path
+from crs_study.protocol.model import Protocol, consent_form_path, level_key
 from crs_study.quality.mechanics import StimulusLimits, layout_delta, stimulus_limits
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
@@ -185,7 +185,7 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
                                  sized=levels.parameter != "digit_height_pitch")
         if checked[-1].severity == "error":
             inner = checked[-1]
-            return found + [Finding("error", _level_key(protocol, i, value),
+            return found + [Finding("error", level_key(protocol, i, value),
                                     f"at {levels.parameter} = {value:g}: "
                                     + inner.describe(), inner.values)]
         per_level.append(checked)
@@ -196,18 +196,6 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
         found += [Finding("ok", f.key_path, f"{levels.parameter} = {value:g}: {f.message}",
                           f.values) for f in lines if f.message not in shared]
     return found
-
-
-def _level_key(protocol: Protocol, i: int, value: float) -> str:
-    """The key a failure at level ``value`` names: ``levels.values[i]``, or for an adaptive
-    protocol the bound nearer to it (or ``adaptive.practice_level``)."""
-    spec = protocol.adaptive
-    if spec is None:
-        return f"levels.values[{i}]"
-    if spec.practice_level is not None and value == spec.practice and value not in spec.grid():
-        return "adaptive.practice_level"
-    middle = spec.from_axis(sum(spec.axis_bounds) / 2)
-    return "adaptive.max" if value >= middle else "adaptive.min"
 
 
 def _consent(protocol: Protocol) -> Finding:

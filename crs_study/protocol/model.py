@@ -381,6 +381,19 @@ def adaptive_levels(spec: AdaptiveSpec) -> LevelSpec:
     return levels
 
 
+def level_key(protocol: Protocol, i: int, value: float) -> str:
+    """The key a finding at the protocol's ``i``-th level ``value`` names:
+    ``levels.values[i]``, or for an adaptive protocol the bound nearer to it (or
+    ``adaptive.practice_level``)."""
+    spec = protocol.adaptive
+    if spec is None:
+        return f"levels.values[{i}]"
+    if spec.practice_level is not None and value == spec.practice and value not in spec.grid():
+        return "adaptive.practice_level"
+    middle = spec.from_axis(sum(spec.axis_bounds) / 2)
+    return "adaptive.max" if value >= middle else "adaptive.min"
+
+
 def _check_adaptive(protocol: Protocol) -> None:
     """What ``[adaptive]`` asks of the other tables: blocked conditions, one block each (its
     own track), a target above chance, the digits' shape when their height adapts."""
