@@ -104,3 +104,73 @@ def adaptive_protocol(directory: Path, name: str = "adaptive.toml", *,
     path.write_text(text.replace("\n[conditions]", table + "\n[conditions]", 1),
                     encoding="utf-8")
     return path
+
+
+def assert_same_but_reruns(resumed: Path, whole: Path, cut: set[int]) -> None:
+    """A resumed session's trial file equals the uninterrupted run's byte for byte but for
+    the ``rerun`` column, which is 1 exactly on the trials an interruption cut after their
+    stimulus began (issue 13.12: the participant felt part of them before the rerun)."""
+    import csv
+
+    def table(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+        with open(path, newline="", encoding="utf-8") as handle:
+            reader = csv.DictReader(handle, delimiter="\t")
+            return list(reader.fieldnames or []), list(reader)
+
+    columns, rows = table(resumed)
+    whole_columns, whole_rows = table(whole)
+    assert columns == whole_columns and "rerun" in columns
+    assert len(rows) == len(whole_rows)
+    reruns = {int(r["trial_index"]) for r in rows if r["rerun"] == "1"}
+    assert reruns == cut, (reruns, cut)
+    assert all(r["rerun"] == "0" for r in whole_rows)
+    for row, other in zip(rows, whole_rows, strict=True):
+        assert {k: v for k, v in row.items() if k != "rerun"} == \
+            {k: v for k, v in other.items() if k != "rerun"}
+    # nothing else differs: the bytes are those of the uninterrupted file with the marks set
+    expected = whole.read_text(encoding="utf-8").splitlines(keepends=True)
+    position = columns.index("rerun")
+    for k in cut:
+        cells = expected[k + 1].rstrip("\n").split("\t")
+        cells[position] = "1"
+        expected[k + 1] = "\t".join(cells) + "\n"
+    assert resumed.read_text(encoding="utf-8") == "".join(expected)
+
+
+def record_consent(*labels: str, register: Path | None = None) -> None:
+    """Record each person's consent on the shipped form in ``register`` (default: the test's
+    own register, $CRS_STUDY_CONSENT_DIR from conftest): a person's label passes the consent
+    gate on every device, sim:// included (issue 13.3)."""
+    from crs_study.consent import Register, read_form
+    from crs_study.paths import shipped_file
+
+    form = read_form(shipped_file("consent/consent_form.md"))
+    for label in labels:
+        Register(register).record(form, "AB", label)
+
+
+def start_command(args, cwd: Path):
+    """``crs-study ARGS`` in its own process, stdout and stderr piped."""
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "crs_study", *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd)
+
+
+def wait_for_stderr(process, needle: str, timeout: float = 60.0) -> str:
+    """Raw reads of stderr until ``needle`` (a buffered readline would hide data from select)."""
+    import os
+    import select
+    import time
+
+    seen = b""
+    deadline = time.monotonic() + timeout
+    while needle.encode() not in seen:
+        assert time.monotonic() < deadline, seen
+        ready, _, _ = select.select([process.stderr], [], [], 0.5)
+        if ready:
+            chunk = os.read(process.stderr.fileno(), 4096)
+            assert chunk, seen
+            seen += chunk
+    return seen.decode()

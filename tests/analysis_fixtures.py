@@ -49,7 +49,7 @@ def trial_row(index: int, condition: str, digit: int, repetition: int, correct: 
         "response_time": MISSING if correct is None else rt,
         "response_time_from_offset": MISSING if correct is None else rt - 1.0,
         "onset": 2.0 * index, "stimulus_duration": 1.0,
-        "timed_out": int(correct is None), "device_fault": 0, "frames": 15,
+        "timed_out": int(correct is None), "device_fault": 0, "rerun": 0, "frames": 15,
         "late_frames": 0, "median_wire_latency": 0.012, "responder": "scripted",
         "trial_end": 2.0 * index + 1.9,
     }

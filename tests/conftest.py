@@ -35,3 +35,12 @@ def layout1d():
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261122)
+
+
+@pytest.fixture(autouse=True)
+def _a_consent_register_of_its_own(tmp_path_factory, monkeypatch):
+    """Every test (and every process it starts) sees an empty consent register of its own,
+    never the machine's ~/.crs-study/consent: a session under a person's label passes the
+    consent gate on every device, so a test records the consent it needs."""
+    monkeypatch.setenv("CRS_STUDY_CONSENT_DIR",
+                       str(tmp_path_factory.mktemp("register") / "consent"))

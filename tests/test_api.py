@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import pandas as pd
 import pytest
-from _session_helpers import tiny_protocol
+from _session_helpers import record_consent, tiny_protocol
 
 import crs_study
 from crs_study.cli import main
@@ -120,6 +120,7 @@ def test_analyze_a_dry_run_from_its_folder(tiny, tmp_path):
 
 
 def test_run_session_from_keyword_arguments(tiny, tmp_path):
+    record_consent("p01")  # a person's label is gated on sim:// too (issue 13.3)
     result = crs_study.run_session(tiny, "p01", tmp_path / "ds", responder="random",
                                    device_url="sim://")
     assert isinstance(result, crs_study.SessionResult) and result.status == "complete"

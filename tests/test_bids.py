@@ -12,12 +12,20 @@ import string
 from pathlib import Path
 
 import pytest
+from _session_helpers import record_consent
 from hypothesis import given
 from hypothesis import strategies as st
 
 from crs_study.dataset import bids
 from crs_study.dataset.bids import BidsName, SessionPaths
 from crs_study.errors import DatasetError
+
+
+@pytest.fixture(autouse=True)
+def _consented():
+    """p01: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    record_consent("p01")
+
 
 FIXTURE = Path(__file__).parent / "fixtures" / "sessions_4c71d44" / "dataset"
 _label = st.text(string.ascii_letters + string.digits, min_size=1, max_size=10)
@@ -137,6 +145,7 @@ def test_the_writer_puts_every_file_where_the_module_says(tmp_path):
     """A session with a torn row cut on resume: each file written is one the module names."""
     from _session_helpers import tiny_protocol
 
+    from crs_study.dataset import ARRIVALS_FILE
     from crs_study.session.runner import run_session
     from crs_study.session.spec import SessionSpec
 
@@ -156,7 +165,8 @@ def test_the_writer_puts_every_file_where_the_module_says(tmp_path):
     root = tmp_path / "ds"
     expected |= {root / name for name in (bids.DATASET_DESCRIPTION, bids.PARTICIPANTS_TSV,
                                           bids.PARTICIPANTS_JSON, bids.DATASET_README,
-                                          bids.task_sidecar_name(), ".crs-study.lock")}
+                                          bids.task_sidecar_name(), ".crs-study.lock",
+                                          ARRIVALS_FILE)}  # the count that counterbalances
     assert written == expected
     assert bids.find_sessions(root) == [paths]
 

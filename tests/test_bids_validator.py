@@ -15,7 +15,13 @@ import sys
 from pathlib import Path
 
 import pytest
-from _session_helpers import tiny_protocol
+from _session_helpers import record_consent, tiny_protocol
+
+
+@pytest.fixture(autouse=True)
+def _consented():
+    """p7k2m9q: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    record_consent("p7k2m9q")
 
 
 def validator() -> str | None:

@@ -254,12 +254,19 @@ def test_withdrawal_removes_one_participant_and_leaves_others_byte_identical(tmp
     assert not (dataset / consent.STAGING_DIR).exists()
 
 
-def test_withdrawal_removes_group_derivatives_that_mention_the_participant(tmp_path):
+def test_withdrawal_removes_group_derivatives_that_hold_the_participant(tmp_path):
+    """Which participants a group output holds is what the analysis recorded when it wrote
+    it (crs_study.dataset.outputs), never a search of the files' text (issue 13.1)."""
+    from crs_study.dataset import OutputsRecord
+
     dataset = make_dataset(tmp_path / "ds")
     group = dataset / "derivatives" / "crs-study" / "report"
     group.mkdir()
+    record = OutputsRecord({dataset: ["b2", "a10"]}, group)
+    record.begin()
     (group / "results.json").write_text('{"participants": ["b2", "a10"]}')
     (group / "accuracy.png").write_bytes(b"png")
+    record.done([group / "results.json", group / "accuracy.png"])
     assert "derivatives/crs-study/report" in consent.participant_paths(dataset, "b2")
     assert "derivatives/crs-study/report" not in consent.participant_paths(dataset, "a1")
 
@@ -339,7 +346,8 @@ def test_withdraw_cli_names_each_participant_it_finishes(tmp_path, capsys):
     assert _withdraw_in_subprocess(dataset, tmp_path / "reg", crash_at=2) == -9
     assert main(["consent", "withdraw", "--register", str(tmp_path / "reg"),
                  "--participant", "b2", "--dataset", str(dataset)]) == 0
-    out = capsys.readouterr().out.splitlines()
+    out = [line for line in capsys.readouterr().out.splitlines()  # after the lists
+           if line.startswith("withdrawn ")]
     assert out[0].startswith("withdrawn a1 from") and out[1].startswith("withdrawn b2 from")
 
 

@@ -17,10 +17,18 @@ import time
 
 import numpy as np
 import pytest
+from _session_helpers import record_consent
 
 from crs_study.clock import RealClock
 from crs_study.session.responders.base import StimulusRecord
 from crs_study.session.responders.keypad import KeypadResponder, PauseRequested
+
+
+@pytest.fixture(autouse=True)
+def _consented():
+    """p01: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    record_consent("p01")
+
 
 #: Allowed delay between writing a key and its time stamp (s). Typically 0.1 ms (median of
 #: 30 keys here); single keys reached 5 ms on a loaded two-core machine, hence the margin,

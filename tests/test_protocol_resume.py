@@ -15,12 +15,20 @@ import shutil
 from pathlib import Path
 
 import pytest
+from _session_helpers import record_consent
 
 from crs_study.cli import main
 from crs_study.geometry.layout import load_layout
 from crs_study.protocol import load_protocol
 from crs_study.protocol.plan import make_plan
 from crs_study.session.resume import plan_sha256, stimulus_sha256
+
+
+@pytest.fixture(autouse=True)
+def _consented():
+    """p01: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    record_consent("p01")
+
 
 FIXTURE = Path(__file__).parent / "fixtures" / "main_sessions"
 SIDECAR = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json"

@@ -4,6 +4,7 @@ left alone. The fixture's make_fixture.py says how each session was recorded."""
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 from pathlib import Path
 
@@ -21,6 +22,18 @@ FIXTURES = Path(__file__).parent / "fixtures" / "sessions_4c71d44"
 WALL_CLOCK_KEYS = ("StartTime", "EndTime", "ProtocolPath")
 
 
+@pytest.fixture(autouse=True)
+def _consented():
+    """The previous code ran these people's labels on sim:// without consent; this code gates
+    a person's label on every device (issue 13.3), so the register records their consent."""
+    from crs_study.consent import Register, read_form
+    from crs_study.paths import shipped_file
+
+    form = read_form(shipped_file("consent/consent_form.md"))
+    for label in ("p01", "p02", "p03", "p04"):
+        Register(None).record(form, "AB", label)
+
+
 @pytest.fixture
 def recorded(tmp_path) -> Path:
     """A copy of the dataset the previous code wrote, with its protocol beside it."""
@@ -34,10 +47,20 @@ def spec(dataset: Path, participant: str, url: str = "sim://",
                        clock)
 
 
+def _without_column(text: str, column: str) -> str:
+    lines = [line.split("\t") for line in text.splitlines()]
+    drop = lines[0].index(column)
+    return "".join("\t".join(c for i, c in enumerate(cells) if i != drop) + "\n"
+                   for cells in lines)
+
+
 def _comparable(meta: SessionMetadata) -> dict:
     data = meta.to_dict()
     for key in WALL_CLOCK_KEYS:
         data.pop(key)
+    # the old code recorded no causes (issue 13.12) and hashed the file it wrote
+    data.pop("Interruptions", None)
+    data.pop("TrialsSha256")
     data["Resumes"] = [(r["AtTrial"], r["DeviceURL"]) for r in data["Resumes"]]
     data["Faults"] = [(f["trial"], f["message"]) for f in data["Faults"]]
     return data
@@ -59,13 +82,19 @@ def test_a_session_begun_by_the_previous_code_finishes_as_if_this_code_began_it(
     assert (paused.status, paused.trials_completed) == ("interrupted", 4)
     whole = run_session(spec(reference, "p01"))
 
-    assert finished.tsv.read_bytes() == whole.tsv.read_bytes()
+    # The old session keeps the columns it began with (no ``rerun``, issue 13.12); this
+    # code's file, without that column, is the same byte for byte.
+    assert finished.tsv.read_text() == _without_column(whole.tsv.read_text(), "rerun")
+    assert "rerun" not in finished.tsv.read_text().splitlines()[0].split("\t")
     frames = "sourcedata/sub-p01/ses-1/sub-p01_ses-1_task-digitid_frames.tsv.gz"
     assert (recorded / frames).read_bytes() == (reference / frames).read_bytes()
     ours, theirs = SessionMetadata.read(whole.sidecar), SessionMetadata.read(finished.sidecar)
     assert _comparable(theirs) == _comparable(ours)
     assert [r.at_trial for r in theirs.resumes] == [2, 4]
     assert [f.trial for f in theirs.faults] == [2]
+    assert [(i.at_trial, i.cause, i.trial_cut) for i in ours.interruptions] == \
+        [(2, "device-fault", True), (4, "signal", True)]  # PauseAt raises KeyboardInterrupt
+    assert theirs.trials_sha256 == hashlib.sha256(finished.tsv.read_bytes()).hexdigest()
 
 
 @pytest.mark.parametrize("participant, clock", [("p02", "virtual"), ("p03", "virtual"),

@@ -6,17 +6,21 @@ from __future__ import annotations
 import csv
 import json
 import os
-import select
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
-from _session_helpers import tiny_protocol
+from _session_helpers import record_consent, start_command, tiny_protocol, wait_for_stderr
 
 from crs_study.cli import main
 from crs_study.commands.demo import fresh_directory
+
+
+@pytest.fixture(autouse=True)
+def _consented():
+    """p01: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    record_consent("p01")
+
 
 TSV = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
 SIDECAR = "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json"
@@ -77,23 +81,8 @@ def test_missing_protocol(tmp_path, capsys):
     assert "no such protocol file" in capsys.readouterr().err
 
 
-def _start(args, tmp_path):
-    return subprocess.Popen([sys.executable, "-m", "crs_study", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-
-
-def _wait_for(process, needle: str, timeout: float = 60.0) -> str:
-    """Raw reads of stderr until ``needle`` (a buffered readline would hide data from select)."""
-    seen = b""
-    deadline = time.monotonic() + timeout
-    while needle.encode() not in seen:
-        assert time.monotonic() < deadline, seen
-        ready, _, _ = select.select([process.stderr], [], [], 0.5)
-        if ready:
-            chunk = os.read(process.stderr.fileno(), 4096)
-            assert chunk, seen
-            seen += chunk
-    return seen.decode()
+_start = start_command
+_wait_for = wait_for_stderr
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],

@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from _session_helpers import FakeDevice, tiny_protocol
+from _session_helpers import FakeDevice, assert_same_but_reruns, tiny_protocol
 
 import crs_study.session.runner as runner_module
 from crs_study.dataset import read_frame_log
@@ -63,14 +63,14 @@ class Recorder(RandomResponder):
         return super().respond(trial, stimulus, clock, time_limit_s)
 
 
-def plan_seed_of(participant="p01", session=1):
+def plan_seed_of(participant="sim01", session=1):
     from crs_study.protocol.plan import plan_seed
 
     return plan_seed("tiny", "1.0.0", participant, session)
 
 
 def spec_for(tmp_path, protocol, name="ds", **kw):
-    base = dict(protocol=protocol, participant="p01", dataset=tmp_path / name,
+    base = dict(protocol=protocol, participant="sim01", dataset=tmp_path / name,
                 device_url="sim://", responder="random", clock="virtual")
     base.update(kw)
     return SessionSpec(**base)
@@ -94,8 +94,8 @@ def test_a_session_runs_and_is_stored(tmp_path, devices):
     assert "[geometry]" in meta["DeviceFile"] and meta["ConsentFormVersion"] == "1.0"
     assert len(responder.prompts) == 2  # one per condition block
     device = devices[0][0]
-    frames = read_frame_log(result.tsv.parents[3] / "sourcedata/sub-p01/ses-1"
-                            / "sub-p01_ses-1_task-digitid_frames.tsv.gz")
+    frames = read_frame_log(result.tsv.parents[3] / "sourcedata/sub-sim01/ses-1"
+                            / "sub-sim01_ses-1_task-digitid_frames.tsv.gz")
     for row, record in zip(rows, responder.records, strict=True):
         n = int(row["frames"])
         duration = float(row["stimulus_duration"])
@@ -149,7 +149,7 @@ def test_each_row_is_fsynced_before_the_next_trial_starts(tmp_path, devices, mon
     starts is recorded; before trial k starts, the TSV was fsynced holding its k rows."""
     spec = spec_for(tmp_path, tiny_protocol(tmp_path))
     events: list[tuple[str, int]] = []
-    tsv = spec.dataset / "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
+    tsv = spec.dataset / "sub-sim01/ses-1/beh/sub-sim01_ses-1_task-digitid_beh.tsv"
     _record_tsv_fsyncs(monkeypatch, tsv, events)
     result = run_session(spec, responder=_StartRecorder(5, events))
     assert result.status == "complete" and result.trials_completed == 8
@@ -166,7 +166,7 @@ def test_the_durability_order_test_sees_a_missing_fsync(tmp_path, devices, monke
     (durable=False) syncs only when the session stops."""
     spec = spec_for(tmp_path, tiny_protocol(tmp_path), durable=False)
     events: list[tuple[str, int]] = []
-    tsv = spec.dataset / "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.tsv"
+    tsv = spec.dataset / "sub-sim01/ses-1/beh/sub-sim01_ses-1_task-digitid_beh.tsv"
     _record_tsv_fsyncs(monkeypatch, tsv, events)
     run_session(spec, responder=_StartRecorder(5, events))
     synced = [n for kind, n in events if kind == "fsync"]
@@ -195,7 +195,8 @@ def test_pause_then_resume_equals_uninterrupted(tmp_path, devices):
     assert np.all(devices[0][-1].current == 0)  # the display was put to rest
     resumed = run_session(spec)
     assert resumed.status == "complete" and resumed.trials_run == 5
-    assert resumed.tsv.read_bytes() == whole.tsv.read_bytes()
+    # paused at trial 3's response: felt once already, so its rerun says rerun = 1
+    assert_same_but_reruns(resumed.tsv, whole.tsv, cut={3})
     meta = json.loads(resumed.sidecar.read_text())
     assert len(meta["Resumes"]) == 1 and meta["Status"] == "complete"
 
@@ -207,7 +208,7 @@ def test_device_fault_interrupts_and_resumes(tmp_path, devices):
     with pytest.raises(DeviceError, match=r"^device fault at trial \d/8: fake port vanished; "):
         run_session(spec)
     meta = json.loads(spec.dataset.joinpath(
-        "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json").read_text())
+        "sub-sim01/ses-1/beh/sub-sim01_ses-1_task-digitid_beh.json").read_text())
     assert meta["Status"] == "interrupted" and meta["Faults"][0]["message"] == \
         "fake port vanished"
     faulted = meta["Faults"][0]["trial"]
@@ -228,7 +229,7 @@ def test_device_missing_at_open_is_not_a_trial_fault(tmp_path, devices, monkeypa
     with pytest.raises(DeviceError, match=r"^device fault before trial 1/8: no such port"):
         run_session(spec)
     meta = json.loads(spec.dataset.joinpath(
-        "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json").read_text())
+        "sub-sim01/ses-1/beh/sub-sim01_ses-1_task-digitid_beh.json").read_text())
     assert meta["Status"] == "interrupted" and meta["Faults"] == []
 
 
@@ -254,7 +255,7 @@ def test_resume_refuses_software_that_draws_the_digits_differently(tmp_path, dev
     spec = spec_for(tmp_path, protocol)
     run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=2))
     sidecar = json.loads(spec.dataset.joinpath(
-        "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json").read_text())
+        "sub-sim01/ses-1/beh/sub-sim01_ses-1_task-digitid_beh.json").read_text())
     assert len(sidecar["StimulusSha256"]) == 64
     drawn = resume_module.make_stimulus
 
@@ -272,7 +273,7 @@ def _paused_before_the_stimulus_fingerprint(tmp_path):
     protocol = tiny_protocol(tmp_path)
     spec = spec_for(tmp_path, protocol)
     run_session(spec, responder=Recorder(seed=plan_seed_of(), pause_at=2))
-    path = spec.dataset.joinpath("sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json")
+    path = spec.dataset.joinpath("sub-sim01/ses-1/beh/sub-sim01_ses-1_task-digitid_beh.json")
     sidecar = json.loads(path.read_text())
     del sidecar["StimulusSha256"]
     path.write_text(json.dumps(sidecar))
@@ -307,8 +308,8 @@ def test_resume_cuts_a_torn_row(tmp_path, devices):
     with open(paused.tsv, "ab") as handle:
         handle.write(b"4\ttest\t1\tcrs\t0\t7\t3")  # killed in the middle of a write
     run_session(spec)
-    assert paused.tsv.read_bytes() == whole.tsv.read_bytes()
-    torn = list((spec.dataset / "sourcedata/sub-p01/ses-1").glob("*torn*.bin"))
+    assert_same_but_reruns(paused.tsv, whole.tsv, cut={4})
+    torn = list((spec.dataset / "sourcedata/sub-sim01/ses-1").glob("*torn*.bin"))
     assert [t.read_bytes() for t in torn] == [b"4\ttest\t1\tcrs\t0\t7\t3"]
 
 
@@ -347,7 +348,7 @@ def test_keypad_needs_the_real_clock(tmp_path, devices):
 
 def test_real_devices_need_consent(tmp_path, devices):
     spec = spec_for(tmp_path, tiny_protocol(tmp_path), device_url="serial:///dev/null",
-                    consent_register=tmp_path / "register", clock="real")
+                    consent_register=tmp_path / "register", clock="real", participant="p01")
     with pytest.raises(ConsentError, match="no consent record for participant 'p01'"):
         run_session(spec)
     assert not (spec.dataset / "sub-p01/ses-1/beh").exists()
@@ -368,12 +369,12 @@ def test_a_virtual_clock_never_drives_a_real_device(tmp_path, devices):
 def test_a_run_refused_at_the_start_writes_nothing(tmp_path, devices, responder, match):
     """A typo must not take a counterbalance slot or leave an empty session behind."""
     protocol = tiny_protocol(tmp_path)
-    run_session(spec_for(tmp_path, protocol, participant="a1"))
+    run_session(spec_for(tmp_path, protocol, participant="sim1"))
     before = (tmp_path / "ds" / "participants.tsv").read_bytes()
     with pytest.raises(CrsStudyError, match=match):
-        run_session(spec_for(tmp_path, protocol, participant="b2", responder=responder))
+        run_session(spec_for(tmp_path, protocol, participant="sim2", responder=responder))
     assert (tmp_path / "ds" / "participants.tsv").read_bytes() == before
-    assert not (tmp_path / "ds" / "sub-b2").exists()
+    assert not (tmp_path / "ds" / "sub-sim2").exists()
 
 
 def test_keypad_without_a_terminal_writes_nothing(tmp_path, devices, monkeypatch):
@@ -395,27 +396,34 @@ def test_a_session_is_finished_as_it_began(tmp_path, devices, change, match):
     """Rows by a guessing simulation must not be followed by rows from another kind of
     responder, device or clock under the same session."""
     protocol = tiny_protocol(tmp_path)
-    devices[1]["fail_at"] = 40  # during trial 2 or 3
-    with pytest.raises(DeviceError):
-        run_session(spec_for(tmp_path, protocol))
-    devices[1].pop("fail_at")
-    register = tmp_path / "register"
+    register = tmp_path / "register"  # a person's label: every run passes the consent gate
     from crs_study.consent import Register, read_form
     from crs_study.paths import shipped_file
 
     Register(register).record(read_form(shipped_file("consent/consent_form.md")), "AB", "p01")
+    person = dict(participant="p01", consent_register=register)
+    devices[1]["fail_at"] = 40  # during trial 2 or 3
+    with pytest.raises(DeviceError):
+        run_session(spec_for(tmp_path, protocol, **person))
+    devices[1].pop("fail_at")
     with pytest.raises(SessionError, match=f"cannot resume.*{match}"):
-        run_session(spec_for(tmp_path, protocol, consent_register=register, **change))
-    assert run_session(spec_for(tmp_path, protocol)).status == "complete"
+        run_session(spec_for(tmp_path, protocol, **person, **change))
+    assert run_session(spec_for(tmp_path, protocol, **person)).status == "complete"
 
 
 def test_a_resumed_session_prompts_the_person_first(tmp_path, devices):
     """After a pause mid-block the experimenter sees where the session stands and the
     block's prompt again (the skeleton may have been taken off meanwhile)."""
+    from crs_study.consent import Register, read_form
+    from crs_study.paths import shipped_file
+
     protocol = tiny_protocol(tmp_path)
+    register = tmp_path / "register"  # a person answers: the consent gate on sim:// too
+    Register(register).record(read_form(shipped_file("consent/consent_form.md")), "AB", "p01")
+    person_spec = dict(participant="p01", consent_register=register)
     devices[1]["fail_at"] = 40  # during trial 2 or 3
     with pytest.raises(DeviceError):
-        run_session(spec_for(tmp_path, protocol))
+        run_session(spec_for(tmp_path, protocol, **person_spec))
     devices[1].pop("fail_at")
 
     class Person(Recorder):
@@ -427,7 +435,7 @@ def test_a_resumed_session_prompts_the_person_first(tmp_path, devices):
 
     person = Person(seed=1)
     person.prompts = []
-    run_session(spec_for(tmp_path, protocol), responder=person)
+    run_session(spec_for(tmp_path, protocol, **person_spec), responder=person)
     assert person.prompts[0].startswith("Resuming at trial ")
     assert "skeleton" in person.prompts[0]  # the pilot's block prompts name the skeleton
 
@@ -438,7 +446,7 @@ def test_simulated_participants_rest_through_breaks(tmp_path, devices):
     text = protocol.read_text().replace("break_duration_s = 0.0", "break_duration_s = 7.0")
     protocol.write_text(text)
     rows = read_rows(run_session(spec_for(tmp_path, protocol)).tsv)
-    plan = [t for t in make_plan(load_protocol(protocol), "p01", 1, 0).trials]
+    plan = [t for t in make_plan(load_protocol(protocol), "sim01", 1, 0).trials]
     for row, trial in zip(rows[1:], plan[1:], strict=True):
         if trial.break_before:
             previous = rows[int(row["trial_index"]) - 1]
@@ -453,11 +461,11 @@ def test_a_dry_run_has_no_person_at_the_keypad(tmp_path):
 
 def test_counterbalance_follows_arrival(tmp_path, devices):
     protocol = tiny_protocol(tmp_path)
-    first = run_session(spec_for(tmp_path, protocol, participant="a1"))
-    second = run_session(spec_for(tmp_path, protocol, participant="b2"))
+    first = run_session(spec_for(tmp_path, protocol, participant="sim1"))
+    second = run_session(spec_for(tmp_path, protocol, participant="sim2"))
     order = [read_rows(r.tsv)[0]["condition"] for r in (first, second)]
     assert order == ["pixel-only", "crs"]  # "alternate": arrival 0 then 1
-    report = seed_check(spec_for(tmp_path, protocol, participant="b2"))
+    report = seed_check(spec_for(tmp_path, protocol, participant="sim2"))
     assert report["counterbalance"] == 1 and report["stored"].startswith("complete")
 
 
@@ -577,7 +585,7 @@ def test_disk_full_mid_session_is_one_line_and_loses_nothing(tmp_path, devices, 
     from crs_study.errors import DatasetError
 
     spec = spec_for(tmp_path, tiny_protocol(tmp_path))
-    tsv_name = "sub-p01_ses-1_task-digitid_beh.tsv"
+    tsv_name = "sub-sim01_ses-1_task-digitid_beh.tsv"
     real_write = files.os.write
     calls = {"rows": 0}
 
@@ -597,11 +605,12 @@ def test_disk_full_mid_session_is_one_line_and_loses_nothing(tmp_path, devices, 
     with pytest.raises(DatasetError, match=rf"{tsv_name}: cannot append to: No space left"):
         run_session(spec)
     monkeypatch.setattr(files.os, "write", real_write)
-    tsv = spec.dataset / "sub-p01/ses-1/beh" / tsv_name
+    tsv = spec.dataset / "sub-sim01/ses-1/beh" / tsv_name
     assert tsv.read_bytes().endswith(b"\n") and len(read_rows(tsv)) == 4
     whole = run_session(spec_for(tmp_path, spec.protocol, "whole"))
     assert run_session(spec).status == "complete"
-    assert tsv.read_bytes() == whole.tsv.read_bytes()
+    # trial 4 was shown and answered before its row met the full disk: rerun = 1
+    assert_same_but_reruns(tsv, whole.tsv, cut={4})
 
 
 def test_participants_arriving_together_get_their_own_counterbalance(tmp_path, devices,
@@ -619,7 +628,7 @@ def test_participants_arriving_together_get_their_own_counterbalance(tmp_path, d
         return prepared
 
     monkeypatch.setattr(runner, "prepare", prepare_then_another_arrives)
-    spec = spec_for(tmp_path, tiny_protocol(tmp_path), participant="p02")
+    spec = spec_for(tmp_path, tiny_protocol(tmp_path), participant="sim02")
     result = run_session(spec)
-    assert Dataset(spec.dataset).participants() == {"other": 0, "p02": 1}
+    assert Dataset(spec.dataset).participants() == {"other": 0, "sim02": 1}
     assert json.loads(result.sidecar.read_text())["Counterbalance"] == 1

@@ -18,7 +18,8 @@ response                       Int64      the digit reported, ``<NA>`` when time
 correct                        float64    1.0 / 0.0, NaN when timed out (or 0.0 under the
                                           plan's ``timeouts = "count_as_error"``)
 response_time, ... (seconds)   float64    NaN for ``n/a``
-timed_out, device_fault        bool
+timed_out, device_fault,       bool       (``rerun`` False in sessions written before it existed)
+rerun
 trial_type, condition,         str
 responder
 <level columns>                float64    extra numeric columns (``digit_height``, ...) kept
@@ -58,7 +59,7 @@ from crs_study.errors import DatasetError
 INT_COLUMNS = ("trial_index", "block", "repetition", "frames", "late_frames", "response")
 FLOAT_COLUMNS = ("correct", "response_time", "response_time_from_offset", "onset",
                  "stimulus_duration", "median_wire_latency", "trial_end")
-BOOL_COLUMNS = ("timed_out", "device_fault")
+BOOL_COLUMNS = ("timed_out", "device_fault", "rerun")
 TEXT_COLUMNS = ("trial_type", "condition", "responder")
 REQUIRED_COLUMNS = ("trial_type", "condition", "digit", "correct", "response")
 EXCLUSION_REASONS = ("practice", "device_fault", "timeout", "anticipation", "slow")

@@ -55,6 +55,7 @@ from crs_study.analysis.speed_accuracy import SpeedAccuracyResult, analyse_speed
 from crs_study.analysis.study_data import DatasetPaths, StudyData, load_dataset
 from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
 from crs_study.dataset.bids import DERIVATIVES, derivatives_dir
+from crs_study.dataset.outputs import OutputsRecord, participants_by_dataset
 from crs_study.errors import AnalysisError, DatasetError
 from crs_study.paths import recorded_path
 
@@ -171,6 +172,12 @@ class Analysis:
         """Write ``results.json``, the report and the plan's charts into ``out`` (default:
         the dataset's ``derivatives/crs-study``; several datasets need ``out``)."""
         folder = _out_dir(list(self.data.datasets), out)
+        # every output is recorded in the datasets it holds trials of, wherever it is
+        # written, so that a participant's withdrawal reaches it (crs_study.dataset.outputs)
+        record = OutputsRecord(participants_by_dataset(
+            self.data.datasets, zip(self.data.sessions["participant"],
+                                    self.data.sessions["file"], strict=True)), folder)
+        record.begin()
         with os_errors(AnalysisError, "write the analysis", folder):  # disk full, no permission
             figures = folder / "figures"
             figures.mkdir(parents=True, exist_ok=True)
@@ -181,6 +188,7 @@ class Analysis:
             write_atomically(files.results, written.to_json())
             report = write_report(folder, written.to_dict(), written, chart_files)
             _derivative_description(folder, list(self.data.datasets))
+        record.done([files.results, report, *chart_files])
         return replace(files, report=report)
 
     # the files of analyze(write=True), as earlier versions gave them

@@ -102,7 +102,7 @@ def simulate_trials(spec: SyntheticSpec, participant: int, rng: np.random.Genera
             "response_time": MISSING if timed_out else round(rt, 4),
             "response_time_from_offset": MISSING if timed_out else round(rt - duration, 4),
             "onset": round(onset, 4), "stimulus_duration": round(duration, 4),
-            "timed_out": int(timed_out), "device_fault": int(fault),
+            "timed_out": int(timed_out), "device_fault": int(fault), "rerun": 0,
             "frames": int(duration * 50), "late_frames": int(rng.poisson(0.2)),
             "median_wire_latency": round(float(rng.uniform(0.01, 0.02)), 5),
             "responder": "observer",

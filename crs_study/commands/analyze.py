@@ -12,6 +12,7 @@ import sys
 
 from crs_study._files import os_errors
 from crs_study.analysis import analyze
+from crs_study.dataset import dataset_dir
 from crs_study.errors import AnalysisError
 
 
@@ -42,6 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @os_errors(AnalysisError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
+    if args.out is not None:
+        dataset_dir(args.out)  # --out '' is a one-line error, not the current folder
     result = analyze(args.datasets, args.plan, args.out, strict=args.strict,
                      include_simulated=args.include_simulated, responders=args.responder)
     for warning in result.warnings:

@@ -51,10 +51,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     withdraw.add_argument("--register-only", action="store_true",
                           help="no dataset holds the participant's data: only mark the "
                                "consent record withdrawn")
+    withdraw.add_argument("--dry-run", action="store_true",
+                          help="print what would be removed (the paths and rows BIDS names "
+                               "for the participant, the analysis outputs holding them) and "
+                               "change nothing")
+    withdraw.add_argument("--wait", type=float, default=0.0, metavar="SECONDS",
+                          help="when a session of the participant is running: mark the "
+                               "consent withdrawn (the session stops at its next trial) and "
+                               "wait up to this long for it before removing the data")
 
     recover = add("recover", "finish a withdrawal that was interrupted")
     recover.add_argument("--dataset", action="append", required=True, metavar="DIR",
                          help="dataset whose interrupted withdrawal to finish (repeatable)")
+
+
+def _print_plan(plan: consent.DatasetWithdrawal, verb: str = "will") -> None:
+    """The list of what a withdrawal removes, printed before it acts (or instead, dry run)."""
+    lines = plan.lines()
+    print(f"{plan.dataset}: withdrawing {plan.participant} {verb} "
+          + ("remove:" if lines else "remove nothing here"), flush=True)
+    for line in lines:
+        print(f"  {line}", flush=True)
 
 
 @os_errors(ConsentError)  # disk full, permission denied, a file where a folder should be: one line
@@ -86,10 +103,28 @@ def run(args: argparse.Namespace) -> int:
         if bool(args.dataset) == args.register_only:
             raise ConsentError("withdraw needs --dataset DIR (each dataset holding the "
                                "participant's data) or, when none does, --register-only")
-        entries = consent.withdraw(args.participant, args.dataset, register.directory)
+        if args.dry_run:
+            for plan in consent.preview_withdrawal(args.participant, args.dataset):
+                _print_plan(plan, "would")
+            print(f"dry run: nothing was removed, and the consent record of "
+                  f"{args.participant} is unchanged")
+            return 0
+        if not args.wait >= 0:
+            raise ConsentError(f"--wait: expected seconds >= 0, got {args.wait!r}")
+        entries = consent.withdraw(args.participant, args.dataset, register.directory,
+                                   wait_s=args.wait, announce=_print_plan,
+                                   progress=lambda line: print(line, flush=True))
         for entry in entries:
             print(f"withdrawn {entry['participant']} from {entry['dataset']}: "
-                  f"{len(entry['removed'])} paths removed")
+                  f"{len(entry['removed'])} paths removed, rows removed from "
+                  f"{len(entry.get('rows_removed_from', ()))} TSV(s), "
+                  f"{len(entry.get('outputs_removed', ()))} analysis output(s) outside it")
+            for note in entry.get("notes", ()):
+                print(f"  note: {note}")
+            if entry.get("outputs_removed") or any(
+                    "derivatives" in path for path in entry["removed"]):
+                print("  analysis results holding the participant were removed: re-run "
+                      "crs-study analyze")
         print(f"consent record of {args.participant} marked withdrawn in {register.directory}")
         return 0
     for dataset in args.dataset:

@@ -9,13 +9,14 @@ command resumes unfinished sessions and leaves finished ones alone.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from crs_study._files import os_errors
 from crs_study.commands.run import stderr_progress
+from crs_study.dataset import dataset_dir
 from crs_study.errors import DatasetError
 from crs_study.protocol import emit_warnings, load_protocol
 from crs_study.session import dry_run
+from crs_study.session.dry_runs import check_participant_count
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "digit_identification, ...)")
     parser.add_argument("--participants", type=int, required=True, metavar="N",
                         help="number of simulated participants")
-    parser.add_argument("--out", required=True, type=Path, metavar="DATASET",
+    parser.add_argument("--out", required=True, metavar="DATASET",
                         help="dataset directory (BIDS); created when missing")
     parser.add_argument("--jobs", type=int, default=1, metavar="J",
                         help="worker processes (sessions run in parallel)")
@@ -41,9 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
+    out = dataset_dir(args.out)  # before any work: --out '' is not the current folder
+    check_participant_count(args.participants)
     protocol = load_protocol(args.protocol)  # a path or a shipped name, checked once
     emit_warnings(protocol)  # odd but legal values, once, up front
-    result = dry_run(protocol, args.participants, args.out, jobs=args.jobs,
+    result = dry_run(protocol, args.participants, out, jobs=args.jobs,
                      responder=args.responder, device_url=args.device,
                      progress=stderr_progress(not args.json), durable=args.fsync)
     if args.json:

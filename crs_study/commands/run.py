@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from crs_study._files import os_errors
+from crs_study.dataset import dataset_dir
 from crs_study.errors import DatasetError
 from crs_study.protocol import emit_warnings, load_protocol
 from crs_study.session.runner import run_session, seed_check
@@ -32,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="participant label (letters and digits; never a name)")
     parser.add_argument("--device", required=True, metavar="URL",
                         help="serial:///dev/ttyUSB0,/dev/ttyUSB1 or sim://")
-    parser.add_argument("--out", required=True, metavar="DATASET", type=Path,
+    parser.add_argument("--out", required=True, metavar="DATASET",
                         help="dataset directory (BIDS); created when missing")
     parser.add_argument("--session", type=int, default=1, metavar="N",
                         help="session number (a completed session is never overwritten)")
@@ -46,7 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "in the dataset)")
     parser.add_argument("--consent-register", type=Path, default=None, metavar="DIR",
                         help="consent register (default: $CRS_STUDY_CONSENT_DIR or "
-                        "~/.crs-study/consent); needed for devices other than sim://")
+                        "~/.crs-study/consent); needed for a person's label on every device, "
+                        "sim:// included; only simulated participants (sim... labels, a "
+                        "simulated responder, sim://) skip it")
     parser.add_argument("--seed-check", action="store_true",
                         help="print the seed and plan hash, compare with a stored session, "
                         "write nothing")
@@ -56,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def spec_from_args(args: argparse.Namespace):
     return SessionSpec(
-        protocol=Path(args.protocol), participant=args.participant, dataset=args.out,
+        protocol=Path(args.protocol), participant=args.participant,
+        dataset=dataset_dir(args.out),
         device_url=args.device, session=args.session, responder=args.responder,
         clock=args.clock, counterbalance=args.counterbalance,
         consent_register=args.consent_register,

@@ -5,6 +5,9 @@
   (:class:`Register`), and pseudonymous labels;
 * :mod:`~crs_study.consent.gate`: no real session without a current consent
   (:func:`require_consent`);
+* :mod:`~crs_study.consent.withdrawal_plan`: what a withdrawal removes, exactly the paths and
+  rows BIDS names for the participant and the analysis outputs holding them
+  (:func:`plan_withdrawal`);
 * :mod:`~crs_study.consent.withdrawal`: a participant's data removed from datasets, all or
   nothing (:func:`withdraw`, :func:`recover_withdrawal`).
 
@@ -29,11 +32,15 @@ from crs_study.consent.withdrawal import (
     STAGING_DIR,
     participant_paths,
     pending_withdrawal,
+    preview_withdrawal,
     recover_withdrawal,
+    running_sessions,
     withdraw,
 )
+from crs_study.consent.withdrawal_plan import DatasetWithdrawal, plan_withdrawal
 
 __all__ = ["CRASH_ENV", "JOURNAL_FILE", "REGISTER_ENV", "REGISTER_FILE", "STAGING_DIR",
-           "ConsentForm", "ConsentRecord", "Register", "check_label", "default_register_dir",
-           "generate_label", "participant_paths", "pending_withdrawal", "read_form",
-           "recover_withdrawal", "require_consent", "withdraw"]
+           "ConsentForm", "ConsentRecord", "DatasetWithdrawal", "Register", "check_label",
+           "default_register_dir", "generate_label", "participant_paths", "pending_withdrawal",
+           "plan_withdrawal", "preview_withdrawal", "read_form", "recover_withdrawal",
+           "require_consent", "running_sessions", "withdraw"]

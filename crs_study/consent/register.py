@@ -27,12 +27,13 @@ import string
 import warnings
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from datetime import datetime
 from pathlib import Path
 
 from crs_study._files import append_durably, fsync_dir, os_errors
 from crs_study.consent.form import ConsentForm
 from crs_study.dataset import check_label as dataset_check_label
-from crs_study.dataset import utc_now
+from crs_study.dataset import is_simulated_label, utc_now
 from crs_study.errors import ConsentError, CrsStudyWarning, SessionError
 
 REGISTER_ENV = "CRS_STUDY_CONSENT_DIR"
@@ -40,6 +41,8 @@ REGISTER_FILE = "register.jsonl"
 AUDIT_FILE = "audit.jsonl"
 
 _INITIALS_RE = re.compile(r"^[A-Za-z]{1,4}$")
+#: Keys a consent event must have (besides ``event`` and ``participant``).
+_CONSENT_KEYS = ("time", "form_path", "form_version", "form_sha256", "experimenter")
 _LABEL_ALPHABET = string.ascii_lowercase + string.digits
 
 
@@ -63,6 +66,31 @@ def check_label(label: str) -> str:
         return dataset_check_label(label)
     except SessionError as error:
         raise ConsentError(str(error)) from None
+
+
+def check_person_label(label: str) -> str:
+    """A person's label: BIDS-valid and outside the simulated participants' label space
+    (``sim...``, :func:`crs_study.dataset.is_simulated_label`), so a person can never be
+    taken for a simulated participant and pass no gate."""
+    check_label(label)
+    if is_simulated_label(label):
+        raise ConsentError(f"participant label {label!r} begins with 'sim', which is reserved "
+                           "for simulated participants; give a person another label (or none: "
+                           "one is generated, e.g. p7k2m9q)")
+    return label
+
+
+def _withdrawal_time(event: dict, line: int) -> str:
+    """The time a withdrawal event gives, or words saying it is unknown: a null or malformed
+    time still withdraws (it must never reopen the gate)."""
+    value = event.get("time")
+    if isinstance(value, str):
+        try:
+            datetime.fromisoformat(value)
+            return value
+        except ValueError:
+            pass
+    return f"an unknown time (register line {line} gives {value!r})"
 
 
 def generate_label(existing: Iterable[str] = (), length: int = 7) -> str:
@@ -161,26 +189,60 @@ class Register:
                 continue
             try:
                 event = json.loads(line)
-                event["event"], event["participant"]  # noqa: B018  (required keys)
+                kind, label = event["event"], event["participant"]
+                if kind not in ("consent", "withdrawal") or not isinstance(label, str):
+                    raise KeyError(kind)
+                if kind == "consent":
+                    for key in _CONSENT_KEYS:
+                        if not isinstance(event[key], str):
+                            raise KeyError(key)
             except (json.JSONDecodeError, KeyError, TypeError):
                 raise ConsentError(f"{self.path}:{number}: not a consent register line: "
                                    f"{line[:60]!r}") from None
-            events.append(event)
+            events.append({**event, "_line": number})
         return events
 
-    def records(self) -> dict[str, ConsentRecord]:
-        """The current record per participant (a later consent replaces an earlier one)."""
-        records: dict[str, ConsentRecord] = {}
+    def stamp(self) -> tuple[int, int, int] | None:
+        """What changes whenever the register file does: inode, size, modification time
+        (None when it is missing). A stat, so a session can look before every trial."""
+        try:
+            info = os.stat(self.path)
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise ConsentError(f"{self.path}: cannot read the consent register: {exc}"
+                               ) from None
+        return (info.st_ino, info.st_size, info.st_mtime_ns)
+
+    def withdrawn(self) -> dict[str, str]:
+        """Label -> when it was withdrawn, for every withdrawal event (also of labels without a
+        consent record); a withdrawal is final whatever follows it in the register."""
+        found: dict[str, str] = {}
         for event in self.events():
-            label = event["participant"]
+            if event["event"] == "withdrawal":
+                found.setdefault(event["participant"], _withdrawal_time(event, event["_line"]))
+        return found
+
+    def records(self) -> dict[str, ConsentRecord]:
+        """The current record per participant (a later consent replaces an earlier one; a
+        withdrawal is final: no consent event after it, and no time it lacks, reopens it)."""
+        records: dict[str, ConsentRecord] = {}
+        events = self.events()
+        for event in events:
             if event["event"] == "consent":
+                label = event["participant"]
                 records[label] = ConsentRecord(
                     label, event["time"], event["form_path"], event["form_version"],
                     event["form_sha256"], event["experimenter"], event.get("name"),
                 )
-            elif event["event"] == "withdrawal" and label in records:
-                old = records[label]
-                records[label] = ConsentRecord(**{**asdict(old), "withdrawn_at": event["time"]})
+        withdrawn: dict[str, str] = {}
+        for event in events:
+            if event["event"] == "withdrawal":
+                withdrawn.setdefault(event["participant"],
+                                     _withdrawal_time(event, event["_line"]))
+        for label, when in withdrawn.items():
+            if label in records:
+                records[label] = ConsentRecord(**{**asdict(records[label]), "withdrawn_at": when})
         return records
 
     def record(self, form: ConsentForm, experimenter: str, participant: str | None = None,
@@ -191,12 +253,13 @@ class Register:
                 f"experimenter initials {experimenter!r} are not valid: 1 to 4 letters"
             )
         records = self.records()
+        withdrawn = self.withdrawn()
         if participant is None:
-            participant = generate_label(records)
-        check_label(participant)
-        if participant in records and records[participant].withdrawn_at:
+            participant = generate_label({*records, *withdrawn})
+        check_person_label(participant)
+        if participant in withdrawn:
             raise ConsentError(
-                f"participant {participant!r} withdrew on {records[participant].withdrawn_at}; "
+                f"participant {participant!r} withdrew on {withdrawn[participant]}; "
                 "give a returning person a new label"
             )
         event = {
@@ -210,8 +273,7 @@ class Register:
         return self.records()[participant]
 
     def mark_withdrawn(self, participant: str) -> None:
-        if any(e["event"] == "withdrawal" and e["participant"] == participant
-               for e in self.events()):
+        if participant in self.withdrawn():
             return  # idempotent (also for a simulated participant with no consent record)
         self._append(self.path, {"event": "withdrawal", "participant": participant,
                                  "time": utc_now()})

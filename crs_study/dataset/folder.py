@@ -26,6 +26,7 @@ import csv
 import fcntl
 import io
 import json
+import os
 import re
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -44,6 +45,15 @@ DATASET_LOCK = ".crs-study.lock"
 #: Journal of a participant's withdrawal in progress (crs_study.consent); while it exists no
 #: session may start in the dataset.
 WITHDRAWAL_JOURNAL = ".crs-study-withdrawal.json"
+#: How many participants ever arrived in the dataset (no labels: a withdrawal must not leave
+#: the withdrawn participant's label behind); the next participant's default counterbalance.
+ARRIVALS_FILE = ".crs-study-arrivals.json"
+#: Labels of simulated participants begin with this, in any case (``sim01``); a person's label
+#: never does (:func:`is_simulated_label`; the consent register refuses such labels).
+SIMULATED_LABEL_PREFIX = "sim"
+#: The labels of crs_study.power's simulated studies (``r<seed>s<study>p<NN>``, made before
+#: the ``sim`` space existed; its fixtures are drawn from them): simulated too.
+_POWER_LABEL = re.compile(r"r[0-9]+s[0-9]+p[0-9]+")
 PARTICIPANT_COLUMNS = ("participant_id", "counterbalance")
 PARTICIPANTS_SIDECAR = {
     "participant_id": {"Description": "Pseudonymous participant label (never a name)"},
@@ -63,6 +73,29 @@ def check_label(label: str) -> str:
         raise SessionError(f"participant label {label!r} is not valid: use letters and digits "
                            "only (BIDS), e.g. p7k2m9q")
     return label
+
+
+def dataset_dir(value: str | os.PathLike[str], option: str = "--out") -> Path:
+    """A dataset folder as the user gave it; an empty name (``--out ''``, which ``Path``
+    would take for the current folder) is a one-line :class:`DatasetError`."""
+    if not os.fspath(value).strip():
+        raise DatasetError(f"{option}: expected a folder, got {os.fspath(value)!r} (which "
+                           "would mean the current folder); name one (it is created when "
+                           "missing), e.g. --out study")
+    return Path(value)
+
+
+def is_simulated_label(label: str) -> bool:
+    """Whether ``label`` is in the simulated participants' label space (``sim...``, any case,
+    and power's ``r<seed>s<study>p<NN>``).
+
+    The two label spaces never meet: a simulated participant (a dry-run's ``sim01``) is
+    never a person, so such a session needs no consent, and a person's label (any other) is
+    gated by consent on every device (:mod:`crs_study.consent.gate`).
+    """
+    return isinstance(label, str) and (
+        label[:len(SIMULATED_LABEL_PREFIX)].lower() == SIMULATED_LABEL_PREFIX
+        or _POWER_LABEL.fullmatch(label) is not None)
 
 
 def utc_now() -> str:
@@ -160,12 +193,39 @@ class Dataset:
                 raise DatasetError(f"{path}:{number}: malformed row {row!r}") from None
         return found
 
+    def arrivals(self, known: dict[str, int] | None = None) -> int:
+        """How many participants ever arrived in the dataset, withdrawn ones included.
+
+        Kept in :data:`ARRIVALS_FILE` (a count, no labels). A dataset written before the file
+        existed counts its participants, or one past the largest index stored when that is
+        more (a withdrawal there left a gap, and the count alone would repeat an index).
+        """
+        known = self.participants() if known is None else known
+        legacy = max(len(known), max(known.values(), default=-1) + 1)
+        path = self.root / ARRIVALS_FILE
+        if not path.exists():
+            return legacy
+        try:
+            count = json.loads(path.read_text(encoding="utf-8"))["arrivals"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise DatasetError(f"{path}: unreadable count of arrivals ({exc}); expected "
+                               '{"arrivals": N}') from None
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise DatasetError(f"{path}: expected a whole number of arrivals, got {count!r}")
+        return max(count, len(known))
+
+    def next_counterbalance(self) -> int:
+        """The counterbalance index the next new participant gets by default: the 0-based
+        order of arrival (:meth:`arrivals`), never the count of rows, which a withdrawal
+        lowers so that the next participant would repeat an index in use."""
+        return self.arrivals()
+
     def register_participant(self, label: str, counterbalance: int | None = None) -> int:
         """The participant's counterbalance index, adding the participant when new.
 
-        A new participant gets ``counterbalance`` when given, else the number of participants
-        already in the dataset (0-based order of arrival). A known participant keeps the index
-        stored; asking for another one is a :class:`SessionError`.
+        A new participant gets ``counterbalance`` when given, else its 0-based order of
+        arrival (:meth:`next_counterbalance`). A known participant keeps the index stored;
+        asking for another one is a :class:`SessionError`.
         """
         check_label(label)
         self.ensure()
@@ -179,10 +239,14 @@ class Dataset:
                         f"{self.root / bids.PARTICIPANTS_TSV}; --counterbalance "
                         f"{counterbalance} disagrees")
                 return known[label]
-            index = len(known) if counterbalance is None else int(counterbalance)
+            arrived = self.arrivals(known)
+            index = arrived if counterbalance is None else int(counterbalance)
             if index < 0:
                 raise SessionError(f"counterbalance must be >= 0, got {index!r}")
             known[label] = index
+            with os_errors(DatasetError, "write", self.root / ARRIVALS_FILE):
+                write_atomically(self.root / ARRIVALS_FILE,
+                                 json.dumps({"arrivals": arrived + 1}) + "\n")
             lines = ["\t".join(PARTICIPANT_COLUMNS) + "\n"]
             lines += [tsv_line([f"sub-{k}", v]) for k, v in sorted(known.items())]
             with os_errors(DatasetError, "write", self.root / bids.PARTICIPANTS_TSV):

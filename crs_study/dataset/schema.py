@@ -38,6 +38,10 @@ TRIAL_COLUMNS: dict[str, tuple[str, str]] = {
     "timed_out": ("1 when no response came within the protocol's time limit", "0|1"),
     "device_fault": ("1 when a device fault interrupted an earlier attempt of this trial "
                      "(the session stopped and the trial was rerun on resume)", "0|1"),
+    "rerun": ("1 when an earlier attempt of this trial was cut short after its stimulus "
+              "began (the pause key, a signal, a device fault or a crash stopped the session), "
+              "so the participant may have felt part of it before this run; the cause is in "
+              "the session sidecar's Interruptions", "0|1"),
     "frames": ("Frames commanded during the stimulus", "count"),
     "late_frames": ("Frames commanded later than one frame period after their due time",
                     "count"),
@@ -60,6 +64,11 @@ LEVEL_COLUMNS: dict[str, tuple[str, str]] = {
     "stroke_speed": ("Speed of the bump centre along the strokes, varied across trials by the "
                      "protocol's [levels]; only in sessions of such protocols", "mm/s"),
 }
+
+
+#: Columns added after sessions were first written: a session begun without one is resumed
+#: without it (its file keeps the columns it began with).
+LATER_COLUMNS: tuple[str, ...] = ("rerun",)
 
 
 #: Adaptive columns: a session whose protocol has an ``[adaptive]`` table records, after the

@@ -10,14 +10,17 @@ Reading is strict: a key the format does not have, a key it needs that is missin
 of the wrong type is a one-line :class:`~crs_study.errors.DatasetError` naming the file and the
 key. Two keys may be absent: ``StimulusSha256`` (sidecars begun by software older than the
 stimulus fingerprint lack it; read as None, and the runner then records null: it cannot vouch
-for trials drawn by older software) and ``AdaptiveStateSha256`` (written only for adaptive
-protocols: the fingerprint of the procedures' state after ``TrialsCompleted`` trials,
-:meth:`crs_study.adaptive.AdaptiveRun.fingerprint`; a resume replays the recorded responses
-and must reach it).
+for trials drawn by older software). Two are written only when not empty: ``Interruptions``
+(why the session stopped before its end: a sidecar of a session never interrupted, or written
+by older software, has none) and ``AdaptiveStateSha256`` (only adaptive protocols have it,
+read as None when absent: the fingerprint of the procedures' state after ``TrialsCompleted``
+trials, :meth:`crs_study.adaptive.AdaptiveRun.fingerprint`; a resume replays the recorded
+responses and must reach it).
 
 The JSON keys are BIDS-style CamelCase; entries of ``Resumes`` have ``Time``, ``AtTrial``,
 ``DeviceURL``, ``SoftwareVersion``; entries of ``Faults`` ``trial``, ``time``, ``message``
-(lower case, as written since the first version). Times are ISO 8601 with a UTC offset.
+(lower case, as written since the first version); entries of ``Interruptions`` ``Time``,
+``AtTrial``, ``Cause``, ``Detail``, ``TrialCut``. Times are ISO 8601 with a UTC offset.
 """
 
 from __future__ import annotations
@@ -40,8 +43,16 @@ STATUSES: tuple[str, ...] = ("running", "interrupted", "complete")
 CLOCKS: tuple[str, ...] = ("real", "virtual")
 #: Keys a sidecar written by older software may lack (read as None).
 OPTIONAL_KEYS = frozenset({"StimulusSha256", "AdaptiveStateSha256"})
-#: Keys left out of the JSON when None (so a fixed protocol's sidecar is what it always was).
-OMITTED_WHEN_NONE = frozenset({"AdaptiveStateSha256"})
+#: Keys written only when not empty, read as ``()`` (or None, when optional) when absent
+#: (sessions never interrupted, fixed protocols, and every sidecar older software wrote, have
+#: none).
+WHEN_PRESENT_KEYS = frozenset({"Interruptions", "AdaptiveStateSha256"})
+#: Why a session stopped before its end (:class:`Interruption`): the experimenter's pause key,
+#: a signal (SIGINT is Ctrl-C), a device fault, the participant's consent withdrawn, another
+#: error (a full disk), or a crash found on resume (killed, power cut: the sidecar still said
+#: ``running``).
+CAUSES: tuple[str, ...] = ("pause-key", "signal", "device-fault", "consent-withdrawn", "error",
+                           "crash")
 
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _LABEL = re.compile(r"[A-Za-z0-9]+")
@@ -110,6 +121,12 @@ def _time(value: Any) -> datetime:
     return parsed
 
 
+def _bool(value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise _Invalid(f"expected true or false, got {_short(value)}")
+    return value
+
+
 def _choice(options: tuple[str, ...]) -> Callable[[Any], str]:
     def read(value: Any) -> str:
         if value not in options:
@@ -151,9 +168,10 @@ class _Record:
                                    f"{problem}") from None
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON object (plain types), keys in their written order."""
+        """The JSON object (plain types), keys in their written order (a key of
+        :data:`WHEN_PRESENT_KEYS` only when not empty)."""
         return {key: _dump(getattr(self, attribute)) for key, attribute, _ in self._KEYS
-                if not (key in OMITTED_WHEN_NONE and getattr(self, attribute) is None)}
+                if key not in WHEN_PRESENT_KEYS or getattr(self, attribute)}
 
     @classmethod
     def _parse(cls, data: Any, path: str = "") -> Any:
@@ -172,8 +190,8 @@ class _Record:
         values = {}
         for key, attribute, read in cls._KEYS:
             if key not in data:
-                if key in OPTIONAL_KEYS:
-                    values[attribute] = None
+                if key in OPTIONAL_KEYS or key in WHEN_PRESENT_KEYS:
+                    values[attribute] = None if key in OPTIONAL_KEYS else ()
                     continue
                 raise _Located(f"missing key {prefix}{key}")
             try:
@@ -220,6 +238,27 @@ class Fault(_Record):
 
 
 @dataclass(frozen=True)
+class Interruption(_Record):
+    """Why the session stopped before its end, and where (:data:`CAUSES`).
+
+    ``at_trial`` is the number of trials stored when it happened (the trial it cut, or the
+    next one); ``trial_cut`` is true when that trial's stimulus had begun, so the participant
+    may have felt part of it: its rerun's row then says ``rerun = 1``. ``detail`` says more
+    (the signal's name, the fault's message).
+    """
+
+    time: datetime
+    at_trial: int
+    cause: str
+    detail: str
+    trial_cut: bool
+
+    _KEYS = (("Time", "time", _time), ("AtTrial", "at_trial", _whole(0)),
+             ("Cause", "cause", _choice(CAUSES)), ("Detail", "detail", _text),
+             ("TrialCut", "trial_cut", _bool))
+
+
+@dataclass(frozen=True)
 class SessionMetadata(_Record):
     """A session's sidecar. Build one with the fields, or read one with :meth:`from_json` or
     :meth:`read`; :meth:`to_json` is the file's text.
@@ -260,6 +299,7 @@ class SessionMetadata(_Record):
     trials_sha256: str | None
     resumes: tuple[Resume, ...] = ()
     faults: tuple[Fault, ...] = ()
+    interruptions: tuple[Interruption, ...] = ()
     adaptive_state_sha256: str | None = None
 
     _KEYS = (
@@ -295,6 +335,8 @@ class SessionMetadata(_Record):
         ("AdaptiveStateSha256", "adaptive_state_sha256", _or_none(_sha256)),
         ("Resumes", "resumes", _entries(Resume, "Resumes")),  # one per resume
         ("Faults", "faults", _entries(Fault, "Faults")),     # device faults during trials
+        ("Interruptions", "interruptions",                   # why it stopped, when it did
+         _entries(Interruption, "Interruptions")),
     )
 
     def __post_init__(self) -> None:
@@ -355,6 +397,10 @@ class SessionMetadata(_Record):
         by_key = {key: attribute for key, attribute, _ in self._KEYS}
         return {key: getattr(self, by_key[key]) for key in FINGERPRINTS}
 
+    def cut_trials(self) -> set[int]:
+        """Trials an interruption cut after their stimulus began (rerun with ``rerun = 1``)."""
+        return {i.at_trial for i in self.interruptions if i.trial_cut}
+
     def with_progress(self, status: Status, trials_completed: int, trials_sha256: str,
                       end_time: datetime | None, adaptive_state_sha256: str | None = None
                       ) -> SessionMetadata:
@@ -374,8 +420,6 @@ FINGERPRINTS: dict[str, str] = {
     "StimulusSha256": "stimulus (the bump paths this software draws)",
 }
 
-#: Every key of the sidecar, in written order (``AdaptiveStateSha256``, written only for
-#: adaptive protocols after ``TrialsSha256``, is :data:`ADAPTIVE_SIDECAR_KEYS`).
+#: Every key every sidecar has, in written order (then those of :data:`WHEN_PRESENT_KEYS`).
 SIDECAR_KEYS: tuple[str, ...] = tuple(key for key, _, _ in SessionMetadata._KEYS
-                                      if key not in OMITTED_WHEN_NONE)
-ADAPTIVE_SIDECAR_KEYS: tuple[str, ...] = tuple(OMITTED_WHEN_NONE)
+                                      if key not in WHEN_PRESENT_KEYS)

@@ -53,6 +53,11 @@ from crs_study.dataset.schema import tsv_line
 from crs_study.dataset.session_metadata import SessionMetadata
 from crs_study.errors import DatasetError, SessionError
 
+#: Without per-trial durability (dry-runs) the sidecar is rewritten every this many trials
+#: (and when the session stops), so it may lag the trial file by as many rows; with it, by
+#: one (a kill between a row and the sidecar write after it).
+UNDURABLE_SIDECAR_EVERY = 10
+
 
 class SessionStore:
     """A session's files, held under the session lock by one runner.
@@ -90,6 +95,26 @@ class SessionStore:
                     f"is in use by another runner ({self.paths.lock})") from None
         self._lock_handle = handle
 
+    def started_trial(self) -> int | None:
+        """The trial whose stimulus began last, as :meth:`mark_started` noted it in the lock
+        file (read it before the first mark of this run); None when nothing was noted."""
+        if self._lock_handle is None:
+            return None
+        self._lock_handle.seek(0)
+        text = self._lock_handle.read().strip()
+        kind, _, number = text.partition(" ")
+        return int(number) if kind == "started" and number.isdigit() else None
+
+    def mark_started(self, trial_index: int) -> None:
+        """Note in the lock file that ``trial_index``'s stimulus begins (not fsynced: a kill
+        keeps it in the page cache; a power cut may lose it, and a resume then treats the
+        trial as possibly felt)."""
+        if self._lock_handle is not None:
+            self._lock_handle.seek(0)
+            self._lock_handle.truncate()
+            self._lock_handle.write(f"started {trial_index}\n")
+            self._lock_handle.flush()
+
     def release(self) -> None:
         if self._lock_handle is not None:
             fcntl.flock(self._lock_handle, fcntl.LOCK_UN)
@@ -112,6 +137,69 @@ class SessionStore:
         if not self.paths.sidecar.exists():
             return None
         return SessionMetadata.read(self.paths.sidecar)
+
+    def _adopt_older_header(self, data: bytes) -> None:
+        """A session begun before a column of :data:`~crs_study.dataset.schema.LATER_COLUMNS`
+        existed keeps the columns it began with."""
+        older = tuple(c for c in self.columns if c not in schema.LATER_COLUMNS)
+        if older != self.columns and data.startswith("\t".join(older).encode() + b"\n"):
+            self.columns = older
+
+    def check_resumable(self, stored: SessionMetadata | None, sidecar_lag: int = 1) -> None:
+        """The sidecar, the trial file and the frame log agree, beyond a torn last line or
+        frame-log member (which :meth:`recover_rows` cuts and keeps). Reads only.
+
+        ``stored`` is the sidecar (None when there is none); it may lag the trial file by up
+        to ``sidecar_lag`` rows. Disagreement is a one-line :class:`DatasetError` naming the
+        file and what disagrees, and what the experimenter can do: a missing or emptied trial
+        file, one cut inside its header or shorter than the sidecar says, rows that differ
+        from those the sidecar recorded (``TrialsSha256`` of its first rows), rows without a
+        sidecar, a missing frame log, or one holding more or fewer trials than the rows.
+        """
+        tsv, sidecar, log = self.paths.tsv, self.paths.sidecar, self.paths.frame_log
+        data = self._read(tsv) if tsv.exists() else None
+        if data:
+            self._adopt_older_header(data)
+        rows, keep = self._parse_tsv(tsv, data) if data else ([], 0)
+        n_rows = len(rows)
+        frames = self._scan_frames(self._read(log), None)[0] if log.exists() else None
+        advice = ("restore the session's files from a backup, or leave them as they are and "
+                  "start another --session (a dry-run's session: remove its files and run the "
+                  "same command to regenerate it)")
+        if stored is None:
+            if n_rows or frames:
+                what = f"holds {n_rows} trial(s)" if n_rows else "has no rows"
+                raise DatasetError(
+                    f"{tsv}: {what} and the frame log {frames or 0}, but the session sidecar "
+                    f"{sidecar} is missing, so nothing vouches for the plan they belong to; "
+                    f"{advice}")
+            return
+        done = stored.trials_completed
+        if data is None and done:
+            raise DatasetError(f"{tsv}: missing, but the sidecar {sidecar} says {done} "
+                               f"trial(s) were done; {advice}")
+        if n_rows < done:
+            state = ("empty" if not data else "cut inside its header" if not keep
+                     else f"{n_rows} whole row(s)")
+            raise DatasetError(f"{tsv}: holds {state}, but the sidecar {sidecar} says {done} "
+                               f"trial(s) were done; {advice}")
+        if n_rows > done + sidecar_lag:
+            raise DatasetError(f"{tsv}: holds {n_rows} rows, but the sidecar {sidecar} says "
+                               f"{done} trial(s) were done and lags by at most {sidecar_lag}; "
+                               f"{advice}")
+        if stored.trials_sha256 is not None and data is not None:
+            prefix = _first_lines(data, done + 1)
+            if sha256_bytes(prefix) != stored.trials_sha256:
+                raise DatasetError(f"{tsv}: its first {done} row(s) differ from those the "
+                                   f"sidecar {sidecar} recorded (TrialsSha256); the file was "
+                                   f"edited or damaged; {advice}")
+        if n_rows and frames is None:
+            raise DatasetError(f"{log}: missing, but the trial file {tsv} holds {n_rows} "
+                               f"trial(s); {advice}")
+        if frames is not None and not n_rows <= frames <= n_rows + 1:
+            lost = "rows were lost" if frames > n_rows else "frames were lost"
+            raise DatasetError(f"{log}: holds {frames} trial(s), the trial file {tsv} "
+                               f"{n_rows}: {lost}; {advice}")
 
     def recover_rows(self) -> list[dict[str, str]]:
         """The rows stored so far; a torn last line is cut off (backed up) first.
@@ -139,6 +227,7 @@ class SessionStore:
                 f"(sha256 {actual[:12]}..., recorded {str(recorded_sha256)[:12]}...); a "
                 "completed session is never rewritten: restore the file or use another "
                 "--session")
+        self._adopt_older_header(data)
         rows, keep = self._parse_tsv(path, data)
         if keep != len(data):
             raise SessionError(f"{path}: the session is marked complete but its last line is "
@@ -182,6 +271,7 @@ class SessionStore:
         if not path.exists():
             return []
         data = self._read(path)
+        self._adopt_older_header(data)
         rows, keep = self._parse_tsv(path, data)
         if keep < len(data):
             self._cut(path, data, keep, "beh")
@@ -195,10 +285,24 @@ class SessionStore:
         if not path.exists():
             return
         data = self._read(path)
+        count, keep = self._scan_frames(data, n_rows)
+        if count < n_rows:
+            raise DatasetError(f"{path}: frame log holds trials up to {count - 1}, the "
+                               f"trial file has {n_rows} rows; the files were edited or damaged "
+                               "(a dry-run cut by a power failure: remove this session's files "
+                               "and run the same command to regenerate it)")
+        if keep < len(data):
+            self._cut(path, data, keep, "frames")
+        self._frames_created = keep > 0
+
+    @staticmethod
+    def _scan_frames(data: bytes, limit: int | None) -> tuple[int, int]:
+        """Whole trial members of a frame log, in order (at most ``limit``), and the bytes
+        they and the header member take."""
         keep = 0
         position = 0
         expected = -1  # the header member first, then trial 0, 1, ...
-        while position < len(data) and expected < n_rows:
+        while position < len(data) and (limit is None or expected < limit):
             member = zlib.decompressobj(wbits=31)
             try:
                 text = member.decompress(data[position:])
@@ -213,14 +317,7 @@ class SessionStore:
             position = len(data) - len(member.unused_data)
             keep = position
             expected += 1
-        if expected < n_rows and n_rows > 0:
-            raise DatasetError(f"{path}: frame log holds trials up to {expected - 1}, the "
-                               f"trial file has {n_rows} rows; the files were edited or damaged "
-                               "(a dry-run cut by a power failure: remove this session's files "
-                               "and run the same command to regenerate it)")
-        if keep < len(data):
-            self._cut(path, data, keep, "frames")
-        self._frames_created = keep > 0
+        return max(expected, 0), keep
 
     def _cut(self, path: Path, data: bytes, keep: int, what: str) -> None:
         """Truncate ``path`` to ``keep`` bytes, saving the rest under ``sourcedata`` first.
@@ -315,6 +412,17 @@ class SessionStore:
             if path.exists():
                 with os_errors(DatasetError, "fsync", path):
                     fsync_path(path)
+
+
+def _first_lines(data: bytes, count: int) -> bytes:
+    """The first ``count`` lines of ``data`` (each with its newline)."""
+    end = 0
+    for _ in range(count):
+        found = data.find(b"\n", end)
+        if found < 0:
+            return data[:end]
+        end = found + 1
+    return data[:end]
 
 
 def _gzip(text: str) -> bytes:

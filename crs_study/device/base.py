@@ -135,6 +135,28 @@ class Device(ABC):
         """Battery voltage per controller in millivolts (None where unknown)."""
         return [None] * len(self.layout.controllers)
 
+    def heartbeat_ask(self) -> object:
+        """Put the heartbeat's question on the wire now and return what
+        :meth:`heartbeat_check` needs; nothing waits for the answer.
+
+        The LSC boards acknowledge no move, but they answer GET_BATTERY_VOLTAGE
+        (hardware.md), and a board reads its bytes in order: an answer to a question asked
+        after a trial's last frame says the board read the whole trial. The runner asks right
+        after the stimulus (so a person's response is never delayed by the wait) and checks
+        after the response. A device that cannot be asked (the default) does nothing.
+        """
+        return None
+
+    def heartbeat_check(self, asked: object) -> None:
+        """Raise :class:`DeviceError` naming each board that gave no answer to the question
+        :meth:`heartbeat_ask` put (it stopped reading: the frames since its last answer may
+        never have moved its servos) or reports a battery below :data:`LOW_BATTERY_MV`."""
+        return None
+
+    def heartbeat(self) -> None:
+        """Ask, then check at once (:meth:`heartbeat_ask`, :meth:`heartbeat_check`)."""
+        self.heartbeat_check(self.heartbeat_ask())
+
     def neutral(self) -> FrameReport:
         """Send the neutral pose (every pixel at base, no boundary feed)."""
         return self.send(self.layout.neutral_setpoints())

@@ -9,11 +9,13 @@ package listed in ``serial.protocol_handler_packages``), hence this module's nam
 
 URL::
 
-    lscsim://NAME[?channels=24&channel_base=1&battery_mv=7400&vanish_after=S]
+    lscsim://NAME[?channels=24&channel_base=1&battery_mv=7400&vanish_after=S&hang_after=S]
 
 ``vanish_after``: the port fails (like a USB adapter pulled out) ``S`` seconds after open; so
 does :meth:`Serial.vanish` at once. Writes then raise ``SerialException`` (EIO), as pyserial's
-POSIX port does.
+POSIX port does. ``hang_after``: the board stops reading ``S`` seconds after open
+(:meth:`~.virtual_controller.VirtualController.hang`): the port still takes bytes, but the
+board acts on none and answers nothing.
 
 Timing is real (``time.monotonic``): written bytes leave at ``baudrate / 10`` bytes a second
 (``out_waiting`` counts those not yet gone, ``flush`` waits for them), each frame reaches the
@@ -110,15 +112,18 @@ class Serial(SerialBase):
 
     def _from_url(self, url: str) -> None:
         parts = urlsplit(url)
-        form = "lscsim://NAME[?channels=24&channel_base=1&battery_mv=7400&vanish_after=S]"
+        form = ("lscsim://NAME[?channels=24&channel_base=1&battery_mv=7400&vanish_after=S"
+                "&hang_after=S]")
         if parts.scheme != "lscsim" or not parts.netloc:
             raise SerialException(f"expected {form}, got {url!r}")
         options = {"channels": 24, "channel_base": 1, "battery_mv": NORMAL_BATTERY_MV}
-        vanish_after = None
+        vanish_after = hang_after = None
         for key, value in parse_qsl(parts.query, keep_blank_values=True):
             try:
                 if key == "vanish_after":
                     vanish_after = float(value)
+                elif key == "hang_after":
+                    hang_after = float(value)
                 elif key in options:
                     options[key] = int(value)
                 else:
@@ -137,6 +142,9 @@ class Serial(SerialBase):
         self._wire_free = now
         if vanish_after is not None:
             self._vanish_at = now + vanish_after
+        if hang_after is not None:
+            with self._wire_lock:
+                board.hang(now + hang_after)
 
     # -- the wire -----------------------------------------------------------------------------
 

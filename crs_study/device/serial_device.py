@@ -39,11 +39,13 @@ Which channel goes on which controller (the decision, and why)
 
 Safety: :meth:`SerialDevice.open` asks each board for its battery voltage (a board that does
 not answer gives None and a :class:`DeviceWarning`; one below ``min_battery_mv`` is a
-:class:`DeviceError`). A port that fails (vanished, write timeout, stalled writer) makes the next
-:meth:`SerialDevice.send` raise :class:`DeviceError`; a reader thread per port notices a
-vanished port within ``read_timeout_s`` even when nothing is being sent. :meth:`close` (also on
-error and Ctrl-C through the context manager) sends every channel to the neutral pose, waits
-for it to leave, and releases the ports in ``finally``.
+:class:`DeviceError`), and :meth:`SerialDevice.heartbeat_ask` asks again (the runner does at every
+trial boundary): a board that no longer answers has stopped reading, which nothing else would
+show, since the LSC protocol acknowledges no move. A port that fails (vanished, write timeout,
+stalled writer) makes the next :meth:`SerialDevice.send` raise :class:`DeviceError`; a reader
+thread per port notices a vanished port within ``read_timeout_s`` even when nothing is being
+sent. :meth:`close` (also on error and Ctrl-C through the context manager) sends every channel
+to the neutral pose, waits for it to leave, and releases the ports in ``finally``.
 """
 
 from __future__ import annotations
@@ -251,6 +253,40 @@ class SerialDevice(Device):
             self.faults.append(f"{port.label}: neutral pose not sent: {exc}")
         finally:
             port.write_lock.release()
+
+    def heartbeat_ask(self) -> tuple[list[int], float]:
+        """GET_BATTERY_VOLTAGE on every port now (between two frames, never inside one); the
+        reader threads collect the answers. Returns what :meth:`heartbeat_check` needs."""
+        self._check_open()
+        for port in self.ports:
+            port.check(self.clock.now())
+        before = [port.ask_battery() for port in self.ports]
+        return before, time.monotonic() + self.options.heartbeat_timeout_s
+
+    def heartbeat_check(self, asked: object) -> None:
+        """Every board answered the question :meth:`heartbeat_ask` put, within
+        ``heartbeat_timeout_s`` of it (an answer already in is not waited for), else a
+        :class:`DeviceError` naming the silent ones; an answer below ``min_battery_mv`` is
+        one too. Failures are also appended to :attr:`faults`."""
+        before, deadline = asked  # type: ignore[misc]
+        answers = [port.battery_answer(b, deadline) for port, b in zip(self.ports, before,
+                                                                        strict=True)]
+        silent = [port.label for port, mv in zip(self.ports, answers, strict=True) if mv is None]
+        problem = None
+        if silent:
+            problem = (f"{'; '.join(silent)}: no answer to GET_BATTERY_VOLTAGE within "
+                       f"{self.options.heartbeat_timeout_s:g} s: the board stopped reading (or "
+                       "lost power), so its servos may hold their last position rather than "
+                       "neutral")
+        else:
+            low = [f"{port.label} {mv} mV" for port, mv in zip(self.ports, answers, strict=True)
+                   if mv < self.options.min_battery_mv]
+            if low:
+                problem = (f"battery below {self.options.min_battery_mv} mV: {', '.join(low)}; "
+                           "charge or replace it")
+        if problem:
+            self.faults.append(problem)
+            raise DeviceError(problem)
 
     def wait_sent(self, timeout_s: float = 1.0) -> bool:
         """Wait until every frame handed over has been written (or merged and written).

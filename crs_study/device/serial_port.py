@@ -88,6 +88,7 @@ class SerialOptions:
     write_timeout_s: float = 0.5
     read_timeout_s: float = 0.05
     battery_timeout_s: float = 0.3  # how long to wait for a battery reply on open
+    heartbeat_timeout_s: float = 0.3  # how long a heartbeat waits for every board's answer
     check_battery: bool = True
     min_battery_mv: int = LOW_BATTERY_MV
     neutral_move_ms: int = 500  # move time of the neutral pose on close
@@ -105,7 +106,8 @@ class SerialOptions:
 
         within("refresh_s", 0.0, MAX_REFRESH_S)
         within("lead_s", 0.0, 1.0)
-        for name in ("write_timeout_s", "read_timeout_s", "battery_timeout_s"):
+        for name in ("write_timeout_s", "read_timeout_s", "battery_timeout_s",
+                     "heartbeat_timeout_s"):
             within(name, 0.0, MAX_TIMEOUT_S, open_low=True)
         need("move_ms", self.move_ms is None or is_whole(self.move_ms, 0, MOVE_TIME_MAX_MS),
              f"a whole number of ms 0..{MOVE_TIME_MAX_MS}")
@@ -183,6 +185,7 @@ class SerialPort:
         self.frames_written = 0
         self.bytes_written = 0
         self.battery_mv: int | None = None
+        self.battery_replies = 0  # battery answers the reader thread decoded (heartbeats)
         self.decoder = FrameDecoder(Direction.BOARD)
         self.threads: list[threading.Thread] = []
 
@@ -321,7 +324,40 @@ class SerialPort:
                 return
             for frame in self.decoder.feed(data) if data else self.decoder.idle():
                 if isinstance(frame.message, BatteryVoltage):
-                    self.battery_mv = frame.message.millivolts
+                    with self.cond:
+                        self.battery_mv = frame.message.millivolts
+                        self.battery_replies += 1
+                        self.cond.notify_all()
+
+    # -- the heartbeat ---------------------------------------------------------------------
+
+    def ask_battery(self) -> int:
+        """Write GET_BATTERY_VOLTAGE between two frames (never inside one); returns how many
+        answers had come before, for :meth:`battery_answer`."""
+        query = get_battery_voltage()
+        with self.cond:
+            before = self.battery_replies
+        try:
+            with self.write_lock:
+                self.serial.write(query)
+        except Exception as exc:  # noqa: BLE001 - SerialException, OSError, timeouts
+            raise DeviceError(f"{self.label}: port failed asking for the battery: {exc}"
+                              ) from None
+        with self.cond:  # the pacing model counts the query's bytes on the wire
+            self.writes.written(self.clock.now(), len(query))
+            self.cond.notify_all()
+        return before
+
+    def battery_answer(self, before: int, deadline: float) -> int | None:
+        """The battery answer after the ``before``-th, once the reader thread decodes it;
+        None when none comes by ``deadline`` (``time.monotonic``) or the port failed."""
+        with self.cond:
+            while self.battery_replies == before and self.error is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self.cond.wait(min(left, 0.05))
+            return self.battery_mv if self.battery_replies > before else None
 
     # -- status and shutdown ---------------------------------------------------------------
 

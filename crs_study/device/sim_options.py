@@ -17,6 +17,8 @@ URL syntax (options may also be given as keyword arguments; keywords win)::
     disconnect_at=3.5    every port vanishes 3.5 s after open(); ``B@3.5``: only port B
     stall=A:3@2.0        channel A:3 stalls 2.0 s after open(); several: ``A:3@2,B:1@4``
     brownout_at=5.0      the servo supply browns out 5.0 s after open(); ``A@5``: board A only
+    hang_at=B@2.0        board B stops reading 2.0 s after open(): bytes lost, no answers,
+                         servos hold their last command (seen only by a heartbeat)
 
 Times are seconds after :meth:`SimulatedDevice.open`. A malformed or unknown option is a
 one-line :class:`~crs_study.errors.DeviceError`.
@@ -57,6 +59,7 @@ class SimOptions:
     disconnect_at: tuple[tuple[str | None, float], ...] = ()  # (controller or None = all, s)
     stall: tuple[tuple[str, int, float], ...] = ()  # (controller, channel, s)
     brownout_at: tuple[tuple[str | None, float], ...] = ()
+    hang_at: tuple[tuple[str | None, float], ...] = ()
 
     @classmethod
     def parse(cls, url: str, layout: Layout, **overrides: object) -> SimOptions:
@@ -75,7 +78,7 @@ class SimOptions:
                     f"{url!r}: unknown option {key!r}; valid: {', '.join(valid)}"
                 )
             parsed = _PARSERS[key](url, key, raw, layout)
-            if key in ("stall", "disconnect_at", "brownout_at"):
+            if key in ("stall", "disconnect_at", "brownout_at", "hang_at"):
                 # repeated keys add up (``stall=A:1@1&stall=A:2@2``)
                 parsed = values.get(key, ()) + parsed  # type: ignore[operator]
             values[key] = parsed
@@ -149,4 +152,5 @@ _PARSERS = {
     "disconnect_at": _timed,
     "stall": _stalls,
     "brownout_at": _timed,
+    "hang_at": _timed,
 }

@@ -46,6 +46,9 @@ Faults, as the caller sees them
       :data:`~.virtual_controller.BROWNOUT_BATTERY_MV`; the next :meth:`send` raises
       ``DeviceError("... brown-out ...")`` (the decision: a fault is an exception, like a
       vanished port, so the runner's one ``except DeviceError`` records ``device_fault``).
+    * hang: the board stops reading; nothing is raised on :meth:`send` (the LSC protocol
+      acknowledges no move), only the heartbeat (:meth:`heartbeat_ask`), which the runner
+      asks at every trial boundary, finds the board silent and raises.
       Every fault met is also appended to :attr:`SimulatedDevice.faults`.
 """
 
@@ -184,6 +187,10 @@ class SimulatedDevice(Device):
             for i, board in enumerate(self.boards):
                 if name in (None, names[i]):
                     board.brownout(t0 + at)
+        for name, at in opts.hang_at:
+            for i, board in enumerate(self.boards):
+                if name in (None, names[i]):
+                    board.hang(t0 + at)
         times = [w.vanish_at for w in self._wires] + [t0 + at for _, at in opts.brownout_at]
         self._fault_at = min(times, default=math.inf)
         self._check_batteries(t0)
@@ -201,7 +208,7 @@ class SimulatedDevice(Device):
                 raise DeviceError(f"{self.url}: controller {wire.board.name}: battery reads "
                                   f"{mv} mV, below {LOW_BATTERY_MV} mV; charge or check it")
 
-    def _ask_batteries(self) -> list[int | None]:
+    def _ask_batteries(self, wait: bool = True):  # -> list, or (arrival, list) without wait
         """GET_BATTERY_VOLTAGE on every wire, the boards' reply bytes back, decoded.
 
         Each query goes out once its wire is free (frames on it or waiting for it go first),
@@ -232,9 +239,11 @@ class SimulatedDevice(Device):
             arrived = max([expected, *(at for at, _ in wire.inbox)])
             waited_until = max(waited_until, arrived)
             answers.append(self._read_battery(wire, arrived))
+        self._battery = answers
+        if not wait:
+            return waited_until, answers
         # the ports are asked concurrently; the answer is in once the slowest reply is
         self.clock.sleep_until(waited_until)
-        self._battery = answers
         return answers
 
     @staticmethod
@@ -428,6 +437,35 @@ class SimulatedDevice(Device):
         for board in self.boards:
             board.advance(t)
         return self.pulse_map.to_mm(self._servos.position(t)[self._flat], check=False)
+
+    def heartbeat_ask(self) -> tuple[float, list[int | None]]:
+        """GET_BATTERY_VOLTAGE over every wire now (:meth:`_ask_batteries`), the clock not
+        waiting: the replies' arrival is computed and kept for :meth:`heartbeat_check`. A
+        fault already due (a vanished port, a brown-out) is raised as :meth:`send` raises it."""
+        if self.opened_at is None or self.closed:
+            raise DeviceError(f"{self.url}: cannot ask the boards: the device is "
+                              f"{'closed' if self.closed else 'not open'}")
+        t = self.clock.now()
+        self._advance(t)
+        if t >= self._fault_at:
+            self._raise_faults(t)
+        return self._ask_batteries(wait=False)
+
+    def heartbeat_check(self, asked: object) -> None:
+        """Every board answered (the clock waits for the replies if they are not in yet), or
+        a :class:`DeviceError` names those that did not (a hung board, a vanished port) or
+        read below :data:`LOW_BATTERY_MV`."""
+        arrived, answers = asked  # type: ignore[misc]
+        self.clock.sleep_until(max(self.clock.now(), arrived))
+        silent = [w.board.name for w, mv in zip(self._wires, answers, strict=True) if mv is None]
+        if silent:
+            self._fault(f"{self.url}: controller(s) {', '.join(silent)} did not answer "
+                        "GET_BATTERY_VOLTAGE: the board stopped reading (or its port failed), "
+                        "so its servos may hold their last position rather than neutral")
+        low = [f"{w.board.name} {mv} mV" for w, mv in zip(self._wires, answers, strict=True)
+               if mv is not None and mv < LOW_BATTERY_MV]
+        if low:
+            self._fault(f"{self.url}: battery below {LOW_BATTERY_MV} mV: {', '.join(low)}")
 
     def battery_mv(self) -> list[float | None]:
         """Each board's voltage, asked over its wire now (:meth:`_ask_batteries`; the clock

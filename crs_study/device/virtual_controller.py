@@ -15,9 +15,11 @@ What it models (hardware.md)
       read at any time without stepping.
     * GET_BATTERY_VOLTAGE: replies ``55 55 04 0F lo hi`` (millivolts).
     * MULT_SERVO_UNLOAD: the servos go limp and sink to their rest (base) position.
-    * Faults: a stalled channel (frozen where it is from a time on, commands ignored) and a
+    * Faults: a stalled channel (frozen where it is from a time on, commands ignored), a
       brown-out (the servo rail sags: every servo goes limp and sinks to rest, commands are
-      ignored, the battery reads :data:`BROWNOUT_BATTERY_MV`).
+      ignored, the battery reads :data:`BROWNOUT_BATTERY_MV`) and a hang (the board stops
+      reading: from a time on every byte is lost unread, nothing is answered, and the servos
+      hold their last command; :meth:`VirtualController.hang`).
 
 Times are seconds on whatever clock the caller uses; calls must come in non-decreasing time.
 """
@@ -239,6 +241,8 @@ class VirtualController:
         self.unknown_ids = 0  # servo ids in valid frames that are not one of this board's
         self.last_time = t0
         self.browned_out_at: float | None = None
+        self.hung_at: float | None = None  # stopped reading (hang)
+        self.unread_bytes = 0  # bytes that arrived after the hang
         self.stalled: dict[int, float] = {}  # channel id -> time it stalled
         self._events: list[tuple[float, int, str, int]] = []  # (time, order, kind, channel)
         self._skip_end = -1  # stream offset just past the last skipped run
@@ -254,6 +258,11 @@ class VirtualController:
         """From time ``at`` on the servo rail is down: servos limp to rest, battery reads low."""
         self._schedule(at, "brownout", -1)
 
+    def hang(self, at: float) -> None:
+        """From time ``at`` on the board reads nothing: bytes are lost, queries unanswered,
+        servos hold their last command (a hung microcontroller or a dead receive line)."""
+        self._schedule(at, "hang", -1)
+
     def _schedule(self, at: float, kind: str, channel: int) -> None:
         self._events.append((float(at), len(self._events), kind, channel))
         self._events.sort()
@@ -265,6 +274,8 @@ class VirtualController:
             if kind == "stall":
                 self.servos.freeze(np.array([self._index_of(channel)]), at)
                 self.stalled[channel] = at
+            elif kind == "hang":
+                self.hung_at = at
             else:
                 self.browned_out_at = at
                 self.servos.go_limp(np.arange(self.channels), at)
@@ -313,6 +324,9 @@ class VirtualController:
     def receive(self, data: bytes, t: float) -> bytes:
         """Bytes whose last one arrived at ``t``; returns the board's reply bytes (may be b"")."""
         self._advance(t)
+        if self.hung_at is not None:
+            self.unread_bytes += len(data)
+            return b""
         clean_start = not self.decoder.has_pending
         key = (self.channel_base, self.channels, data)
         actions = _DECODED.get(key) if clean_start else None

@@ -148,6 +148,12 @@ class VirtualControllerPty:
         with self._lock:
             return self.board.positions_us(time.monotonic() if t is None else t)
 
+    def hang(self, at: float | None = None) -> None:
+        """The board stops reading at ``at`` (``time.monotonic``; default now): bytes still
+        flow into the pty, but the board acts on none and answers nothing."""
+        with self._lock:
+            self.board.hang(time.monotonic() if at is None else at)
+
     def vanish(self) -> None:
         """Close the master side now: the port disappears under the writer."""
         self._master_open = False

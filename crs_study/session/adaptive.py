@@ -49,6 +49,16 @@ def choose(trial: PlannedTrial, run: AdaptiveRun | None) -> PlannedTrial | None:
     return replace(trial, level=run.next_level(trial.block))
 
 
+def next_to_play(plan: TrialPlan, rows: list[dict[str, str]], run: AdaptiveRun | None) -> int:
+    """The plan index of the next trial to play after the stored ``rows`` (``len(rows)``
+    unless finished staircases skip trials; ``len(plan.trials)`` when none is left)."""
+    k = int(rows[-1]["trial_index"]) + 1 if rows else 0
+    while k < len(plan.trials) and is_adaptive(plan.trials[k], run) \
+            and run.finished(plan.trials[k].block):
+        k += 1
+    return k
+
+
 def row_fields(update: TrialUpdate | None) -> dict[str, object]:
     """The adaptive columns of a row (None for a practice trial, written n/a)."""
     if update is None:

@@ -2,25 +2,82 @@
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
+import signal
+import sys
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-from crs_study.dataset.folder import Dataset
+from crs_study.dataset.folder import Dataset, dataset_dir, is_simulated_label
 from crs_study.errors import SessionError
 from crs_study.paths import resolve_protocol
 from crs_study.protocol import Protocol, load_protocol
 from crs_study.session.runner import run_session
 from crs_study.session.spec import DryRunResult, Progress, SessionResult, SessionSpec
 
+#: The most simulated participants one dry-run takes (a study of this many sessions is
+#: already hours of machine time; a larger number is a typo, and 2**31 labels exhaust memory).
+MAX_PARTICIPANTS = 10_000
+
+
+def check_participant_count(n: object) -> int:
+    """``n`` simulated participants, 1 to :data:`MAX_PARTICIPANTS`, or a one-line
+    :class:`SessionError` before any work."""
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_PARTICIPANTS:
+        raise SessionError(f"--participants must be a whole number from 1 to "
+                           f"{MAX_PARTICIPANTS}, got {n!r}")
+    return n
+
 
 def simulated_labels(n: int, prefix: str = "sim") -> list[str]:
-    """``sim01`` .. ``simNN`` (at least two digits, so labels sort in order)."""
-    if not isinstance(n, int) or n < 1:
-        raise SessionError(f"--participants must be a whole number >= 1, got {n!r}")
+    """``sim01`` .. ``simNN`` (at least two digits, so labels sort in order). The prefix
+    must keep the labels in the simulated participants' label space
+    (:func:`crs_study.dataset.is_simulated_label`): a dry-run never runs a person's label."""
+    check_participant_count(n)
+    if not is_simulated_label(f"{prefix}{n}"):
+        raise SessionError(f"prefix {prefix!r}: simulated participants' labels begin with "
+                           "'sim' (a person's never do)")
     width = max(2, len(str(n)))
     return [f"{prefix}{i:0{width}d}" for i in range(1, n + 1)]
+
+
+#: How often a worker's watchdog looks whether its parent is still alive (s).
+WATCHDOG_S = 0.5
+
+
+def _die_with_parent(parent: int) -> None:
+    """A worker's initializer: the worker ends when the dry-run that started it does.
+
+    On Linux the kernel sends SIGKILL to the worker when its parent dies
+    (``prctl(PR_SET_PDEATHSIG)``, through ctypes); elsewhere, and should that call fail, a
+    daemon thread checks every :data:`WATCHDOG_S` whether the parent is still the worker's
+    parent (an orphan is adopted by another process) and kills the worker otherwise. So a
+    SIGKILL of ``crs-study dry-run --jobs N`` leaves no worker writing into the dataset or
+    holding its stdout open (a ``| tee`` ends). A session cut so resumes on the next run.
+    """
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):
+            pass  # the watchdog below still ends the worker
+    if os.getppid() != parent:  # the parent died before the call above took effect
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(WATCHDOG_S)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+#: prctl option: the signal a process gets when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
 
 
 def _dry_run_one(spec: SessionSpec) -> SessionResult:
@@ -58,6 +115,7 @@ def dry_run(protocol: str | os.PathLike[str] | Protocol, participants: int,
         raise SessionError("a dry-run has no person at the keypad: use --responder observer, "
                            "random or scripted:FILE")
     labels = simulated_labels(participants, prefix)
+    out = dataset_dir(out, "out")
     # a shipped protocol's name, or a path (each session loads it); an object is settled now
     protocol = load_protocol(protocol) if isinstance(protocol, Protocol) else \
         resolve_protocol(protocol)
@@ -78,8 +136,9 @@ def dry_run(protocol: str | os.PathLike[str] | Protocol, participants: int,
             note(run_session(spec))
     else:
         context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=min(jobs, len(specs)),
-                                 mp_context=context) as pool:
+        with ProcessPoolExecutor(max_workers=min(jobs, len(specs)), mp_context=context,
+                                 initializer=_die_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             futures = [pool.submit(_dry_run_one, spec) for spec in specs]
             try:
                 for future in as_completed(futures):

@@ -14,11 +14,25 @@ fresh simulated device, without responder or writing, so the device's history (w
 refresh phase, servo positions) is the uninterrupted run's; the rest of the session is then
 bit for bit what an uninterrupted run writes: every column of every row and every frame log.
 
+Consent: a session under a person's label passes the consent gate on every device and with
+every responder, before anything is written, and again before every trial (a withdrawal
+stops it at the next trial boundary, display neutral, session interrupted, one line saying
+how to withdraw the data); only a simulated participant (a ``sim...`` label, a simulated
+responder, ``sim://``) skips it (:mod:`crs_study.consent.gate`).
+
 Failures: Ctrl-C (or the keypad's quit key, or SIGTERM) is a safe pause: the display goes
 neutral, the session is marked ``interrupted`` and the run returns status ``interrupted``
-(exit 130). A :class:`~crs_study.errors.DeviceError` during a trial marks the session
-interrupted, records the fault in the sidecar, moves to neutral and is raised again as one
-line; the trial is rerun on resume and its row then says ``device_fault = 1``.
+(exit 130). A :class:`~crs_study.errors.DeviceError` during a trial (a board that stops
+answering the heartbeat included) marks the session interrupted, records the fault in the
+sidecar, moves to neutral and is raised again as one line; the trial is rerun on resume and
+its row then says ``device_fault = 1``. Every interruption's cause is recorded in the
+sidecar's ``Interruptions`` (pause key, signal, device fault, consent withdrawn, another
+error, or a crash found on resume: the sidecar still said ``running``); a trial an
+interruption cut after its stimulus began is rerun with ``rerun = 1`` in its row.
+
+Resume: the sidecar, the trial file and the frame log must agree beyond a torn last line
+(:meth:`~crs_study.dataset.SessionStore.check_resumable`); any other disagreement is a
+one-line refusal naming the file, before anything is changed.
 """
 
 from __future__ import annotations
@@ -28,21 +42,29 @@ from dataclasses import replace
 
 from crs_study import __version__
 from crs_study.clock import Clock, RealClock, VirtualClock
-from crs_study.consent import read_form, require_consent
+from crs_study.consent import read_form
+from crs_study.consent.gate import ConsentGate, needs_consent
 from crs_study.dataset import schema
 from crs_study.dataset.folder import Dataset
-from crs_study.dataset.session_metadata import Fault, Resume, SessionMetadata, now_utc
-from crs_study.dataset.session_store import SessionStore
+from crs_study.dataset.session_metadata import (
+    Fault,
+    Interruption,
+    Resume,
+    SessionMetadata,
+    now_utc,
+)
+from crs_study.dataset.session_store import UNDURABLE_SIDECAR_EVERY, SessionStore
 from crs_study.device import open_device
-from crs_study.errors import DeviceError, SessionError
+from crs_study.errors import ConsentError, DeviceError, SessionError
 from crs_study.geometry.layout import Layout, device_file_path
 from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.protocol.plan import TrialPlan, make_plan
-from crs_study.session.adaptive import choose, rebuild
+from crs_study.session.adaptive import choose, next_to_play, rebuild
 from crs_study.session.prompts import INSTRUCTIONS, TASK_DESCRIPTION, resume_prompt
 from crs_study.session.responders import Responder, make_responder
+from crs_study.session.responders.keypad import PauseRequested
 from crs_study.session.resume import (
     Fingerprints,
     check_resume,
@@ -54,11 +76,12 @@ from crs_study.session.spec import Progress, SessionResult, SessionSpec
 from crs_study.session.state import (
     SessionState,
     ignore_interrupts,
+    record_interruption,
     save,
     save_after_failure,
 )
 from crs_study.session.trials import replay, run_trial, trial_frames
-from crs_study.signals import terminate_as_interrupt
+from crs_study.signals import describe, terminate_as_interrupt
 
 #: Session time spent before the first trial with the display neutral (settled and flat).
 SETTLE_S = 1.0
@@ -99,6 +122,7 @@ def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
                           "serial:///dev/ttyUSB0[,/dev/ttyUSB1] or sim://")
     dataset = Dataset(spec.dataset)
     dataset.session_paths(spec.participant, spec.session)  # checks label and session
+    dataset.refuse_pending_withdrawal()  # before the gate: say what blocks the dataset itself
     protocol = load_protocol(spec.protocol)  # a file, a shipped name or a Protocol object
     layout = protocol.layout()
     known = dataset.participants() if (spec.dataset / "participants.tsv").exists() else {}
@@ -109,8 +133,10 @@ def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
                 f"participant {spec.participant!r} has counterbalance {counterbalance} in "
                 f"{spec.dataset / 'participants.tsv'}; --counterbalance {spec.counterbalance} "
                 "disagrees")
+    elif spec.counterbalance is None:
+        counterbalance = dataset.next_counterbalance() if spec.dataset.is_dir() else 0
     else:
-        counterbalance = len(known) if spec.counterbalance is None else spec.counterbalance
+        counterbalance = spec.counterbalance
     plan = make_plan(protocol, spec.participant, spec.session, counterbalance)
     return protocol, layout, plan, dataset
 
@@ -159,10 +185,13 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                                    protocol=protocol)
     clock_kind = choose_clock(spec, responder)
     responder.check_ready()
-    if not spec.device_url.startswith("sim://"):
+    gate = None
+    if needs_consent(spec.participant, spec.device_url, responder.simulated):
         # The gate comes before anything is written: no consent, no trace in the dataset.
-        require_consent(spec.consent_register, spec.participant, protocol.consent_form_version,
-                        read_form(consent_form_path(protocol)))
+        gate = ConsentGate(spec.consent_register, spec.participant,
+                           protocol.consent_form_version,
+                           read_form(consent_form_path(protocol)))
+        gate.check()
     # The order of arrival is taken under the dataset lock: two runners adding participants
     # at once would otherwise both read the same count and share a counterbalance index.
     counterbalance = dataset.register_participant(spec.participant, spec.counterbalance)
@@ -196,21 +225,27 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                 "needs --session N)")
         if stored is not None:
             check_same_kind_of_run(stored, spec, responder.name, clock_kind, paths.sidecar)
+        # The sidecar lags the trial file by a row at most, or by the trials between two
+        # sidecar writes of a session written without per-trial durability (a dry-run).
+        lag = UNDURABLE_SIDECAR_EVERY if stored is not None and stored.virtual_clock else 1
+        store.check_resumable(stored, sidecar_lag=lag)
+        began = store.started_trial()  # what the previous run noted, before this one does
         rows = store.recover_rows()
         check_rows(rows, plan, paths.tsv, may_skip=protocol.adaptive is not None)
         run = rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar)
+        first = next_to_play(plan, rows, run)  # len(rows) unless a staircase skipped trials
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
-                             responder.name, n_trials)
+                             responder.name, n_trials, first, began)
         faults = {f.trial for f in metadata.faults}
         state = SessionState(spec, protocol, layout, plan, store, metadata, rows, faults,
                              adaptive=run,
-                             adaptive_sha256=None if run is None else run.fingerprint())
+                             adaptive_sha256=None if run is None else run.fingerprint(),
+                             cut=metadata.cut_trials())
         resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
         clock: Clock = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
         frames = trial_frames(protocol, layout)
         store.create()
         save(state, "running", final=True)
-        first = int(rows[-1]["trial_index"]) + 1 if rows else 0  # (= len(rows) unless skipped)
         stored_before = len(rows)
         status = "interrupted"
         origin = 0.0
@@ -236,6 +271,8 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                     if trial is None:  # its block's staircase has finished
                         continue
                     current = k
+                    if gate is not None:
+                        gate.recheck()  # a withdrawal stops the session here
                     if progress:
                         progress(f"sub-{spec.participant} ses-{spec.session}: trial "
                                  f"{k + 1}/{n_trials}")
@@ -243,8 +280,23 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                     run_trial(state, device, responder, clock, origin, frames, trial)
                     state.in_trial = False
                 status = "complete"
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as interrupt:
             status = "interrupted"
+            if isinstance(interrupt, PauseRequested):
+                record_interruption(state, "pause-key", "the keypad's pause key")
+            else:
+                name = describe(interrupt)
+                record_interruption(state, "signal",
+                                    "SIGINT (Ctrl-C)" if name == "Ctrl-C" else name)
+        except ConsentError as error:
+            record_interruption(state, "consent-withdrawn", str(error))
+            save_after_failure(state)
+            k = len(state.rows)
+            raise ConsentError(
+                f"{error}: session {spec.session} of participant {spec.participant} stopped "
+                f"before trial {k + 1}/{n_trials}, display neutral; its {k} stored trial(s) "
+                f"stay in {spec.dataset} until withdrawn: crs-study consent withdraw "
+                f"--participant {spec.participant} --dataset {spec.dataset}") from None
         except DeviceError as error:
             k = current if state.in_trial else len(state.rows)
             where = f"at trial {k + 1}/{n_trials}" if state.in_trial else \
@@ -252,12 +304,14 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             if state.in_trial:
                 fault = Fault(k, now_utc(), str(error))
                 state.metadata = replace(state.metadata, faults=(*state.metadata.faults, fault))
+            record_interruption(state, "device-fault", str(error))
             status = "fault"
             save_after_failure(state)
             raise DeviceError(f"device fault {where}: {error}; the session is marked "
                               "interrupted: run the same command to resume") from None
-        except BaseException:
+        except BaseException as error:
             status = "failed"
+            record_interruption(state, "error", f"{type(error).__name__}: {error}")
             save_after_failure(state)  # the first error is the one reported
             raise
         if status == "interrupted":
@@ -276,14 +330,27 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
 
 def _metadata(spec: SessionSpec, protocol: Protocol, plan: TrialPlan, device_text: str,
               expected: Fingerprints, stored: SessionMetadata | None, clock_kind: str,
-              responder_name: str, n_trials: int) -> SessionMetadata:
-    """The sidecar of a session beginning now, or resumed now from ``stored``."""
+              responder_name: str, n_trials: int, first: int,
+              began: int | None) -> SessionMetadata:
+    """The sidecar of a session beginning now, or resumed now from ``stored`` at trial
+    ``first`` (the plan index of the next trial to play: the number of rows stored, unless a
+    staircase skipped trials); ``began`` is the trial the previous run noted as begun."""
     resumes: tuple[Resume, ...] = ()
     faults: tuple[Fault, ...] = ()
+    interruptions: tuple[Interruption, ...] = ()
     if stored is not None:
-        resumes = (*stored.resumes, Resume(now_utc(), stored.trials_completed, spec.device_url,
-                                           __version__))
+        resumes = (*stored.resumes, Resume(now_utc(), first, spec.device_url, __version__))
         faults = stored.faults
+        interruptions = stored.interruptions
+        if stored.status == "running":  # the run before this one ended without a word
+            cut = began is None or began >= first
+            interruptions += (Interruption(
+                now_utc(), first, "crash",
+                f"found on resume: the sidecar still said 'running' (the process was killed, "
+                f"the power cut or it crashed) with {first} trial(s) stored; trial {first} "
+                + ("had begun" if began is not None and cut else
+                   "had not begun" if not cut else "may have begun (nothing noted)"),
+                cut),)
     return SessionMetadata(
         task_name=schema.TASK,
         task_description=TASK_DESCRIPTION,
@@ -317,4 +384,5 @@ def _metadata(spec: SessionSpec, protocol: Protocol, plan: TrialPlan, device_tex
         trials_sha256=None,
         resumes=resumes,
         faults=faults,
+        interruptions=interruptions,
     )

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import signal
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from crs_study.adaptive import AdaptiveRun
-from crs_study.dataset.session_metadata import SessionMetadata, Status, now_utc
+from crs_study.dataset.session_metadata import Interruption, SessionMetadata, Status, now_utc
 from crs_study.dataset.session_store import SessionStore
 from crs_study.errors import CrsStudyError
 from crs_study.geometry.layout import Layout
@@ -34,6 +34,22 @@ class SessionState:
     adaptive: AdaptiveRun | None = None  # the blocks' procedures ([adaptive] protocols)
     #: the procedures' fingerprint after ``rows`` (set with each stored row)
     adaptive_sha256: str | None = None
+    #: the trial whose stimulus has begun and whose row is not yet stored (None between)
+    started: int | None = None
+    #: trials an earlier run cut after their stimulus began (their rows say rerun = 1)
+    cut: set[int] = field(default_factory=set)
+
+
+def record_interruption(state: SessionState, cause: str, detail: str) -> None:
+    """Add why the session stops now to its sidecar's ``Interruptions`` (saved by the next
+    :func:`save`); the trial is cut when its stimulus had begun."""
+    cut = state.started is not None
+    # the trial cut (its plan index: an adaptive staircase may have skipped trials), else
+    # the number of trials stored
+    at = state.started if cut else len(state.rows)
+    entry = Interruption(now_utc(), at, cause, detail.splitlines()[0] if detail else "", cut)
+    state.metadata = replace(state.metadata,
+                             interruptions=(*state.metadata.interruptions, entry))
 
 
 def ignore_interrupts() -> contextlib.AbstractContextManager[None]:

@@ -12,8 +12,17 @@ One trial (all times on the session's :class:`~crs_study.clock.Clock`):
    to the neutral (flat) pose;
 3. the response (:class:`~crs_study.session.responders.base.Responder`), with the protocol's
    time limit from stimulus offset;
-4. the trial's frame log and its row are stored durably (:mod:`crs_study.dataset`), then the
+4. the heartbeat, asked right after the stimulus and checked after the response
+   (:meth:`~crs_study.device.Device.heartbeat_ask`): every board must answer, else
+   the trial is not stored (a :class:`~crs_study.errors.DeviceError`: the session stops
+   safely, and the trial is rerun on resume with ``device_fault = 1``), since a board that
+   stopped reading may have shown none of it;
+5. the trial's frame log and its row are stored durably (:mod:`crs_study.dataset`), then the
    sidecar; feedback after practice trials; the inter-trial interval.
+
+Before the stimulus the session lock file notes the trial as begun
+(:meth:`~crs_study.dataset.SessionStore.mark_started`), so a resume after a crash knows
+whether the participant felt part of it (its rerun's row then says ``rerun = 1``).
 
 The frames come from the one cache of rendered frames
 (:func:`crs_study.rendering.frames.render_frames`); :class:`TrialFrames` adds only the
@@ -28,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from crs_study.clock import Clock
+from crs_study.dataset.session_store import UNDURABLE_SIDECAR_EVERY
 from crs_study.device import Device, FrameReport
 from crs_study.errors import SessionError
 from crs_study.geometry.layout import Layout
@@ -44,7 +54,7 @@ from crs_study.stimuli.stimulus import make_stimulus
 
 #: Without per-trial durability (dry-runs) the sidecar is rewritten every this many trials
 #: (and when the session stops); the trial file is the authority on what is done.
-DRY_RUN_SIDECAR_EVERY = 10
+DRY_RUN_SIDECAR_EVERY = UNDURABLE_SIDECAR_EVERY
 FRAME_LOG_COLUMNS = ("kind", "frame", "due", "commanded_at", "wire_done_at", "bytes",
                      "channels", "merged")
 
@@ -159,6 +169,7 @@ def replay(state: SessionState, device: Device, clock: Clock, frames: TrialFrame
             level = float(row[state.protocol.levels.column])
         frame_times, setpoints = frames.get(trial.digit, trial.condition, level)
         present(device, clock, frame_times, setpoints, period)
+        device.heartbeat()  # asked after the stimulus, as the trial did
         clock.sleep_until(float(row["trial_end"]))
 
 
@@ -186,7 +197,10 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
     frame_times, setpoints = frames.get(trial.digit, trial.condition, level)
     period = 1.0 / float(protocol.frame_rate_hz)
     responder.begin_trial(trial, clock.now(), clock)
+    state.store.mark_started(trial.index)
+    state.started = trial.index
     shown = present(device, clock, frame_times, setpoints, period)
+    asked = device.heartbeat_ask()  # after the last frame; answered while the person responds
     onset, offset, reports = shown.onset, shown.offset, shown.reports
     record = StimulusRecord(state.layout, trial.condition, frame_times + period, shown.displayed,
                             digit_choices(protocol), onset, offset)
@@ -195,6 +209,7 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
     rt = float(response.response_time_s)
     correct = None if response.digit is None else int(response.digit == trial.digit)
     trial_end = ceil_ms(clock.now() - origin + float(protocol.inter_trial_interval_s))
+    device.heartbeat_check(asked)  # every board read the whole trial, or it is not stored
     latencies = [r.wire_done_at - (onset + frame_times[i]) for i, r in enumerate(reports)]
     n = len(frame_times)
     row = {
@@ -203,7 +218,8 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
         "response": response.digit, "correct": correct, "response_time": rt,
         "response_time_from_offset": rt - duration, "onset": onset - origin,
         "stimulus_duration": duration, "timed_out": int(response.digit is None),
-        "device_fault": int(trial.index in state.faults), "frames": n,
+        "device_fault": int(trial.index in state.faults),
+        "rerun": int(trial.index in state.cut), "frames": n,
         "late_frames": shown.late, "median_wire_latency": float(np.median(latencies)),
         "responder": responder.name, "trial_end": trial_end,
     }
@@ -225,6 +241,7 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
         state.rows.append({k: str(v) for k, v in row.items()})
         if state.adaptive is not None:
             state.adaptive_sha256 = state.adaptive.fingerprint()
+        state.started = None
         state.late_frames += shown.late
         if state.spec.durable or len(state.rows) % DRY_RUN_SIDECAR_EVERY == 0:
             save(state, "running")
