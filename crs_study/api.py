@@ -129,9 +129,10 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
     plan = plan_of(protocol, participant, session, counterbalance)
     levels = protocol.level_values
     stimuli = {(d, v): make_stimulus(protocol, layout, d, v) for v in levels
-               for d in protocol.digits}
+               for d in protocol.symbols}
+    shown = protocol.symbol_set
 
-    def label(d: int, v: float | None) -> str:
+    def label(d: object, v: float | None) -> str:
         return str(d) if v is None else f"{d}@{v:g}"
 
     def frame_range(values: list[int]) -> dict:
@@ -151,7 +152,7 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
                 {c: {"practice": plan.count("practice", c, v), "test": plan.count("test", c, v)}
                  for c in protocol.conditions},
                 "frames_per_trial": frame_range([stimuli[(d, v)].n_frames
-                                                 for d in protocol.digits])}
+                                                 for d in protocol.symbols])}
                 for v in protocol.levels.values},
         }
     content = {
@@ -159,6 +160,10 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
         "sha256": protocol.sha256,
         "study": {"id": protocol.study_id, "version": protocol.version,
                   "title": protocol.title, "device": layout.name},
+        "stimulus_set": {"name": shown.name, "task": shown.task, "column": shown.column,
+                         "symbols": [str(d) for d in protocol.symbols],
+                         "keys": list(protocol.responses.keys),
+                         "chance_rate": protocol.chance_rate},
         "trials": {"total": len(plan), "practice": plan.count("practice"),
                    "test": plan.count("test"),
                    "per_condition": {c: {"practice": plan.count("practice", c),
@@ -174,7 +179,7 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
                                                for k, o in enumerate(by_index)],
                          "orders": [list(o) for o in sorted(set(by_index))]},
         "expected_duration_s": expected_duration_s(protocol, plan, layout),
-        "frames_per_trial": {**frame_range(list(frames.values())), "per_digit": frames},
+        "frames_per_trial": {**frame_range(list(frames.values())), f"per_{shown.column}": frames},
         "stimulus_duration_s": {label(d, v): s.duration_s for (d, v), s in stimuli.items()},
         "levels": level_summary,
         "adaptive": None if protocol.adaptive is None else adaptive_summary(protocol.adaptive),

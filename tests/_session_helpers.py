@@ -36,6 +36,27 @@ def tiny_protocol(directory: Path, name: str = "tiny.toml", *, digits=(1, 4, 7),
     return path
 
 
+def tiny_letter_protocol(directory: Path, symbols=("C", "L", "S"), study_id="tinyletters"
+                         ) -> Path:
+    """The shipped letter protocol made small: three letters once per condition, fast."""
+    text = shipped_file("protocols/letter_identification.toml").read_text(encoding="utf-8")
+    changes = {"id": f'"{study_id}"',
+               "symbols": "[" + ", ".join(f'"{s}"' for s in symbols) + "]",
+               "keys": "[" + ", ".join(f'"{s.lower()}"' for s in symbols) + "]",
+               "repetitions": "1", "practice_trials": "1", "stroke_speed_mm_s": "60.0",
+               "inter_trial_interval_s": "0.5", "start_hold_s": "0.1", "end_hold_s": "0.1"}
+    for key, value in changes.items():
+        text, count = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value}", text)
+        assert count == 1, key
+    text = text.replace('consent_form = "consent/consent_form.md"',
+                        f'consent_form = "{shipped_file("consent/consent_form.md")}"')
+    text = text.replace('analysis_plan = "analysis/letter_identification.toml"',
+                        f'analysis_plan = "{shipped_file("analysis/letter_identification.toml")}"')
+    path = directory / "tiny_letters.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
 class FakeDevice(Device):
     """Shows what it was told at once; the wire takes one full frame; faults on request."""
 

@@ -40,7 +40,7 @@ def test_the_shipped_adaptive_protocol(shipped):
     # every level the procedure can show is a level of the protocol (checked on the device)
     assert shipped.levels.values == spec.shown_levels()
     assert any("digit_height_pitch = 1.5: bump centre path inside" in c for c in shipped.checks)
-    assert shipped.stimulus_at(1.5).digit_width_pitch == pytest.approx(1.5 * 0.605)
+    assert shipped.stimulus_at(1.5).symbol_width_pitch == pytest.approx(1.5 * 0.605)
 
 
 def test_the_plan_leaves_test_levels_to_the_procedure(shipped):
@@ -49,8 +49,8 @@ def test_the_plan_leaves_test_levels_to_the_procedure(shipped):
     assert len(test) == 80 and {t.level for t in test} == {None}
     assert {t.level for t in plan.trials if t.trial_type == "practice"} == {1.5}
     for condition in shipped.conditions:
-        counts = [sum(t.digit == d and t.condition == condition for t in test)
-                  for d in shipped.digits]
+        counts = [sum(t.symbol == d and t.condition == condition for t in test)
+                  for d in shipped.symbols]
         assert sorted(counts) == [4] * 10  # 40 trials dealt evenly to the ten digits
     assert plan.block_conditions == ("pixel-only", "crs")
 

@@ -79,7 +79,7 @@ def test_analyse_orders_conditions_and_makes_every_table():
                       for d in range(10)] + [("b", "crs", 1, 1.0)])
     result = analyse_accuracy(trials, ("pixel-only", "crs"), 0.1)
     assert list(result.by_condition["condition"]) == ["pixel-only", "crs"]
-    assert len(result.by_participant) == 3 and len(result.by_digit) == 20
+    assert len(result.by_participant) == 3 and len(result.by_symbol) == 20
     assert result.condition_row("crs")["n_trials"] == 11
     with pytest.raises(AnalysisError, match=r"no accuracy for condition 'x'"):
         result.condition_row("x")

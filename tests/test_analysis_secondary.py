@@ -14,7 +14,7 @@ from crs_study.analysis.secondary import (
     paired_t,
     paired_table,
     participant_differences,
-    per_digit,
+    per_symbol,
     secondary_tests,
     wilcoxon_signed_rank,
 )
@@ -134,7 +134,7 @@ def test_per_digit_holm_matches_its_definition():
                     rows.append({"participant_id": f"p{p}", "session": "1", "digit": d,
                                  "repetition": r, "condition": c,
                                  "correct": float(rng.random() < acc)})
-    table, _ = per_digit(pd.DataFrame(rows), "crs", "pixel-only", "holm")
+    table, _ = per_symbol(pd.DataFrame(rows), "crs", "pixel-only", "holm")
     p = table["p_value"].to_numpy()
     order = np.argsort(p)
     m = len(p)
@@ -160,7 +160,7 @@ def test_secondary_tests_run_every_planned_test():
     result = secondary_tests(trials, by_participant, ["pixel-only", "crs"], "pixel-only",
                              ("paired_t", "wilcoxon", "mcnemar", "per_digit"))
     assert [t.method.split()[0] for t in result.tests] == ["paired", "Wilcoxon", "McNemar"]
-    assert set(result.per_digit) == {"crs"} and len(result.to_frame()) == 3
+    assert set(result.per_symbol) == {"crs"} and len(result.to_frame()) == 3
 
 
 def test_pairs_keep_every_level_of_a_level_protocol():

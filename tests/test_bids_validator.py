@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from _session_helpers import record_consent, tiny_protocol
+from _session_helpers import record_consent, tiny_letter_protocol, tiny_protocol
 
 
 @pytest.fixture(autouse=True)
@@ -64,3 +64,20 @@ def test_dry_run_dataset_is_valid_bids(tmp_path):
     summary = report["summary"]
     assert sorted(summary["subjects"]) == ["p7k2m9q", "sim01", "sim02", "sim03"]
     assert summary["tasks"] == ["digitid"] and summary["dataTypes"] == ["beh"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(validator() is None, reason="bids-validator-deno is not installed "
+                    "(pip install -e '.[test]')")
+def test_a_letter_dataset_is_valid_bids(tmp_path):
+    """The second stimulus set: task-letterid files, the letter in the column `symbol`."""
+    dataset = tmp_path / "letters"
+    crs_study("dry-run", str(tiny_letter_protocol(tmp_path)), "--participants", "2", "--out",
+              str(dataset), "--responder", "observer")
+    done = subprocess.run([validator(), str(dataset), "--format", "json"], capture_output=True,
+                          text=True, timeout=300)
+    report = json.loads(done.stdout)
+    errors = [i for i in report["issues"]["issues"] if i.get("severity") == "error"]
+    assert errors == [], errors
+    assert done.returncode == 0
+    assert report["summary"]["tasks"] == ["letterid"]

@@ -88,18 +88,18 @@ def test_protocol_size_is_the_mean_bounding_box_of_the_shown_digits(protocol_nam
 
     protocol = load_protocol(shipped_file(f"protocols/{protocol_name}"))
     spec = protocol.stimulus
-    assert (spec.digit_width_pitch, spec.digit_height_pitch) == PAPER_SIZE
+    assert (spec.symbol_width_pitch, spec.symbol_height_pitch) == PAPER_SIZE
     layout = protocol.layout()
     pitch = layout.pitch_mm
     digits = load_digits(spec.strokes_file)
     boxes = []
-    for d in protocol.digits:
-        points = np.concatenate(digits[d].scaled(spec.digit_width_pitch * pitch,
-                                                 spec.digit_height_pitch * pitch))
+    for d in protocol.symbols:
+        points = np.concatenate(digits[d].scaled(spec.symbol_width_pitch * pitch,
+                                                 spec.symbol_height_pitch * pitch))
         boxes.append(np.ptp(points, axis=0) / pitch)
     assert np.mean(boxes, axis=0) == pytest.approx(PAPER_SIZE, rel=1e-12)
     drawn = []
-    for d in protocol.digits:
+    for d in protocol.symbols:
         stim = make_stimulus(protocol, layout, d)
         drawn.append(np.ptp(stim.centres_mm[stim.drawn], axis=0) / pitch)
     step = spec.stroke_speed_mm_s / spec.frame_rate_hz / pitch  # 0.044 pitch a frame

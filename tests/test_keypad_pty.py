@@ -69,7 +69,7 @@ def test_one_key_no_enter_timed_to_the_ms(terminal):
             os.write(master, str(digit).encode())
             answer = keypad.respond(Trial, stimulus(onset, 0.02), clock, 5.0)
             keypad.end_trial()
-            assert answer.digit == digit
+            assert answer.symbol == digit
             errors.append(answer.response_time_s - (written - onset))
     assert termios.tcgetattr(slave) == before  # the terminal is restored
     assert min(errors) >= 0 and max(errors) < STAMP_SLACK_S, errors
@@ -86,7 +86,7 @@ def test_keys_during_the_stimulus_count(terminal):
         os.write(master, b"x5")  # an unknown key is ignored, 5 answers mid-stimulus
         time.sleep(0.1)  # the stimulus goes on; respond() is called after the offset
         answer = keypad.respond(Trial, stimulus(onset, 0.12), clock, 5.0)
-    assert answer.digit == 5
+    assert answer.symbol == 5
     assert 0.03 <= answer.response_time_s < 0.03 + 0.03
     assert answer.response_time_s - 0.12 < 0  # negative RT from offset
 
@@ -100,7 +100,7 @@ def test_keys_before_onset_are_dropped_and_time_out(terminal):
         onset = clock.now()
         keypad.begin_trial(Trial, onset, clock)
         answer = keypad.respond(Trial, stimulus(onset, 0.01), clock, 0.1)
-    assert answer.digit is None and answer.response_time_s == pytest.approx(0.11)
+    assert answer.symbol is None and answer.response_time_s == pytest.approx(0.11)
     assert clock.now() - onset >= 0.11
 
 
@@ -137,7 +137,7 @@ def test_stdin_of_a_child_process(terminal):
             rec = StimulusRecord(None, "crs", np.zeros(1), np.zeros((1, 1)), tuple(range(10)),
                                  onset, onset)
             answer = keypad.respond(Trial, rec, clock, 10.0)
-        print(f"answer {answer.digit} {answer.response_time_s!r}", flush=True)
+        print(f"answer {answer.symbol} {answer.response_time_s!r}", flush=True)
     """)
     child = subprocess.Popen([sys.executable, "-c", script], stdin=slave,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -59,8 +59,8 @@ def test_shipped_psychometric_protocol_varies_digit_height():
     assert protocol.levels.column == "digit_height" and protocol.levels.units == "pitch"
     assert protocol.level_values == (0.3, 0.5, 0.81, 1.2, 1.5)
     spec = protocol.stimulus_at(1.2)
-    assert spec.digit_height_pitch == 1.2
-    assert spec.digit_width_pitch == pytest.approx(1.2 * 0.605)
+    assert spec.symbol_height_pitch == 1.2
+    assert spec.symbol_width_pitch == pytest.approx(1.2 * 0.605)
     assert spec.stroke_speed_mm_s == 20.0
     # every level is checked on the device: its own path-inside line
     assert sum("bump centre path inside" in c for c in protocol.checks) == 5
@@ -180,8 +180,8 @@ def test_valid_height_levels_parse_and_fit_the_display(tmp_path, values, ratio):
     assert protocol.level_values == tuple(float(v) for v in values)
     for v in values:
         spec = protocol.stimulus_at(v)
-        assert spec.digit_height_pitch == v
-        assert spec.digit_width_pitch == pytest.approx(v * ratio)
+        assert spec.symbol_height_pitch == v
+        assert spec.symbol_width_pitch == pytest.approx(v * ratio)
 
 
 # --- plan -------------------------------------------------------------------------------------
@@ -190,16 +190,16 @@ def test_plan_crosses_levels_with_conditions_and_digits():
     protocol = load_protocol(PSYCHOMETRIC)
     plan = make_plan(protocol, "p1", 1, 0)
     test = [t for t in plan.trials if t.trial_type == "test"]
-    cells = Counter((t.condition, t.digit, t.level) for t in test)
+    cells = Counter((t.condition, t.symbol, t.level) for t in test)
     assert len(cells) == 2 * 10 * 5 and set(cells.values()) == {protocol.design.repetitions}
     practice = [t for t in plan.trials if t.trial_type == "practice"]
     for condition in protocol.conditions:  # 5 practice trials: each level once
         levels = sorted(t.level for t in practice if t.condition == condition)
         assert levels == sorted(protocol.level_values)
     for block in {t.block for t in plan.trials}:  # the run constraint, practice included
-        digits = [t.digit for t in plan.trials if t.block == block]
+        digits = [t.symbol for t in plan.trials if t.block == block]
         runs = max(len(list(g)) for _, g in __import__("itertools").groupby(digits))
-        assert runs <= protocol.design.max_same_digit_run
+        assert runs <= protocol.design.max_same_symbol_run
     assert plan.count("test", "crs", 0.3) == 10
 
 
@@ -213,8 +213,8 @@ def test_plan_with_levels_is_deterministic_and_hashed(tmp_path):
     data["levels"]["values"] = [0.3, 0.5, 0.81, 1.2, 1.4]
     other = make_plan(load(tmp_path, data), "p1", 1, 1)
     assert other.seed == one.seed
-    assert [(t.condition, t.digit) for t in other.trials] == \
-        [(t.condition, t.digit) for t in one.trials]
+    assert [(t.condition, t.symbol) for t in other.trials] == \
+        [(t.condition, t.symbol) for t in one.trials]
     assert other.sha256() != one.sha256()
 
 
@@ -249,7 +249,7 @@ def test_observer_templates_are_per_level(layout2d):
     # crs_study/stimuli/digits.py),
     # a half-diagonal of 27 mm
     reach = max(np.hypot(*make_stimulus(protocol, layout2d, d, v).centres_mm.T).max()
-                for d in protocol.digits for v in protocol.level_values)
+                for d in protocol.symbols for v in protocol.level_values)
     assert observer._gx.max() - observer._gx.mean() >= reach
 
 

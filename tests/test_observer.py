@@ -38,7 +38,7 @@ def records(protocol):
     with open_device("sim://", layout, clock) as device:
         for condition in protocol.conditions:
             renderer = Renderer(layout, condition)
-            for digit in protocol.digits:
+            for digit in protocol.symbols:
                 stim = make_stimulus(protocol, layout, digit)
                 frames = render_frames(stim, renderer)
                 displayed = np.empty_like(frames)
@@ -53,7 +53,7 @@ def records(protocol):
                 device.neutral()
                 clock.sleep(1.0)
                 out[condition, digit] = StimulusRecord(
-                    layout, condition, stim.frame_times + period, displayed, protocol.digits,
+                    layout, condition, stim.frame_times + period, displayed, protocol.symbols,
                     onset_time=0.0, offset_time=stim.duration_s)
     return out
 
@@ -99,9 +99,9 @@ def test_noise_free_crs_path_follows_the_digit_and_pixel_only_does_not(protocol,
     errors = {}
     for condition in protocol.conditions:
         gaps = []
-        for digit in protocol.digits:
+        for digit in protocol.symbols:
             path = observer.peak_path(records[condition, digit], rng)
-            p, d = observer.choice_probabilities(path, protocol.digits)
+            p, d = observer.choice_probabilities(path, protocol.symbols)
             gaps.append(d[digit])
         errors[condition] = float(np.mean(gaps))
     assert errors["crs"] < 2.5
@@ -116,7 +116,7 @@ def test_same_seed_and_trial_give_the_same_answer(protocol, records):
     answers_a = [a.respond(trial(i), record, VirtualClock(), None) for i in range(20)]
     answers_b = [b.respond(trial(i), record, VirtualClock(), None) for i in reversed(range(20))]
     assert answers_a == answers_b[::-1]
-    assert len({r.digit for r in answers_a}) > 1  # not a constant answer
+    assert len({r.symbol for r in answers_a}) > 1  # not a constant answer
 
 
 def test_answers_do_not_depend_on_what_the_process_sensed_before(protocol, records):
@@ -127,7 +127,7 @@ def test_answers_do_not_depend_on_what_the_process_sensed_before(protocol, recor
     layout = protocol.layout()
     record = records["crs", 3]
     nudged = StimulusRecord(record.layout, record.condition, record.frame_times,
-                            record.setpoints + 0.013, record.digit_choices)
+                            record.setpoints + 0.013, record.symbol_choices)
     module._CACHES.clear()
     fresh = [PerceptualObserver(layout, protocol, 5).sensed_surface("crs", s)
              for s in record.setpoints]
@@ -164,7 +164,7 @@ def test_time_limit_turns_slow_answers_into_timeouts(protocol, records):
     record = records["crs", 2]
     clock = VirtualClock()
     response = observer.respond(trial(1), record, clock, time_limit_s=2.0)
-    assert response.digit is None
+    assert response.symbol is None
     assert response.response_time_s == pytest.approx(record.duration_s + 2.0)
     assert clock.now() == pytest.approx(record.duration_s + 2.0)
 
@@ -173,9 +173,9 @@ def test_a_flat_display_is_a_guess(protocol, records):
     layout = protocol.layout()
     observer = PerceptualObserver(layout, protocol, 3)
     flat = StimulusRecord(layout, "crs", np.arange(10) / 15, np.zeros((10, layout.n_actuators)),
-                          protocol.digits, 0.0, 10 / 15)
+                          protocol.symbols, 0.0, 10 / 15)
     response = observer.respond(trial(0), flat, VirtualClock(), None)
-    assert response.digit in protocol.digits
+    assert response.symbol in protocol.symbols
     assert observer.last_decision["probabilities"] == pytest.approx(np.full(10, 0.1))
     assert observer.last_decision["entropy"] == pytest.approx(1.0)
 
@@ -202,12 +202,12 @@ def test_calibration_pixel_only_clearly_below_crs_near_the_paper(protocol, recor
         if repetition == 1:
             started, counted = time.perf_counter(), index  # after the caches are warm
         for condition in protocol.conditions:
-            for digit in protocol.digits:
+            for digit in protocol.symbols:
                 index += 1
                 response = observer.respond(trial(index, digit), records[condition, digit],
                                             VirtualClock(), None)
-                correct[condition].append(response.digit == digit)
-                decision[response.digit == digit].append(observer.last_decision["decision_s"])
+                correct[condition].append(response.symbol == digit)
+                decision[response.symbol == digit].append(observer.last_decision["decision_s"])
     per_trial_ms = (time.perf_counter() - started) / (index - counted) * 1e3
     pixel, crs = np.mean(correct["pixel-only"]), np.mean(correct["crs"])
     print(f"pixel-only {pixel:.3f}, crs {crs:.3f}, {per_trial_ms:.2f} ms/trial")

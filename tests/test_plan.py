@@ -55,7 +55,7 @@ def test_pinned_plan_is_the_same_on_every_machine(pilot):
     plan = make_plan(pilot, "p01", 1, 0)
     assert plan.seed == 15450205548663522082
     assert plan.block_conditions == ("pixel-only", "crs")
-    assert [(t.trial_type[0], t.condition[0], t.digit) for t in plan.trials] == [
+    assert [(t.trial_type[0], t.condition[0], t.symbol) for t in plan.trials] == [
         ("p", "p", 2), ("p", "p", 7), ("p", "p", 1), ("t", "p", 2), ("t", "p", 3),
         ("t", "p", 0), ("t", "p", 5), ("t", "p", 1), ("t", "p", 6), ("t", "p", 9),
         ("t", "p", 4), ("t", "p", 7), ("t", "p", 8), ("p", "c", 0), ("p", "c", 7),
@@ -77,18 +77,18 @@ def check_plan(protocol, plan):
     trials = plan.trials
     assert [t.index for t in trials] == list(range(len(trials)))
     for condition in protocol.conditions:
-        tests = Counter(t.digit for t in trials if t.trial_type == "test"
+        tests = Counter(t.symbol for t in trials if t.trial_type == "test"
                         and t.condition == condition)
-        assert tests == {d: design.repetitions for d in protocol.digits}
-        reps = {(t.digit, t.repetition) for t in trials
+        assert tests == {d: design.repetitions for d in protocol.symbols}
+        reps = {(t.symbol, t.repetition) for t in trials
                 if t.trial_type == "test" and t.condition == condition}
-        assert reps == set(itertools.product(protocol.digits, range(design.repetitions)))
+        assert reps == set(itertools.product(protocol.symbols, range(design.repetitions)))
     for _block, group in itertools.groupby(trials, key=lambda t: t.block):
         group = list(group)
         kinds = [t.trial_type for t in group]
         assert kinds == sorted(kinds)  # practice first ("practice" < "test")
-        for _, run in itertools.groupby(group, key=lambda t: t.digit):
-            assert len(list(run)) <= design.max_same_digit_run
+        for _, run in itertools.groupby(group, key=lambda t: t.symbol):
+            assert len(list(run)) <= design.max_same_symbol_run
         assert group[0].prompt_before is not None or design.ordering == "interleaved"
         assert all(t.prompt_before is None for t in group[1:])
         assert not group[0].break_before
@@ -111,14 +111,14 @@ def test_no_digit_more_than_twice_in_a_row_over_many_seeds(full):
     for participant in range(300):
         plan = make_plan(full, f"s{participant}", 1, participant)
         for _, group in itertools.groupby(plan.trials, key=lambda t: t.block):
-            runs = [len(list(r)) for _, r in itertools.groupby(group, key=lambda t: t.digit)]
+            runs = [len(list(r)) for _, r in itertools.groupby(group, key=lambda t: t.symbol)]
             assert max(runs) <= 2
 
 
 def test_order_is_not_degenerate_over_seeds(full):
     # Every digit opens the test trials of the first block for some participant, with roughly
     # equal frequency (300 plans: expected 30 each; 10 to 55 is far beyond 4 SD).
-    first = Counter(next(t.digit for t in make_plan(full, f"s{i}", 1, 0).trials
+    first = Counter(next(t.symbol for t in make_plan(full, f"s{i}", 1, 0).trials
                          if t.trial_type == "test") for i in range(300))
     assert set(first) == set(range(10)) and min(first.values()) >= 10
     assert max(first.values()) <= 55
@@ -227,8 +227,8 @@ def test_plan_invariants_hold_for_any_design(full, repetitions, max_run, practic
                                             counterbalance):
     if scheme == "abba" and repetitions < 2:
         scheme = "alternate"
-    protocol = replace(full, stimulus=replace(full.stimulus, digits=tuple(sorted(digits))))
-    protocol = with_design(protocol, repetitions=repetitions, max_same_digit_run=max_run,
+    protocol = replace(full, stimulus=replace(full.stimulus, symbols=tuple(sorted(digits))))
+    protocol = with_design(protocol, repetitions=repetitions, max_same_symbol_run=max_run,
                            practice_trials=practice, break_every=break_every,
                            counterbalancing="none" if interleaved else scheme,
                            ordering="interleaved" if interleaved else "blocked")

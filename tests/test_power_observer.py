@@ -38,7 +38,7 @@ def test_the_choice_rule_is_the_observers(layout2d):
     protocol = load_protocol("protocols/digit_identification.toml")
     observer = PerceptualObserver(layout2d, protocol, 3)
     record = shown_stimulus(protocol, layout2d, 4, "crs", None)
-    choices = tuple(protocol.digits)
+    choices = tuple(protocol.symbols)
     for j in range(5):
         path = observer.peak_path(record, np.random.default_rng([1, j]))
         p, d = observer.choice_probabilities(path, choices)
@@ -106,7 +106,7 @@ def test_the_shown_stimulus_is_what_a_session_displays(tmp_path, monkeypatch):
 
     def recording(self, trial, stimulus, clock, limit):
         if trial.trial_type == "test":
-            records.append((trial.digit, trial.condition, stimulus.setpoints))
+            records.append((trial.symbol, trial.condition, stimulus.setpoints))
         return respond(self, trial, stimulus, clock, limit)
 
     path = tiny_protocol(tmp_path, digits=(1, 4, 7), repetitions=2)

@@ -99,15 +99,15 @@ def test_shipped_protocol_matches_the_paper():
     p = load_protocol(SHIPPED)
     s = p.stimulus
     # crs-paper.md: digits 0.81 x 0.49 pitch, 90 mm bump (Eq. 7), pixel-only vs CRS.
-    assert (s.digit_height_pitch, s.digit_width_pitch, s.bump_diameter_mm) == (0.81, 0.49, 90)
-    assert s.digits == tuple(range(10))
+    assert (s.symbol_height_pitch, s.symbol_width_pitch, s.bump_diameter_mm) == (0.81, 0.49, 90)
+    assert s.symbols == tuple(range(10))
     assert p.design.ordering == "blocked" and p.design.counterbalancing != "none"
     assert p.design.practice_trials > 0 and p.design.break_every > 0
 
 
-def test_key_for_and_digit_for_key():
+def test_key_for_and_symbol_for_key():
     p = load_protocol(PILOT)
-    assert p.key_for(7) == "7" and p.digit_for_key("7") == 7 and p.digit_for_key("x") is None
+    assert p.key_for(7) == "7" and p.symbol_for_key("7") == 7 and p.symbol_for_key("x") is None
     assert p.prompt("crs").startswith("CRS block")
 
 
@@ -518,7 +518,7 @@ def test_a_misspelt_table_is_named_as_the_stray_table(tmp_path):
                  r"interleaved conditions have no block order", id="interleaved"),
     pytest.param("stimulus", {"frame_rate_hz": 0.5}, r"^stimulus.frame_rate_hz: expected a "
                  r"number >= 1, got 0.5$", id="frame-rate"),
-    pytest.param("stimulus", {"digits": (3,)}, r"^stimulus.digits: expected at least 2 digits",
+    pytest.param("stimulus", {"symbols": (3,)}, r"^stimulus.digits: expected at least 2 digits",
                  id="one-digit"),
     pytest.param("stimulus", {"offset_mm": (5.0, 0.0)}, r"^stimulus.offset_mm: only used with "
                  r"placement = \"offset\"", id="offset-at-centre"),
@@ -545,13 +545,14 @@ def test_the_model_checks_fields_set_from_python(table, changes, match):
 
 #: keys whose every check is the model's: (table, key, dataclass field)
 MODEL_KEYS = [("design", k, k) for k in ("repetitions", "ordering", "counterbalancing",
-                                         "max_same_digit_run", "practice_trials", "practice_in",
+                                         "practice_trials", "practice_in",
                                          "break_every", "break_duration_s",
                                          "inter_trial_interval_s")] + \
-    [("stimulus", k, k) for k in ("digit_height_pitch", "digit_width_pitch",
-                                  "bump_diameter_mm", "bump_height_mm", "stroke_speed_mm_s",
-                                  "frame_rate_hz", "stroke_pause_s", "start_hold_s",
-                                  "end_hold_s")] + \
+    [("design", "max_same_digit_run", "max_same_symbol_run")] + \
+    [("stimulus", k, k.replace("digit", "symbol")) for k in (
+        "digit_height_pitch", "digit_width_pitch", "bump_diameter_mm", "bump_height_mm",
+        "stroke_speed_mm_s", "frame_rate_hz", "stroke_pause_s", "start_hold_s",
+        "end_hold_s")] + \
     [("responses", k, k) for k in ("time_limit_s", "feedback", "expected_response_s")] + \
     [("study", "id", "study_id"), ("study", "version", "version"), ("study", "title", "title")]
 

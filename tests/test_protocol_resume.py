@@ -58,7 +58,7 @@ def test_an_interrupted_session_of_the_older_software_resumes(tmp_path, name, ca
     planned = stored(name)["TrialsPlanned"]
     plan = make_plan(load_protocol(FIXTURE / f"{name}.toml"), "p01", 1, 0)
     script = tmp_path / "answers.txt"
-    script.write_text("".join(f"{t.digit}\n" for t in plan.trials), encoding="utf-8")
+    script.write_text("".join(f"{t.symbol}\n" for t in plan.trials), encoding="utf-8")
     status = main(["run", str(FIXTURE / f"{name}.toml"), "--participant", "p01",
                    "--device", "sim://", "--out", str(dataset),
                    "--responder", f"scripted:{script}", "--clock", "virtual"])
@@ -71,4 +71,4 @@ def test_an_interrupted_session_of_the_older_software_resumes(tmp_path, name, ca
     with open(dataset / TSV, newline="", encoding="utf-8") as handle:
         rows = list(csv.DictReader(handle, delimiter="\t"))
     assert len(rows) == planned
-    assert [int(r["digit"]) for r in rows] == [t.digit for t in plan.trials]
+    assert [int(r["digit"]) for r in rows] == [t.symbol for t in plan.trials]

@@ -39,7 +39,7 @@ def test_each_condition_sums_the_wire_plans_of_its_stimuli():
     plans = [wire_plan(layout, render_frames(make_stimulus(protocol, layout, d),
                                              Renderer(layout, "crs")),
                        protocol.frame_rate_hz, deadband_us=2, refresh_s=0.5)
-             for d in protocol.digits]
+             for d in protocol.symbols]
     assert crs.frames == sum(p.n_frames for p in plans)
     assert crs.mean_bytes_per_frame == pytest.approx(
         sum(p.changed_bytes.sum() for p in plans) / crs.frames)
@@ -70,10 +70,10 @@ def test_every_level_goes_on_the_wire():
     protocol = load_protocol(PSYCHOMETRIC)
     layout = protocol.layout()
     frames = sum(make_stimulus(protocol, layout, d, v).n_frames
-                 for v in protocol.level_values for d in protocol.digits)
+                 for v in protocol.level_values for d in protocol.symbols)
     budget = wire_budget(protocol)
     assert all(c.frames == frames for c in budget.conditions)
     first_only = sum(make_stimulus(protocol, layout, d, protocol.level_values[0]).n_frames
-                     for d in protocol.digits)
+                     for d in protocol.symbols)
     assert frames > first_only
     assert np.isfinite([c.latency_ms_median for c in budget.conditions]).all()

@@ -159,8 +159,8 @@ def test_a_changed_protocol_is_checked_as_a_file_is():
                        r"conditions\.prompts: an interleaved design") as caught:
         load_protocol(interleaved)
     assert caught.value.line is None and caught.value.key_path == "conditions.prompts"
-    too_big = replace(protocol, stimulus=replace(protocol.stimulus, digit_height_pitch=9.0,
-                                                 digit_width_pitch=9.0))
+    too_big = replace(protocol, stimulus=replace(protocol.stimulus, symbol_height_pitch=9.0,
+                                                 symbol_width_pitch=9.0))
     with pytest.raises(ProtocolError, match=r"\(changed in Python\): stimulus\."):
         load_protocol(too_big)
     with pytest.raises(ProtocolError, match=r"design\.repetitions: expected"):
@@ -199,7 +199,7 @@ def _changed(draw, protocol):
     design = replace(
         protocol.design,
         repetitions=draw(st.integers(1, 3)), practice_trials=draw(st.integers(0, 4)),
-        max_same_digit_run=draw(st.integers(1, 5)), break_every=draw(st.integers(0, 50)),
+        max_same_symbol_run=draw(st.integers(1, 5)), break_every=draw(st.integers(0, 50)),
         break_duration_s=draw(st.floats(0, 3600)),
         inter_trial_interval_s=draw(st.floats(0, 60)))
     stimulus = replace(protocol.stimulus, stroke_pause_s=draw(st.floats(0, 10)),
@@ -221,7 +221,7 @@ def _changed(draw, protocol):
     return changed
 
 
-@pytest.mark.parametrize("name", ["pilot", "digit_size_psychometric"])
+@pytest.mark.parametrize("name", ["pilot", "digit_size_psychometric", "letter_identification"])
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_any_changed_protocol_reads_back_with_the_same_fields(name, data):

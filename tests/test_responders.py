@@ -19,7 +19,7 @@ from crs_study.session.responders.scripted import ScriptedResponder, parse_scrip
 
 class Trial:
     def __init__(self, index, digit=4):
-        self.index, self.digit = index, digit
+        self.index, self.symbol = index, digit
 
 
 def record(duration=2.0, onset=10.0, choices=tuple(range(10))):
@@ -91,7 +91,7 @@ def test_random_is_uniform_and_lognormal():
     responder = RandomResponder(seed=11, median_s=1.5, sigma=0.4)
     answers = [responder.respond(Trial(k), record(), VirtualClock(10.0), None)
                for k in range(5000)]
-    counts = np.bincount([a.digit for a in answers], minlength=10)
+    counts = np.bincount([a.symbol for a in answers], minlength=10)
     assert stats.chisquare(counts).pvalue > 0.001
     after = np.array([a.response_time_s - 2.0 for a in answers])
     assert np.median(after) == pytest.approx(1.5, rel=0.05)

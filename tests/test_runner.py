@@ -474,7 +474,7 @@ def test_random_responder_is_resume_safe():
         index = 3
 
     class Stim:
-        digit_choices = (1, 4, 7)
+        symbol_choices = (1, 4, 7)
         duration_s, onset_time = 1.0, 0.0
 
     from crs_study.clock import VirtualClock
@@ -510,7 +510,7 @@ class _Fixed(Responder):
     name = "fixed"
 
     def respond(self, trial, stimulus, clock, time_limit_s):
-        return Response(stimulus.digit_choices[0], stimulus.duration_s + 0.1)
+        return Response(stimulus.symbol_choices[0], stimulus.duration_s + 0.1)
 
 
 def test_feedback_only_on_practice(tmp_path, devices):

@@ -49,8 +49,8 @@ def test_one_stroke_digit_duration_matches_its_length(protocol, layout2d):
     pitch = layout2d.pitch_mm
     from crs_study.stimuli.digits import load_digits
 
-    length = load_digits()[7].length_mm(spec.digit_width_pitch * pitch,
-                                        spec.digit_height_pitch * pitch)
+    length = load_digits()[7].length_mm(spec.symbol_width_pitch * pitch,
+                                        spec.symbol_height_pitch * pitch)
     stim = make_stimulus(protocol, layout2d, 7)
     f = spec.frame_rate_hz
     expected = (round(spec.start_hold_s * f) + math.ceil(length * f / spec.stroke_speed_mm_s)
@@ -77,11 +77,11 @@ def test_digit_box_is_centred_on_the_display(protocol, layout2d):
     assert display_centre(layout2d) == pytest.approx((0.0, 0.0), abs=1e-9)
     # The protocol's digit width and height are the digits' mean bounding box (protocols/
     # README.md), so a wide digit may pass the box; the set of digits sits centred.
-    stimuli = [make_stimulus(protocol, layout2d, d) for d in protocol.digits]
+    stimuli = [make_stimulus(protocol, layout2d, d) for d in protocol.symbols]
     everything = np.concatenate([s.centres_mm for s in stimuli])
     np.testing.assert_allclose(everything.max(axis=0), -everything.min(axis=0), atol=1e-9)
-    size = np.array([protocol.stimulus.digit_width_pitch,
-                     protocol.stimulus.digit_height_pitch]) * layout2d.pitch_mm
+    size = np.array([protocol.stimulus.symbol_width_pitch,
+                     protocol.stimulus.symbol_height_pitch]) * layout2d.pitch_mm
     extents = np.array([np.ptp(s.centres_mm[s.drawn], axis=0) for s in stimuli])
     assert extents.mean(axis=0) == pytest.approx(size, rel=0.02)
 

@@ -40,7 +40,7 @@ def test_json_summary_is_consistent_with_the_plan(capsys):
     assert summary["trials"]["per_condition"]["crs"] == {"practice": 3, "test": 10}
     assert summary["example_plan"]["seed"] == plan.seed
     layout = protocol.layout()
-    expected = sum(make_stimulus(protocol, layout, t.digit).duration_s + 2.0 + 1.0
+    expected = sum(make_stimulus(protocol, layout, t.symbol).duration_s + 2.0 + 1.0
                    for t in plan.trials)
     assert summary["expected_duration_s"] == pytest.approx(expected)
     assert 2 * 60 < expected < 5 * 60  # "a few minutes"

@@ -39,9 +39,11 @@ PROCEDURES: tuple[str, ...] = get_args(Procedure)
 SCALES: tuple[str, ...] = get_args(Scale)
 RULES: tuple[str, ...] = get_args(Rule)
 
-#: Parameters that may adapt: key -> +1 when a larger value is easier (a bigger digit), -1
-#: when a smaller one is (a slower stroke).
-EASIER: dict[str, int] = {"digit_height_pitch": 1, "stroke_speed_mm_s": -1}
+#: Parameters that may adapt, as a protocol file spells them (the size by its stimulus set:
+#: ``digit_height_pitch`` for digits, ``symbol_height_pitch`` for other sets): key -> +1 when
+#: a larger value is easier (a bigger symbol), -1 when a smaller one is (a slower stroke).
+EASIER: dict[str, int] = {"digit_height_pitch": 1, "symbol_height_pitch": 1,
+                          "stroke_speed_mm_s": -1}
 #: The rate a fixed rule converges to (Levitt 1971, Table I): p^n = 1/2.
 RULE_TARGETS: dict[str, float] = {"1-up-2-down": 0.5 ** 0.5, "1-up-3-down": 0.5 ** (1 / 3)}
 RULE_DOWN: dict[str, int] = {"1-up-2-down": 2, "1-up-3-down": 3, "weighted": 1}
@@ -165,7 +167,7 @@ class AdaptiveSpec:
         _fail("adaptive.scale", string_problem(self.scale, choices=SCALES))
         _fail("adaptive.levels", integer_problem(self.levels, minimum=3,
                                                  maximum=MAX_ADAPTIVE_LEVELS))
-        low, high = NUMBER_RANGES[self.parameter][:2]
+        low, high = NUMBER_RANGES[self.range_key][:2]
         for key, value in (("min", self.minimum), ("max", self.maximum)):
             _fail(f"adaptive.{key}", number_problem(value, minimum=low, maximum=high))
         if not float(self.minimum) < float(self.maximum):
@@ -237,6 +239,12 @@ class AdaptiveSpec:
                 self.quest_plus.lapse_rates):
             _fail("adaptive.target_rate", f"expected a rate below 1 - the largest lapse rate "
                   f"({1.0 - max(self.quest_plus.lapse_rates):g}), got {self.target_rate!r}")
+
+    @property
+    def range_key(self) -> str:
+        """The stimulus field whose range bounds the levels (the size's general name)."""
+        return "symbol_height_pitch" if self.parameter.endswith("_height_pitch") \
+            else self.parameter
 
     # --- the difficulty axis ---
     @property

@@ -1,4 +1,4 @@
-"""Accuracy per condition, participant and digit, with Wilson intervals and tests against chance.
+"""Accuracy per condition, participant and symbol, with Wilson intervals and tests against chance.
 
 Tables returned here have the columns ``<group keys>, n_trials, n_correct, accuracy, ci_low,
 ci_high, p_vs_chance``: ``accuracy = n_correct / n_trials``; ``ci_low, ci_high`` the Wilson
@@ -15,6 +15,9 @@ mean of the participants' accuracies with the t interval across participants
 chart show: that participant-level interval, which accounts for the differences between
 participants (with 3 participants the pooled Wilson interval was [42.0, 58.0] where the
 participant-level one is [22.8, 76.8], issue 12).
+
+The symbol shown is in the trial table's symbol column (:func:`symbol_column_of`: ``digit``
+in digit datasets, ``symbol`` in those of every other stimulus set).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from scipy import stats
 from statsmodels.stats.proportion import proportion_confint
 
 from crs_study.analysis.jsonable import json_text, records
+from crs_study.dataset.schema import SYMBOL_COLUMNS, symbol_column
 from crs_study.errors import AnalysisError
 
 #: The smallest p-value reported: below it, a p is shown as this bound with a warning.
@@ -56,15 +60,26 @@ def wilson_interval(n_correct: int | np.ndarray, n_trials: int | np.ndarray,
     return low, high
 
 
+def symbol_column_of(trials: pd.DataFrame) -> str:
+    """The column of ``trials`` holding the symbol shown (``digit`` or ``symbol``,
+    :func:`crs_study.dataset.schema.symbol_column`)."""
+    column = symbol_column(trials.columns)
+    if column is None:
+        raise AnalysisError(f"the trials name no symbol shown: expected a column among "
+                            f"{list(SYMBOL_COLUMNS)}, got {list(trials.columns)}")
+    return column
+
+
 def chance_level(trials: pd.DataFrame, chance: float = 0.0) -> float:
-    """Chance accuracy: ``chance`` when given, else 1 / number of distinct digits shown."""
+    """Chance accuracy: ``chance`` when given, else 1 / number of distinct symbols shown."""
     if chance > 0:
         return chance
-    n_digits = trials["digit"].nunique()
-    if n_digits < 2:
-        raise AnalysisError(f"chance level undefined: the trials show {n_digits} digit(s); "
+    column = symbol_column_of(trials)
+    n_symbols = trials[column].nunique()
+    if n_symbols < 2:
+        raise AnalysisError(f"chance level undefined: the trials show {n_symbols} {column}(s); "
                             "set plan.chance")
-    return 1.0 / n_digits
+    return 1.0 / n_symbols
 
 
 def accuracy_table(trials: pd.DataFrame, by: list[str], chance: float,
@@ -92,13 +107,14 @@ class AccuracyResult:
     """Accuracy tables and the inputs that made them.
 
     ``by_condition``: one row per condition (in ``conditions`` order); ``by_participant``:
-    participant_id x condition; ``by_digit``: digit x condition; ``chance``: the chance level;
+    participant_id x condition; ``by_symbol``: symbol x condition (its first column named as
+    the trials name the symbol: ``digit``, ``symbol``); ``chance``: the chance level;
     ``alpha``: 1 - interval level; ``warnings``: what was noted along the way.
     """
 
     by_condition: pd.DataFrame
     by_participant: pd.DataFrame
-    by_digit: pd.DataFrame
+    by_symbol: pd.DataFrame
     conditions: tuple[str, ...]
     chance: float
     alpha: float
@@ -113,7 +129,8 @@ class AccuracyResult:
         """The accuracy sections of ``results.json``: ``conditions`` (per condition the
         pooled counts, accuracy and Wilson interval, ``p_vs_chance``, the participants, the
         between-participant mean and interval, and what the headline shows),
-        ``accuracy_by_participant`` and ``accuracy_by_digit`` (the tables' rows)."""
+        ``accuracy_by_participant`` and ``accuracy_by_<symbol column>`` (the tables' rows:
+        ``accuracy_by_digit`` for digit data, as before stimulus sets)."""
         between = {r["condition"]: {"mean": r["mean"], "ci95": [r["ci_low"], r["ci_high"]],
                                     "n_participants": int(r["n_participants"]),
                                     "method": r["method"]}
@@ -134,7 +151,7 @@ class AccuracyResult:
                 "headline": shown.get(row["condition"]),
             } for _, row in self.by_condition.iterrows()}
         return {"conditions": conditions, "accuracy_by_participant": records(by_participant),
-                "accuracy_by_digit": records(self.by_digit)}
+                f"accuracy_by_{self.by_symbol.columns[0]}": records(self.by_symbol)}
 
     def to_json(self) -> str:
         return json_text(self.to_dict())
@@ -149,20 +166,21 @@ class AccuracyResult:
 
 def analyse_accuracy(trials: pd.DataFrame, conditions: tuple[str, ...], chance: float,
                      alpha: float = 0.05) -> AccuracyResult:
-    """Accuracy per condition, per participant and condition, per digit and condition."""
+    """Accuracy per condition, per participant and condition, per symbol and condition."""
     warnings = []
     order = {c: i for i, c in enumerate(conditions)}
     by_condition = accuracy_table(trials, ["condition"], chance, alpha)
     by_condition = by_condition.sort_values("condition", key=lambda s: s.map(order))
     by_participant = accuracy_table(trials, ["participant_id", "condition"], chance, alpha)
-    by_digit = accuracy_table(trials, ["digit", "condition"], chance, alpha)
+    column = symbol_column_of(trials)
+    by_symbol = accuracy_table(trials, [column, "condition"], chance, alpha)
     by_participant = by_participant.sort_values(
         ["participant_id", "condition"], key=lambda s: s.map(order) if s.name == "condition"
         else s).reset_index(drop=True)
-    by_digit = by_digit.sort_values(
-        ["digit", "condition"], key=lambda s: s.map(order) if s.name == "condition"
+    by_symbol = by_symbol.sort_values(
+        [column, "condition"], key=lambda s: s.map(order) if s.name == "condition"
         else s).reset_index(drop=True)
-    return AccuracyResult(by_condition.reset_index(drop=True), by_participant, by_digit,
+    return AccuracyResult(by_condition.reset_index(drop=True), by_participant, by_symbol,
                           conditions, chance, alpha, tuple(warnings),
                           between_participant_table(by_participant, conditions, alpha))
 

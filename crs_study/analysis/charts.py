@@ -89,7 +89,7 @@ def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
 
 
 def plot_confusion(result: ConfusionResult, ax: Axes | None = None) -> Axes:
-    """Heatmap of row proportions (digit shown x digit reported), counts in the cells."""
+    """Heatmap of row proportions (symbol shown x symbol reported), counts in the cells."""
     ax = _axes(ax, (4.6, 4.0))
     proportions = result.proportions.to_numpy(float)
     image = ax.imshow(proportions, cmap="Blues", vmin=0, vmax=1)
@@ -102,7 +102,7 @@ def plot_confusion(result: ConfusionResult, ax: Axes | None = None) -> Axes:
             ax.text(j, i, str(value), ha="center", va="center", fontsize=7,
                     color="white" if proportions[i, j] > 0.5 else "black")
     ax.set_xlabel("response")
-    ax.set_ylabel("digit shown")
+    ax.set_ylabel(f"{result.counts.index.name or 'symbol'} shown")
     ci = "" if result.ci95 is None else f" [{result.ci95[0]:.2f}, {result.ci95[1]:.2f}]"
     ax.set_title(f"{result.condition}: {result.bits:.2f} bits{ci} transmitted", fontsize=9)
     ax.figure.colorbar(image, ax=ax, shrink=0.8, label="proportion of row")

@@ -1,7 +1,8 @@
 """Confusion matrices per condition and the information they transmit.
 
-The confusion matrix ``N[i, j]`` counts trials showing digit ``i`` answered ``j`` (answered
-trials only; time-outs are counted apart). The information transmitted from stimulus to
+The confusion matrix ``N[i, j]`` counts trials showing symbol ``i`` answered ``j`` (answered
+trials only; time-outs are counted apart); its labels are the set's symbols (the digits, the
+letters, ...) as the trials hold them, in their order. The information transmitted from stimulus to
 response (Miller & Nicely 1955, J. Acoust. Soc. Am. 27:338, Eq. 1; Shannon's mutual
 information) is, in bits,
 
@@ -50,18 +51,27 @@ import numpy as np
 import pandas as pd
 from scipy import special, stats
 
+from crs_study.analysis.accuracy import symbol_column_of
 from crs_study.analysis.jsonable import json_text
 
 LN2 = np.log(2.0)
 
 
-def confusion_counts(trials: pd.DataFrame, labels: list[int]) -> pd.DataFrame:
-    """Counts ``digit`` (rows) x ``response`` (columns) over answered trials, all ``labels``."""
+def _responses(answered: pd.DataFrame) -> pd.Series:
+    """The answered trials' responses as plain values (ints for a digit dataset's nullable
+    integers, the labels of any other set as they are)."""
+    response = answered["response"]
+    return response.astype("int64") if pd.api.types.is_integer_dtype(response) else response
+
+
+def confusion_counts(trials: pd.DataFrame, labels: list) -> pd.DataFrame:
+    """Counts symbol shown (rows, named as the trials name it: ``digit``, ``symbol``) x
+    ``response`` (columns) over answered trials, all ``labels``."""
+    column = symbol_column_of(trials)
     answered = trials.loc[trials["response"].notna()]
-    response = answered["response"].astype("int64")
-    table = pd.crosstab(answered["digit"], response).reindex(index=labels, columns=labels,
-                                                              fill_value=0)
-    table.index.name, table.columns.name = "digit", "response"
+    table = pd.crosstab(answered[column], _responses(answered)).reindex(
+        index=labels, columns=labels, fill_value=0)
+    table.index.name, table.columns.name = column, "response"
     return table.astype(int)
 
 
@@ -127,12 +137,13 @@ class ConfusionResult:
                 "stimulus_bits": self.stimulus_bits, "relative": self.relative,
                 "n_trials": self.n_trials, "n_no_response": self.n_no_response,
                 "bias_correction": self.bias_correction, "bootstrap": self.bootstrap,
-                "labels": [int(x) for x in self.counts.index],
+                "labels": [x.item() if isinstance(x, np.generic) else x
+                           for x in self.counts.index],
                 "counts": self.counts.to_numpy().tolist(), "note": self.note}
 
     def to_frame(self) -> pd.DataFrame:
-        """The confusion matrix: counts, the digit shown by row, the digit answered by
-        column."""
+        """The confusion matrix: counts, the symbol shown by row, the symbol answered by
+        column (labelled as the trials write them)."""
         return self.counts.copy()
 
 
@@ -181,8 +192,8 @@ def analyse_confusions(trials: pd.DataFrame, conditions: list[str],
                        unit: str = "participant", seed: int = 0, alpha: float = 0.05
                        ) -> tuple[dict[str, ConfusionResult], list[str]]:
     """Confusions and information transfer for each condition, with bootstrap intervals."""
-    labels = sorted({int(d) for d in trials["digit"]} |
-                    {int(r) for r in trials["response"].dropna()})
+    labels = sorted(set(trials[symbol_column_of(trials)].tolist())
+                    | set(trials["response"].dropna().tolist()))
     results, warnings = {}, []
     for index, condition in enumerate(conditions):
         subset = trials.loc[trials["condition"] == condition]
@@ -209,7 +220,7 @@ def analyse_confusions(trials: pd.DataFrame, conditions: list[str],
     return results, warnings
 
 
-def _bootstrap(trials: pd.DataFrame, labels: list[int], bias_correction: str, n_boot: int,
+def _bootstrap(trials: pd.DataFrame, labels: list, bias_correction: str, n_boot: int,
                unit: str, rng: np.random.Generator, alpha: float):
     """Bootstrap interval of the transmitted information; returns (ci, info, note)."""
     if n_boot == 0:
@@ -219,8 +230,8 @@ def _bootstrap(trials: pd.DataFrame, labels: list[int], bias_correction: str, n_
         return None, {}, "no answered trials: no information transfer interval"
     index = {label: i for i, label in enumerate(labels)}
     k = len(labels)
-    cells = answered["digit"].map(index).to_numpy() * k + \
-        answered["response"].astype("int64").map(index).to_numpy()
+    cells = answered[symbol_column_of(answered)].map(index).to_numpy() * k + \
+        _responses(answered).map(index).to_numpy()
     notes = []
     participants = answered["participant_id"].to_numpy()
     units = pd.unique(participants)

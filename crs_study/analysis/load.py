@@ -13,8 +13,11 @@ session                        str        BIDS label without ``ses-``
 trial_index, block,            Int64      as in ``crs_study.dataset.schema.TRIAL_COLUMNS``
 repetition, frames,                       (nullable integers; ``n/a`` -> ``<NA>``)
 late_frames
-digit                          int64      the digit shown (never missing)
-response                       Int64      the digit reported, ``<NA>`` when timed out
+digit (or symbol)              int64      the symbol shown (never missing): ``digit`` in a
+                               (or str)   digit dataset (ints), ``symbol`` in a dataset of
+                                          any other stimulus set (its labels, text)
+response                       Int64      the symbol reported, ``<NA>`` when timed out
+                               (or str)   (NaN in a text dataset)
 correct                        float64    1.0 / 0.0, NaN when timed out (or 0.0 under the
                                           plan's ``timeouts = "count_as_error"``)
 response_time, ... (seconds)   float64    NaN for ``n/a``
@@ -36,7 +39,9 @@ missing, unreadable or invalid sidecar leaves its trials unchecked (a warning, o
 Checks on every session: the sidecar exists and names the same participant, session and task;
 ``TrialsSha256`` equals the sha256 of the ``_beh.tsv`` bytes, ``ProtocolSha256`` and
 ``DeviceFileSha256`` those of the recorded texts; ``TrialsCompleted`` equals the number of
-rows; ``correct`` agrees with ``response == digit``. A failed check means the data were edited
+rows; ``correct`` agrees with ``response`` equal to the symbol shown. The sessions of every
+task are found; one analysis takes one task (one stimulus set): datasets holding several
+are a one-line error unless ``task`` chooses one. A failed check means the data were edited
 after the session (or a bug): a warning by default, a :class:`DatasetError` with ``strict``.
 """
 
@@ -53,7 +58,13 @@ import pandas as pd
 from crs_study._files import os_errors, sha256_bytes
 from crs_study.analysis.plan import Exclusions
 from crs_study.dataset import WITHDRAWAL_JOURNAL, SessionMetadata, SessionPaths, find_sessions
-from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS
+from crs_study.dataset.schema import (
+    MISSING,
+    SYMBOL_COLUMNS,
+    symbol_column,
+    symbols_are_numbers,
+    trial_columns,
+)
 from crs_study.errors import DatasetError
 
 INT_COLUMNS = ("trial_index", "block", "repetition", "frames", "late_frames", "response")
@@ -61,7 +72,8 @@ FLOAT_COLUMNS = ("correct", "response_time", "response_time_from_offset", "onset
                  "stimulus_duration", "median_wire_latency", "trial_end")
 BOOL_COLUMNS = ("timed_out", "device_fault", "rerun")
 TEXT_COLUMNS = ("trial_type", "condition", "responder")
-REQUIRED_COLUMNS = ("trial_type", "condition", "digit", "correct", "response")
+#: Required besides the symbol shown (a column of ``SYMBOL_COLUMNS``).
+REQUIRED_COLUMNS = ("trial_type", "condition", "correct", "response")
 EXCLUSION_REASONS = ("practice", "device_fault", "timeout", "anticipation", "slow")
 #: Sidecar keys each session's row of :attr:`LoadedData.sessions` holds (as the sidecar has
 #: them), besides ``Protocol``.
@@ -86,12 +98,16 @@ class LoadedData:
 
 
 def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions | None = None,
-                  strict: bool = False) -> LoadedData:
+                  strict: bool = False, task: str | None = None) -> LoadedData:
     """Load the datasets under ``paths``, check them, and apply ``exclusions`` (none if None).
+
+    ``task`` chooses the sessions of one BIDS task (one stimulus set: ``digitid``,
+    ``letterid``); None takes every session, which must then be of one task.
 
     Raises :class:`DatasetError` for a missing or unreadable dataset, for a dataset named twice
     (by any path) or datasets holding the same session (a copy: its trials would count twice),
-    and with ``strict`` for any failed integrity check (otherwise each failure is a warning).
+    for sessions of several tasks, and with ``strict`` for any failed integrity check
+    (otherwise each failure is a warning).
     """
     if isinstance(paths, str | Path):
         paths = [paths]
@@ -104,8 +120,10 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
     if len(set(names)) < len(names):
         names = [str(Path(p)) for p in paths]
     seen: dict[tuple[str, str, str], Path] = {}   # (participant, session, sha256) -> dataset
+    found = {Path(p): _sessions_of(Path(p), task) for p in paths}
+    _refuse_several_tasks(found)
     for path, name in zip(paths, names, strict=True):
-        for session in _sessions_of(Path(path)):
+        for session in found[Path(path)]:
             tsv = session.tsv
             table, meta, problems = _read_session(session, name, len(files))
             key = (meta["participant"], meta["session"], meta.pop("_sha256"))
@@ -152,6 +170,16 @@ def _refuse_repeated_datasets(paths: list[Path]) -> None:
             raise DatasetError(f"{path}: the same dataset as {first[identity]} (given twice); "
                                "each dataset may be analysed once")
         first[identity] = path
+
+
+def _refuse_several_tasks(found: dict[Path, list[SessionPaths]]) -> None:
+    """One analysis, one task: sessions of two stimulus sets are not pooled."""
+    tasks = {s.task: root for root, sessions in found.items() for s in sessions}
+    if len(tasks) > 1:
+        where = ", ".join(f"{t} (in {root})" for t, root in sorted(tasks.items()))
+        raise DatasetError(f"the datasets hold sessions of several tasks: {where}; one "
+                           "analysis takes one task (one stimulus set): choose it with "
+                           "load_datasets(..., task=...) or analyse the sets apart")
 
 
 def _raise_if_strict(problems: list[str], strict: bool) -> list[str]:
@@ -210,18 +238,20 @@ def _dataset_name(path: Path) -> str:
     return str(name) if name else path.resolve().name
 
 
-def _sessions_of(root: Path) -> list[SessionPaths]:
-    """The sessions of the dataset at ``root`` (:func:`crs_study.dataset.bids.find_sessions`)."""
+def _sessions_of(root: Path, task: str | None = None) -> list[SessionPaths]:
+    """The sessions of ``task`` (None: of every task) of the dataset at ``root``
+    (:func:`crs_study.dataset.bids.find_sessions`)."""
     if not root.is_dir():
         raise DatasetError(f"{root}: no such dataset directory")
     if (root / WITHDRAWAL_JOURNAL).exists():
         # A withdrawal was interrupted: analysing now could include data that must go.
         raise DatasetError(f"{root}: a participant's withdrawal was interrupted; finish it "
                            f"first: crs-study consent recover --dataset {root}")
-    sessions = find_sessions(root)
+    sessions = find_sessions(root, task)
     if not sessions:
         raise DatasetError(f"{root}: no sessions found (expected "
-                           f"sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-{TASK}_beh.tsv)")
+                           f"sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-{task or '<task>'}"
+                           "_beh.tsv)")
     return sessions
 
 
@@ -251,14 +281,20 @@ def _read_session(paths: SessionPaths, dataset: str, file_number: int
     metadata, problems = _read_sidecar(paths)
     if metadata is not None:
         problems += _check_metadata(metadata, paths, data, session)
+    header = data.split(b"\n", 1)[0].decode("utf-8", "replace").rstrip("\r").split("\t")
+    symbol = symbol_column(header)
+    text = TEXT_COLUMNS if symbol is None or symbols_are_numbers(symbol) else \
+        (*TEXT_COLUMNS, symbol, "response")
     try:
         raw = pd.read_csv(io.BytesIO(data), sep="\t", keep_default_na=False,
-                          na_values=[MISSING], dtype={c: str for c in TEXT_COLUMNS})
+                          na_values=[MISSING], dtype={c: str for c in text})
     except (ValueError, pd.errors.ParserError) as exc:
         raise DatasetError(f"{tsv}: not a readable TSV: {str(exc).splitlines()[0]}") from None
-    missing = [c for c in REQUIRED_COLUMNS if c not in raw.columns]
+    missing = [repr(c) for c in REQUIRED_COLUMNS[:2] if c not in raw.columns]
+    missing += [" or ".join(map(repr, SYMBOL_COLUMNS))] if symbol is None else []
+    missing += [repr(c) for c in REQUIRED_COLUMNS[2:] if c not in raw.columns]
     if missing:
-        raise DatasetError(f"{tsv}: missing column {missing[0]!r} "
+        raise DatasetError(f"{tsv}: missing column {missing[0]} "
                            f"(expected the columns of crs_study.dataset.schema.TRIAL_COLUMNS)")
     if metadata is not None and metadata.trials_completed != len(raw):
         problems.append(f"{tsv}: TrialsCompleted is {metadata.trials_completed!r} but the file "
@@ -298,7 +334,7 @@ def _check_metadata(metadata: SessionMetadata, paths: SessionPaths, data: bytes,
                             "text (possible tampering)")
     for key, value, expected in (("Participant", metadata.participant, paths.participant),
                                  ("Session", str(metadata.session), session),
-                                 ("TaskName", metadata.task_name, TASK)):
+                                 ("TaskName", metadata.task_name, paths.task)):
         if value != expected:
             problems.append(f"{sidecar}: {key} is {value!r} but the file name says "
                             f"{expected!r} (possible tampering)")
@@ -315,6 +351,12 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
         first = int(np.flatnonzero(mask.to_numpy())[0])
         return f"{files[int(raw['_file'].iloc[first])]}: row {int(raw['_row'].iloc[first])}"
 
+    symbols = [c for c in SYMBOL_COLUMNS if c in raw.columns]
+    if len(symbols) > 1:  # a file of one task with the other's header (edited by hand)
+        raise DatasetError(f"{where(raw[symbols[0]].isna())}: the trial files name the "
+                           f"symbol shown differently ({' and '.join(symbols)}); expected one")
+    symbol = symbols[0]
+    numeric = symbols_are_numbers(symbol)
     out = pd.DataFrame(index=raw.index)
     for column in raw.columns:
         values = raw[column]
@@ -322,7 +364,9 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
             out[column] = values
         elif column in BOOL_COLUMNS:
             out[column] = _numbers(values, column, where).fillna(0).astype(bool)
-        elif column in INT_COLUMNS or column == "digit":
+        elif column in (symbol, "response") and not numeric:
+            out[column] = values.astype(object).where(values.notna(), np.nan)
+        elif column in INT_COLUMNS or column == symbol:
             numbers = _numbers(values, column, where)
             fraction = numbers.notna() & (numbers % 1 != 0)
             if fraction.any():
@@ -335,11 +379,12 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
             out[column] = values.fillna("").astype(str)
         else:  # protocol-specific columns: as pandas reads them (numbers when all parse)
             out[column] = values
-    if out["digit"].isna().any():
-        raise DatasetError(f"{where(out['digit'].isna())}: column 'digit' is {MISSING!r}; "
-                           "every trial must name the digit shown")
-    out["digit"] = out["digit"].astype("int64")
-    for column in TRIAL_COLUMNS:
+    if out[symbol].isna().any():
+        raise DatasetError(f"{where(out[symbol].isna())}: column {symbol!r} is {MISSING!r}; "
+                           f"every trial must name the {symbol} shown")
+    if numeric:
+        out[symbol] = out[symbol].astype("int64")
+    for column in trial_columns(symbol=symbol):
         if column in out:
             continue
         if column in BOOL_COLUMNS:
@@ -352,15 +397,15 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
             out[column] = np.nan
     problems = []
     answered = out["response"].notna() & out["correct"].notna()
-    recomputed = (out["response"] == out["digit"]).astype("Float64").astype(float)
+    recomputed = (out["response"] == out[symbol]).astype("Float64").astype(float)
     disagree = answered & (recomputed != out["correct"])
     for number in pd.unique(out.loc[disagree, "_file"]):
         mask = disagree & (out["_file"] == number)
         first = out.loc[mask].iloc[0]
         problems.append(f"{where(mask)}: correct={first['correct']:g} disagrees with "
-                        f"digit={first['digit']} response={first['response']} "
+                        f"{symbol}={first[symbol]} response={first['response']} "
                         f"({int(mask.sum())} such row(s) in the file; possible tampering); "
-                        "'correct' recomputed from response and digit")
+                        f"'correct' recomputed from response and {symbol}")
     out.loc[disagree, "correct"] = recomputed[disagree]
     return out.drop(columns=["_file", "_row"]), problems
 
@@ -383,6 +428,8 @@ def _plain(value):
 
 
 def _order_columns(trials: pd.DataFrame) -> pd.DataFrame:
-    first = ["dataset", "participant", "participant_id", "session"] + list(TRIAL_COLUMNS)
+    symbol = symbol_column(trials.columns)
+    first = ["dataset", "participant", "participant_id", "session"] + \
+        list(trial_columns(symbol=symbol))
     rest = [c for c in trials.columns if c not in first]
     return trials[first + rest]

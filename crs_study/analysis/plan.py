@@ -20,8 +20,16 @@ from crs_study.paths import shipped_file
 
 TIMEOUT_POLICIES = ("exclude", "count_as_error")
 GLMM_METHODS = ("laplace", "agq")
-RANDOM_EFFECTS = ("participant", "digit")
-SECONDARY_TESTS = ("paired_t", "wilcoxon", "mcnemar", "per_digit")
+#: The symbol's random intercept and per-symbol comparisons have two names, the same thing:
+#: ``symbol`` (any stimulus set) and ``digit``, as plans written for the digit set say (it
+#: names the symbol column ``digit``; :mod:`crs_study.dataset.schema`). Either groups by the
+#: symbol column of the data, whatever it is called.
+SYMBOL_EFFECTS = ("symbol", "digit")
+PER_SYMBOL_TESTS = ("per_symbol", "per_digit")
+RANDOM_EFFECTS = ("participant", *SYMBOL_EFFECTS)
+SECONDARY_TESTS = ("paired_t", "wilcoxon", "mcnemar", *PER_SYMBOL_TESTS)
+#: The secondary tests a plan runs when it names none (all, each once).
+DEFAULT_SECONDARY_TESTS = SECONDARY_TESTS[:4]
 CORRECTIONS = ("holm", "bonferroni", "holm-sidak", "hommel", "fdr_bh", "none")
 BIAS_CORRECTIONS = ("miller-madow", "none")
 BOOTSTRAP_UNITS = ("participant", "trial")
@@ -29,8 +37,22 @@ PSYCHOMETRIC_FUNCTIONS = ("logistic", "weibull")
 REPORT_FORMATS = ("markdown", "html")
 CHARTS = ("accuracy", "confusion", "speed_accuracy", "caf", "psychometric", "tracks",
           "thresholds")
-#: Columns a protocol may vary; the first present with more than one value is the level.
-KNOWN_LEVEL_COLUMNS = ("digit_height", "stroke_speed", "digit_size", "stimulus_level")
+#: Columns a protocol may vary; the first present with more than one value is the level
+#: (``digit_height`` in a digit dataset, ``symbol_height`` in any other; the last two for
+#: data written by other tools).
+KNOWN_LEVEL_COLUMNS = ("digit_height", "symbol_height", "stroke_speed", "digit_size",
+                       "stimulus_level")
+
+
+def known_level_columns(symbol_column: str | None) -> tuple[str, ...]:
+    """The level columns to look for, in order, in trials naming the symbol ``symbol_column``
+    (``digit``: the columns looked for before stimulus sets; ``symbol``: its own size column
+    ``symbol_height`` instead of ``digit_height``); every known one when None."""
+    if symbol_column is None:
+        return KNOWN_LEVEL_COLUMNS
+    size = f"{symbol_column}_height"
+    return tuple(c for c in KNOWN_LEVEL_COLUMNS
+                 if c == size or c not in ("digit_height", "symbol_height"))
 
 
 @dataclass(frozen=True)
@@ -47,7 +69,7 @@ class Exclusions:
 
 @dataclass(frozen=True)
 class PrimaryTest:
-    """The confirmatory test: correct ~ condition + (1 | participant) [+ (1 | digit)]."""
+    """The confirmatory test: correct ~ condition + (1 | participant) [+ (1 | symbol)]."""
 
     outcome: str = "correct"
     test: str = "glmm"
@@ -59,7 +81,7 @@ class PrimaryTest:
 
 @dataclass(frozen=True)
 class SecondaryTests:
-    tests: tuple[str, ...] = SECONDARY_TESTS
+    tests: tuple[str, ...] = DEFAULT_SECONDARY_TESTS
     correction: str = "holm"
 
 
@@ -98,7 +120,7 @@ class AnalysisPlan:
     description: str = ""
     alpha: float = 0.05
     conditions: tuple[str, ...] = ()   # order of conditions; empty = as found in the data
-    chance: float = 0.0                # 0 = 1 / number of digits in the data
+    chance: float = 0.0                # 0 = 1 / number of symbols in the data
     seed: int = 20260101
     primary: PrimaryTest = field(default_factory=PrimaryTest)
     exclusions: Exclusions = field(default_factory=Exclusions)
@@ -190,6 +212,7 @@ def _primary(section: Section, conditions: tuple[str, ...]) -> PrimaryTest:
     if "participant" not in effects:
         raise section.fail("random_effects",
                            f"expected 'participant' among the random effects, got {list(effects)}")
+    _one_name(section, "random_effects", effects, SYMBOL_EFFECTS)
     if method == "agq" and len(effects) > 1:
         raise section.fail("method", "adaptive quadrature needs a single random intercept; "
                                      f"got 'agq' with random_effects {list(effects)}")
@@ -217,8 +240,19 @@ def _exclusions(section: Section) -> Exclusions:
     return Exclusions(practice, faults, timeouts, anticipation, slow, rt_column)
 
 
+def _one_name(section: Section, key: str, values: tuple[str, ...], names: tuple[str, ...]
+              ) -> None:
+    """Refuse two names of one thing (``symbol`` and ``digit``) in ``values``."""
+    both = [v for v in values if v in names]
+    if len(both) > 1:
+        raise section.fail(key, f"{both[0]!r} and {both[1]!r} name the same thing (the symbol "
+                           f"shown); expected one of them, got {list(values)}")
+
+
 def _secondary(section: Section) -> SecondaryTests:
-    tests = _strings(section, "tests", SECONDARY_TESTS, choices=SECONDARY_TESTS, unique=True)
+    tests = _strings(section, "tests", DEFAULT_SECONDARY_TESTS, choices=SECONDARY_TESTS,
+                     unique=True)
+    _one_name(section, "tests", tests, PER_SYMBOL_TESTS)
     correction = section.string("correction", "holm", choices=CORRECTIONS)
     section.done()
     return SecondaryTests(tests, correction)

@@ -1,10 +1,13 @@
 """The primary test: a mixed-effects logistic regression of correctness on condition.
 
-``correct ~ condition + (1 | participant) [+ (1 | digit)]`` (lme4 notation), fitted by
+``correct ~ condition + (1 | participant) [+ (1 | symbol)]`` (lme4 notation), fitted by
 maximum likelihood with :func:`crs_study.analysis.glmm.fit_glmm` (Laplace, or adaptive
 Gauss-Hermite quadrature for a single random intercept). Conditions use treatment coding
 against the plan's reference condition, so each coefficient is the log odds ratio of a
-condition against the reference, at the typical participant (and digit).
+condition against the reference, at the typical participant (and symbol). The symbol's
+intercept groups trials by the trial table's symbol column (``digit`` in a digit dataset, so
+the model reads ``(1 | digit)`` there, as before stimulus sets; ``symbol`` in any other); a
+plan asks for it as ``symbol`` or, as plans written for digits do, ``digit``.
 
 Each comparison reports the odds ratio ``exp(b)`` with its profile-likelihood interval as
 ``ci95`` (as lme4's ``confint(method = "profile")``: the values of ``b`` where twice the drop
@@ -33,12 +36,15 @@ import pandas as pd
 from scipy import stats
 
 from crs_study.analysis import glmm
-from crs_study.analysis.accuracy import floor_p
+from crs_study.analysis.accuracy import floor_p, symbol_column_of
 from crs_study.analysis.glmm import GlmmFitError
 from crs_study.analysis.jsonable import json_text
 from crs_study.errors import AnalysisError
 
-GROUP_COLUMNS = {"participant": "participant_id", "digit": "digit"}
+#: Random intercept (as a plan names it) -> its grouping column; the symbol's intercept
+#: (``SYMBOL_EFFECTS``) groups by the trials' symbol column, whatever it is called.
+GROUP_COLUMNS = {"participant": "participant_id"}
+SYMBOL_EFFECTS = ("symbol", "digit")
 
 
 @dataclass(frozen=True)
@@ -182,7 +188,8 @@ def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
     No profiles, no files, no report: the unit of work of a power simulation (the same fits
     and tests :func:`primary_test` reports). ``trials`` has ``correct`` (0/1 per row, or the
     number correct when an ``n_trials`` column gives the trials of each row: the aggregated
-    form, same likelihood), ``condition``, ``participant_id`` and ``digit``; rows with
+    form, same likelihood), ``condition``, ``participant_id`` and the symbol shown
+    (``digit`` or ``symbol``); rows with
     ``correct`` missing are left out. ``conditions`` must hold ``reference`` and another
     condition. A failure of the full fit raises :class:`GlmmFitError`; of a reduced fit, that
     test's ``error``. A separated condition (ML odds ratio infinite) is tested at the
@@ -191,12 +198,13 @@ def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
     if len(conditions) < 2 or reference not in conditions:
         raise AnalysisError(f"the primary test needs the reference {reference!r} and another "
                             f"condition, got {conditions!r}")
-    columns = ["correct", "condition", "participant_id", "digit"]
+    symbol = symbol_column_of(trials)
+    columns = ["correct", "condition", "participant_id", symbol]
     columns += ["n_trials"] if "n_trials" in trials.columns else []
     data = trials.loc[trials["correct"].notna(), columns].reset_index(drop=True)
     data = data.loc[data["condition"].isin(conditions)].reset_index(drop=True)
     notes = []
-    groups = [GROUP_COLUMNS[g] for g in random_effects]
+    groups = [symbol if g in SYMBOL_EFFECTS else GROUP_COLUMNS[g] for g in random_effects]
     if method == "agq" and len(groups) > 1:
         notes.append("adaptive quadrature needs a single random intercept: fitted with the "
                      "Laplace approximation instead")

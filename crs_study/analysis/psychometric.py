@@ -1,7 +1,7 @@
 """Psychometric functions: accuracy against a varied stimulus level, per condition.
 
 ``psi(x) = gamma + (1 - gamma - lambda) F(x; alpha, beta)`` (Wichmann & Hill 2001, Percept.
-Psychophys. 63:1293, Eq. 1) with the guess rate ``gamma = 1 / number of digits`` fixed and
+Psychophys. 63:1293, Eq. 1) with the guess rate ``gamma = 1 / number of symbols`` fixed and
 the lapse rate ``lambda`` free in ``[0, lapse_max]``; ``F`` is the logistic ``1 / (1 +
 exp(-beta (x - alpha)))`` (``beta`` may be negative: accuracy falling with the level, as for
 stroke speed) or the Weibull ``1 - exp(-(x / alpha)^beta)`` (``x > 0``, rising). Parameters
@@ -30,7 +30,8 @@ from scipy import optimize, special, stats
 
 from crs_study.analysis.accuracy import wilson_interval
 from crs_study.analysis.jsonable import json_text
-from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
+from crs_study.analysis.plan import known_level_columns
+from crs_study.dataset.schema import symbol_column
 
 #: A lapse rate within this fraction of ``lapse_max`` counts as at the bound (TNC stops a
 #: hair inside it).
@@ -115,8 +116,10 @@ def threshold_level(function: str, alpha: float, beta: float, at: float = 0.5) -
 
 
 def find_level_column(trials: pd.DataFrame, wanted: str = "auto") -> str | None:
-    """The level column: ``wanted``, or the first of KNOWN_LEVEL_COLUMNS that varies."""
-    candidates = KNOWN_LEVEL_COLUMNS if wanted == "auto" else (wanted,)
+    """The level column: ``wanted``, or the first of the known level columns that varies
+    (:func:`~crs_study.analysis.plan.known_level_columns`)."""
+    candidates = known_level_columns(symbol_column(trials.columns)) if wanted == "auto" \
+        else (wanted,)
     for column in candidates:
         if column in trials and pd.api.types.is_numeric_dtype(trials[column]) \
                 and trials[column].nunique() > 1:
@@ -221,7 +224,8 @@ def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: flo
     when no level varies."""
     column = find_level_column(trials, level_column)
     if column is None:
-        wanted = list(KNOWN_LEVEL_COLUMNS) if level_column == "auto" else [level_column]
+        wanted = list(known_level_columns(symbol_column(trials.columns))) \
+            if level_column == "auto" else [level_column]
         return PsychometricResult(None, {}, True, f"no stimulus level varies in the data "
                                   f"(looked for {wanted}): psychometric functions skipped")
     if function == "weibull" and (trials[column].dropna() <= 0).any():

@@ -19,7 +19,8 @@ BIDS derivative):
 tests; each ``method, condition, reference, estimate, ci95, p_value`` and ``primary`` (true
 for the primary comparisons, which also say their ``test``, ``glmm`` or ``fisher``, and whether
 the GLMM was a ``logistic_regression`` without random effect); the GLMM estimate is an odds
-ratio), ``primary`` (omnibus test and the fitted model), ``per_digit``,
+ratio), ``primary`` (omnibus test and the fitted model), ``per_digit`` (``per_symbol`` for
+a dataset of another stimulus set: the keys name the symbol as its trials do),
 ``information_transfer`` (per condition ``bits, ci95, ...``), ``speed_accuracy``,
 ``psychometric``, ``exclusions``, ``chance``, ``alpha``, ``plan``, ``datasets``,
 ``sessions``, ``software``, ``generated_at`` and, once written, ``charts``. Each section is
@@ -85,11 +86,11 @@ class Analysis:
         What was analysed: the trials kept (``data.trials``), the sessions, the plan.
     accuracy : AccuracyResult
         Accuracy per condition with Wilson intervals (``accuracy.to_frame()``), per
-        participant, per digit, between participants.
+        participant, per symbol, between participants.
     primary : PrimaryResult
         The primary test (GLMM odds ratios against the reference, or Fisher's test).
     secondary : SecondaryResult
-        Paired t, Wilcoxon, McNemar, per-digit tests, as the plan lists them.
+        Paired t, Wilcoxon, McNemar, per-symbol tests, as the plan lists them.
     confusions : Confusions
         Confusion matrices and information transfer per condition.
     speed_accuracy : SpeedAccuracyResult
@@ -320,6 +321,9 @@ def run_analyses(data: StudyData) -> Analysis:
     warnings += thresholds.warnings
     tables = accuracy.to_dict()
     primary_part, secondary_part = primary.to_dict(), secondary.to_dict()
+    # named as the trials name the symbol: accuracy_by_digit and per_digit for digit data
+    by_symbol = f"accuracy_by_{accuracy.by_symbol.columns[0]}"
+    per_symbol = f"per_{secondary.symbol_column}"
     results = {
         "alpha": alpha, "chance": chance, "reference": reference,
         "n_participants": int(n_participants),
@@ -327,10 +331,10 @@ def run_analyses(data: StudyData) -> Analysis:
         "exclusions": data.exclusion_counts,
         "conditions": tables["conditions"],
         "accuracy_by_participant": tables["accuracy_by_participant"],
-        "accuracy_by_digit": tables["accuracy_by_digit"],
+        by_symbol: tables[by_symbol],
         "comparisons": primary_part["comparisons"] + secondary_part["comparisons"],
         "primary": {"omnibus": primary_part["omnibus"], "model": primary_part["model"]},
-        "per_digit": secondary_part["per_digit"],
+        per_symbol: secondary_part[per_symbol],
         "information_transfer": Confusions(confusions).to_dict(),
         "speed_accuracy": speed.to_dict(),
         "psychometric": psychometric.to_dict(),

@@ -136,8 +136,9 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
         blocks += [("h2", "Secondary tests"), ("table", _table(secondary[[
             "condition", "method", "estimate", "ci95", "p_value", "effect_size",
             "effect_size_name", "n"]]))]
-    for condition, table in analysis.secondary.per_digit.items():
-        blocks += [("p", f"Per digit, `{condition}` against `{results['reference']}` "
+    for condition, table in analysis.secondary.per_symbol.items():
+        blocks += [("p", f"Per {table.columns[0]}, `{condition}` against "
+                         f"`{results['reference']}` "
                          f"(McNemar mid-p, {plan.secondary.correction} correction):"),
                    ("table", _table(table))]
     blocks.append(("h2", "Confusions and information transfer"))

@@ -7,7 +7,7 @@
   differences equal in exact arithmetic are tied (``scipy.stats.wilcoxon``, zero differences
   dropped, exact null distribution when small and untied), effect size the matched-pairs
   rank-biserial correlation ``r = (T+ - T-) / (T+ + T-)`` (Kerby 2014, Compr. Psychol. 3:11).
-* **McNemar mid-p test** on trials paired by participant, session, digit and repetition (and
+* **McNemar mid-p test** on trials paired by participant, session, symbol and repetition (and
   stimulus level when one varies): ``p_value`` is the mid-p value ``2 [P(X <= min(b, c)) -
   P(X = min(b, c)) / 2]``, ``X ~ Bin(b + c, 1/2)`` (Fagerland, Lydersen & Laake 2013, BMC
   Med. Res. Methodol. 13:91). The mid-p test is not exact (its size may exceed alpha a
@@ -15,8 +15,11 @@
   ``p_exact``. The conditional odds ratio ``c / b`` has the interval from the exact
   (Clopper-Pearson) interval of ``c / (b + c)`` mapped by ``p / (1 - p)`` (Breslow & Day
   1980, sec. 7.2).
-* **Per-digit comparisons**: the McNemar mid-p test within each digit, corrected for the
-  number of digits with ``statsmodels.stats.multitest.multipletests`` (Holm 1979 by default).
+* **Per-symbol comparisons**: the McNemar mid-p test within each symbol, corrected for the
+  number of symbols with ``statsmodels.stats.multitest.multipletests`` (Holm 1979 by default).
+
+The symbol is the trial table's symbol column (``digit`` in a digit dataset, ``symbol`` in
+any other); tables and messages name it so.
 
 Every test returns a :class:`TestResult`; where a method cannot give an answer the result
 says what was done instead in ``note`` and never carries a silent NaN or a p of 0.
@@ -32,11 +35,13 @@ from scipy import stats
 from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.multitest import multipletests
 
-from crs_study.analysis.accuracy import floor_p
+from crs_study.analysis.accuracy import floor_p, symbol_column_of
 from crs_study.analysis.jsonable import json_text, records
-from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS
+from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS, PER_SYMBOL_TESTS
+from crs_study.dataset.schema import SYMBOL_COLUMNS, symbol_column
 
-PAIR_KEYS = ("participant_id", "session", "digit", "repetition")
+#: What pairs two trials besides the symbol shown (and the level, when one varies).
+PAIR_KEYS = ("participant_id", "session", "repetition")
 #: Participant differences are rounded to this many decimals before any test. Accuracies are
 #: ratios k / n, so a difference that is one number in exact arithmetic can come out of the
 #: subtraction as several floats (0.7 - 0.4 = 0.29999999999999993, 0.8 - 0.5 =
@@ -164,12 +169,13 @@ def mcnemar_midp(b: int, c: int) -> tuple[float, float]:
 
 
 def paired_table(trials: pd.DataFrame, condition: str, reference: str) -> pd.DataFrame:
-    """Trials of the two conditions matched on :data:`PAIR_KEYS` and any stimulus level column
-    (columns ``ref``, ``cond``)."""
+    """Trials of the two conditions matched on :data:`PAIR_KEYS`, the symbol shown and any
+    stimulus level column (columns ``ref``, ``cond``)."""
     answered = trials.loc[trials["correct"].notna()]
-    # A protocol that varies a stimulus level repeats (digit, repetition) at every level: the
+    # A protocol that varies a stimulus level repeats (symbol, repetition) at every level: the
     # level is part of what makes two trials a pair, or pairs would be dropped as duplicates.
-    keys = list(PAIR_KEYS) + [c for c in KNOWN_LEVEL_COLUMNS if c in answered.columns]
+    keys = [*PAIR_KEYS[:2], symbol_column_of(trials), *PAIR_KEYS[2:]] + \
+        [c for c in KNOWN_LEVEL_COLUMNS if c in answered.columns]
     left = answered.loc[answered["condition"] == reference, [*keys, "correct"]]
     right = answered.loc[answered["condition"] == condition, [*keys, "correct"]]
     left = left.drop_duplicates(keys)
@@ -181,8 +187,9 @@ def paired_table(trials: pd.DataFrame, condition: str, reference: str) -> pd.Dat
 def mcnemar_test(pairs: pd.DataFrame, condition: str, reference: str,
                  alpha: float = 0.05) -> TestResult:
     """Exact McNemar with mid-p on matched trials; conditional odds ratio c / b."""
+    symbol = symbol_column(pairs.columns) or SYMBOL_COLUMNS[0]
     name = ("McNemar mid-p test (p_value the mid-p; p_exact the exact conditional test) on "
-            "trials paired by participant, session, digit, repetition and level")
+            f"trials paired by participant, session, {symbol}, repetition and level")
     ref, cond = pairs["ref"].to_numpy(), pairs["cond"].to_numpy()
     a = int(((ref == 1) & (cond == 1)).sum())
     b = int(((ref == 1) & (cond == 0)).sum())   # reference right, condition wrong
@@ -192,7 +199,8 @@ def mcnemar_test(pairs: pd.DataFrame, condition: str, reference: str,
     if len(pairs) == 0:
         return TestResult(condition, reference, name, None, None, None, n=0,
                           extra={"table": table}, note="not computed: no trial of one condition "
-                          "matches a trial of the other on participant, digit and repetition")
+                          f"matches a trial of the other on participant, {symbol} and "
+                          "repetition")
     p_exact, p_mid = mcnemar_midp(b, c)
     extra = {"table": table, "p_exact": floor_p(p_exact), "p_mid": floor_p(p_mid)}
     if b + c == 0:
@@ -223,29 +231,32 @@ def _odds(p: float) -> float:
     return float(p / (1.0 - p)) if p < 1.0 else float("inf")
 
 
-def per_digit(trials: pd.DataFrame, condition: str, reference: str, correction: str = "holm",
-              alpha: float = 0.05) -> tuple[pd.DataFrame, list[str]]:
-    """McNemar mid-p per digit, adjusted across digits; columns documented in the return.
+def per_symbol(trials: pd.DataFrame, condition: str, reference: str, correction: str = "holm",
+               alpha: float = 0.05) -> tuple[pd.DataFrame, list[str]]:
+    """McNemar mid-p per symbol, adjusted across symbols; columns documented in the return.
 
-    Returns a table ``digit, n_pairs, accuracy_reference, accuracy_condition, difference,
-    discordant_b, discordant_c, p_value, p_adjusted, reject`` and notes.
+    Returns a table ``<symbol column>, n_pairs, accuracy_reference, accuracy_condition,
+    difference, discordant_b, discordant_c, p_value, p_adjusted, reject`` (the first column
+    named as the trials name the symbol: ``digit``, ``symbol``) and notes.
     """
     rows, notes = [], []
+    column = symbol_column_of(trials)
     pairs = paired_table(trials, condition, reference)
-    for digit, group in pairs.groupby("digit", sort=True):
+    for symbol, group in pairs.groupby(column, sort=True):
         b = int(((group["ref"] == 1) & (group["cond"] == 0)).sum())
         c = int(((group["ref"] == 0) & (group["cond"] == 1)).sum())
-        rows.append({"digit": int(digit), "n_pairs": len(group),
+        rows.append({column: symbol.item() if isinstance(symbol, np.generic) else symbol,
+                     "n_pairs": len(group),
                      "accuracy_reference": float(group["ref"].mean()),
                      "accuracy_condition": float(group["cond"].mean()),
                      "difference": float(group["cond"].mean() - group["ref"].mean()),
                      "discordant_b": b, "discordant_c": c,
                      "p_value": floor_p(mcnemar_midp(b, c)[1])})
-    table = pd.DataFrame(rows, columns=["digit", "n_pairs", "accuracy_reference",
+    table = pd.DataFrame(rows, columns=[column, "n_pairs", "accuracy_reference",
                                         "accuracy_condition", "difference", "discordant_b",
                                         "discordant_c", "p_value"])
     if table.empty:
-        notes.append(f"per-digit comparisons of {condition!r}: no matched trials")
+        notes.append(f"per-{column} comparisons of {condition!r}: no matched trials")
         table["p_adjusted"], table["reject"] = [], []
         return table, notes
     if correction == "none":
@@ -254,28 +265,36 @@ def per_digit(trials: pd.DataFrame, condition: str, reference: str, correction: 
         table["p_adjusted"] = multipletests(table["p_value"], alpha=alpha, method=correction)[1]
     table["p_adjusted"] = table["p_adjusted"].map(floor_p)
     table["reject"] = table["p_adjusted"] < alpha
-    no_info = table.loc[table["discordant_b"] + table["discordant_c"] == 0, "digit"].tolist()
+    no_info = table.loc[table["discordant_b"] + table["discordant_c"] == 0, column].tolist()
     if no_info:
-        notes.append(f"per-digit comparisons of {condition!r}: digit(s) {no_info} have no "
-                     "discordant pairs; their p = 1")
+        notes.append(f"per-{column} comparisons of {condition!r}: {column}(s) {no_info} have "
+                     "no discordant pairs; their p = 1")
     return table, notes
 
 
 @dataclass(frozen=True)
 class SecondaryResult:
+    """The tests of every condition against the reference; ``per_symbol``: condition -> the
+    :func:`per_symbol` table; ``symbol_column``: the trials' column of the symbol shown
+    (``digit``, ``symbol``), which names the tables' first column and their key in
+    ``results.json``."""
+
     tests: tuple[TestResult, ...]
-    per_digit: dict[str, pd.DataFrame]
+    per_symbol: dict[str, pd.DataFrame]
     warnings: tuple[str, ...] = ()
+    symbol_column: str = SYMBOL_COLUMNS[0]
 
     def to_frame(self) -> pd.DataFrame:
         """One row per test (the fields of :class:`TestResult`)."""
         return pd.DataFrame([t.to_dict() for t in self.tests])
 
     def to_dict(self) -> dict:
-        """``comparisons`` (the secondary ones of ``results.json``) and ``per_digit`` (per
-        condition, the rows of its per-digit table)."""
+        """``comparisons`` (the secondary ones of ``results.json``) and
+        ``per_<symbol column>`` (per condition, the rows of its per-symbol table;
+        ``per_digit`` for digit data, as before stimulus sets)."""
         return {"comparisons": [t.to_dict() for t in self.tests],
-                "per_digit": {c: records(t) for c, t in self.per_digit.items()}}
+                f"per_{self.symbol_column}": {c: records(t)
+                                              for c, t in self.per_symbol.items()}}
 
     def to_json(self) -> str:
         return json_text(self.to_dict())
@@ -285,7 +304,7 @@ def secondary_tests(trials: pd.DataFrame, by_participant: pd.DataFrame, conditio
                     reference: str, tests: tuple[str, ...], correction: str = "holm",
                     alpha: float = 0.05) -> SecondaryResult:
     """Run the plan's secondary tests for every condition against ``reference``."""
-    results, digit_tables, warnings = [], {}, []
+    results, symbol_tables, warnings = [], {}, []
     for condition in conditions:
         if condition == reference:
             continue
@@ -297,12 +316,13 @@ def secondary_tests(trials: pd.DataFrame, by_participant: pd.DataFrame, conditio
         if "mcnemar" in tests:
             results.append(mcnemar_test(paired_table(trials, condition, reference), condition,
                                         reference, alpha))
-        if "per_digit" in tests:
-            table, notes = per_digit(trials, condition, reference, correction, alpha)
-            digit_tables[condition] = table
+        if any(t in tests for t in PER_SYMBOL_TESTS):
+            table, notes = per_symbol(trials, condition, reference, correction, alpha)
+            symbol_tables[condition] = table
             warnings += notes
     for result in results:
         if result.note:
             warnings.append(f"{result.method} ({result.condition} vs {result.reference}): "
                             f"{result.note}")
-    return SecondaryResult(tuple(results), digit_tables, tuple(warnings))
+    return SecondaryResult(tuple(results), symbol_tables, tuple(warnings),
+                           symbol_column_of(trials))

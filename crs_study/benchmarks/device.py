@@ -107,7 +107,7 @@ def _achieved_rate(layout, seconds: float) -> tuple[float, float, list[float]]:
 def _digit_frames(layout, condition: str, quick: bool):
     protocol = load_protocol(shipped_file("protocols/digit_identification.toml"))
     renderer = Renderer(layout, condition)
-    digits = protocol.stimulus.digits[:3] if quick else protocol.stimulus.digits
+    digits = protocol.symbols[:3] if quick else protocol.symbols
     return [render_frames(make_stimulus(protocol, layout, d), renderer) for d in digits], \
         protocol.frame_rate_hz
 

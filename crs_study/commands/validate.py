@@ -7,7 +7,7 @@ frames (every channel of every controller in every frame, the bound the check us
 changed-only frames (channels whose pulse width changes on the rendered frames, first frame
 from neutral excluded from the busiest; :func:`crs_study.device.schedule.wire_plan`).
 A protocol with ``[levels]`` also gets its levels and, per level, the trials of each condition
-and the frames per trial; frames and wire use are then over every (digit, level) stimulus.
+and the frames per trial; frames and wire use are then over every (symbol, level) stimulus.
 """
 
 from __future__ import annotations
@@ -38,12 +38,12 @@ def run(args: argparse.Namespace) -> int:
     if args.list:
         with_levels = summary.protocol.levels is not None
         print()
-        print("index type     block condition   rep digit " + ("   level " if with_levels else "")
-              + "feedback break prompt")
+        print(f"index type     block condition   rep {summary.protocol.symbol_set.column:>5s} "
+              + ("   level " if with_levels else "") + "feedback break prompt")
         for t in summary.plan.trials:
             level = f"{t.level:8g} " if with_levels else ""
             print(f"{t.index:5d} {t.trial_type:8s} {t.block:5d} {t.condition:11s} "
-                  f"{t.repetition:3d} {t.digit:5d} {level}{'yes' if t.feedback else 'no':8s} "
+                  f"{t.repetition:3d} {t.symbol!s:>5s} {level}{'yes' if t.feedback else 'no':8s} "
                   f"{'yes' if t.break_before else '':5s} {t.prompt_before or ''}")
     return 0
 
@@ -82,6 +82,10 @@ def _text(s: dict) -> str:
     ]
     for condition, c in t["per_condition"].items():
         lines.append(f"  {condition}: {c['practice']} practice, {c['test']} test")
+    shown = s["stimulus_set"]
+    lines.append(f"stimulus set {shown['name']} (task {shown['task']}): "
+                 f"{len(shown['symbols'])} symbols shown ({', '.join(shown['symbols'])}), keys "
+                 f"{' '.join(shown['keys'])}; chance {100 * shown['chance_rate']:.1f} %")
     levels = s.get("levels")
     if levels:
         values = ", ".join(f"{v:g}" for v in levels["values"])

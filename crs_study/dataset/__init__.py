@@ -27,12 +27,21 @@ from crs_study.dataset.folder import (
     utc_now,
 )
 from crs_study.dataset.outputs import OUTPUTS_REGISTRY, OutputsRecord, read_outputs
-from crs_study.dataset.schema import MISSING, TASK, TRIAL_COLUMNS, format_value, trial_columns
+from crs_study.dataset.schema import (
+    DEFAULT_TASK,
+    MISSING,
+    TASK,
+    TRIAL_COLUMNS,
+    Task,
+    format_value,
+    trial_columns,
+)
 from crs_study.dataset.session_metadata import SessionMetadata
 from crs_study.dataset.session_store import SessionStore, read_frame_log
 
-__all__ = ["ARRIVALS_FILE", "DATASET_LOCK", "MISSING", "OUTPUTS_REGISTRY", "TASK",
-           "TRIAL_COLUMNS", "WITHDRAWAL_JOURNAL", "Dataset", "OutputsRecord", "SessionMetadata",
-           "SessionPaths", "SessionStore", "beh_files", "check_label", "column_dictionary",
-           "dataset_dir", "derivatives_dir", "find_sessions", "format_value", "is_simulated_label",
-           "read_frame_log", "read_outputs", "trial_columns", "utc_now"]
+__all__ = ["ARRIVALS_FILE", "DATASET_LOCK", "DEFAULT_TASK", "MISSING", "OUTPUTS_REGISTRY",
+           "TASK", "TRIAL_COLUMNS", "WITHDRAWAL_JOURNAL", "Dataset", "OutputsRecord",
+           "SessionMetadata", "SessionPaths", "SessionStore", "Task", "beh_files", "check_label",
+           "column_dictionary", "dataset_dir", "derivatives_dir", "find_sessions",
+           "format_value", "is_simulated_label", "read_frame_log", "read_outputs",
+           "trial_columns", "utc_now"]

@@ -204,20 +204,23 @@ class SessionPaths:
         return self.source_dir / f"{self.stem}_{what}-torn-{stamp}.bin"
 
 
-def beh_files(root: str | Path, task: str = TASK) -> list[Path]:
-    """Every session's trial file (``_beh.tsv``) of ``task`` in the dataset at ``root``.
+def beh_files(root: str | Path, task: str | None = TASK) -> list[Path]:
+    """Every session's trial file (``_beh.tsv``) of ``task`` (None: of every task) in the
+    dataset at ``root``.
 
     Sessions first (``sub-*/ses-*/beh/``, sorted), then sessionless participants
     (``sub-*/beh/``, sorted). A missing dataset folder is an empty list.
     """
     root = Path(root)
-    files = sorted(root.glob(f"sub-*/ses-*/beh/sub-*_ses-*_task-{task}_beh.tsv"))
-    files += sorted(root.glob(f"sub-*/beh/sub-*_task-{task}_beh.tsv"))
+    label = "*" if task is None else task
+    files = sorted(root.glob(f"sub-*/ses-*/beh/sub-*_ses-*_task-{label}_beh.tsv"))
+    files += sorted(root.glob(f"sub-*/beh/sub-*_task-{label}_beh.tsv"))
     return files
 
 
-def find_sessions(root: str | Path, task: str = TASK) -> list[SessionPaths]:
-    """The sessions of ``task`` stored in the dataset at ``root``, in :func:`beh_files` order.
+def find_sessions(root: str | Path, task: str | None = TASK) -> list[SessionPaths]:
+    """The sessions of ``task`` (None: of every task) stored in the dataset at ``root``, in
+    :func:`beh_files` order.
 
     A trial file stored elsewhere than its name says is a one-line
     :class:`~crs_study.errors.DatasetError` (a file moved by hand).

@@ -3,14 +3,16 @@
 Layout (DESIGN.md, "The stored dataset"; every path is built by :mod:`crs_study.dataset.bids`)::
 
     DATASET/
-      dataset_description.json, participants.tsv, participants.json, task-digitid_beh.json
-      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.tsv    one row per trial
-      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.json   session sidecar
+      dataset_description.json, participants.tsv, participants.json, task-<task>_beh.json
+      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-<task>_beh.tsv    one row per trial
+      sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-<task>_beh.json   session sidecar
       sub-<id>/ses-<n>/.sub-<id>_ses-<n>.lock                       the runner's lock
       sourcedata/sub-<id>/ses-<n>/..._frames.tsv.gz                 per-frame device log
       sourcedata/sub-<id>/ses-<n>/..._beh-torn-<time>.bin           bytes cut from a torn tail
 
 The sidecar is a :class:`~crs_study.dataset.session_metadata.SessionMetadata`, read strictly.
+The task is the stimulus set's (``digitid`` for digits, ``letterid`` for the letters); a
+dataset may hold sessions of several sets, each task with its own column dictionary.
 
 Written trial by trial so that nothing is ever lost: one session's files are
 :class:`~crs_study.dataset.session_store.SessionStore`'s (durability, torn tails, the session
@@ -37,7 +39,7 @@ from crs_study import __version__
 from crs_study._files import make_dirs, os_errors, write_atomically
 from crs_study.dataset import bids, schema
 from crs_study.dataset.bids import SessionPaths
-from crs_study.dataset.schema import tsv_line
+from crs_study.dataset.schema import DEFAULT_TASK, Task, tsv_line
 from crs_study.errors import DatasetError, SessionError
 
 BIDS_VERSION = "1.10.0"
@@ -110,11 +112,18 @@ def json_text(data: Any) -> str:
 # --- the dataset -------------------------------------------------------------------------------
 
 class Dataset:
-    """A BIDS dataset directory: top-level files, participants, sessions."""
+    """A BIDS dataset directory: top-level files, participants, sessions.
 
-    def __init__(self, root: str | Path, name: str = "crs-study digit identification") -> None:
+    ``task`` is the task (the stimulus set) of the sessions this writer adds (the default
+    task, digits, when None): it names their files and the column dictionary :meth:`ensure`
+    writes; ``name`` (default ``crs-study <the task's title>``) goes to a new
+    ``dataset_description.json``."""
+
+    def __init__(self, root: str | Path, name: str | None = None, task: Task | None = None
+                 ) -> None:
         self.root = Path(root)
-        self.name = name
+        self.task = task if task is not None else DEFAULT_TASK
+        self.name = name if name is not None else f"crs-study {self.task.title}"
 
     @contextlib.contextmanager
     def locked(self) -> Iterator[None]:
@@ -156,11 +165,11 @@ class Dataset:
                     "GeneratedBy": [{
                         "Name": "crs-study",
                         "Version": __version__,
-                        "Description": "CRS haptic display digit-identification sessions",
+                        "Description": f"CRS haptic display {self.task.title} sessions",
                     }],
                 }),
                 bids.PARTICIPANTS_JSON: json_text(PARTICIPANTS_SIDECAR),
-                bids.task_sidecar_name(schema.TASK): json_text(column_dictionary()),
+                bids.task_sidecar_name(self.task.label): json_text(column_dictionary(self.task)),
                 bids.PARTICIPANTS_TSV: "\t".join(PARTICIPANT_COLUMNS) + "\n",
                 bids.DATASET_README: DATASET_README,
             }
@@ -254,10 +263,11 @@ class Dataset:
             return index
 
     def session_paths(self, participant: str, session: int) -> SessionPaths:
+        """Where a session of this writer's set (its task) lives."""
         check_label(participant)
         if not isinstance(session, int) or session < 1:
             raise SessionError(f"session must be a whole number >= 1, got {session!r}")
-        return SessionPaths(self.root, participant, session)
+        return SessionPaths(self.root, participant, session, self.task.label)
 
     def sessions(self, participant: str) -> list[int]:
         """Session numbers of a participant found in the dataset."""
@@ -268,36 +278,42 @@ _LEVEL_TEXT = {
     "0|1": {"0": "no", "1": "yes"},
     "practice|test": {"practice": "practice trial, with feedback, not analysed",
                       "test": "test trial"},
-    "0-9": {str(d): f"the digit {d}" for d in range(10)},
 }
 
 
-def column_dictionary() -> dict[str, Any]:
-    """The BIDS column dictionary (``task-digitid_beh.json``) from :mod:`crs_study.dataset.schema`.
+def column_dictionary(task: Task = DEFAULT_TASK) -> dict[str, Any]:
+    """The BIDS column dictionary (``task-<task>_beh.json``) of a task's sessions, from
+    :mod:`crs_study.dataset.schema`.
 
-    Closed sets become ``Levels`` (an object level -> meaning, as BIDS requires); numeric
+    Closed sets become ``Levels`` (an object level -> meaning, as BIDS requires): the symbol
+    and response columns' levels are the set's symbols (``"7": "the digit 7"``); numeric
     columns get ``Units``; free labels (condition, responder) only a description. The level
-    columns (:data:`crs_study.dataset.schema.LEVEL_COLUMNS`) are described too: the file is one per
-    dataset, and only sessions of protocols with ``[levels]`` hold them.
+    columns (:func:`crs_study.dataset.schema.level_columns`) are described too: the file is
+    one per task, and only sessions of protocols with ``[levels]`` hold them. ``TaskName``,
+    ``TaskDescription`` and ``Instructions`` are the task's.
     """
+    levels = {**_LEVEL_TEXT, schema.SYMBOLS: {s: f"the {task.noun} {s}" for s in task.symbols}}
     columns: dict[str, Any] = {}
-    described = {**schema.TRIAL_COLUMNS, **schema.LEVEL_COLUMNS, **schema.ADAPTIVE_COLUMNS}
+    described = {**schema.trial_column_docs(task), **schema.level_columns(task),
+                 **schema.ADAPTIVE_COLUMNS}
     for name, (description, units) in described.items():
         entry: dict[str, Any] = {"LongName": name.replace("_", " "), "Description": description}
-        if units in _LEVEL_TEXT:
-            entry["Levels"] = _LEVEL_TEXT[units]
+        if units in levels:
+            entry["Levels"] = levels[units]
         elif units != "label":
             entry["Units"] = units
         columns[name] = entry
-    return {"TaskName": schema.TASK, **columns}
+    return {"TaskName": task.label, "TaskDescription": task.description,
+            "Instructions": task.instructions, **columns}
 
 
 DATASET_README = """\
 # crs-study dataset
 
-Digit-identification sessions on the continuity reinforcement skeleton (CRS) haptic display,
-written by crs-study (BIDS, datatype beh). One row per trial in
-sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-digitid_beh.tsv; the session's protocol, device
-file, seed and status are in the .json beside it; per-frame device logs are under sourcedata/.
-Participant labels are pseudonyms; names are never stored here.
+Identification sessions (digits, letters or another stimulus set: the task of each file) on
+the continuity reinforcement skeleton (CRS) haptic display, written by crs-study (BIDS,
+datatype beh). One row per trial in sub-<id>/ses-<n>/beh/sub-<id>_ses-<n>_task-<task>_beh.tsv;
+task-<task>_beh.json describes its columns; the session's protocol, device file, seed and
+status are in the .json beside it; per-frame device logs are under sourcedata/. Participant
+labels are pseudonyms; names are never stored here.
 """

@@ -109,7 +109,7 @@ def design_from_protocol(protocol: Any, plan: Any = None) -> PowerDesign:
     primary = plan.primary
     return PowerDesign(
         conditions=tuple(conditions), reference=reference,
-        digits=tuple(int(d) for d in protocol.digits),
+        digits=tuple(int(d) for d in protocol.symbols),
         levels=tuple(protocol.level_values), repetitions=repetitions,
         random_effects=tuple(primary.random_effects), method=primary.method,
         n_quadrature=int(primary.n_quadrature), alpha=float(plan.alpha),
@@ -126,9 +126,9 @@ def _test_trials_per_cell(protocol: Any) -> int:
     counts = set()
     for counterbalance in (0, 1):
         plan = make_plan(protocol, "powerdesign", 1, counterbalance)
-        cells = Counter((t.condition, t.digit, t.level) for t in plan.trials
+        cells = Counter((t.condition, t.symbol, t.level) for t in plan.trials
                         if t.trial_type == "test")
-        expected = {(c, d, lv) for c in protocol.conditions for d in protocol.digits
+        expected = {(c, d, lv) for c in protocol.conditions for d in protocol.symbols
                     for lv in protocol.level_values}
         if set(cells) != expected:
             raise PowerError(f"{protocol.path}: the trial plan does not show every (condition, "

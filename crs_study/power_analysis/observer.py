@@ -114,7 +114,7 @@ def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: A
     if not hasattr(protocol, "design"):
         protocol = load_protocol(resolve_protocol(protocol))
     options = ObserverOptions(**observer_options)
-    levels, digits, conditions = protocol.level_values, protocol.digits, protocol.conditions
+    levels, digits, conditions = protocol.level_values, protocol.symbols, protocol.conditions
     tasks = [(str(protocol.path), li, int(digit), draws, seed, observer_options)
              for li in range(len(levels)) for digit in digits]
     cells = (backend or Backend()).map(_cell_distances, tasks)
@@ -139,7 +139,7 @@ def _cell_distances(task: tuple) -> np.ndarray:
     level = protocol.level_values[li]
     observer = PerceptualObserver(layout, protocol, 0, **options)
     observer.temperature_mm = observer.options.temperature_mm        # ability z = 0
-    choices = tuple(int(d) for d in protocol.digits)
+    choices = tuple(int(d) for d in protocol.symbols)
     out = np.full((len(protocol.conditions), draws, len(choices)), np.nan)
     for ci, condition in enumerate(protocol.conditions):
         record = shown_stimulus(protocol, layout, digit, condition, level)
@@ -169,7 +169,7 @@ def shown_stimulus(protocol: Any, layout: Any, digit: int, condition: str,
         clock.sleep_until(0.0)
         shown = present(device, clock, frame_times, frames, period)
     return StimulusRecord(layout, condition, frame_times + period, shown.displayed,
-                          tuple(int(d) for d in protocol.digits), shown.onset, shown.offset)
+                          tuple(int(d) for d in protocol.symbols), shown.onset, shown.offset)
 
 
 def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: float | None = None,

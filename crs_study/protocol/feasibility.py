@@ -10,21 +10,21 @@ The checks, in the order a failure is reported:
 
 1. the device file loads (``study.device``) and the consent form has the protocol's version
    (``study.consent_form``, ``study.consent_form_version``);
-2. digits need a 2D (hexagonal) display;
+2. symbols need a 2D (hexagonal) display;
 3. with a skeleton condition, the bump's curvature 2 pi^2 z_f / l^2 (Eq. 7's largest |z''|)
    below the beam's yield curvature 2 sigma_y / (E t) (:func:`crs_study.quality.mechanics.
    stimulus_limits`): both ``bump_height_mm`` and ``bump_diameter_mm`` are named, with the
    bound each would have to meet given the other;
-4. the bump centre's path (every drawn frame of every digit) inside the convex hull of the
-   pixels: ``offset_mm`` is named when the same digits fit at the display centre, else
-   ``digit_width_pitch`` when their horizontal extent alone leaves the area, else
-   ``digit_height_pitch`` (the vertical extent alone, or a corner); a size set by
+4. the bump centre's path (every drawn frame of every symbol) inside the convex hull of the
+   pixels: ``offset_mm`` is named when the same symbols fit at the display centre, else
+   the width (``digit_width_pitch`` for the digit set) when their horizontal extent alone
+   leaves the area, else the height (the vertical extent alone, or a corner); a size set by
    ``[levels]`` is named by its level;
 5. the bump height within the pixel travel;
 6. the frame rate within the wire: a frame that moves every channel of the busiest controller
    (3 n + 7 bytes at 9600 baud, :func:`crs_study.device.base.full_frame_wire_time_s`);
 7. with a skeleton condition, no collapse: Delta >= 1 (Eq. 4);
-8. every frame of every digit rendered in every condition with ``policy="error"`` (within
+8. every frame of every symbol rendered in every condition with ``policy="error"`` (within
    the pixels' and boundary servos' travel, no feed cap): the frames go to the one render
    cache (:func:`crs_study.rendering.frames.render_frames`) that sessions then read.
 
@@ -143,7 +143,7 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
     """Check the protocol against its device; return one line per check passed.
 
     Raises :class:`ProtocolError` (naming the protocol key and its line) for the first check
-    that fails. The heavy part (rendering every frame of every digit) is cached per stimulus
+    that fails. The heavy part (rendering every frame of every symbol) is cached per stimulus
     and device (:func:`crs_study.rendering.frames.render_frames`).
     """
     result = check_feasibility(protocol)
@@ -182,7 +182,7 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
     per_level: list[list[Finding]] = []
     for i, value in enumerate(levels.values):
         checked = _spec_findings(protocol.stimulus_at(value), protocol.conditions, layout,
-                                 sized=levels.parameter != "digit_height_pitch")
+                                 sized=not levels.varies_size)
         if checked[-1].severity == "error":
             inner = checked[-1]
             return found + [Finding("error", level_key(protocol, i, value),
@@ -219,7 +219,7 @@ def _spec_findings(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layo
     first failure (the last finding)."""
     try:
         return _device_checks(spec, conditions, layout, sized)
-    except ConfigError as exc:  # a digit without strokes, a stimulus too slow to draw
+    except ConfigError as exc:  # a symbol without strokes, a stimulus too slow to draw
         return [Finding("error", exc.key_path, exc.reason)]
     except CrsStudyError as exc:
         return [Finding("error", None, one_line(exc))]
@@ -228,7 +228,8 @@ def _spec_findings(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layo
 def _device_checks(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layout,
                    sized: bool) -> list[Finding]:
     if layout.lattice != "hex":
-        return [Finding("error", "study.device", f"digits need a 2D display, got "
+        return [Finding("error", "study.device", f"{spec.symbol_set.plural} need a 2D display, "
+                        "got "
                         f"{layout.name!r} with a {layout.lattice!r} lattice")]
     limits = stimulus_limits(layout, Bump((0.0, 0.0), spec.bump_diameter_mm,
                                           spec.bump_height_mm))
@@ -237,7 +238,7 @@ def _device_checks(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layo
     if curvature is not None and curvature.severity == "error":
         return [curvature]
     stimuli = [stimulus_for(spec, layout.pitch_mm, placement_centre(spec, layout), d)
-               for d in spec.digits]
+               for d in spec.symbols]
     first = [_inside(spec, layout, stimuli, sized), _height(spec, limits), _wire(spec, layout)]
     failed = [f for f in first if f.severity == "error"]
     if failed:
@@ -253,7 +254,7 @@ def _device_checks(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layo
         found.append(Finding("ok", "conditions.names",
                              f"no collapse: Delta = {delta:.2f} >= 1 (Eq. 4)", {"delta": delta}))
     for condition in conditions:
-        rendered = _rendered(condition, layout, stimuli)
+        rendered = _rendered(condition, layout, stimuli, spec)
         if rendered.severity == "error":
             return [rendered]
         found.append(rendered)
@@ -288,28 +289,31 @@ def _inside(spec: StimulusSpec, layout: Layout, stimuli: list[Stimulus], sized: 
         return Finding("ok", "stimulus", f"bump centre path inside the pixel area (margin "
                        f"{margin:.1f} mm)", {"margin_mm": margin})
     worst = drawn[np.argmin(inside)]
+    noun, plural = spec.symbol_set.noun, spec.symbol_set.plural
+    height_key, width_key = (f"stimulus.{spec.file_key(k)}" for k in
+                             ("symbol_height_pitch", "symbol_width_pitch"))
     where = (f"the bump centre leaves the pixel area (by {-margin:.1f} mm at "
-             f"({worst[0]:.1f}, {worst[1]:.1f}) mm); expected the digit inside the display")
+             f"({worst[0]:.1f}, {worst[1]:.1f}) mm); expected the {noun} inside the display")
     values = {"margin_mm": margin}
     relative = drawn - placed
     centre = np.asarray(display_centre(layout))
     if spec.placement == "offset" and inside_convex_hull(relative + centre,
                                                          layout.pixel_xy)[0].all():
         return Finding("error", "stimulus.offset_mm", f"{where}, got {list(spec.offset_mm)!r} "
-                       "(the digits fit at the display centre)", values)
+                       f"(the {plural} fit at the display centre)", values)
     if not sized:
-        return Finding("error", "stimulus.digit_height_pitch", where, values)
+        return Finding("error", height_key, where, values)
     # the size alone, at the display centre: does the width, or the height, leave the area?
     across = np.column_stack([relative[:, 0], np.zeros(len(relative))]) + centre
     if not inside_convex_hull(across, layout.pixel_xy)[0].all():
-        return Finding("error", "stimulus.digit_width_pitch", f"{where}, got "
-                       f"{spec.digit_width_pitch!r} (the digits' width alone leaves it)", values)
+        return Finding("error", width_key, f"{where}, got {spec.symbol_width_pitch!r} "
+                       f"(the {plural}' width alone leaves it)", values)
     upright = np.column_stack([np.zeros(len(relative)), relative[:, 1]]) + centre
     alone = "height alone leaves it" if not inside_convex_hull(
         upright, layout.pixel_xy)[0].all() else \
-        f"a corner leaves it: height and width {spec.digit_width_pitch!r} together"
-    return Finding("error", "stimulus.digit_height_pitch", f"{where}, got "
-                   f"{spec.digit_height_pitch!r} (the digits' {alone})", values)
+        f"a corner leaves it: height and width {spec.symbol_width_pitch!r} together"
+    return Finding("error", height_key, f"{where}, got {spec.symbol_height_pitch!r} "
+                   f"(the {plural}' {alone})", values)
 
 
 def _height(spec: StimulusSpec, limits: StimulusLimits) -> Finding:
@@ -336,16 +340,19 @@ def _wire(spec: StimulusSpec, layout: Layout) -> Finding:
                    "frame)", values)
 
 
-def _rendered(condition: str, layout: Layout, stimuli: list[Stimulus]) -> Finding:
-    """Every frame of every digit in ``condition`` within travel (``policy="error"``)."""
+def _rendered(condition: str, layout: Layout, stimuli: list[Stimulus], spec: StimulusSpec
+              ) -> Finding:
+    """Every frame of every symbol in ``condition`` within travel (``policy="error"``)."""
     renderer = Renderer(layout, condition, policy="error")
     peak_feed = 0.0
     for stim in stimuli:
         try:
             frames = render_frames(stim, renderer)
         except RenderError as exc:
-            return Finding("error", "stimulus.bump_height_mm", f"digit {stim.digit} cannot be "
-                           f"shown: {exc}", {"condition": condition, "digit": stim.digit})
+            shown = spec.symbol_set
+            return Finding("error", "stimulus.bump_height_mm", f"{shown.noun} {stim.symbol} "
+                           f"cannot be shown: {exc}",
+                           {"condition": condition, shown.column: stim.symbol})
         if layout.boundary_actuators:
             peak_feed = max(peak_feed, float(frames[:, layout.n_pixels:].max()))
     if condition == "pixel-only":

@@ -1,8 +1,9 @@
 """Protocol files: TOML read strictly into the model, then checked on the device.
 
 A protocol is a TOML file with five tables (``protocols/README.md`` documents every key):
-``[study]`` (id, version, device, consent form, analysis plan), ``[stimulus]`` (digits, their
-size in pixel pitches, the bump, stroke speed, placement, frame rate), ``[conditions]``
+``[study]`` (id, version, device, consent form, analysis plan), ``[stimulus]`` (the stimulus
+set, its symbols shown, their size in pixel pitches, the bump, stroke speed, placement, frame
+rate), ``[conditions]``
 (registered display conditions and the experimenter's prompt for each), ``[design]``
 (repetitions, blocking, counterbalancing, run constraint, practice, breaks, inter-trial
 interval) and ``[responses]`` (keys, time limit, feedback). An optional ``[levels]`` table
@@ -12,13 +13,15 @@ staircase or QUEST+ choose it trial by trial instead
 (:class:`~crs_study.adaptive.spec.AdaptiveSpec`).
 
 Reading is strict (:mod:`crs_study._toml`): each table declares its keys
-(:data:`~crs_study.protocol.model.TABLE_KEYS`), so a stray key is refused first, named with
+(:func:`~crs_study.protocol.model.table_keys`, spelled by the stimulus set named in
+``stimulus.set``, which is read first), so a stray key is refused first, named with
 the valid ones and the closest (``design: unknown key 'repetiton' (valid keys: ...); did you
 mean 'repetitions'?``); missing keys, wrong types and out-of-range values (checked by the
 model's dataclasses) are one-line :class:`~crs_study.errors.ProtocolError` s naming the file,
 the line where the key is found, the key path and the value. This module adds what needs the
-file's folder or two tables at once: the device file and strokes file the protocol names, a
-response key per digit, prompts only where blocks start. Then :func:`load_protocol` checks
+file's folder or two tables at once: the device file, set file and strokes file the protocol
+names, a response key per symbol (the set's own keys when ``responses.keys`` is left out),
+prompts only where blocks start. Then :func:`load_protocol` checks
 the protocol against its device (:mod:`crs_study.protocol.feasibility`) and notes odd but
 legal values (:mod:`crs_study.protocol.odd_values`).
 """
@@ -42,7 +45,6 @@ from crs_study.protocol.feasibility import check_on_device
 from crs_study.protocol.model import (
     OPTIONAL_KEYS,
     PLACEMENTS,
-    TABLE_KEYS,
     DesignSpec,
     LevelSpec,
     Protocol,
@@ -50,10 +52,12 @@ from crs_study.protocol.model import (
     StimulusSpec,
     adaptive_levels,
     one_line_problem,
+    table_keys,
 )
 from crs_study.protocol.odd_values import protocol_warnings, warning_findings
 from crs_study.protocol.writer import protocol_to_toml
-from crs_study.stimuli.digits import load_digits
+from crs_study.stimuli.sets import DEFAULT_SET, load_stimulus_set, shipped_sets
+from crs_study.stimuli.symbol_set import StimulusSet, spell
 
 
 def load_protocol(source: str | os.PathLike[str] | Protocol, *,
@@ -164,11 +168,14 @@ def protocol_from_dict(data: dict, path: Path, text: str = "", sha256: str = "")
 
 
 def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
-    root = Section(data, str(path), error=ProtocolError, keys=TABLE_KEYS[""],
-                   text=text or None)
+    keys_of = table_keys()
+    root = Section(data, str(path), error=ProtocolError, keys=keys_of[""], text=text or None)
+    set_name = _set_name(root, path)
+    if set_name != DEFAULT_SET:
+        keys_of = table_keys(set_name)
 
     def table(name: str) -> Section:
-        return root.table(name, keys=TABLE_KEYS[name])
+        return root.table(name, keys=keys_of[name])
 
     study = table("study")
     conditions_table = table("conditions")
@@ -200,17 +207,17 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     prompts = tuple((name, prompts_table.raw(name)) for name in list(prompts_table.data))
     prompts_table.done()
     conditions_table.done()
-    levels = _levels(levels_table) if levels_table is not None else None
-    adaptive = _adaptive(adaptive_table) if adaptive_table is not None else None
-    stimulus = _stimulus(stimulus_table, path,
-                         levels if adaptive is None else adaptive_levels(adaptive))
-    design = _design(design_table)
+    levels = _levels(levels_table, set_name) if levels_table is not None else None
+    adaptive = _adaptive(adaptive_table, set_name) if adaptive_table is not None else None
+    stimulus = _stimulus(stimulus_table, path, set_name,
+                         levels if adaptive is None else adaptive_levels(adaptive, set_name))
+    design = _design(design_table, set_name)
     if design.ordering == "interleaved" and prompts:
         raise conditions_table.fail(
             "prompts", "an interleaved design changes condition from trial to trial, so there "
             "is no block start to prompt at (mount or remove the skeleton); drop "
             "[conditions.prompts] or use ordering = \"blocked\"")
-    responses = _responses(responses_table, stimulus.digits)
+    responses = _responses(responses_table, stimulus)
     return Protocol(path=path, text=text, sha256=sha256, conditions=names,
                     condition_prompts=prompts, stimulus=stimulus, design=design,
                     responses=responses, levels=levels, adaptive=adaptive, **study_fields)
@@ -237,23 +244,47 @@ def _device(study: Section, path: Path) -> str:
     return str(device_path)
 
 
-def _levels(table: Section) -> LevelSpec:
+def _set_name(root: Section, path: Path) -> str:
+    """``stimulus.set``, read first (it spells the other keys): a shipped set's name, or a set
+    file's path (relative to the protocol) resolved, its file read now so that its errors come
+    under the key."""
+    stimulus = root.data.get("stimulus")
+    if not isinstance(stimulus, dict) or "set" not in stimulus:
+        return DEFAULT_SET
+    section = Section(stimulus, root.source, "stimulus", ProtocolError, text=root.text)
+    value = _one_line(section, "set")
+    name = value
+    if value not in shipped_sets():
+        candidate = Path(value) if Path(value).is_absolute() else path.parent / value
+        if not candidate.is_file():
+            raise section.fail("set", f"expected a shipped stimulus set or a set file, got "
+                               f"{value!r} (no file at {candidate})")
+        name = str(candidate)
+    try:
+        load_stimulus_set(name)
+    except ProtocolError as exc:
+        raise section.fail("set", one_line(exc)) from None
+    return name
+
+
+def _levels(table: Section, set_name: str) -> LevelSpec:
     """The ``[levels]`` table (see :class:`LevelSpec` and protocols/README.md)."""
     parameter = table.raw("parameter")
     values = table.raw("values")
-    # a varied height needs the digits' shape; with another parameter the key is refused
-    width = table.raw("width_to_height", ... if parameter == "digit_height_pitch" else None)
+    # a varied height needs the symbols' shape; with another parameter the key is refused
+    size = LevelSpec.size_parameter(set_name)
+    width = table.raw("width_to_height", ... if parameter == size else None)
     table.done()
-    return LevelSpec(parameter, values, width)
+    return LevelSpec(parameter, values, width, set_name)
 
 
-def _adaptive(table: Section) -> AdaptiveSpec:
+def _adaptive(table: Section, set_name: str) -> AdaptiveSpec:
     """The ``[adaptive]`` table and its procedure's sub-table (protocols/README.md)."""
     def sub(name: str, required: tuple[str, ...]) -> dict | None:
         if not table.has(name):
             table.raw(name, None)
             return None
-        section = table.table(name, keys=TABLE_KEYS[f"adaptive.{name}"])
+        section = table.table(name, keys=table_keys()[f"adaptive.{name}"])
         for key in required:
             section.raw(key)  # a missing required key is named with its line
         values = {key: section.raw(key) for key in section.data}
@@ -270,33 +301,40 @@ def _adaptive(table: Section) -> AdaptiveSpec:
         practice_level=table.raw("practice_level", None),
         # a varied height needs the digits' shape; with another parameter the key is refused
         width_to_height=table.raw("width_to_height",
-                                  ... if parameter == "digit_height_pitch" else None),
+                                  ... if parameter == LevelSpec.size_parameter(set_name)
+                                  else None),
         staircase=StaircaseSpec(**staircase) if staircase is not None else None,
         quest_plus=QuestPlusSpec(**quest_plus) if quest_plus is not None else None)
     table.done()
     return spec
 
 
-def _check_strokes_file(table: Section, strokes_file: str, digits: tuple[int, ...]) -> None:
+def _check_strokes_file(table: Section, strokes_file: str, shown: StimulusSpec) -> None:
     """Read a protocol's own strokes file now: its errors (``FILE:LINE: key: ...``) come
-    under ``stimulus.strokes_file``, and every digit shown must be defined there."""
+    under ``stimulus.strokes_file``, and every symbol shown must be defined there."""
     try:
-        defined = load_digits(strokes_file)
+        symbol_set = shown.symbol_set
     except ProtocolError as exc:
         raise table.fail("strokes_file", one_line(exc)) from None
-    missing = [d for d in digits if d not in defined]
+    missing = [s for s in shown.symbols if s not in symbol_set.glyphs]
     if missing:
+        noun, plural, key = symbol_set.noun, symbol_set.plural, shown.file_key("symbols")
         raise table.fail("strokes_file", f"{strokes_file} defines no strokes for "
-                         f"{'digit' if len(missing) == 1 else 'digits'} "
-                         f"{', '.join(map(str, missing))} of stimulus.digits; expected every "
-                         f"digit shown, got digits {sorted(defined)}")
+                         f"{noun if len(missing) == 1 else plural} "
+                         f"{', '.join(map(str, missing))} of stimulus.{key}; expected every "
+                         f"{noun} shown, got {plural} {list(symbol_set.glyphs)}")
 
 
-def _stimulus(table: Section, path: Path, levels: LevelSpec | None = None) -> StimulusSpec:
+def _stimulus(table: Section, path: Path, set_name: str, levels: LevelSpec | None = None
+              ) -> StimulusSpec:
     def optional(key: str) -> Any:
         return table.raw(key, OPTIONAL_KEYS[f"stimulus.{key}"])
 
-    digits = table.raw("digits")
+    column = load_stimulus_set(set_name).column
+    key_of = {f: spell(f, column) for f in
+              ("symbols", "symbol_height_pitch", "symbol_width_pitch")}
+    optional("set")  # read first, by _set_name
+    symbols = table.raw(key_of["symbols"])
     strokes_file = None
     if table.has("strokes_file"):
         value = _one_line(table, "strokes_file")
@@ -308,16 +346,17 @@ def _stimulus(table: Section, path: Path, levels: LevelSpec | None = None) -> St
     else:
         optional("strokes_file")
     varied = () if levels is None else (levels.parameter,) + (
-        ("digit_width_pitch",) if levels.parameter == "digit_height_pitch" else ())
+        (key_of["symbol_width_pitch"],) if levels.varies_size else ())
     for key in varied:
         if table.has(key):
             raise table.fail(key, f"set by [levels] (parameter = {levels.parameter!r}): "
                              f"remove it from [stimulus], got {table.data[key]!r}")
-    if levels is not None and levels.parameter == "digit_height_pitch":
+    if levels is not None and levels.varies_size:
         height = levels.values[0]  # the spec holds the first level; see Protocol.stimulus_at
         width = height * float(levels.width_to_height or 1.0)
     else:
-        height, width = table.raw("digit_height_pitch"), table.raw("digit_width_pitch")
+        height = table.raw(key_of["symbol_height_pitch"])
+        width = table.raw(key_of["symbol_width_pitch"])
     speed = levels.values[0] if levels is not None and \
         levels.parameter == "stroke_speed_mm_s" else table.raw("stroke_speed_mm_s")
     placement = table.raw("placement")
@@ -329,33 +368,39 @@ def _stimulus(table: Section, path: Path, levels: LevelSpec | None = None) -> St
             raise table.fail("offset_mm", "missing: placement = \"offset\" needs "
                              "offset_mm = [x, y]")
     spec = StimulusSpec(
-        digits, strokes_file, height, width, table.raw("bump_diameter_mm"),
+        symbols, strokes_file, height, width, table.raw("bump_diameter_mm"),
         table.raw("bump_height_mm"), speed, placement, optional("offset_mm"),
         table.raw("frame_rate_hz"), optional("stroke_pause_s"), optional("start_hold_s"),
-        optional("end_hold_s"))
+        optional("end_hold_s"), set_name)
     table.done()
     if strokes_file is not None:
-        _check_strokes_file(table, strokes_file, spec.digits)
+        _check_strokes_file(table, strokes_file, spec)
     return spec
 
 
-def _design(table: Section) -> DesignSpec:
+def _design(table: Section, set_name: str) -> DesignSpec:
+    run_key = spell("max_same_symbol_run", load_stimulus_set(set_name).column)
     spec = DesignSpec(
         table.raw("repetitions"), table.raw("ordering"), table.raw("counterbalancing"),
-        table.raw("max_same_digit_run"), table.raw("practice_trials"),
+        table.raw(run_key), table.raw("practice_trials"),
         table.raw("practice_in", OPTIONAL_KEYS["design.practice_in"]),
         table.raw("break_every"),
         table.raw("break_duration_s", OPTIONAL_KEYS["design.break_duration_s"]),
-        table.raw("inter_trial_interval_s"))
+        table.raw("inter_trial_interval_s"), set_name)
     table.done()
     return spec
 
 
-def _responses(table: Section, digits: tuple[int, ...]) -> ResponseSpec:
-    keys = table.raw("keys")
-    if isinstance(keys, list) and len(keys) != len(digits):
-        raise table.fail("keys", f"expected {len(digits)} keys (one per digit of "
-                         f"stimulus.digits), got {keys!r}")
+def _responses(table: Section, stimulus: StimulusSpec) -> ResponseSpec:
+    symbols = stimulus.symbols
+    keys = table.raw("keys", None)
+    if keys is None:  # the set's own key for each symbol shown
+        own: StimulusSet = load_stimulus_set(stimulus.set_name)
+        keys = [own.keys[s] for s in symbols]
+    if isinstance(keys, list) and len(keys) != len(symbols):
+        noun = load_stimulus_set(stimulus.set_name).noun
+        raise table.fail("keys", f"expected {len(symbols)} keys (one per {noun} of "
+                         f"stimulus.{stimulus.file_key('symbols')}), got {keys!r}")
     spec = ResponseSpec(
         keys, table.raw("time_limit_s", OPTIONAL_KEYS["responses.time_limit_s"]),
         table.raw("feedback"),

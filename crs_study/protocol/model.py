@@ -11,8 +11,15 @@ construction: a wrong type or a value out of range is a one-line
 :class:`~crs_study.errors.ProtocolError` carrying the protocol key at fault (``key_path``),
 whether the value came from a file (:mod:`crs_study.protocol.loader` adds the file and the
 line) or from Python (``dataclasses.replace(protocol.design, repetitions=0)``). Checks that
-join two tables (a key per digit, prompts only for listed conditions) and those that need the
-file's folder (device files, strokes files) are the loader's.
+join two tables (a key per symbol, prompts only for listed conditions) and those that need the
+file's folder (device files, set and strokes files) are the loader's.
+
+The symbols shown come from a stimulus set (:mod:`crs_study.stimuli.sets`, the digits unless
+``stimulus.set`` names another), which also spells the keys that name symbols
+(:func:`table_keys`): ``digits``, ``digit_height_pitch``, ``digit_width_pitch`` and
+``max_same_digit_run`` for the digit set, ``symbols``, ``symbol_height_pitch``, ... for every
+other. The dataclasses hold the general names (``symbols``, ``symbol_height_pitch``) and the
+set's name, so their errors name the key as the file spells it.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import Layout, load_layout
 from crs_study.paths import shipped_file
 from crs_study.rendering.render import CONDITIONS
+from crs_study.stimuli.sets import DEFAULT_SET, set_column
 from crs_study.stimuli.stimulus import (
     MIN_FRAME_RATE_HZ,
     MIN_STROKE_SPEED_MM_S,
@@ -35,12 +43,15 @@ from crs_study.stimuli.stimulus import (
     PLACEMENTS,
     StimulusSpec,
 )
+from crs_study.stimuli.strokes import Symbol
+from crs_study.stimuli.symbol_set import PAUSE_KEYS, StimulusSet, spell
 
 __all__ = [
     "COUNTERBALANCING", "FEEDBACK", "LEVEL_PARAMETERS", "MAX_LEVELS", "MIN_FRAME_RATE_HZ",
     "MIN_STROKE_SPEED_MM_S", "OPTIONAL_KEYS", "ORDERINGS", "PAUSE_KEYS", "PLACEMENTS",
     "PRACTICE_IN", "TABLE_KEYS", "DesignSpec", "LevelSpec", "Protocol", "ResponseSpec",
-    "StimulusSpec", "analysis_plan_path", "consent_form_path", "one_line_problem",
+    "StimulusSpec", "analysis_plan_path", "consent_form_path", "level_parameters",
+    "one_line_problem", "table_keys",
 ]
 
 Ordering = Literal["blocked", "interleaved"]
@@ -54,13 +65,11 @@ COUNTERBALANCING: tuple[str, ...] = get_args(Counterbalancing)
 PRACTICE_IN: tuple[str, ...] = get_args(PracticeIn)
 FEEDBACK: tuple[str, ...] = get_args(Feedback)
 
-#: Keys that pause a session at the keypad (the keypad responder reads them from here), so
-#: no protocol may use them as answers.
-PAUSE_KEYS = frozenset({"q", "Q", "\x1b"})
-
 #: Keys that may be left out (with the default used then). Every other key is required.
+#: ``responses.keys`` left out: the set's own key for each symbol shown.
 OPTIONAL_KEYS: dict[str, object] = {
     "study.title": "",
+    "stimulus.set": DEFAULT_SET,
     "stimulus.strokes_file": None,
     "stimulus.offset_mm": (0.0, 0.0),
     "stimulus.stroke_pause_s": 0.4,
@@ -69,20 +78,32 @@ OPTIONAL_KEYS: dict[str, object] = {
     "conditions.prompts": {},
     "design.practice_in": "first-block",
     "design.break_duration_s": 30.0,
+    "responses.keys": None,
     "responses.time_limit_s": None,
     "responses.expected_response_s": 2.0,
 }
 
-#: Stimulus parameters a ``[levels]`` table may vary: key -> (dataset column, units, min, max).
-#: The dataset column names are those the analysis looks for
-#: (``crs_study.analysis.plan.KNOWN_LEVEL_COLUMNS``); the ranges are those of ``[stimulus]``.
-LEVEL_PARAMETERS: dict[str, tuple[str, str, float, float]] = {
-    "digit_height_pitch": ("digit_height", "pitch", *NUMBER_RANGES["digit_height_pitch"][:2]),
-    "stroke_speed_mm_s": ("stroke_speed", "mm/s", *NUMBER_RANGES["stroke_speed_mm_s"][:2]),
-}
+#: The stimulus parameters a ``[levels]`` table may vary, in their general names: field ->
+#: (dataset column, units). Both are spelled by the set (:func:`level_parameters`).
+_LEVEL_FIELDS = {"symbol_height_pitch": ("symbol_height", "pitch"),
+                 "stroke_speed_mm_s": ("stroke_speed", "mm/s")}
+
+
+def level_parameters(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, str, float, float]]:
+    """The parameters a ``[levels]`` table of a protocol showing the set ``set_name`` may vary,
+    as its file spells them: key -> (dataset column, units, min, max). The columns are those
+    the analysis looks for (``crs_study.analysis.plan.KNOWN_LEVEL_COLUMNS``); the ranges are
+    those of ``[stimulus]``."""
+    column = set_column(set_name)
+    return {spell(f, column): (spell(c, column), units, *NUMBER_RANGES[f][:2])
+            for f, (c, units) in _LEVEL_FIELDS.items()}
+
+
+#: :func:`level_parameters` of the default set (``digit_height_pitch``, ``stroke_speed_mm_s``).
+LEVEL_PARAMETERS = level_parameters()
 #: Most levels one protocol may declare (each multiplies the number of trials).
 MAX_LEVELS = 20
-#: The range of ``levels.width_to_height`` (digit width over height).
+#: The range of ``levels.width_to_height`` (symbol width over height).
 WIDTH_TO_HEIGHT_RANGE = (0.05, 20.0)
 
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -111,20 +132,23 @@ def _freeze(instance: object, **values: object) -> None:
 class LevelSpec:
     """The optional ``[levels]`` table: one stimulus parameter varied across trials.
 
-    ``parameter`` is a key of :data:`LEVEL_PARAMETERS` (it is then absent from ``[stimulus]``);
-    ``values`` are its levels, distinct, in the protocol's order. Varying
-    ``digit_height_pitch`` scales the whole digit: its width is ``width_to_height`` times the
-    height (the shipped shape 0.49 / 0.81 = 0.605), so ``digit_width_pitch`` is absent too.
+    ``parameter`` is a key of :func:`level_parameters` of the protocol's set ``set_name``
+    (it is then absent from ``[stimulus]``); ``values`` are its levels, distinct, in the
+    protocol's order. Varying the size (``digit_height_pitch`` for the digit set,
+    ``symbol_height_pitch`` for the others) scales the whole symbol: its width is
+    ``width_to_height`` times the height (the shipped digits' shape 0.49 / 0.81 = 0.605), so
+    the width key is absent too.
     """
 
     parameter: str
     values: tuple[float, ...]
     width_to_height: float | None = None
+    set_name: str = DEFAULT_SET
 
     def __post_init__(self) -> None:
-        _fail("levels.parameter", string_problem(self.parameter,
-                                                 choices=tuple(LEVEL_PARAMETERS)))
-        _, units, low, high = LEVEL_PARAMETERS[self.parameter]
+        parameters = level_parameters(self.set_name)
+        _fail("levels.parameter", string_problem(self.parameter, choices=tuple(parameters)))
+        _, units, low, high = parameters[self.parameter]
         values = self.values
         if not isinstance(values, list | tuple):
             _fail("levels.values", f"expected an array, got {values!r}")
@@ -139,7 +163,7 @@ class LevelSpec:
         if len(set(floats)) != len(floats):
             _fail("levels.values", f"a level appears twice in {list(values)!r}")
         ratio = self.width_to_height
-        if self.parameter == "digit_height_pitch":
+        if self.varies_size:
             low_ratio, high_ratio = WIDTH_TO_HEIGHT_RANGE
             _fail("levels.width_to_height", number_problem(ratio, minimum=low_ratio,
                                                            maximum=high_ratio))
@@ -150,41 +174,56 @@ class LevelSpec:
                           f"(width_to_height {ratio:g} x {values[i]!r}) is outside "
                           f"{low:g}-{high:g}")
         elif ratio is not None:
-            _fail("levels.width_to_height", "only used with parameter = "
-                  f"\"digit_height_pitch\", got parameter = {self.parameter!r}")
+            size = self.size_parameter(self.set_name)
+            _fail("levels.width_to_height", f"only used with parameter = \"{size}\", got "
+                  f"parameter = {self.parameter!r}")
         _freeze(self, values=floats, width_to_height=ratio)
+
+    @staticmethod
+    def size_parameter(set_name: str = DEFAULT_SET) -> str:
+        """The parameter that varies the symbols' size, as the set spells it
+        (``digit_height_pitch``, ``symbol_height_pitch``)."""
+        return next(iter(level_parameters(set_name)))
+
+    @property
+    def varies_size(self) -> bool:
+        """True when the levels are the symbols' height (the width follows)."""
+        return self.parameter == self.size_parameter(self.set_name)
 
     @property
     def column(self) -> str:
         """The dataset column holding a trial's level (``digit_height``, ``stroke_speed``)."""
-        return LEVEL_PARAMETERS[self.parameter][0]
+        return level_parameters(self.set_name)[self.parameter][0]
 
     @property
     def units(self) -> str:
-        return LEVEL_PARAMETERS[self.parameter][1]
+        return level_parameters(self.set_name)[self.parameter][1]
 
     def spec_at(self, spec: StimulusSpec, level: float) -> StimulusSpec:
         """``spec`` with the varied parameter set to ``level`` (a varied height scales the
         width by ``width_to_height``)."""
-        if self.parameter == "digit_height_pitch":
-            return replace(spec, digit_height_pitch=level,
-                           digit_width_pitch=level * float(self.width_to_height or 1.0))
+        if self.varies_size:
+            return replace(spec, symbol_height_pitch=level,
+                           symbol_width_pitch=level * float(self.width_to_height or 1.0))
         return replace(spec, **{self.parameter: level})
 
 
 @dataclass(frozen=True)
 class DesignSpec:
-    """The ``[design]`` table: how trials are repeated, ordered and paced."""
+    """The ``[design]`` table: how trials are repeated, ordered and paced. ``set_name`` is
+    the protocol's stimulus set, which spells ``max_same_symbol_run`` in the file
+    (``max_same_digit_run`` for the digit set)."""
 
     repetitions: int
     ordering: Ordering
     counterbalancing: Counterbalancing
-    max_same_digit_run: int
+    max_same_symbol_run: int
     practice_trials: int
     practice_in: PracticeIn
     break_every: int
     break_duration_s: float
     inter_trial_interval_s: float
+    set_name: str = DEFAULT_SET
 
     def __post_init__(self) -> None:
         _fail("design.repetitions", integer_problem(self.repetitions, minimum=1, maximum=1000))
@@ -197,8 +236,9 @@ class DesignSpec:
         if self.counterbalancing == "abba" and self.repetitions < 2:
             _fail("design.counterbalancing", "\"abba\" splits the repetitions over two blocks "
                   f"per condition: needs repetitions >= 2, got {self.repetitions!r}")
-        _fail("design.max_same_digit_run", integer_problem(self.max_same_digit_run, minimum=1,
-                                                           maximum=1000))
+        run_key = spell("max_same_symbol_run", set_column(self.set_name))
+        _fail(f"design.{run_key}", integer_problem(self.max_same_symbol_run, minimum=1,
+                                                   maximum=1000))
         _fail("design.practice_trials", integer_problem(self.practice_trials, minimum=0,
                                                         maximum=1000))
         _fail("design.practice_in", string_problem(self.practice_in, choices=PRACTICE_IN))
@@ -214,7 +254,7 @@ class DesignSpec:
 
 @dataclass(frozen=True)
 class ResponseSpec:
-    """The ``[responses]`` table. ``keys[i]`` answers ``stimulus.digits[i]``."""
+    """The ``[responses]`` table. ``keys[i]`` answers ``stimulus.symbols[i]``."""
 
     keys: tuple[str, ...]
     time_limit_s: float | None  # from stimulus offset; None: no limit
@@ -306,11 +346,16 @@ class Protocol:
                 _fail(f"conditions.prompts.{name}", f"expected a prompt for one of the "
                       f"conditions {list(names)!r}, got a prompt for {name!r}")
             _fail(f"conditions.prompts.{name}", one_line_problem(prompt))
+        shown = self.stimulus.set_name
+        for table, spec in (("design", self.design), ("levels", self.levels)):
+            if spec is not None and spec.set_name != shown:
+                _fail(f"{table}.set_name", f"expected the stimulus set {shown!r} (the key "
+                      f"names follow it), got {spec.set_name!r}")
         _freeze(self, conditions=tuple(names),
                 condition_prompts=tuple((n, p) for n, p in self.condition_prompts))
         if self.adaptive is not None:
             _check_adaptive(self)
-            _freeze(self, levels=adaptive_levels(self.adaptive))
+            _freeze(self, levels=adaptive_levels(self.adaptive, self.stimulus.set_name))
 
     @property
     def level_values(self) -> tuple[float | None, ...]:
@@ -350,26 +395,40 @@ class Protocol:
         return self.responses.feedback == "all"
 
     @property
-    def digits(self) -> tuple[int, ...]:
-        return self.stimulus.digits
+    def symbols(self) -> tuple[Symbol, ...]:
+        """The symbols trials show (``stimulus.symbols``; ``stimulus.digits`` in a digit
+        protocol's file)."""
+        return self.stimulus.symbols
+
+    @property
+    def symbol_set(self) -> StimulusSet:
+        """The stimulus set drawn (:class:`~crs_study.stimuli.symbol_set.StimulusSet`)."""
+        return self.stimulus.symbol_set
+
+    @property
+    def chance_rate(self) -> float:
+        """Accuracy of guessing among the symbols shown: 1 / their number."""
+        return 1.0 / len(self.symbols)
 
     def prompt(self, condition: str) -> str | None:
         """The experimenter's prompt before a block of ``condition`` (None when not given)."""
         return dict(self.condition_prompts).get(condition)
 
-    def key_for(self, digit: int) -> str:
-        return self.responses.keys[self.stimulus.digits.index(digit)]
+    def key_for(self, symbol: Symbol) -> str:
+        """The response key of ``symbol``."""
+        return self.responses.keys[self.symbols.index(symbol)]
 
-    def digit_for_key(self, key: str) -> int | None:
+    def symbol_for_key(self, key: str) -> Symbol | None:
+        """The symbol that ``key`` answers, or None."""
         keys = self.responses.keys
-        return self.stimulus.digits[keys.index(key)] if key in keys else None
+        return self.symbols[keys.index(key)] if key in keys else None
 
     def layout(self) -> Layout:
         """The device's layout (cached per device file)."""
         return _layout(self.device)
 
 
-def adaptive_levels(spec: AdaptiveSpec) -> LevelSpec:
+def adaptive_levels(spec: AdaptiveSpec, set_name: str = DEFAULT_SET) -> LevelSpec:
     """Every level an adaptive procedure can show, as the :class:`LevelSpec` the rest of the
     pipeline reads (feasibility, stimulus fingerprint, frames, the observer). Its values are
     the adaptive spec's (checked there, up to
@@ -377,7 +436,7 @@ def adaptive_levels(spec: AdaptiveSpec) -> LevelSpec:
     checks (at most :data:`MAX_LEVELS` levels of a crossed design) are not run."""
     levels = object.__new__(LevelSpec)
     _freeze(levels, parameter=spec.parameter, values=spec.shown_levels(),
-            width_to_height=spec.width_to_height)
+            width_to_height=spec.width_to_height, set_name=set_name)
     return levels
 
 
@@ -406,43 +465,59 @@ def _check_adaptive(protocol: Protocol) -> None:
     if design.repetitions != 1:
         _fail("design.repetitions", "with [adaptive], each condition's block is one track of "
               f"adaptive.trials trials: expected 1, got {design.repetitions!r}")
-    chance = 1.0 / len(protocol.stimulus.digits)
+    parameters = level_parameters(protocol.stimulus.set_name)
+    _fail("adaptive.parameter", string_problem(spec.parameter, choices=tuple(parameters)))
+    chance = protocol.chance_rate
     if spec.rate <= chance:
         key = "adaptive.target_rate" if spec.target_rate is not None else \
             "adaptive.staircase.rule"
         _fail(key, f"the target rate {spec.rate:.4g} is at or below chance (1 / "
-              f"{len(protocol.stimulus.digits)} digits = {chance:.4g}); expected a rate above it")
+              f"{len(protocol.symbols)} {protocol.symbol_set.plural} = {chance:.4g}); expected "
+              "a rate above it")
     ratio = spec.width_to_height
-    if spec.parameter == "digit_height_pitch":
+    size = LevelSpec.size_parameter(protocol.stimulus.set_name)
+    if spec.parameter == size:
         low_ratio, high_ratio = WIDTH_TO_HEIGHT_RANGE
         _fail("adaptive.width_to_height", number_problem(ratio, minimum=low_ratio,
                                                          maximum=high_ratio))
-        low, high = NUMBER_RANGES["digit_width_pitch"][:2]
+        low, high = NUMBER_RANGES["symbol_width_pitch"][:2]
         for key, level in (("min", spec.minimum), ("max", spec.maximum)):
             if not low <= level * ratio <= high:
                 _fail(f"adaptive.{key}", f"the width {level * ratio:g} pitch (width_to_height "
                       f"{ratio:g} x {level:g}) is outside {low:g}-{high:g}")
     elif ratio is not None:
-        _fail("adaptive.width_to_height", "only used with parameter = "
-              f"\"digit_height_pitch\", got parameter = {spec.parameter!r}")
+        _fail("adaptive.width_to_height", f"only used with parameter = \"{size}\", got "
+              f"parameter = {spec.parameter!r}")
 
 
-#: The keys of each table (``""``: the top level); a key outside them is refused at once.
-TABLE_KEYS: dict[str, tuple[str, ...]] = {
-    "": ("study", "stimulus", "conditions", "design", "responses", "levels", "adaptive"),
-    "study": ("id", "version", "title", "device", "consent_form", "consent_form_version",
-              "analysis_plan"),
-    "stimulus": tuple(f.name for f in fields(StimulusSpec)),
-    "conditions": ("names", "prompts"),
-    "design": tuple(f.name for f in fields(DesignSpec)),
-    "responses": tuple(f.name for f in fields(ResponseSpec)),
-    "levels": tuple(f.name for f in fields(LevelSpec)),
-    "adaptive": ("parameter", "procedure", "trials", "min", "max", "scale", "levels",
-                 "target_rate", "practice_level", "width_to_height", "staircase",
-                 "quest_plus"),
-    "adaptive.staircase": tuple(f.name for f in fields(StaircaseSpec)),
-    "adaptive.quest_plus": tuple(f.name for f in fields(QuestPlusSpec)),
-}
+def table_keys(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, ...]]:
+    """The keys of each table (``""``: the top level) of a protocol showing the set
+    ``set_name``, as the set spells them; a key outside them is refused at once."""
+    column = set_column(set_name)
+
+    def keys(cls: type) -> tuple[str, ...]:
+        return tuple("set" if f.name == "set_name" else spell(f.name, column)
+                     for f in fields(cls) if f.name != "set_name" or cls is StimulusSpec)
+
+    return {
+        "": ("study", "stimulus", "conditions", "design", "responses", "levels", "adaptive"),
+        "study": ("id", "version", "title", "device", "consent_form", "consent_form_version",
+                  "analysis_plan"),
+        "stimulus": keys(StimulusSpec),
+        "conditions": ("names", "prompts"),
+        "design": keys(DesignSpec),
+        "responses": keys(ResponseSpec),
+        "levels": keys(LevelSpec),
+        "adaptive": ("parameter", "procedure", "trials", "min", "max", "scale", "levels",
+                     "target_rate", "practice_level", "width_to_height", "staircase",
+                     "quest_plus"),
+        "adaptive.staircase": tuple(f.name for f in fields(StaircaseSpec)),
+        "adaptive.quest_plus": tuple(f.name for f in fields(QuestPlusSpec)),
+    }
+
+
+#: :func:`table_keys` of the default set.
+TABLE_KEYS: dict[str, tuple[str, ...]] = table_keys()
 
 _LAYOUTS: dict[str, Layout] = {}
 

@@ -8,9 +8,9 @@ thresholds (``WARN_*``) and what each warning says:
 * ``design.break_every``: a block runs over 20 min without a break;
 * ``responses.time_limit_s``: over 60 s;
 * ``design.inter_trial_interval_s``: under 0.1 s (0 included);
-* ``stimulus.stroke_speed_mm_s`` (or ``levels.values[i]`` when varied): so slow that a digit's
+* ``stimulus.stroke_speed_mm_s`` (or ``levels.values[i]`` when varied): so slow that a symbol's
   stimulus lasts over 15 s, or so fast that the device's 75 ms latency lags the bump by over a
-  quarter of the digit's height.
+  quarter of the symbol's height.
 
 The expected durations come from the trial plan of an example participant (durations do not
 depend on who or which session), so this module sits above :mod:`crs_study.protocol.plan`.
@@ -35,10 +35,10 @@ WARN_UNBROKEN_S = 20 * 60.0
 WARN_TIME_LIMIT_S = 60.0
 #: ... an inter-trial interval shorter than this (s; about a simple reaction time):
 WARN_ITI_S = 0.1
-#: ... a digit's stimulus lasting longer than this (s; the shipped 20 mm/s: 2 to 5 s):
+#: ... a symbol's stimulus lasting longer than this (s; the shipped 20 mm/s: 2 to 5 s):
 WARN_DRAWING_S = 15.0
 #: ... a stroke speed at which the device's latency lags the bump by more than this fraction
-#: of the digit's height; the latency is the paper's device's (crs-paper.md, Methods: 75 ms).
+#: of the symbol's height; the latency is the paper's device's (crs-paper.md, Methods: 75 ms).
 WARN_LAG_FRACTION = 0.25
 PAPER_LATENCY_S = 0.075
 
@@ -69,6 +69,7 @@ _Found = list[tuple[str, str, dict]]  # (key path, message, values)
 def _session_warnings(protocol: Protocol) -> _Found:
     layout = protocol.layout()
     found: _Found = []
+    noun = protocol.symbol_set.noun
     plan = make_plan(protocol, "example", 1, 0)  # durations do not depend on who or which
     seconds = trial_seconds(protocol, plan, layout)
     total = sum(seconds)
@@ -97,11 +98,11 @@ def _session_warnings(protocol: Protocol) -> _Found:
     limit = protocol.responses.time_limit_s
     if limit is not None and limit > WARN_TIME_LIMIT_S:
         found.append(("responses.time_limit_s", f"{limit!r} s is a long time limit (over "
-                      f"{WARN_TIME_LIMIT_S:g} s): a missed digit holds the session that "
+                      f"{WARN_TIME_LIMIT_S:g} s): a missed {noun} holds the session that "
                       "long; the shipped protocols use 10 s", {"time_limit_s": limit}))
     iti = protocol.inter_trial_interval_s
     if iti < WARN_ITI_S:
-        found.append(("design.inter_trial_interval_s", f"{iti!r} s: the next digit starts "
+        found.append(("design.inter_trial_interval_s", f"{iti!r} s: the next {noun} starts "
                       f"less than {WARN_ITI_S:g} s (about a reaction time) after the answer, "
                       "before the hand is back at rest; the shipped protocols use 1 s",
                       {"inter_trial_interval_s": iti}))
@@ -119,17 +120,18 @@ def _stroke_speed_warnings(protocol: Protocol) -> _Found:
         at = "" if level is None else f"at {protocol.levels.parameter} = {level:g}: "
         speed = spec.stroke_speed_mm_s
         drawing = max(make_stimulus(protocol, layout, d, level).duration_s
-                      for d in protocol.digits)
-        height_mm = spec.digit_height_pitch * layout.pitch_mm
+                      for d in protocol.symbols)
+        height_mm = spec.symbol_height_pitch * layout.pitch_mm
+        noun = protocol.symbol_set.noun
         lag = speed * PAPER_LATENCY_S
         values = {"stroke_speed_mm_s": speed, "longest_drawing_s": drawing, "lag_mm": lag}
         if drawing > WARN_DRAWING_S:
-            found.append((key, f"{at}{speed!r} mm/s is slow: the longest digit takes "
+            found.append((key, f"{at}{speed!r} mm/s is slow: the longest {noun} takes "
                           f"{drawing:.0f} s to draw, holds included (over {WARN_DRAWING_S:g} s; "
                           "the shipped 20 mm/s: 2 to 5 s)", values))
         elif lag > WARN_LAG_FRACTION * height_mm:
             found.append((key, f"{at}{speed!r} mm/s is fast: the device's "
                           f"{PAPER_LATENCY_S * 1e3:g} ms latency (the paper's) lags the bump by "
-                          f"{lag:.1f} mm, over a quarter of the digit's {height_mm:.1f} mm "
+                          f"{lag:.1f} mm, over a quarter of the {noun}'s {height_mm:.1f} mm "
                           "height (the shipped 20 mm/s: 1.5 mm)", values))
     return found

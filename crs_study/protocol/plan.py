@@ -19,28 +19,34 @@ Design
     every condition mixed.
 
     Practice: ``practice_trials`` per condition at the start of the condition's first block
-    (or of every block), digits cycling through a shuffled list of the protocol's digits
+    (or of every block), symbols cycling through a shuffled list of the protocol's symbols
     (one cycle per block, dealt to its conditions in turn), with feedback when the protocol
-    says so. Test trials: every digit ``repetitions`` times
-    per condition. Within a block the order is random under the run constraint: no digit more
-    than ``max_same_digit_run`` times in a row, practice and test trials together.
+    says so. Test trials: every symbol ``repetitions`` times
+    per condition. Within a block the order is random under the run constraint: no symbol
+    more than ``max_same_symbol_run`` (a digit protocol: ``max_same_digit_run``) times in a
+    row, practice and test trials together.
 
     The constraint is met constructively: each next trial is drawn with probability
-    proportional to the remaining count of its (condition, digit) among those that would not
-    extend a run beyond the limit; a dead end (only the blocked digit left) restarts the
-    block with the same generator (rare: a fraction of a percent of blocks for 10 digits).
+    proportional to the remaining count of its (condition, symbol) among those that would not
+    extend a run beyond the limit; a dead end (only the blocked symbol left) restarts the
+    block with the same generator (rare: a fraction of a percent of blocks for 10 symbols).
 
-    Levels: a protocol with ``[levels]`` crosses them with conditions and digits: every
-    (condition, digit, level) cell gets ``repetitions`` test trials, ordered as above (the
-    run constraint is on digits, whatever their level). Practice trials also cycle through
-    a shuffled list of the levels (drawn after the digits' cycle). Without ``[levels]``
+    Levels: a protocol with ``[levels]`` crosses them with conditions and symbols: every
+    (condition, symbol, level) cell gets ``repetitions`` test trials, ordered as above (the
+    run constraint is on symbols, whatever their level). Practice trials also cycle through
+    a shuffled list of the levels (drawn after the symbols' cycle). Without ``[levels]``
     nothing is drawn for them, so such a protocol's plans are those of earlier versions.
+
+    Symbols: only their order in the protocol matters to the draws (ints for the digit set,
+    strings for the others), and a trial's row of the fingerprint writes ``str(symbol)``, so
+    the plans and fingerprints of digit protocols are those of versions before stimulus
+    sets.
 
     Adaptive: a protocol with ``[adaptive]`` has one block per condition (``repetitions =
     1``) of ``adaptive.trials`` test trials whose level the block's procedure chooses when the
-    trial comes (``level`` is None in the plan); the digits are dealt evenly (each
+    trial comes (``level`` is None in the plan); the symbols are dealt evenly (each
     ``trials // n`` times, and once more for ``trials mod n`` of them, drawn as the first
-    digits of a shuffled list). Practice trials show ``adaptive.practice_level``.
+    symbols of a shuffled list). Practice trials show ``adaptive.practice_level``.
 
     Breaks: ``break_before`` on a trial preceded by a multiple of ``break_every`` trials of
     its block. Block starts carry the condition's prompt to the experimenter instead.
@@ -58,10 +64,16 @@ import numpy as np
 from crs_study.errors import ProtocolError
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
+from crs_study.stimuli.sets import DEFAULT_SET, set_column
 from crs_study.stimuli.stimulus import make_stimulus
+from crs_study.stimuli.strokes import Symbol
+from crs_study.stimuli.symbol_set import spell
 
 #: Restarts allowed per block before the run constraint is declared unsatisfiable.
 MAX_RESTARTS = 10_000
+#: How the default set names the run limit and its symbols (``max_same_digit_run``).
+_DEFAULT_RUN_KEY = spell("max_same_symbol_run", set_column(DEFAULT_SET))
+_DEFAULT_PLURAL = f"{set_column(DEFAULT_SET)}s"
 
 
 @dataclass(frozen=True)
@@ -73,7 +85,7 @@ class PlannedTrial:
     block: int
     condition: str
     repetition: int
-    digit: int
+    symbol: Symbol
     feedback: bool
     break_before: bool
     prompt_before: str | None
@@ -106,7 +118,7 @@ class TrialPlan:
         so plans without levels keep their earlier fingerprints."""
         rows = [f"{self.seed}\t{self.counterbalance}"]
         rows += ["\t".join(str(v) for v in (t.index, t.trial_type, t.block, t.condition,
-                                              t.repetition, t.digit, int(t.feedback),
+                                              t.repetition, t.symbol, int(t.feedback),
                                               int(t.break_before), t.prompt_before or "")
                            + (() if t.level is None else (repr(float(t.level)),)))
                  for t in self.trials]
@@ -186,14 +198,14 @@ def trial_seconds(protocol: Protocol, plan: TrialPlan, layout: Layout | None = N
     changes (mounting the skeleton) are not counted. An adaptive trial, whose level is chosen
     as it comes, is counted at the middle level of the procedure's grid."""
     layout = layout if layout is not None else protocol.layout()
-    durations: dict[tuple[int, float | None], float] = {}
+    durations: dict[tuple[Symbol, float | None], float] = {}
     seconds = []
     middle = None
     if protocol.adaptive is not None:
         grid = protocol.adaptive.grid()
         middle = grid[len(grid) // 2]
     for trial in plan.trials:
-        key = (trial.digit, trial.level if trial.level is not None else middle)
+        key = (trial.symbol, trial.level if trial.level is not None else middle)
         if key not in durations:
             durations[key] = make_stimulus(protocol, layout, *key).duration_s
         seconds.append(durations[key] + protocol.responses.expected_response_s
@@ -236,12 +248,15 @@ class _Draw:
 
 
 def constrained_order(groups: dict[tuple, list[int]], max_run: int, draw: _Draw,
-                      history: Sequence[int] = ()) -> list[tuple]:
-    """Order items so no digit runs longer than ``max_run``.
+                      history: Sequence[Symbol] = (), run_key: str = _DEFAULT_RUN_KEY,
+                      plural: str = _DEFAULT_PLURAL) -> list[tuple]:
+    """Order items so no symbol runs longer than ``max_run``.
 
-    ``groups`` maps a cell (condition, digit) or (condition, digit, level) to its repetitions
-    (taken smallest first); the items returned are the cell's fields then the repetition.
-    ``history`` is the digits shown just before (so the constraint holds across the junction).
+    ``groups`` maps a cell (condition, symbol) or (condition, symbol, level) to its
+    repetitions (taken smallest first); the items returned are the cell's fields then the
+    repetition. ``history`` is the symbols shown just before (so the constraint holds across
+    the junction). ``run_key`` and ``plural`` name the limit and the symbols in the error
+    (by default as the default set names them).
     """
     keys = list(groups)
     for _ in range(MAX_RESTARTS):
@@ -260,8 +275,9 @@ def constrained_order(groups: dict[tuple, list[int]], max_run: int, draw: _Draw,
             recent.append(key[1])
         else:
             return out
-    raise ProtocolError(f"design.max_same_digit_run: cannot order {sum(map(len, groups.values()))}"
-                        f" trials with no digit more than {max_run} times in a row")
+    noun = plural.removesuffix("s")
+    raise ProtocolError(f"design.{run_key}: cannot order {sum(map(len, groups.values()))}"
+                        f" trials with no {noun} more than {max_run} times in a row")
 
 
 def make_plan(protocol: Protocol, participant: str, session: int, counterbalance: int
@@ -270,7 +286,9 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
     seed = plan_seed(protocol.study_id, protocol.version, participant, session)
     draw = _Draw(seed)
     design = protocol.design
-    digits = protocol.digits
+    symbols = protocol.symbols
+    run = {"run_key": protocol.symbol_set.spelled("max_same_symbol_run"),
+           "plural": protocol.symbol_set.plural}
     adaptive = protocol.adaptive
     levels = protocol.levels.values if protocol.levels is not None and adaptive is None \
         else None
@@ -288,42 +306,42 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
             appearances[condition] = nth + 1
             per_condition = blocks.count(condition) if design.ordering == "blocked" else 1
             reps = [r for r in range(design.repetitions) if r % per_condition == nth]
-            if adaptive is not None:  # the block's track: trials dealt evenly to the digits
-                per_digit, extra = divmod(adaptive.trials, len(digits))
-                more = set(draw.shuffled(digits)[:extra])
-                for digit in digits:
-                    test_groups[(condition, digit)] = list(range(per_digit + (digit in more)))
-            for digit in digits if adaptive is None else ():
+            if adaptive is not None:  # the block's track: trials dealt evenly to the symbols
+                per_symbol, extra = divmod(adaptive.trials, len(symbols))
+                more = set(draw.shuffled(symbols)[:extra])
+                for symbol in symbols:
+                    test_groups[(condition, symbol)] = list(range(per_symbol + (symbol in more)))
+            for symbol in symbols if adaptive is None else ():
                 if levels is None:
-                    test_groups[(condition, digit)] = list(reps)
+                    test_groups[(condition, symbol)] = list(reps)
                 else:
                     for level in levels:
-                        test_groups[(condition, digit, level)] = list(reps)
+                        test_groups[(condition, symbol, level)] = list(reps)
             if design.practice_trials and (nth == 0 or design.practice_in == "every-block"):
                 practising.append(condition)
-        # One cycle of shuffled digits for the block's practice, dealt to its conditions in
-        # turn: digit counts differ by at most one, so the run constraint can always be met.
+        # One cycle of shuffled symbols for the block's practice, dealt to its conditions in
+        # turn: symbol counts differ by at most one, so the run constraint can always be met.
         n_practice = design.practice_trials * len(practising)
-        cycle: list[int] = []
+        cycle: list[Symbol] = []
         while len(cycle) < n_practice:
-            cycle += draw.shuffled(digits)
+            cycle += draw.shuffled(symbols)
         level_cycle: list[float] = []
         while levels is not None and len(level_cycle) < n_practice:
             level_cycle += draw.shuffled(levels)
-        for i, digit in enumerate(cycle[:n_practice]):
-            cell = (practising[i % len(practising)], digit) if levels is None else \
-                (practising[i % len(practising)], digit, level_cycle[i])
+        for i, symbol in enumerate(cycle[:n_practice]):
+            cell = (practising[i % len(practising)], symbol) if levels is None else \
+                (practising[i % len(practising)], symbol, level_cycle[i])
             shown = practice_groups.setdefault(cell, [])
             shown.append(len(shown))  # repetition: the cell's nth practice trial
-        practice = constrained_order(practice_groups, design.max_same_digit_run, draw)
-        test = constrained_order(test_groups, design.max_same_digit_run, draw,
-                                 history=[p[1] for p in practice])
+        practice = constrained_order(practice_groups, design.max_same_symbol_run, draw, **run)
+        test = constrained_order(test_groups, design.max_same_symbol_run, draw,
+                                 history=[p[1] for p in practice], **run)
         prompt = None
         if design.ordering == "blocked":
             prompt = protocol.prompt(conditions[0]) or \
                 f"Block {block + 1} of {len(blocks)}: {conditions[0]}"
         items = [("practice", *p) for p in practice] + [("test", *t) for t in test]
-        for position, (kind, condition, digit, *rest) in enumerate(items):
+        for position, (kind, condition, symbol, *rest) in enumerate(items):
             level, repetition = (None, rest[0]) if levels is None else rest
             if adaptive is not None and kind == "practice":
                 level = adaptive.practice
@@ -331,7 +349,7 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
                 protocol.feedback_test
             trials.append(PlannedTrial(
                 index=len(trials), trial_type=kind, block=block, condition=condition,
-                repetition=repetition, digit=digit, feedback=feedback,
+                repetition=repetition, symbol=symbol, feedback=feedback,
                 break_before=bool(design.break_every and position
                                   and position % design.break_every == 0),
                 prompt_before=prompt if position == 0 else None, level=level,

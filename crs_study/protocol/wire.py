@@ -10,7 +10,7 @@ Two bounds (:mod:`crs_study.device.schedule`):
   an idle inter-trial interval from the neutral pose, so its first frame is full and is left
   out of the busiest frame (:func:`crs_study.device.schedule.wire_plan`).
 
-Every stimulus the protocol shows counts: each digit, at each level of ``[levels]``, rendered
+Every stimulus the protocol shows counts: each symbol, at each level of ``[levels]``, rendered
 in each condition (frames from the one render cache,
 :func:`crs_study.rendering.frames.render_frames`).
 """
@@ -102,7 +102,7 @@ def wire_budget(protocol: Protocol, layout: Layout | None = None, *,
     rate = protocol.frame_rate_hz
     period = 1.0 / rate
     stimuli = [make_stimulus(protocol, layout, d, v) for v in protocol.level_values
-               for d in protocol.digits]
+               for d in protocol.symbols]
     conditions = []
     for condition in protocol.conditions:
         renderer = Renderer(layout, condition)

@@ -13,11 +13,16 @@ session begun from a changed protocol resumes only if the same protocol is writt
 same bytes, whatever library versions are installed then (as the trial plan draws only
 ``Generator.random()`` so that numpy's sampling algorithms cannot change a plan).
 
-What is written, table by table, in the loader's key order (``TABLE_KEYS``):
+What is written, table by table, in the loader's key order (``table_keys``: the keys naming
+symbols spelled by the protocol's stimulus set, ``digits`` or ``symbols``):
+
+* ``stimulus.set`` first, and only for a set other than the default (the digits), so a digit
+  protocol is written as before stimulus sets; a set file relative to the protocol's folder;
 
 * a value of ``None`` is left out (the loader's default for that key is ``None``);
 * ``stimulus.offset_mm`` only with ``placement = "offset"``; the parameter ``[levels]``
-  varies (and ``digit_width_pitch`` with a varied height) is left out of ``[stimulus]``,
+  varies (and the width, ``digit_width_pitch`` for digits, with a varied height) is left
+  out of ``[stimulus]``,
   as the loader asks;
 * ``conditions.prompts`` as a table, left out when there is none;
 * a device file and a strokes file relative to the protocol's folder (the loader resolves
@@ -39,7 +44,8 @@ from typing import Any
 from crs_study.adaptive.spec import AdaptiveSpec
 from crs_study.errors import ProtocolError
 from crs_study.geometry.layout import BUILTIN_DEVICES
-from crs_study.protocol.model import TABLE_KEYS, LevelSpec, Protocol
+from crs_study.protocol.model import Protocol, table_keys
+from crs_study.stimuli.sets import DEFAULT_SET, shipped_sets
 
 #: ``[study]`` keys whose Protocol field has another name.
 STUDY_FIELDS = {"id": "study_id"}
@@ -63,31 +69,42 @@ def protocol_to_toml(protocol: Protocol) -> str:
 
 
 def protocol_tables(protocol: Protocol) -> dict[str, dict[str, Any]]:
-    """The protocol's tables as the loader reads them: ``{table: {key: value}}``."""
+    """The protocol's tables as the loader reads them: ``{table: {key: value}}``, the keys
+    spelled by the protocol's stimulus set (``digits``, ``symbols``; :func:`table_keys`)."""
     folder = protocol.path.parent
-    study = {key: getattr(protocol, STUDY_FIELDS.get(key, key)) for key in TABLE_KEYS["study"]}
+    set_name = protocol.stimulus.set_name
+    keys_of = table_keys(set_name)
+
+    def table(name: str, spec: Any) -> dict[str, Any]:
+        names = [f.name for f in fields(spec) if f.name != "set_name" or name == "stimulus"]
+        return dict(zip(keys_of[name], (getattr(spec, n) for n in names), strict=True))
+
+    study = {key: getattr(protocol, STUDY_FIELDS.get(key, key)) for key in keys_of["study"]}
     if study["device"] not in BUILTIN_DEVICES:
         study["device"] = _relative(study["device"], folder)
-    stimulus = {key: getattr(protocol.stimulus, key) for key in TABLE_KEYS["stimulus"]}
+    stimulus = table("stimulus", protocol.stimulus)
+    chosen = stimulus.pop("set")  # first, as it spells the other keys; absent for the default
+    if chosen != DEFAULT_SET:
+        stimulus = {"set": chosen if chosen in shipped_sets() else _relative(chosen, folder),
+                    **stimulus}
     if stimulus.get("strokes_file") is not None:
         stimulus["strokes_file"] = _relative(stimulus["strokes_file"], folder)
     if stimulus.get("placement") != "offset":
         stimulus.pop("offset_mm", None)
-    for key in _varied(protocol.levels):
+    for key in _varied(protocol):
         stimulus.pop(key, None)
     conditions: dict[str, Any] = {"names": protocol.conditions}
     if protocol.condition_prompts:
         conditions["prompts"] = dict(protocol.condition_prompts)
     tables = {
         "study": study, "stimulus": stimulus, "conditions": conditions,
-        "design": {key: getattr(protocol.design, key) for key in TABLE_KEYS["design"]},
-        "responses": {key: getattr(protocol.responses, key) for key in TABLE_KEYS["responses"]},
+        "design": table("design", protocol.design),
+        "responses": table("responses", protocol.responses),
     }
     if protocol.adaptive is not None:
         tables["adaptive"] = adaptive_table(protocol.adaptive)
     elif protocol.levels is not None:
-        tables["levels"] = {f.name: getattr(protocol.levels, f.name)
-                            for f in fields(LevelSpec)}
+        tables["levels"] = table("levels", protocol.levels)
     return {name: {k: v for k, v in table.items() if v is not None}
             for name, table in tables.items()}
 
@@ -96,7 +113,7 @@ def adaptive_table(spec: AdaptiveSpec) -> dict[str, Any]:
     """The ``[adaptive]`` table of ``spec`` (its procedure's sub-table nested, None left
     out)."""
     attributes = {"min": "minimum", "max": "maximum"}
-    table = {key: getattr(spec, attributes.get(key, key)) for key in TABLE_KEYS["adaptive"]}
+    table = {key: getattr(spec, attributes.get(key, key)) for key in table_keys()["adaptive"]}
     for name in ("staircase", "quest_plus"):
         sub = table.pop(name)
         if sub is not None:
@@ -171,12 +188,13 @@ def _header(protocol: Protocol, tables: dict[str, dict[str, Any]]) -> list[str]:
             "# changed in Python: " + (", ".join(changed) if changed else "no key") + "."]
 
 
-def _varied(levels: LevelSpec | None) -> tuple[str, ...]:
+def _varied(protocol: Protocol) -> tuple[str, ...]:
     """The ``[stimulus]`` keys a ``[levels]`` table sets (the loader refuses them there)."""
+    levels = protocol.levels
     if levels is None:
         return ()
-    if levels.parameter == "digit_height_pitch":
-        return ("digit_height_pitch", "digit_width_pitch")
+    if levels.varies_size:
+        return (levels.parameter, protocol.stimulus.file_key("symbol_width_pitch"))
     return (levels.parameter,)
 
 

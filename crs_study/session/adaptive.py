@@ -31,7 +31,7 @@ def adaptive_run(protocol: Protocol) -> AdaptiveRun | None:
     """Fresh tracks for ``protocol`` (None when it has no ``[adaptive]`` table)."""
     if protocol.adaptive is None:
         return None
-    return AdaptiveRun(protocol.adaptive, len(protocol.digits))
+    return AdaptiveRun(protocol.adaptive, len(protocol.symbols))
 
 
 def is_adaptive(trial: PlannedTrial, run: AdaptiveRun | None) -> bool:

@@ -16,7 +16,7 @@ from crs_study.dataset.folder import Dataset, dataset_dir, is_simulated_label
 from crs_study.errors import SessionError
 from crs_study.paths import resolve_protocol
 from crs_study.protocol import Protocol, load_protocol
-from crs_study.session.runner import run_session
+from crs_study.session.runner import dataset_task, run_session
 from crs_study.session.spec import DryRunResult, Progress, SessionResult, SessionSpec
 
 #: The most simulated participants one dry-run takes (a study of this many sessions is
@@ -119,7 +119,9 @@ def dry_run(protocol: str | os.PathLike[str] | Protocol, participants: int,
     # a shipped protocol's name, or a path (each session loads it); an object is settled now
     protocol = load_protocol(protocol) if isinstance(protocol, Protocol) else \
         resolve_protocol(protocol)
-    Dataset(out).ensure()
+    shown = protocol.symbol_set if isinstance(protocol, Protocol) else \
+        load_protocol(protocol, check_device=False).symbol_set  # its task names the files
+    Dataset(out, task=dataset_task(shown)).ensure()
     specs = [SessionSpec(protocol, label, Path(out), device_url, 1, responder,
                          "virtual", i, durable=durable) for i, label in enumerate(labels)]
     results: list[SessionResult] = []

@@ -1,9 +1,10 @@
-"""What a session says to the people in the room, and how the task is described in the data.
+"""What a session says to the people in the room.
 
 The experimenter sees a prompt at each block start (the protocol's ``[conditions.prompts]``,
 or the plan's "Block k of n"), at each break (:data:`BREAK_PROMPT`) and before a resumed
 session's first trial (:func:`resume_prompt`). The task's description and the participant's
-instructions are stored in each session's sidecar (``TaskDescription``, ``Instructions``).
+instructions, stored in each session's sidecar (``TaskDescription``, ``Instructions``), are
+the stimulus set's (:class:`~crs_study.stimuli.symbol_set.StimulusSet`).
 """
 
 from __future__ import annotations
@@ -12,11 +13,6 @@ from crs_study.protocol.plan import TrialPlan
 
 #: The prompt of a break without a block start.
 BREAK_PROMPT = "Break: rest, then continue"
-#: The sidecar's ``TaskDescription``.
-TASK_DESCRIPTION = "Identify the digit drawn by a moving bump on the CRS display"
-#: The sidecar's ``Instructions``: what the participant is told.
-INSTRUCTIONS = ("Rest your fingertips on the display. A bump will draw a digit from 0 to 9; "
-                "press that digit's key as soon as you know it.")
 
 
 def resume_prompt(plan: TrialPlan, first: int) -> str:

@@ -36,17 +36,18 @@ def plan_sha256(plan: TrialPlan) -> str:
 
 
 def stimulus_sha256(protocol: Protocol, layout: Layout) -> str:
-    """sha256 of every bump path the protocol shows on ``layout`` (each digit at each level:
-    frame times, centres, heights, diameter), so a resume under software that draws the
-    digits differently (another strokes scaling, say) is refused although the protocol file
-    is unchanged."""
+    """sha256 of every bump path the protocol shows on ``layout`` (each symbol at each level:
+    frame times, centres, heights, diameter, and the symbol's ``repr``), so a resume under
+    software that draws the symbols differently (another strokes scaling, say) is refused
+    although the protocol file is unchanged. The digit set's symbols are ints, so digit
+    protocols keep the fingerprints stored before stimulus sets existed."""
     digest = hashlib.sha256()
     for level in protocol.level_values:
-        for digit in protocol.digits:
-            stimulus = make_stimulus(protocol, layout, digit, level)
+        for symbol in protocol.symbols:
+            stimulus = make_stimulus(protocol, layout, symbol, level)
             for array in (stimulus.frame_times, stimulus.centres_mm, stimulus.heights_mm):
                 digest.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
-            digest.update(repr((digit, level, float(stimulus.diameter_mm))).encode())
+            digest.update(repr((symbol, level, float(stimulus.diameter_mm))).encode())
     return digest.hexdigest()
 
 
@@ -99,9 +100,10 @@ def check_same_kind_of_run(stored: SessionMetadata, spec: SessionSpec, responder
                 "another --session")
 
 
-def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path, *,
+def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path, column: str, *,
                may_skip: bool = False) -> None:
-    """The stored rows are the plan's first trials, in order (else the file is another's).
+    """The stored rows are the plan's first trials, in order (else the file is another's);
+    ``column`` holds the symbol shown (the protocol's set's :attr:`column`).
 
     ``may_skip``: an adaptive protocol's rows may leave out trials (those a finished staircase
     skipped: :func:`crs_study.session.adaptive.rebuild` checks which); their indices still
@@ -122,9 +124,9 @@ def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path, *,
                                    "belong to this plan")
             previous = index
         trial = plan.trials[index]
-        stored = (row["trial_index"], row["condition"], row["digit"])
-        wanted = (str(trial.index), trial.condition, str(trial.digit))
+        stored = (row["trial_index"], row["condition"], row[column])
+        wanted = (str(trial.index), trial.condition, str(trial.symbol))
         if stored != wanted:
-            raise SessionError(f"{tsv}: row {k + 1} holds (trial_index, condition, digit) = "
+            raise SessionError(f"{tsv}: row {k + 1} holds (trial_index, condition, {column}) = "
                                f"{stored}, the plan says {wanted}; the file does not belong "
                                "to this plan")

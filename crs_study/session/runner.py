@@ -62,7 +62,7 @@ from crs_study.protocol.loader import load_protocol
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.protocol.plan import TrialPlan, make_plan
 from crs_study.session.adaptive import choose, next_to_play, rebuild
-from crs_study.session.prompts import INSTRUCTIONS, TASK_DESCRIPTION, resume_prompt
+from crs_study.session.prompts import resume_prompt
 from crs_study.session.responders import Responder, make_responder
 from crs_study.session.responders.keypad import PauseRequested
 from crs_study.session.resume import (
@@ -82,6 +82,7 @@ from crs_study.session.state import (
 )
 from crs_study.session.trials import replay, run_trial, trial_frames
 from crs_study.signals import describe, terminate_as_interrupt
+from crs_study.stimuli.symbol_set import StimulusSet
 
 #: Session time spent before the first trial with the display neutral (settled and flat).
 SETTLE_S = 1.0
@@ -124,6 +125,7 @@ def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
     dataset.session_paths(spec.participant, spec.session)  # checks label and session
     dataset.refuse_pending_withdrawal()  # before the gate: say what blocks the dataset itself
     protocol = load_protocol(spec.protocol)  # a file, a shipped name or a Protocol object
+    dataset = Dataset(spec.dataset, task=dataset_task(protocol.symbol_set))
     layout = protocol.layout()
     known = dataset.participants() if (spec.dataset / "participants.tsv").exists() else {}
     if spec.participant in known:
@@ -141,11 +143,20 @@ def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
     return protocol, layout, plan, dataset
 
 
+def dataset_task(symbol_set: StimulusSet) -> schema.Task:
+    """What the dataset records about a stimulus set (:class:`crs_study.dataset.Task`)."""
+    return schema.Task(label=symbol_set.task, title=symbol_set.title,
+                       description=symbol_set.description, instructions=symbol_set.instructions,
+                       noun=symbol_set.noun, column=symbol_set.column,
+                       symbols=tuple(str(s) for s in symbol_set.symbols))
+
+
 def session_columns(protocol: Protocol) -> tuple[str, ...]:
-    """The session TSV's columns: the schema's, plus the level column when levels vary (and
-    the adaptive columns when a procedure chooses them)."""
+    """The session TSV's columns: the schema's with the set's symbol column, plus the level
+    column when levels vary (and the adaptive columns when a procedure chooses them)."""
     levels = protocol.levels
     return schema.trial_columns(levels.column if levels is not None else None,
+                                protocol.symbol_set.column,
                                 adaptive=protocol.adaptive is not None)
 
 
@@ -209,7 +220,8 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         if stored is not None and stored.is_complete:
             # Never rewritten: checked read-only (no torn-tail cut), then left alone.
             rows = store.verify_complete(stored.trials_sha256)
-            check_rows(rows, plan, paths.tsv, may_skip=protocol.adaptive is not None)
+            check_rows(rows, plan, paths.tsv, protocol.symbol_set.column,
+                       may_skip=protocol.adaptive is not None)
             if protocol.adaptive is not None:  # trials a finished staircase skipped
                 rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar, complete=True)
             elif len(rows) != n_trials:
@@ -231,7 +243,8 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         store.check_resumable(stored, sidecar_lag=lag)
         began = store.started_trial()  # what the previous run noted, before this one does
         rows = store.recover_rows()
-        check_rows(rows, plan, paths.tsv, may_skip=protocol.adaptive is not None)
+        check_rows(rows, plan, paths.tsv, protocol.symbol_set.column,
+                   may_skip=protocol.adaptive is not None)
         run = rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar)
         first = next_to_play(plan, rows, run)  # len(rows) unless a staircase skipped trials
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
@@ -351,10 +364,11 @@ def _metadata(spec: SessionSpec, protocol: Protocol, plan: TrialPlan, device_tex
                 + ("had begun" if began is not None and cut else
                    "had not begun" if not cut else "may have begun (nothing noted)"),
                 cut),)
+    symbol_set = protocol.symbol_set
     return SessionMetadata(
-        task_name=schema.TASK,
-        task_description=TASK_DESCRIPTION,
-        instructions=INSTRUCTIONS,
+        task_name=symbol_set.task,
+        task_description=symbol_set.description,
+        instructions=symbol_set.instructions,
         protocol_text=protocol.text,
         protocol_sha256=protocol.sha256,
         protocol_path=recorded_path(protocol.path),

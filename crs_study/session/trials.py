@@ -4,7 +4,7 @@ One trial (all times on the session's :class:`~crs_study.clock.Clock`):
 
 1. a prompt to the experimenter at a block start or a break (mount or remove the skeleton);
    simulated responders continue at once, the keypad waits for Space or Enter;
-2. the stimulus: the pre-rendered frames of the (digit, condition) pair are commanded at the
+2. the stimulus: the pre-rendered frames of the (symbol, condition) pair are commanded at the
    protocol's frame rate, each at its due time ``onset + frame_times[k]`` (``sleep_until``); a
    frame commanded more than one period after its due time counts as late; the displayed
    setpoints are sampled one period after each frame (what the skin meets) for the responder;
@@ -51,6 +51,7 @@ from crs_study.session.responders.base import Responder, StimulusRecord
 from crs_study.session.state import SessionState, save
 from crs_study.signals import deferred
 from crs_study.stimuli.stimulus import make_stimulus
+from crs_study.stimuli.strokes import Symbol
 
 #: Without per-trial durability (dry-runs) the sidecar is rewritten every this many trials
 #: (and when the session stops); the trial file is the authority on what is done.
@@ -65,7 +66,7 @@ def ceil_ms(seconds: float) -> float:
 
 
 class TrialFrames:
-    """The frames of each (digit, condition, level) of a protocol on a device; ``level`` is
+    """The frames of each (symbol, condition, level) of a protocol on a device; ``level`` is
     None for protocols without ``[levels]``. Rendering and its cache are
     :func:`~crs_study.rendering.frames.render_frames`'; here are the renderer of each
     condition and the frames' text for the frame log."""
@@ -74,27 +75,27 @@ class TrialFrames:
         self.protocol = protocol
         self.layout = layout
         self._renderers: dict[str, Renderer] = {}
-        self._text: dict[tuple[int, str, float | None], list[str]] = {}
+        self._text: dict[tuple[Symbol, str, float | None], list[str]] = {}
 
-    def get(self, digit: int, condition: str, level: float | None = None
+    def get(self, symbol: Symbol, condition: str, level: float | None = None
             ) -> tuple[np.ndarray, np.ndarray]:
         """``(frame_times (n,), setpoints (n, n_actuators))``, both read-only."""
-        stimulus = make_stimulus(self.protocol, self.layout, digit, level)
+        stimulus = make_stimulus(self.protocol, self.layout, symbol, level)
         if condition not in self._renderers:
             self._renderers[condition] = Renderer(self.layout, condition)
         frames = render_frames(stimulus, self._renderers[condition])
         times = stimulus.frame_times
         if frames.ndim != 2 or len(frames) != len(times) or len(times) == 0:
-            raise SessionError(f"stimulus of digit {digit} ({condition}): {len(times)} "
+            raise SessionError(f"stimulus of {symbol!r} ({condition}): {len(times)} "
                                f"frame times but frames of shape {frames.shape}")
         return times, frames
 
-    def setpoint_text(self, digit: int, condition: str, level: float | None = None
+    def setpoint_text(self, symbol: Symbol, condition: str, level: float | None = None
                       ) -> list[str]:
         """The frames' setpoints as tab-separated text (mm, 4 decimals), for the frame log."""
-        key = (int(digit), condition, level)
+        key = (symbol, condition, level)
         if key not in self._text:
-            _, frames = self.get(digit, condition, level)
+            _, frames = self.get(symbol, condition, level)
             self._text[key] = ["\t".join(f"{v:.4f}" for v in row) for row in frames.tolist()]
         return self._text[key]
 
@@ -111,9 +112,9 @@ def trial_frames(protocol: Protocol, layout: Layout) -> TrialFrames:
     return _trial_frames[key]
 
 
-def digit_choices(protocol: Protocol) -> tuple[int, ...]:
-    """The digits a response may name."""
-    return tuple(int(d) for d in protocol.digits)
+def symbol_choices(protocol: Protocol) -> tuple[Symbol, ...]:
+    """The symbols a response may name: those the protocol shows."""
+    return tuple(protocol.symbols)
 
 
 @dataclass
@@ -167,7 +168,7 @@ def replay(state: SessionState, device: Device, clock: Clock, frames: TrialFrame
         level = trial.level
         if state.adaptive is not None and trial.trial_type == "test":  # chosen when shown
             level = float(row[state.protocol.levels.column])
-        frame_times, setpoints = frames.get(trial.digit, trial.condition, level)
+        frame_times, setpoints = frames.get(trial.symbol, trial.condition, level)
         present(device, clock, frame_times, setpoints, period)
         device.heartbeat()  # asked after the stimulus, as the trial did
         clock.sleep_until(float(row["trial_end"]))
@@ -194,7 +195,7 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
     if trial.break_before and not responder.needs_real_clock:  # a person rests until ready
         clock.sleep(float(protocol.design.break_duration_s))
     level = trial.level
-    frame_times, setpoints = frames.get(trial.digit, trial.condition, level)
+    frame_times, setpoints = frames.get(trial.symbol, trial.condition, level)
     period = 1.0 / float(protocol.frame_rate_hz)
     responder.begin_trial(trial, clock.now(), clock)
     state.store.mark_started(trial.index)
@@ -203,21 +204,22 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
     asked = device.heartbeat_ask()  # after the last frame; answered while the person responds
     onset, offset, reports = shown.onset, shown.offset, shown.reports
     record = StimulusRecord(state.layout, trial.condition, frame_times + period, shown.displayed,
-                            digit_choices(protocol), onset, offset)
+                            symbol_choices(protocol), onset, offset)
     response = responder.respond(trial, record, clock, protocol.time_limit_s)
     duration = offset - onset
     rt = float(response.response_time_s)
-    correct = None if response.digit is None else int(response.digit == trial.digit)
+    correct = None if response.symbol is None else int(response.symbol == trial.symbol)
     trial_end = ceil_ms(clock.now() - origin + float(protocol.inter_trial_interval_s))
     device.heartbeat_check(asked)  # every board read the whole trial, or it is not stored
     latencies = [r.wire_done_at - (onset + frame_times[i]) for i, r in enumerate(reports)]
     n = len(frame_times)
     row = {
         "trial_index": trial.index, "trial_type": trial.trial_type, "block": trial.block,
-        "condition": trial.condition, "repetition": trial.repetition, "digit": trial.digit,
-        "response": response.digit, "correct": correct, "response_time": rt,
+        "condition": trial.condition, "repetition": trial.repetition,
+        protocol.symbol_set.column: trial.symbol,
+        "response": response.symbol, "correct": correct, "response_time": rt,
         "response_time_from_offset": rt - duration, "onset": onset - origin,
-        "stimulus_duration": duration, "timed_out": int(response.digit is None),
+        "stimulus_duration": duration, "timed_out": int(response.symbol is None),
         "device_fault": int(trial.index in state.faults),
         "rerun": int(trial.index in state.cut), "frames": n,
         "late_frames": shown.late, "median_wire_latency": float(np.median(latencies)),
@@ -229,7 +231,7 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
         update = state.adaptive.update(trial.block, correct) \
             if is_adaptive(trial, state.adaptive) else None
         row.update(row_fields(update))
-    text = frames.setpoint_text(trial.digit, trial.condition, level)
+    text = frames.setpoint_text(trial.symbol, trial.condition, level)
     log = [frame_line("stimulus", i, onset + frame_times[i], r, origin, text[i])
            for i, r in enumerate(reports)]
     flat = "\t".join(f"{v:.4f}" for v in state.layout.neutral_setpoints().tolist())

@@ -33,10 +33,11 @@ def make_responder(spec: str, *, seed: int, layout: Layout | None = None,
     """The responder for ``spec`` (see the module docstring); simulated ones use ``seed``."""
     if spec == "keypad":
         if protocol is not None and "keys" not in options:
-            options["keys"] = {protocol.key_for(d): d for d in protocol.digits}
+            options["keys"] = {protocol.key_for(s): s for s in protocol.symbols}
         return KeypadResponder(**options)
     if spec.startswith("scripted:") and len(spec) > len("scripted:"):
-        return ScriptedResponder(spec[len("scripted:"):])
+        return ScriptedResponder(spec[len("scripted:"):],
+                                 protocol.symbol_set if protocol is not None else None)
     if spec == "random":
         return RandomResponder(seed, **options)
     if spec == "observer":

@@ -2,7 +2,7 @@
 
 The runner plays a stimulus, then asks its :class:`Responder` for a :class:`Response`. The
 responder sees only what a participant could sense (:class:`StimulusRecord`: the displayed
-setpoints frame by frame and the digits to choose from), never the true digit.
+setpoints frame by frame and the symbols to choose from), never the true symbol.
 
 Times: ``Response.response_time_s`` is measured from stimulus onset on the runner's clock.
 Simulated responders advance a :class:`~crs_study.clock.VirtualClock` by their simulated
@@ -20,8 +20,9 @@ import numpy as np
 
 from crs_study.clock import Clock
 from crs_study.geometry.layout import Layout
-from crs_study.protocol import model as protocol_model
 from crs_study.protocol.plan import PlannedTrial
+from crs_study.stimuli.strokes import Symbol
+from crs_study.stimuli.symbol_set import PAUSE_KEYS as SET_PAUSE_KEYS
 
 
 @dataclass(frozen=True)
@@ -34,7 +35,7 @@ class StimulusRecord:
     condition : display condition (``pixel-only``, ``crs``, ...).
     frame_times : (n,) s from onset: when each row of ``setpoints`` was displayed.
     setpoints : (n, n_actuators) mm: the displayed setpoints (``device.displayed_setpoints``).
-    digit_choices : the digits a response may name.
+    symbol_choices : the symbols a response may name.
     onset_time : clock time of the stimulus onset (first frame commanded).
     offset_time : clock time of the stimulus offset (last frame commanded).
     """
@@ -43,7 +44,7 @@ class StimulusRecord:
     condition: str
     frame_times: np.ndarray
     setpoints: np.ndarray
-    digit_choices: tuple[int, ...]
+    symbol_choices: tuple[Symbol, ...]
     onset_time: float = 0.0
     offset_time: float = 0.0
 
@@ -55,19 +56,19 @@ class StimulusRecord:
 
 @dataclass(frozen=True)
 class Response:
-    """A participant's answer: the digit (None when timed out) and the time from onset (s)."""
+    """A participant's answer: the symbol (None when timed out) and the time from onset (s)."""
 
-    digit: int | None
+    symbol: Symbol | None
     response_time_s: float
 
     @property
     def timed_out(self) -> bool:
-        return self.digit is None
+        return self.symbol is None
 
 
-#: Keys that pause a session at the keypad (so never response keys): q, Q, Escape. Defined by
-#: the protocol model, which refuses them as answer keys; re-exported for the keypad.
-PAUSE_KEYS = protocol_model.PAUSE_KEYS
+#: Keys that pause a session at the keypad (so never response keys): q, Q, Escape. Defined
+#: with the stimulus sets, whose keys (and the protocol's) may not be them.
+PAUSE_KEYS = SET_PAUSE_KEYS
 
 
 class Responder(ABC):
@@ -128,11 +129,11 @@ def trial_rng(seed: int, trial_index: int) -> np.random.Generator:
 
 
 def respond_at(clock: Clock, stimulus: StimulusRecord, response_time_s: float,
-               time_limit_s: float | None, digit: int | None) -> Response:
+               time_limit_s: float | None, symbol: Symbol | None) -> Response:
     """Advance ``clock`` to ``onset + response_time_s`` and answer, honouring the time limit.
 
     A simulated response later than ``offset + time_limit_s`` becomes a time-out at that
-    deadline (digit None, response time = the deadline from onset).
+    deadline (symbol None, response time = the deadline from onset).
     """
     if time_limit_s is not None:
         deadline = stimulus.duration_s + time_limit_s
@@ -140,4 +141,4 @@ def respond_at(clock: Clock, stimulus: StimulusRecord, response_time_s: float,
             clock.sleep_until(stimulus.onset_time + deadline)
             return Response(None, deadline)
     clock.sleep_until(stimulus.onset_time + response_time_s)
-    return Response(digit, response_time_s)
+    return Response(symbol, response_time_s)

@@ -8,9 +8,10 @@ response before the stimulus offset has a negative response time from offset), a
 times are exact to the millisecond on the same monotonic clock the runner uses
 (:class:`~crs_study.clock.RealClock`).
 
-Keys: the protocol's response keys (by default the digits ``0``-``9``) answer; ``q`` (or
-Escape) asks for a safe pause (as Ctrl-C); anything else is ignored. At an experimenter
-prompt, Space or Enter continues.
+Keys: the protocol's response keys answer (each names a symbol of its stimulus set: the keys
+``0``-``9`` for digits, the letters for the letter set; without a protocol, the default set's
+keys); ``q`` (or Escape) asks for a safe pause (as Ctrl-C); anything else is ignored. At an
+experimenter prompt, Space or Enter continues.
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ from crs_study.clock import Clock
 from crs_study.errors import ConfigError, SessionError
 from crs_study.protocol.plan import PlannedTrial
 from crs_study.session.responders.base import PAUSE_KEYS, Responder, Response, StimulusRecord
+from crs_study.stimuli.sets import default_set
+from crs_study.stimuli.strokes import Symbol
 
 QUIT_KEYS = PAUSE_KEYS
 CONTINUE_KEYS = frozenset({" ", "\r", "\n"})
@@ -46,8 +49,9 @@ class KeypadResponder(Responder):
     simulated = False
 
     def __init__(self, fd: int | None = None, output: TextIO | None = None,
-                 poll_s: float = 0.02, keys: dict[str, int] | None = None) -> None:
-        self.keys = dict(keys) if keys is not None else {str(d): d for d in range(10)}
+                 poll_s: float = 0.02, keys: dict[str, Symbol] | None = None) -> None:
+        self.keys = dict(keys) if keys is not None else \
+            {key: symbol for symbol, key in default_set().keys.items()}
         clash = sorted(set(self.keys) & QUIT_KEYS)
         if clash:
             raise ConfigError(f"keypad: response key {clash[0]!r} is also the pause key; "
@@ -146,7 +150,7 @@ class KeypadResponder(Responder):
         self.open()
         onset = stimulus.onset_time if self._onset is None else self._onset
         deadline = None if time_limit_s is None else stimulus.offset_time + time_limit_s
-        choices = set(stimulus.digit_choices)
+        choices = set(stimulus.symbol_choices)
         while True:
             key = self._next_key(deadline)
             if key is None:
@@ -156,20 +160,20 @@ class KeypadResponder(Responder):
                 continue
             if char in QUIT_KEYS:
                 raise PauseRequested()
-            digit = self.keys.get(char)
-            if digit is not None and digit in choices:
-                return Response(digit, when - onset)
+            symbol = self.keys.get(char)
+            if symbol is not None and symbol in choices:
+                return Response(symbol, when - onset)
 
     def end_trial(self) -> None:
         self._onset = None
 
     def feedback(self, trial: PlannedTrial, response: Response, correct: bool) -> None:
-        if response.digit is None:
-            self._say(f"  no answer in time: it was {trial.digit}")
+        if response.symbol is None:
+            self._say(f"  no answer in time: it was {trial.symbol}")
         elif correct:
             self._say("  correct")
         else:
-            self._say(f"  {response.digit} is wrong: it was {trial.digit}")
+            self._say(f"  {response.symbol} is wrong: it was {trial.symbol}")
 
     def prompt(self, text: str, clock: Clock) -> None:
         """Show an experimenter prompt and wait for Space or Enter (q pauses)."""

@@ -1,7 +1,7 @@
-"""A simulated participant who feels the displayed surface and names the closest digit.
+"""A simulated participant who feels the displayed surface and names the closest symbol.
 
 The perceptual observer (:class:`PerceptualObserver`) answers a trial from what a hand on the
-display could sense, never from the true digit:
+display could sense, never from the true symbol (of any stimulus set: digits, letters, ...):
 
 1. **Surface.** Each sensed frame's displayed setpoints go through the display model of the
    trial's condition (:func:`crs_study.display.get_model`): ``pixel-only`` meets the
@@ -10,7 +10,7 @@ display could sense, never from the true digit:
    paper's pixel-only theory, is a staircase that a fabric never shows.) Every other
    condition mounts the skeleton: the compressed ``beam`` network. Both are evaluated on a
    square grid (``grid_spacing_mm``) over the sensing window (``sense_radius_mm`` around the
-   digit's placement).
+   symbol's placement).
 2. **Skin.** Receptor noise (white, ``noise_mm`` standard deviation, in mm of indentation) is
    added and the result is blurred by a Gaussian of ``skin_blur_mm`` (the skin's spatial
    spread): sensed = G * (z + e). G * z is noise-free and cached per frame; G * e is drawn
@@ -19,8 +19,9 @@ display could sense, never from the true digit:
    Elsewhere the peak is the centroid of the part of the sensed surface above
    ``peak_fraction`` of its maximum (a soft argmax: sub-grid, and between two equal pixels
    it lands between them, as a finger would judge it).
-4. **Decision.** The peak path (active frames in order) and each digit's template (the bump
-   centre path of that digit under the protocol, drawn frames only) are resampled to
+4. **Decision.** The peak path (active frames in order) and each symbol's template (the bump
+   centre path of that symbol under the protocol, drawn frames only: the set's strokes as
+   the protocol sizes and moves them) are resampled to
    ``path_points`` points at equal fractions of their duration and centred on their means;
    the distance d_k is the root-mean-square gap (mm). The choice is drawn from
    p_k = (1 - lapse) softmax(-d_k / T) + lapse / n (Luce choice with lapses), with the
@@ -30,10 +31,10 @@ display could sense, never from the true digit:
    ln n (0 certain, 1 guessing): uncertain decisions are slower, errors slower on average.
    A response past the time limit (from offset) becomes a time-out.
 
-**Levels** (protocols with ``[levels]``). The templates are per level: the template of digit
+**Levels** (protocols with ``[levels]``). The templates are per level: the template of symbol
 k at a trial's level is the bump path of k drawn at that level (the observer knows how big
-and how fast the digits of a trial are, as a participant soon learns, but never which digit).
-Distances stay in mm, so nothing is rescaled: a bigger digit spreads its templates further
+and how fast the symbols of a trial are, as a participant soon learns, but never which one).
+Distances stay in mm, so nothing is rescaled: a bigger symbol spreads its templates further
 apart while the sensed peak's noise (receptor noise, pixel quantisation) stays the same in
 mm, which makes it easier to identify (8 simulated participants on
 protocols/digit_size_psychometric.toml: pixel-only 18 % at 0.3 pitch to 81 % at 1.5, CRS 28 %
@@ -45,7 +46,7 @@ the path is sampled more coarsely, the holds and pen lifts take a larger share o
 displayed bump lag and cut the corners of fast strokes. The effect is weak: with 16 sensed
 frames a trial a slow stroke gives no more samples than a fast one, and the skin has no
 temporal blur here (8 participants, 10 to 160 mm/s: pixel-only 44 % to 41 %, CRS 68 % to 79 %
-with no trend). The sensing window grows when needed to hold the largest digit (``sense_radius_mm``
+with no trend). The sensing window grows when needed to hold the largest symbol (``sense_radius_mm``
 is a minimum). In an adaptive protocol (``[adaptive]``) a test trial carries the level its
 block's procedure chose (:func:`crs_study.session.adaptive.choose`), one of the levels the
 protocol lists, so the observer answers it as any other level: 8 simulated participants on
@@ -56,7 +57,7 @@ Randomness comes from ``np.random.default_rng([seed, trial.index])`` only, so a 
 answers exactly as an uninterrupted one. Cost: at most ``max_sensed_frames`` frames a trial are
 sensed (spread evenly); display models linear in the setpoints (``linear``, ``nearest``) are
 reduced to one matrix product per frame, and noise-free sensed surfaces are cached per
-displayed frame, so repeated presentations of a digit cost only the noise and the decision.
+displayed frame, so repeated presentations of a symbol cost only the noise and the decision.
 
 Calibration: the defaults were chosen (noise, peak fraction and temperature swept on the
 displayed frames of the simulated device) so that the shipped protocol on the published 2D
@@ -93,6 +94,7 @@ from crs_study.session.responders.base import (
     trial_rng,
 )
 from crs_study.stimuli.stimulus import make_stimulus, placement_centre
+from crs_study.stimuli.strokes import Symbol
 
 #: Display model per condition; conditions not listed use the skeleton model ``beam``.
 DEFAULT_MODELS = {"pixel-only": "linear"}
@@ -182,7 +184,7 @@ _MODELS: dict[tuple, Any] = {}
 
 
 class PerceptualObserver(Responder):
-    """Senses the displayed surface, reconstructs the peak's path, names the closest digit."""
+    """Senses the displayed surface, reconstructs the peak's path, names the closest symbol."""
 
     name = "observer"
     simulated = True
@@ -212,7 +214,7 @@ class PerceptualObserver(Responder):
         self._gx, self._gy = np.meshgrid(cx + axis, cy + axis)
         self._points = np.column_stack([self._gx.ravel(), self._gy.ravel()])
         self._sigma_cells = o.skin_blur_mm / o.grid_spacing_mm
-        self._templates: dict[tuple[int, float | None], np.ndarray] = {}
+        self._templates: dict[tuple[Symbol, float | None], np.ndarray] = {}
         self.last_decision: dict[str, Any] = {}
 
     # -- sensing ---------------------------------------------------------------------------
@@ -301,11 +303,11 @@ class PerceptualObserver(Responder):
 
     # -- deciding --------------------------------------------------------------------------
 
-    def template(self, digit: int, level: float | None = None) -> np.ndarray:
-        """A digit's bump-centre path (drawn frames) at ``level``, resampled and centred."""
-        key = (digit, level)
+    def template(self, symbol: Symbol, level: float | None = None) -> np.ndarray:
+        """A symbol's bump-centre path (drawn frames) at ``level``, resampled and centred."""
+        key = (symbol, level)
         if key not in self._templates:
-            stim = make_stimulus(self.protocol, self.layout, digit, level)
+            stim = make_stimulus(self.protocol, self.layout, symbol, level)
             self._templates[key] = _normalise(stim.centres_mm[stim.drawn],
                                               self.options.path_points)
         return self._templates[key]
@@ -330,7 +332,7 @@ class PerceptualObserver(Responder):
                 time_limit_s: float | None) -> Response:
         o = self.options
         rng = trial_rng(self.seed, trial.index)
-        choices = tuple(stimulus.digit_choices)
+        choices = tuple(stimulus.symbol_choices)
         path = self.peak_path(stimulus, rng)
         p, d = self.choice_probabilities(path, choices, getattr(trial, "level", None))
         u = rng.random()
@@ -348,14 +350,14 @@ class PerceptualObserver(Responder):
 
 def _largest_half_diagonal(protocol: Protocol, layout: Layout) -> float:
     """How far (mm) the drawn bump centre gets from the placement point, over the protocol's
-    digits and levels: the drawn paths themselves, so the window holds the widest digit
-    whatever the strokes (a box of digit_width x digit_height pitch is the digits' *average*
-    size, crs_study/stimuli/digits.py, and the widest digits exceed it)."""
+    symbols and levels: the drawn paths themselves, so the window holds the widest symbol
+    whatever the strokes (the protocol's width x height is the symbols' *average* size,
+    crs_study/stimuli/strokes.py, and the widest symbols exceed it)."""
     centre = np.asarray(placement_centre(protocol.stimulus, layout), dtype=float)
     reach = 0.0
     for level in getattr(protocol, "level_values", (None,)):
-        for digit in protocol.digits:
-            stim = make_stimulus(protocol, layout, digit, level)
+        for symbol in protocol.symbols:
+            stim = make_stimulus(protocol, layout, symbol, level)
             drawn = stim.centres_mm[stim.drawn] - centre
             reach = max(reach, float(np.hypot(drawn[:, 0], drawn[:, 1]).max(initial=0.0)))
     return reach

@@ -1,6 +1,6 @@
-"""A simulated participant who guesses: a uniform digit and a lognormal response time.
+"""A simulated participant who guesses: a uniform symbol and a lognormal response time.
 
-The baseline against which the perceptual observer is judged (chance = 1 / number of digits).
+The baseline against which the perceptual observer is judged (chance = 1 / number of symbols).
 Response time from stimulus offset is lognormal: ``rt_offset = median_s * exp(sigma * z)``,
 z standard normal, so its median is ``median_s``; the time from onset adds the stimulus
 duration. Draws come from ``default_rng([seed, trial.index])``: a resumed session repeats an
@@ -22,7 +22,7 @@ from crs_study.session.responders.base import (
 
 
 class RandomResponder(Responder):
-    """Uniform digit among the choices, lognormal response time after the stimulus."""
+    """Uniform symbol among the choices, lognormal response time after the stimulus."""
 
     name = "random"
 
@@ -38,7 +38,8 @@ class RandomResponder(Responder):
     def respond(self, trial: PlannedTrial, stimulus: StimulusRecord, clock: Clock,
                 time_limit_s: float | None) -> Response:
         rng = trial_rng(self.seed, trial.index)
-        digit = int(rng.choice(stimulus.digit_choices))
+        choices = stimulus.symbol_choices
+        symbol = choices[int(rng.choice(len(choices)))]  # the draw of rng.choice(choices)
         after_offset = self.median_s * float(rng.lognormal(0.0, self.sigma))
         return respond_at(clock, stimulus, stimulus.duration_s + after_offset, time_limit_s,
-                          digit)
+                          symbol)
