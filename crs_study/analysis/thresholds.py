@@ -74,9 +74,11 @@ def design_from_protocol(text: str) -> AdaptiveDesign | None:
     stair = table.get("staircase") or {}
     rate = rule_target(stair.get("rule")) or table.get("target_rate")
     parameter = table["parameter"]
-    column = {"digit_height_pitch": "digit_height", "stroke_speed_mm_s": "stroke_speed"}
-    return AdaptiveDesign(table["procedure"], column[parameter], table["scale"], float(rate),
-                          1 if parameter == "digit_height_pitch" else -1)
+    # the size is spelled by the stimulus set: digit_height_pitch, symbol_height_pitch
+    column = parameter.removesuffix("_pitch") if parameter.endswith("_height_pitch") \
+        else "stroke_speed"
+    return AdaptiveDesign(table["procedure"], column, table["scale"], float(rate),
+                          1 if parameter.endswith("_height_pitch") else -1)
 
 
 @dataclass(frozen=True)
