@@ -25,7 +25,7 @@ Every error is a one-line :class:`~crs_study.errors.ProtocolError` carrying the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal, get_args
 
 from crs_study._toml import integer_problem, number_problem, string_problem
@@ -53,6 +53,8 @@ MAX_ADAPTIVE_LEVELS = 40
 #: writes 6), so a level read back from the file is the level shown.
 LEVEL_DECIMALS = 6
 MAX_TRIALS = 1000
+#: The range of ``width_to_height`` (symbol width over height; ``[levels]`` shares it).
+WIDTH_TO_HEIGHT_RANGE = (0.05, 20.0)
 
 
 def _fail(key_path: str, problem: str | None) -> None:
@@ -110,6 +112,10 @@ class StaircaseSpec:
     @property
     def n_down(self) -> int:
         return RULE_DOWN[self.rule]
+
+
+def _keys(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in fields(cls))
 
 
 @dataclass(frozen=True)
@@ -216,6 +222,37 @@ class AdaptiveSpec:
                       f"the harder one, {easier:.4g} levels for steps[{i}] = {step}; expected "
                       "a whole number (e.g. target 0.75 with any step, 0.8 with any step)")
 
+    def check_protocol(self, ordering: str, repetitions: int, parameters: tuple[str, ...],
+                       size_parameter: str, n_symbols: int, plural: str) -> None:
+        """What ``[adaptive]`` asks of the protocol's other tables: blocked conditions, one
+        block (one track) each, a parameter its stimulus set spells, a target above chance,
+        the symbols' shape when their height adapts (the width stays in range)."""
+        if ordering != "blocked":
+            _fail("design.ordering", "an adaptive procedure runs one track per block (the "
+                  f"skeleton is mounted by hand): expected \"blocked\", got {ordering!r}")
+        if repetitions != 1:
+            _fail("design.repetitions", "with [adaptive], each condition's block is one track "
+                  f"of adaptive.trials trials: expected 1, got {repetitions!r}")
+        _fail("adaptive.parameter", string_problem(self.parameter, choices=parameters))
+        chance = 1.0 / n_symbols
+        if self.rate <= chance:
+            key = "adaptive.target_rate" if self.target_rate is not None else \
+                "adaptive.staircase.rule"
+            _fail(key, f"the target rate {self.rate:.4g} is at or below chance (1 / "
+                  f"{n_symbols} {plural} = {chance:.4g}); expected a rate above it")
+        ratio = self.width_to_height
+        if self.parameter == size_parameter:
+            _fail("adaptive.width_to_height", number_problem(
+                ratio, minimum=WIDTH_TO_HEIGHT_RANGE[0], maximum=WIDTH_TO_HEIGHT_RANGE[1]))
+            low, high = NUMBER_RANGES["symbol_width_pitch"][:2]
+            for key, level in (("min", self.minimum), ("max", self.maximum)):
+                if not low <= level * ratio <= high:
+                    _fail(f"adaptive.{key}", f"the width {level * ratio:g} pitch "
+                          f"(width_to_height {ratio:g} x {level:g}) is outside {low:g}-{high:g}")
+        elif ratio is not None:
+            _fail("adaptive.width_to_height", f"only used with parameter = "
+                  f"\"{size_parameter}\", got parameter = {self.parameter!r}")
+
     def _level_problem(self, value: object) -> str | None:
         return number_problem(value, minimum=self.minimum, maximum=self.maximum)
 
@@ -308,3 +345,13 @@ class AdaptiveSpec:
     def shown_levels(self) -> tuple[float, ...]:
         """Every level a session can show, ascending: the grid and the practice level."""
         return tuple(sorted(set(self.grid()) | {round_level(self.practice)}))
+
+
+#: The keys of a protocol's ``[adaptive]`` table and its sub-tables (the protocol model's
+#: ``table_keys``).
+ADAPTIVE_TABLE_KEYS: dict[str, tuple[str, ...]] = {
+    "adaptive": ("parameter", "procedure", "trials", "min", "max", "scale", "levels",
+                 "target_rate", "practice_level", "width_to_height", "staircase", "quest_plus"),
+    "adaptive.staircase": _keys(StaircaseSpec),
+    "adaptive.quest_plus": _keys(QuestPlusSpec),
+}

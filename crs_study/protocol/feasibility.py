@@ -55,7 +55,7 @@ from crs_study.errors import (
     RenderError,
 )
 from crs_study.geometry.layout import Layout
-from crs_study.protocol.model import Protocol, consent_form_path, level_key
+from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.quality.mechanics import StimulusLimits, layout_delta, stimulus_limits
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
@@ -196,6 +196,19 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
         found += [Finding("ok", f.key_path, f"{levels.parameter} = {value:g}: {f.message}",
                           f.values) for f in lines if f.message not in shared]
     return found
+
+
+def level_key(protocol: Protocol, i: int, value: float) -> str:
+    """The key a finding at the protocol's ``i``-th level ``value`` names:
+    ``levels.values[i]``, or for an adaptive protocol the bound nearer to it (or
+    ``adaptive.practice_level``)."""
+    spec = protocol.adaptive
+    if spec is None:
+        return f"levels.values[{i}]"
+    if spec.practice_level is not None and value == spec.practice and value not in spec.grid():
+        return "adaptive.practice_level"
+    middle = spec.from_axis(sum(spec.axis_bounds) / 2)
+    return "adaptive.max" if value >= middle else "adaptive.min"
 
 
 def _consent(protocol: Protocol) -> Finding:

@@ -3,10 +3,8 @@
 A :class:`Protocol` holds one table of the file per part: ``[study]`` (its own fields),
 ``[stimulus]`` (:class:`~crs_study.stimuli.stimulus.StimulusSpec`, from the stimulus layer),
 ``[conditions]``, ``[design]`` (:class:`DesignSpec`), ``[responses]`` (:class:`ResponseSpec`)
-and the optional ``[levels]`` (:class:`LevelSpec`) or ``[adaptive]``
-(:class:`~crs_study.adaptive.spec.AdaptiveSpec`, from the adaptive layer: a procedure
-chooses each test trial's level; ``Protocol.levels`` then lists every level it can show, so
-what is checked or drawn per level covers them). Every dataclass checks its fields on
+and the optional ``[levels]`` (:class:`LevelSpec`) or ``[adaptive]`` (an ``AdaptiveSpec``;
+``levels`` then lists every level its procedure can show). Every dataclass checks its fields on
 construction: a wrong type or a value out of range is a one-line
 :class:`~crs_study.errors.ProtocolError` carrying the protocol key at fault (``key_path``),
 whether the value came from a file (:mod:`crs_study.protocol.loader` adds the file and the
@@ -30,7 +28,7 @@ from pathlib import Path
 from typing import Any, Literal, get_args
 
 from crs_study._toml import integer_problem, number_problem, string_problem
-from crs_study.adaptive.spec import AdaptiveSpec, QuestPlusSpec, StaircaseSpec
+from crs_study.adaptive.spec import ADAPTIVE_TABLE_KEYS, WIDTH_TO_HEIGHT_RANGE, AdaptiveSpec
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import Layout, load_layout
 from crs_study.paths import shipped_file
@@ -103,8 +101,6 @@ def level_parameters(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, str, f
 LEVEL_PARAMETERS = level_parameters()
 #: Most levels one protocol may declare (each multiplies the number of trials).
 MAX_LEVELS = 20
-#: The range of ``levels.width_to_height`` (symbol width over height).
-WIDTH_TO_HEIGHT_RANGE = (0.05, 20.0)
 
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
@@ -429,65 +425,23 @@ class Protocol:
 
 
 def adaptive_levels(spec: AdaptiveSpec, set_name: str = DEFAULT_SET) -> LevelSpec:
-    """Every level an adaptive procedure can show, as the :class:`LevelSpec` the rest of the
-    pipeline reads (feasibility, stimulus fingerprint, frames, the observer). Its values are
-    the adaptive spec's (checked there, up to
-    :data:`~crs_study.adaptive.spec.MAX_ADAPTIVE_LEVELS` of them), so ``LevelSpec``'s own
-    checks (at most :data:`MAX_LEVELS` levels of a crossed design) are not run."""
+    """Every level an adaptive procedure can show, as the :class:`LevelSpec` the pipeline reads
+    (checked by the adaptive spec, so not by ``LevelSpec``: it may hold over MAX_LEVELS)."""
     levels = object.__new__(LevelSpec)
     _freeze(levels, parameter=spec.parameter, values=spec.shown_levels(),
             width_to_height=spec.width_to_height, set_name=set_name)
     return levels
 
 
-def level_key(protocol: Protocol, i: int, value: float) -> str:
-    """The key a finding at the protocol's ``i``-th level ``value`` names:
-    ``levels.values[i]``, or for an adaptive protocol the bound nearer to it (or
-    ``adaptive.practice_level``)."""
-    spec = protocol.adaptive
-    if spec is None:
-        return f"levels.values[{i}]"
-    if spec.practice_level is not None and value == spec.practice and value not in spec.grid():
-        return "adaptive.practice_level"
-    middle = spec.from_axis(sum(spec.axis_bounds) / 2)
-    return "adaptive.max" if value >= middle else "adaptive.min"
-
-
 def _check_adaptive(protocol: Protocol) -> None:
-    """What ``[adaptive]`` asks of the other tables: blocked conditions, one block each (its
-    own track), a target above chance, the digits' shape when their height adapts."""
-    spec, design = protocol.adaptive, protocol.design
-    if not isinstance(spec, AdaptiveSpec):
-        _fail("adaptive", f"expected an adaptive spec, got {spec!r}")
-    if design.ordering != "blocked":
-        _fail("design.ordering", "an adaptive procedure runs one track per block (the "
-              f"skeleton is mounted by hand): expected \"blocked\", got {design.ordering!r}")
-    if design.repetitions != 1:
-        _fail("design.repetitions", "with [adaptive], each condition's block is one track of "
-              f"adaptive.trials trials: expected 1, got {design.repetitions!r}")
-    parameters = level_parameters(protocol.stimulus.set_name)
-    _fail("adaptive.parameter", string_problem(spec.parameter, choices=tuple(parameters)))
-    chance = protocol.chance_rate
-    if spec.rate <= chance:
-        key = "adaptive.target_rate" if spec.target_rate is not None else \
-            "adaptive.staircase.rule"
-        _fail(key, f"the target rate {spec.rate:.4g} is at or below chance (1 / "
-              f"{len(protocol.symbols)} {protocol.symbol_set.plural} = {chance:.4g}); expected "
-              "a rate above it")
-    ratio = spec.width_to_height
-    size = LevelSpec.size_parameter(protocol.stimulus.set_name)
-    if spec.parameter == size:
-        low_ratio, high_ratio = WIDTH_TO_HEIGHT_RANGE
-        _fail("adaptive.width_to_height", number_problem(ratio, minimum=low_ratio,
-                                                         maximum=high_ratio))
-        low, high = NUMBER_RANGES["symbol_width_pitch"][:2]
-        for key, level in (("min", spec.minimum), ("max", spec.maximum)):
-            if not low <= level * ratio <= high:
-                _fail(f"adaptive.{key}", f"the width {level * ratio:g} pitch (width_to_height "
-                      f"{ratio:g} x {level:g}) is outside {low:g}-{high:g}")
-    elif ratio is not None:
-        _fail("adaptive.width_to_height", f"only used with parameter = \"{size}\", got "
-              f"parameter = {spec.parameter!r}")
+    """What ``[adaptive]`` asks of the other tables
+    (:meth:`~crs_study.adaptive.spec.AdaptiveSpec.check_protocol`)."""
+    if not isinstance(protocol.adaptive, AdaptiveSpec):
+        _fail("adaptive", f"expected an adaptive spec, got {protocol.adaptive!r}")
+    set_name = protocol.stimulus.set_name
+    protocol.adaptive.check_protocol(
+        protocol.design.ordering, protocol.design.repetitions, tuple(level_parameters(set_name)),
+        LevelSpec.size_parameter(set_name), len(protocol.symbols), protocol.symbol_set.plural)
 
 
 def table_keys(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, ...]]:
@@ -508,11 +462,7 @@ def table_keys(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, ...]]:
         "design": keys(DesignSpec),
         "responses": keys(ResponseSpec),
         "levels": keys(LevelSpec),
-        "adaptive": ("parameter", "procedure", "trials", "min", "max", "scale", "levels",
-                     "target_rate", "practice_level", "width_to_height", "staircase",
-                     "quest_plus"),
-        "adaptive.staircase": tuple(f.name for f in fields(StaircaseSpec)),
-        "adaptive.quest_plus": tuple(f.name for f in fields(QuestPlusSpec)),
+        **ADAPTIVE_TABLE_KEYS,
     }
 
 

@@ -22,8 +22,8 @@ import warnings
 
 from crs_study._toml_lines import find_line
 from crs_study.errors import CrsStudyWarning
-from crs_study.protocol.feasibility import Finding
-from crs_study.protocol.model import Protocol, level_key
+from crs_study.protocol.feasibility import Finding, level_key
+from crs_study.protocol.model import Protocol
 from crs_study.protocol.plan import make_plan, trial_seconds
 from crs_study.stimuli.stimulus import make_stimulus
 
