@@ -270,3 +270,27 @@ class Section:
         extra = sorted(set(self.data) - self._taken - (self.keys or set()))
         if extra:
             raise self._unknown(extra[0], self.keys or self._taken)
+
+
+def one_line_problem(value: Any) -> str | None:
+    """Why ``value`` is not a non-empty one-line string (None when it is)."""
+    problem = string_problem(value)
+    if problem is None and (not value.strip() or "\n" in value):
+        problem = f"expected a non-empty one-line string, got {value!r}"
+    return problem
+
+
+#: Longest file name (one path component) and path every common file system takes (NAME_MAX,
+#: PATH_MAX on Linux); a longer value can name no file.
+NAME_MAX, PATH_MAX = 255, 4096
+
+
+def path_problem(value: Any) -> str | None:
+    """Why ``value`` is not a one-line string that can name a file (None when it is)."""
+    problem = one_line_problem(value)
+    if problem is None:
+        longest = max(len(part.encode("utf-8", "surrogatepass")) for part in value.split("/"))
+        if longest > NAME_MAX or len(value.encode("utf-8", "surrogatepass")) > PATH_MAX:
+            problem = (f"expected a file name of at most {NAME_MAX} bytes a component and "
+                       f"{PATH_MAX} in all, got {len(value)} characters ({value[:40]!r}...)")
+    return problem
