@@ -82,6 +82,10 @@ def make_dirs(directory: str | Path, mode: int = 0o777) -> None:
     missing = []
     path = Path(directory)
     while not path.exists():
+        if path.is_symlink():  # exists() follows links: a loop or a missing target
+            raise NotADirectoryError(errno.ENOTDIR, "a symbolic link that leads nowhere (a "
+                                     "loop, or its target is missing); expected a folder",
+                                     str(path))
         missing.append(path)
         path = path.parent
     for path in reversed(missing):

@@ -40,6 +40,9 @@ CLOSE_MATCH_CUTOFF = 0.6
 #: practice_trials and practice_in: 0.77; digit_height_pitch and digit_width_pitch: 0.74, and
 #: 0.80 one way round). One edit of a key of 5 or more characters stays at 0.8 or above.
 MISSPELLING_CUTOFF = 0.8
+#: What a file nested deeper than Python's recursion limit lets tomllib parse is called.
+TOO_DEEP = ("not valid here: arrays or tables nested too deeply to read (no file of ours "
+            "nests more than a few levels)")
 
 
 def read_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[str, Any]:
@@ -55,6 +58,8 @@ def read_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise error(f"{path}: {TOO_DEEP}") from None
 
 
 def parse_toml(text: str, source: str | Path, error: type[ConfigError] = ConfigError
@@ -65,6 +70,8 @@ def parse_toml(text: str, source: str | Path, error: type[ConfigError] = ConfigE
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise syntax_error(error, source, exc, text) from None
+    except RecursionError:  # tomllib recurses once per level of nesting
+        raise error(f"{source}: {TOO_DEEP}") from None
 
 
 def closest_key(key: str, candidates: Iterable[str]) -> str | None:
@@ -92,21 +99,30 @@ def unknown_key_reason(key: str, valid: Iterable[str]) -> str:
             + (f"; did you mean {guess!r}?" if guess else ""))
 
 
+def shown(value: Any, limit: int = 120) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a 5000-deep array is named, not echoed)."""
+    try:
+        text = repr(value)
+    except RecursionError:
+        text = f"<{type(value).__name__} nested too deeply to show>"
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
 def number_problem(value: Any, *, minimum: float | None = None, maximum: float | None = None,
                    exclusive_minimum: bool = False) -> str | None:
     """Why ``value`` is not a finite number in range (None when it is)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
-        return f"expected a number, got {value!r}"
+        return f"expected a number, got {shown(value)}"
     value = float(value)
     if not math.isfinite(value):
-        return f"expected a finite number, got {value!r}"
+        return f"expected a finite number, got {shown(value)}"
     if minimum is not None:
         if exclusive_minimum and value <= minimum:
-            return f"expected a number > {minimum:g}, got {value!r}"
+            return f"expected a number > {minimum:g}, got {shown(value)}"
         if not exclusive_minimum and value < minimum:
-            return f"expected a number >= {minimum:g}, got {value!r}"
+            return f"expected a number >= {minimum:g}, got {shown(value)}"
     if maximum is not None and value > maximum:
-        return f"expected a number <= {maximum:g}, got {value!r}"
+        return f"expected a number <= {maximum:g}, got {shown(value)}"
     return None
 
 
@@ -114,22 +130,22 @@ def integer_problem(value: Any, *, minimum: int | None = None, maximum: int | No
                     ) -> str | None:
     """Why ``value`` is not a whole number in range (None when it is)."""
     if isinstance(value, bool) or not isinstance(value, int):
-        return f"expected a whole number, got {value!r}"
+        return f"expected a whole number, got {shown(value)}"
     if minimum is not None and value < minimum:
-        return f"expected a whole number >= {minimum}, got {value!r}"
+        return f"expected a whole number >= {minimum}, got {shown(value)}"
     if maximum is not None and value > maximum:
-        return f"expected a whole number <= {maximum}, got {value!r}"
+        return f"expected a whole number <= {maximum}, got {shown(value)}"
     return None
 
 
 def string_problem(value: Any, *, choices: Iterable[str] | None = None) -> str | None:
     """Why ``value`` is not a string (among ``choices``, when given); None when it is."""
     if not isinstance(value, str):
-        return f"expected a string, got {value!r}"
+        return f"expected a string, got {shown(value)}"
     if choices is not None:
         options = list(choices)
         if value not in options:
-            return f"expected one of {options}, got {value!r}"
+            return f"expected one of {options}, got {shown(value)}"
     return None
 
 
@@ -234,13 +250,13 @@ class Section:
     def boolean(self, key: str, default: Any = ...) -> bool:
         value = self.raw(key, default)
         if not isinstance(value, bool):
-            raise self.fail(key, f"expected true or false, got {value!r}")
+            raise self.fail(key, f"expected true or false, got {shown(value)}")
         return value
 
     def array(self, key: str, default: Any = ...) -> list[Any]:
         value = self.raw(key, default)
         if not isinstance(value, list):
-            raise self.fail(key, f"expected an array, got {value!r}")
+            raise self.fail(key, f"expected an array, got {shown(value)}")
         return value
 
     def table(self, key: str, default: Any = ..., *, keys: Iterable[str] | None = None
@@ -254,3 +270,27 @@ class Section:
         extra = sorted(set(self.data) - self._taken - (self.keys or set()))
         if extra:
             raise self._unknown(extra[0], self.keys or self._taken)
+
+
+def one_line_problem(value: Any) -> str | None:
+    """Why ``value`` is not a non-empty one-line string (None when it is)."""
+    problem = string_problem(value)
+    if problem is None and (not value.strip() or "\n" in value):
+        problem = f"expected a non-empty one-line string, got {value!r}"
+    return problem
+
+
+#: Longest file name (one path component) and path every common file system takes (NAME_MAX,
+#: PATH_MAX on Linux); a longer value can name no file.
+NAME_MAX, PATH_MAX = 255, 4096
+
+
+def path_problem(value: Any) -> str | None:
+    """Why ``value`` is not a one-line string that can name a file (None when it is)."""
+    problem = one_line_problem(value)
+    if problem is None:
+        longest = max(len(part.encode("utf-8", "surrogatepass")) for part in value.split("/"))
+        if longest > NAME_MAX or len(value.encode("utf-8", "surrogatepass")) > PATH_MAX:
+            problem = (f"expected a file name of at most {NAME_MAX} bytes a component and "
+                       f"{PATH_MAX} in all, got {len(value)} characters ({value[:40]!r}...)")
+    return problem

@@ -96,6 +96,26 @@ def make_plan(protocol: ProtocolSource, participant: str, session: int = 1,
     return plan_of(load_protocol(protocol), participant, session, counterbalance)
 
 
+def adaptive_summary(spec) -> dict:
+    """What ``validate`` says of an ``[adaptive]`` table: procedure, trials, level range."""
+    details = {"procedure": spec.procedure, "parameter": spec.parameter,
+               "trials_per_block": spec.trials, "min": spec.minimum, "max": spec.maximum,
+               "scale": spec.scale, "grid": list(spec.grid()), "target_rate": spec.rate,
+               "practice_level": spec.practice}
+    if spec.staircase is not None:
+        stair = spec.staircase
+        details["staircase"] = {"rule": stair.rule, "start": stair.start,
+                                "steps": list(stair.steps),
+                                "easier_step_ratio": spec.easier_ratio,
+                                "stop_reversals": stair.stop_reversals,
+                                "estimate_reversals": stair.estimate_reversals}
+    if spec.quest_plus is not None:
+        quest = spec.quest_plus
+        details["quest_plus"] = {"thresholds": quest.thresholds, "slopes": list(quest.slopes),
+                                 "lapse_rates": list(quest.lapse_rates)}
+    return details
+
+
 def validate(protocol: ProtocolSource, *, participant: str = "example", session: int = 1,
              counterbalance: int = 0) -> ProtocolSummary:
     """Check a protocol strictly (every key, then against its device) and summarise the plan
@@ -128,9 +148,9 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
             "units": protocol.levels.units, "values": list(protocol.levels.values),
             "width_to_height": protocol.levels.width_to_height,
             "per_level": {f"{v:g}": {
-                "per_condition": {c: {"practice": plan.count("practice", c, v),
-                                      "test": plan.count("test", c, v)}
-                                  for c in protocol.conditions},
+                "per_condition": None if protocol.adaptive is not None else  # chosen live
+                {c: {"practice": plan.count("practice", c, v), "test": plan.count("test", c, v)}
+                 for c in protocol.conditions},
                 "frames_per_trial": frame_range([stimuli[(d, v)].n_frames
                                                  for d in protocol.symbols])}
                 for v in protocol.levels.values},
@@ -162,6 +182,7 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
         "frames_per_trial": {**frame_range(list(frames.values())), f"per_{shown.column}": frames},
         "stimulus_duration_s": {label(d, v): s.duration_s for (d, v), s in stimuli.items()},
         "levels": level_summary,
+        "adaptive": None if protocol.adaptive is None else adaptive_summary(protocol.adaptive),
         "frame_rate_hz": protocol.frame_rate_hz,
         "wire": {
             "full_frame_bytes": wire.full_frame_bytes,

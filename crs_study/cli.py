@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -37,6 +38,8 @@ from crs_study.errors import CrsStudyError, CrsStudyWarning
 EXIT_KNOWN_ERROR = 2
 #: Exit status after Ctrl-C, as shells expect (128 + SIGINT).
 EXIT_INTERRUPTED = 130
+#: Exit status when the reader of stdout went away (128 + SIGPIPE, as a shell reports it).
+EXIT_BROKEN_PIPE = 141
 
 #: The subcommands, in the order ``crs-study --help`` lists them (the main job first, then the
 #: pipeline): name -> one line of help. The module of ``name`` is ``crs_study.commands.<name>``
@@ -98,10 +101,17 @@ class CommandParser(argparse.ArgumentParser):
         self.complete()
         return super().parse_known_args(args, namespace)
 
+    def error(self, message: str):  # type: ignore[override]
+        """A bad option is one line, like every other error (argparse prints the usage
+        first, ten lines for some commands): ``crs-study run: error: ... (see crs-study run
+        --help)``."""
+        self.exit(EXIT_KNOWN_ERROR, f"{self.prog}: error: {message} (see {self.prog} "
+                  "--help)\n")
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The full parser: one subparser per entry of :data:`COMMANDS`, completed when chosen."""
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="crs-study",
         description="Psychophysics experiments on the continuity reinforcement skeleton "
         "(CRS) haptic display: protocols, sessions, simulated dry-runs and analysis.",
@@ -144,6 +154,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"crs-study {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # the reader went away (`crs-study validate ... | head`): stop quietly, as cat or git
+        # do; stdout goes to /dev/null so the interpreter's last flush cannot fail again
+        # (the recipe of the Python docs, signal module: "Note on SIGPIPE")
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     finally:
         warnings.showwarning = default_show
 

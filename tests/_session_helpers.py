@@ -100,6 +100,33 @@ class PauseAt(RandomResponder):
         return super().respond(trial, stimulus, clock, time_limit_s)
 
 
+def adaptive_protocol(directory: Path, name: str = "adaptive.toml", *,
+                      procedure: str = "quest-plus", trials: int = 8, levels: int = 5,
+                      stop_reversals: int = 0, digits=(1, 4, 7), practice: int = 1,
+                      study_id: str = "tinyadaptive") -> Path:
+    """:func:`tiny_protocol` whose digit height a staircase or QUEST+ chooses (0.4 to 1.2
+    pitch on a log scale, ``levels`` levels)."""
+    path = tiny_protocol(directory, name, digits=digits, practice=practice,
+                         study_id=study_id)
+    text = path.read_text(encoding="utf-8")
+    text = re.sub(r"(?m)^digit_(height|width)_pitch\s*=.*\n", "", text)
+    text = re.sub(r"(?m)^analysis_plan\s*=.*$",
+                  'analysis_plan = "analysis/digit_size_adaptive.toml"', text)
+    table = (f'\n[adaptive]\nparameter = "digit_height_pitch"\nwidth_to_height = 0.605\n'
+             f'procedure = "{procedure}"\ntrials = {trials}\nmin = 0.4\nmax = 1.2\n'
+             f'scale = "log"\nlevels = {levels}\n')
+    if procedure == "quest-plus":
+        table += ('target_rate = 0.5\n\n[adaptive.quest_plus]\nthresholds = 9\n'
+                  'slopes = [2.0, 6.0]\nlapse_rates = [0.0, 0.05]\n')
+    else:
+        table += ('\n[adaptive.staircase]\nrule = "1-up-2-down"\nstart = 1.2\nsteps = [2, 1]\n'
+                  f'stop_reversals = {stop_reversals}\nestimate_reversals = '
+                  f'{min(2, stop_reversals) if stop_reversals else 4}\n')
+    path.write_text(text.replace("\n[conditions]", table + "\n[conditions]", 1),
+                    encoding="utf-8")
+    return path
+
+
 def assert_same_but_reruns(resumed: Path, whole: Path, cut: set[int]) -> None:
     """A resumed session's trial file equals the uninterrupted run's byte for byte but for
     the ``rerun`` column, which is 1 exactly on the trials an interruption cut after their

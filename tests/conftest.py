@@ -44,3 +44,10 @@ def _a_consent_register_of_its_own(tmp_path_factory, monkeypatch):
     consent gate on every device, so a test records the consent it needs."""
     monkeypatch.setenv("CRS_STUDY_CONSENT_DIR",
                        str(tmp_path_factory.mktemp("register") / "consent"))
+
+
+@pytest.fixture(autouse=True)
+def _a_board_register_of_its_own(tmp_path_factory, monkeypatch):
+    """Every test (and every process it starts) remembers board identities in a file of its
+    own, never the machine's ~/.crs-study/boards.json (``device check`` reads it)."""
+    monkeypatch.setenv("CRS_STUDY_BOARDS", str(tmp_path_factory.mktemp("boards") / "boards.json"))

@@ -30,9 +30,9 @@ from crs_study.errors import DeviceError
 PACKAGE = Path(device_package.__file__).parent
 
 #: The device package's modules, each allowed to import only those before it.
-LAYERS = ("base", "calibration", "codec", "decoder", "writes", "schedule", "virtual_controller",
-          "protocol_lscsim", "virtual_pty", "serial_port", "serial_device", "sim_options",
-          "simulated", "__init__")
+LAYERS = ("base", "identity", "calibration", "codec", "decoder", "writes", "schedule",
+          "virtual_controller", "protocol_lscsim", "virtual_pty", "virtual_boards", "serial_port",
+          "serial_device", "sim_options", "simulated", "__init__")
 
 
 def test_open_device_picks_the_implementation_by_the_urls_scheme(layout1d):

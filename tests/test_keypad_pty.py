@@ -13,6 +13,7 @@ import subprocess
 import sys
 import termios
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -38,7 +39,7 @@ STAMP_MEDIAN_S = 0.001
 
 
 class Trial:
-    index, digit = 0, 7
+    index, digit, block, condition, trial_type = 0, 7, 1, "crs", "test"
 
 
 @pytest.fixture
@@ -104,11 +105,24 @@ def test_keys_before_onset_are_dropped_and_time_out(terminal):
     assert clock.now() - onset >= 0.11
 
 
+def write_when_shown(keypad, master, text, data):
+    """Write ``data`` to the terminal once the screen shows ``text`` to the experimenter (a
+    thread), so the key cannot arrive before the prompt it answers."""
+    def wait_and_write():
+        deadline = time.monotonic() + 10
+        while text not in keypad.screen.state.experimenter and time.monotonic() < deadline:
+            time.sleep(0.002)
+        os.write(master, data)
+    writer = threading.Thread(target=wait_and_write, daemon=True)
+    writer.start()
+    return writer
+
+
 def test_quit_key_pauses_and_prompt_waits_for_space(terminal):
     master, slave = terminal
     clock = RealClock()
     with KeypadResponder(fd=slave, output=io.StringIO()) as keypad:
-        os.write(master, b" ")
+        write_when_shown(keypad, master, "Mount the skeleton", b" ")
         keypad.prompt("Mount the skeleton", clock)
         onset = clock.now()
         keypad.begin_trial(Trial, onset, clock)
@@ -128,7 +142,7 @@ def test_stdin_of_a_child_process(terminal):
         from crs_study.session.responders.base import StimulusRecord
         from crs_study.session.responders.keypad import KeypadResponder
         class Trial:
-            index, digit = 0, 2
+            index, digit, block, condition, trial_type = 0, 2, 1, "crs", "test"
         clock = RealClock()
         with KeypadResponder(output=sys.stderr) as keypad:
             onset = clock.now()
@@ -189,12 +203,10 @@ def test_crs_study_run_with_the_keypad_in_a_terminal(tmp_path, terminal):
                 raw, buffer = buffer.split(b"\n", 1)
                 line = raw.decode()
                 seen.append(line)
-                if "press Space" in line:
+                if "Space or Enter continues" in line:
                     os.write(master, b" ")
-                    pending = time.monotonic()
-                elif "trial " in line and "/4" in line:
-                    trial = int(line.split("trial ")[1].split("/")[0]) - 1
-                    pending = None if trial in (0, 2) else time.monotonic()  # prompts first
+                elif "trial " in line and "/4" in line:  # the status line: a trial begins
+                    pending = time.monotonic()  # (its prompt, if any, came before)
             if pending is not None and time.monotonic() - pending > 0.3:
                 os.write(master, b"7")
                 pending = None

@@ -142,8 +142,8 @@ def test_a_new_folder_must_be_placed_among_the_stages(tmp_path):
     shutil.copytree(PACKAGE, tmp_path / "crs_study",
                     ignore=shutil.ignore_patterns("__pycache__", "data"))
     shutil.copy(PYPROJECT, tmp_path / "pyproject.toml")
-    (tmp_path / "crs_study" / "adaptive").mkdir()
-    (tmp_path / "crs_study" / "adaptive" / "__init__.py").write_text('"""Staircases."""\n')
+    (tmp_path / "crs_study" / "gaze").mkdir()  # (a stage not yet built)
+    (tmp_path / "crs_study" / "gaze" / "__init__.py").write_text('"""Eye tracking."""\n')
     result = lint_imports(tmp_path, dict(os.environ, PYTHONPATH=str(tmp_path)))
     assert result.returncode != 0, result.stdout
-    assert "not listed as layers" in result.stdout and "- crs_study.adaptive" in result.stdout
+    assert "not listed as layers" in result.stdout and "- crs_study.gaze" in result.stdout

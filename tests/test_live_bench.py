@@ -32,3 +32,6 @@ def test_bench_live_quick():
         assert all(math.isfinite(f["value"]) for f in figures)
     assert abs(names["pty: host model error, median |landed - predicted|"]["value"]) < 10
     assert 0 < names["software per packet, warm loop (CPU)"]["value"] < 1.0  # ms
+    paused = names["render one frame after a frame's pause (CPU), median"]
+    warm = names["render one frame back to back (CPU), median"]
+    assert 0 < warm["value"] < 1.0 and 0 < paused["value"] < 5.0  # ms, this run's cold cost

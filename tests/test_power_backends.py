@@ -65,3 +65,49 @@ def test_an_unreachable_scheduler_is_one_line_naming_the_option(model, monkeypat
 def test_jobs_must_be_a_whole_number(model):
     with pytest.raises(PowerError, match=r"^--jobs: expected a whole number >= 1, got 0"):
         _run(model, jobs=0)
+
+
+# -- the bench's local cluster starts on a busy machine ---------------------------------------
+# tests/test_power_bench.py once failed under load: distributed's "Cluster closed without
+# starting up" (a worker not connected within the 30 s default). local_cluster gives the start
+# time and tries again; these make the start fail on purpose.
+
+def test_a_local_cluster_has_every_worker_in_its_own_single_threaded_process():
+    import os
+
+    with backends.local_cluster(2) as client:
+        workers = client.scheduler_info()["workers"]
+        assert len(workers) == 2
+        seen = client.run(lambda: (os.getpid(), os.environ.get("OMP_NUM_THREADS")))
+        assert {pid for pid, _ in seen.values()} - {os.getpid()} == \
+            {pid for pid, _ in seen.values()}                      # processes, not threads
+        assert {threads for _, threads in seen.values()} == {"1"}
+        assert all(w["nthreads"] == 1 for w in workers.values())
+
+
+def test_a_failed_start_is_tried_again_and_then_said_in_one_line(monkeypatch):
+    import distributed
+
+    real, calls = distributed.LocalCluster, []
+
+    def failing_first(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("Cluster failed to start. (injected)")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "LocalCluster", failing_first)
+    with backends.local_cluster(1) as client:
+        assert len(client.scheduler_info()["workers"]) == 1
+        assert client.submit(sum, [1, 2]).result() == 3
+    assert len(calls) == 2
+
+    def never(*args, **kwargs):
+        raise TimeoutError("no worker (injected)")
+
+    monkeypatch.setattr(distributed, "LocalCluster", never)
+    with pytest.raises(PowerError, match=r"did not start in 3 attempts of 180 s \(no worker "
+                       r"\(injected\); no worker") as info:
+        with backends.local_cluster(1):
+            pass
+    assert "\n" not in str(info.value)

@@ -502,8 +502,8 @@ def test_a_misspelt_table_is_named_as_the_stray_table(tmp_path):
     path = tmp_path / "p.toml"
     path.write_text(SHIPPED.read_text().replace("[design]", "[desing]"))
     with pytest.raises(ProtocolError, match=r"p.toml:\d+: unknown key 'desing' \(valid keys: "
-                       r"conditions, design, levels, responses, stimulus, study\); did you mean "
-                       r"'design'\?$"):
+                       r"adaptive, conditions, design, levels, responses, stimulus, study\); "
+                       r"did you mean 'design'\?$"):
         load_protocol(path)
 
 

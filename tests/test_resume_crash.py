@@ -8,7 +8,9 @@ command. When a session completes, the next session number continues. Every sess
 byte-identical to an uninterrupted run of the same command: the trial file (every column: on
 a virtual clock no column depends on wall time) and the per-frame device log; the sidecars
 differ only in their wall-clock fields (StartTime, EndTime, Resumes), and no temporary file
-is left behind.
+is left behind. The whole test runs twice: on a fixed protocol, and on an adaptive one
+(QUEST+ chooses each test trial's digit height, issue 17: a resumed run rebuilds the tracks by
+replaying the stored responses and must reach the sidecar's fingerprint).
 
 Where the kills land. The child is ``crs_study.cli.main`` behind a few wrappers (:data:`CHILD`)
 that append phase markers (monotonic time, phase) to a file: trial k begins, trial k's row is
@@ -55,7 +57,7 @@ import time
 from pathlib import Path
 
 import pytest
-from _session_helpers import assert_same_but_reruns, tiny_protocol
+from _session_helpers import adaptive_protocol, assert_same_but_reruns, tiny_protocol
 
 KILLS = 30
 HOLD_S = 0.25
@@ -225,9 +227,15 @@ def schedule(rng: random.Random) -> list[str]:
 
 
 @pytest.mark.slow
-def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path):
-    protocol = tiny_protocol(tmp_path, digits=(1, 4, 7), repetitions=4)
-    planned = 26  # 3 digits x 2 conditions x 4 + 2 practice
+@pytest.mark.parametrize("kind", ["fixed", "adaptive"])
+def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
+    """``adaptive``: QUEST+ chooses each test trial's height (issue 17); a resumed run
+    rebuilds its tracks by replaying the stored responses, checked against the sidecar."""
+    if kind == "fixed":
+        protocol = tiny_protocol(tmp_path, digits=(1, 4, 7), repetitions=4)
+    else:
+        protocol = adaptive_protocol(tmp_path, procedure="quest-plus", trials=12)
+    planned = 26  # 3 digits x 2 conditions x 4 (adaptive: 12 a block) + 2 practice
     dataset = tmp_path / "killed"
     references: dict[int, subprocess.Popen] = {}
 

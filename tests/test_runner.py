@@ -53,7 +53,7 @@ class Recorder(RandomResponder):
         super().__init__(seed)
         self.prompts, self.records, self.pause_at = [], [], pause_at
 
-    def prompt(self, text, clock):
+    def prompt(self, text, clock, rest_s=None):
         self.prompts.append(text)
 
     def respond(self, trial, stimulus, clock, time_limit_s):
@@ -430,7 +430,7 @@ def test_a_resumed_session_prompts_the_person_first(tmp_path, devices):
         name = "random"  # the same kind as the session began with
         simulated = False
 
-        def prompt(self, text, clock):
+        def prompt(self, text, clock, rest_s=None):
             self.prompts.append(text)
 
     person = Person(seed=1)
@@ -602,8 +602,12 @@ def test_disk_full_mid_session_is_one_line_and_loses_nothing(tmp_path, devices, 
         return os.readlink(f"/proc/self/fd/{fd}")
 
     monkeypatch.setattr(files.os, "write", full_disk)
-    with pytest.raises(DatasetError, match=rf"{tsv_name}: cannot append to: No space left"):
+    with pytest.raises(DatasetError, match=rf"{tsv_name}: cannot append to: No space left"
+                       ) as raised:
         run_session(spec)
+    # ... and says the session is paused and how to go on (issue 14)
+    assert "the session is paused at trial 5/" in str(raised.value)
+    assert str(raised.value).endswith("run the same command to resume")
     monkeypatch.setattr(files.os, "write", real_write)
     tsv = spec.dataset / "sub-sim01/ses-1/beh" / tsv_name
     assert tsv.read_bytes().endswith(b"\n") and len(read_rows(tsv)) == 4

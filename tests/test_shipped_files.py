@@ -45,7 +45,7 @@ def test_the_wheel_ships_every_file_of_the_data_folders():
 
 
 def test_names_and_paths():
-    assert sorted(paths.shipped_protocols()) == ["digit_identification",
+    assert sorted(paths.shipped_protocols()) == ["digit_identification", "digit_size_adaptive",
                                                  "digit_size_psychometric",
                                                  "letter_identification", "pilot"]
     assert paths.resolve_protocol("pilot") == paths.data_dir() / "protocols" / "pilot.toml"
@@ -62,8 +62,8 @@ def test_names_and_paths():
 @pytest.mark.parametrize("resolve, text, error, message", [
     (paths.resolve_protocol, "pilto", ProtocolError,
      r"^'pilto' is not a shipped protocol \(shipped: digit_identification, "
-     r"digit_size_psychometric, letter_identification, pilot\); give the path of your own "
-     r"file$"),
+     r"digit_size_adaptive, digit_size_psychometric, letter_identification, pilot\); give "
+     r"the path of your own file$"),
     (paths.resolve_protocol, "protocols/pilot.toml", ProtocolError,
      r"^protocols/pilot.toml: no such protocol file; crs-study ships one named 'pilot': give "
      r"that name, or copy the shipped files to edit them with crs-study init DIR$"),
@@ -121,7 +121,7 @@ def test_a_referenced_file_is_found_beside_the_protocol_then_above_it(tmp_path, 
 def test_copy_defaults_copies_once_and_never_overwrites(tmp_path):
     target = tmp_path / "study"
     copied = paths.copy_defaults(target)
-    assert all(item.written for item in copied) and len(copied) == 12
+    assert all(item.written for item in copied) and len(copied) == 14
     for folder in paths.SHIPPED_FOLDERS:
         for source in (paths.data_dir() / folder).iterdir():
             assert (target / folder / source.name).read_bytes() == source.read_bytes()
@@ -144,13 +144,13 @@ def test_init_then_use_the_copies_from_another_folder(tmp_path, monkeypatch, cap
     assert main(["init", "study"]) == 0
     out = capsys.readouterr().out
     assert "copied  study/protocols/pilot.toml" in out
-    assert out.splitlines()[-1] == ("init: 12 of 12 files copied into study; edit them, then "
+    assert out.splitlines()[-1] == ("init: 14 of 14 files copied into study; edit them, then "
                                     "check one with: crs-study validate "
                                     "study/protocols/pilot.toml")
     assert main(["validate", "study/protocols/pilot.toml", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["protocol"] == "study/protocols/pilot.toml"
     assert main(["init", "study"]) == 0
-    assert capsys.readouterr().out.splitlines()[-1].startswith("init: 0 of 12 files copied")
+    assert capsys.readouterr().out.splitlines()[-1].startswith("init: 0 of 14 files copied")
 
 
 def test_commands_take_a_shipped_protocol_by_name_from_any_folder(tmp_path, monkeypatch,

@@ -12,11 +12,13 @@ from pathlib import Path
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter
 
 from crs_study.analysis.accuracy import PARTICIPANT_LEVEL, AccuracyResult, headline_accuracy
 from crs_study.analysis.confusion import ConfusionResult
 from crs_study.analysis.psychometric import PsychometricResult
 from crs_study.analysis.speed_accuracy import SpeedAccuracyResult
+from crs_study.analysis.thresholds import ThresholdResult
 
 COLOURS = ("#4477aa", "#ee6677", "#228833", "#ccbb44", "#66ccee", "#aa3377")
 
@@ -127,7 +129,10 @@ def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> 
                     yerr=[[acc - 100 * float(row["accuracy_ci_low"])],
                           [100 * float(row["accuracy_ci_high"]) - acc]],
                     fmt="D", color=colour, ms=8, capsize=4, lw=2, label=condition)
-    ax.set_xlabel(f"mean correct {result.rt_column.replace('_', ' ')} (s)")
+    # the dots are each participant's mean, the diamonds the participants' geometric mean:
+    # the axis says both, as the legend does
+    ax.set_xlabel(f"{result.rt_column.replace('_', ' ')} of correct trials (s): dots mean, "
+                  "diamonds geometric mean", fontsize=8)
     ax.set_ylabel("correct (%)")
     ax.set_ylim(0, 100)
     _legend(ax, fontsize=8, title="condition (geometric mean RT, pooled\naccuracy; 95 % CI)",
@@ -179,4 +184,78 @@ def plot_psychometric(result: PsychometricResult, ax: Axes | None = None) -> Axe
     ax.set_ylim(0, 100)
     _legend(ax, fontsize=8)
     ax.set_title("Psychometric functions (shaded: threshold 95 % CI)", fontsize=9)
+    return ax
+
+
+def _conditions(result: ThresholdResult) -> dict[str, str]:
+    names = list(dict.fromkeys(result.thresholds["condition"]))
+    return {c: COLOURS[i % len(COLOURS)] for i, c in enumerate(names)}
+
+
+def plot_tracks(result: ThresholdResult, ax: Axes | None = None) -> Axes:
+    """Each adaptive track: level against trial, reversals marked, per condition's colour;
+    the procedure's final thresholds as ticks at the right."""
+    ax = _axes(ax, (6.0, 4.0))
+    colours = _conditions(result)
+    tracks = result.tracks
+    for (_, condition), track in tracks.groupby(["participant_id", "condition"]):
+        colour = colours.get(condition, "k")
+        ax.plot(track["trial"], track["level"], color=colour, alpha=0.3, lw=0.8)
+        reversals = track[track["reversal"]]
+        ax.plot(reversals["trial"], reversals["level"], "o", mfc="none", color=colour, ms=3,
+                alpha=0.6, mew=0.8)
+    for condition, colour in colours.items():  # the median track of each condition
+        median = tracks[tracks["condition"] == condition].groupby("trial")["level"].median()
+        ax.plot(median.index, median.to_numpy(), color=colour, lw=2.2)
+    end = tracks["trial"].max() + 1 if len(tracks) else 1
+    for condition, colour in colours.items():
+        final = result.thresholds.loc[result.thresholds["condition"] == condition,
+                                      "procedure_threshold"]
+        ax.plot([end] * len(final), final, "_", color=colour, ms=12, mew=2,
+                label=f"{condition} ({len(final)} tracks)")
+    if result.design is not None and result.design.scale == "log":
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    ax.set_xlabel("test trial of the track (thick: median of the tracks)")
+    ax.set_ylabel(result.design.level_column if result.design else "level")
+    ax.set_title("Adaptive tracks (circles: reversals; ticks: final estimates)", fontsize=9)
+    _legend(ax, fontsize=8)
+    return ax
+
+
+def plot_thresholds(result: ThresholdResult, ax: Axes | None = None) -> Axes:
+    """Each participant's fitted psychometric function per condition, with the procedure's
+    threshold and 95 % interval at the target rate."""
+    ax = _axes(ax, (6.0, 4.0))
+    design = result.design
+    colours = _conditions(result)
+    levels = result.tracks["level"] if len(result.tracks) else np.array([1.0])
+    grid_u = np.linspace(*design.to_axis(np.array([levels.min(), levels.max()])), 200)
+    offsets = {c: 3.0 * (i - (len(colours) - 1) / 2) for i, c in enumerate(colours)}
+    for _, row in result.thresholds.iterrows():
+        colour = colours[row["condition"]]
+        if np.isfinite(row["fit_alpha"]):
+            f = 1.0 / (1.0 + np.exp(-row["fit_beta"] * (grid_u - row["fit_alpha"])))
+            p = result.guess + (1 - result.guess - row["fit_lapse"]) * f
+            ax.plot(design.from_axis(grid_u), 100 * p, color=colour, alpha=0.35, lw=1)
+        ax.errorbar(row["procedure_threshold"],
+                    100 * design.target_rate + offsets[row["condition"]],
+                    xerr=[[row["procedure_threshold"] - row["procedure_ci_low"]],
+                          [row["procedure_ci_high"] - row["procedure_threshold"]]],
+                    fmt="x", color=colour, alpha=0.7, capsize=2, lw=0.8)
+    for condition, colour in colours.items():
+        ax.plot([], [], color=colour, label=condition)
+    ax.axhline(100 * design.target_rate, color="k", ls="--", lw=0.8)
+    ax.axhline(100 * result.guess, color="k", ls=":", lw=0.8)
+    if design.scale == "log":
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    ax.set_xlabel(design.level_column)
+    ax.set_ylabel("correct (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title(f"Fitted functions; x: {design.procedure} thresholds at "
+                 f"{100 * design.target_rate:.0f} % (95 % CI)", fontsize=9)
+    _legend(ax, fontsize=8)
     return ax

@@ -307,7 +307,8 @@ def _group_codes(data: pd.DataFrame, group_list: list[str], notes: list[str]):
                                 f"value(s)")
         c, levels = pd.factorize(data[g], sort=True)
         if len(levels) < 2:
-            notes.append(f"grouping factor {g!r} has a single level ({levels[0]!r}): its "
+            shown = g.removesuffix("_id")  # as the report names it: participant
+            notes.append(f"grouping factor {shown!r} has a single level ({levels[0]!r}): its "
                          f"variance is not estimable; the random intercept was dropped")
             continue
         codes.append(c.astype(np.intp))

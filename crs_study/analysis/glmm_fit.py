@@ -41,7 +41,8 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     theta, at_zero = opt.theta, opt.at_zero
     failed = boundary_failures(opt)
     for k, slope in at_zero.items():
-        g = problem.groups[k - n_fixed]
+        # named as the report names it: participant, not the column participant_id
+        g = problem.groups[k - n_fixed].removesuffix("_id")
         if k in failed:
             notes.append(f"the variance of the random intercept for {g!r} ended at 0 although "
                          f"the likelihood rises as it moves inward (d loglik / d variance = "

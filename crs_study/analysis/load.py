@@ -43,6 +43,23 @@ rows; ``correct`` agrees with ``response`` equal to the symbol shown. The sessio
 task are found; one analysis takes one task (one stimulus set): datasets holding several
 are a one-line error unless ``task`` chooses one. A failed check means the data were edited
 after the session (or a bug): a warning by default, a :class:`DatasetError` with ``strict``.
+
+A session that stopped before its end (status ``running`` after a kill, ``interrupted``
+after a pause) is analysed as it stands, with a warning saying so, also with ``strict``: it
+is not a failed check. Its sidecar may lag its trial file (a dry-run rewrites it every 10
+trials) and a kill may tear the last row; when the recorded rows hash to ``TrialsSha256`` and
+the rows beyond them are within that lag
+(:func:`crs_study.dataset.session_store.explained_by_interruption`, the check a resume
+makes), the disagreement is the interruption's, and the torn row is left out. Any other
+disagreement (more rows than the lag, recorded rows rewritten, a complete session with fewer
+rows) remains a tampering alarm.
+
+No session is left out silently. A trial file that cannot be read (a folder or a named pipe
+in its place, an OS error, bytes that are not UTF-8) leaves its session out with a warning
+naming the participant; a session or participant the dataset shows existed but whose trial
+file is gone (:func:`crs_study.dataset.evidence.missing_sessions`: participants.tsv, the
+sidecar, sourcedata, the record of analysis outputs) is a warning of possible tampering.
+Each is a :class:`DatasetError` with ``strict``.
 """
 
 from __future__ import annotations
@@ -55,9 +72,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from crs_study._files import os_errors, sha256_bytes
+from crs_study._files import sha256_bytes
 from crs_study.analysis.plan import Exclusions
 from crs_study.dataset import WITHDRAWAL_JOURNAL, SessionMetadata, SessionPaths, find_sessions
+from crs_study.dataset.evidence import (
+    UnreadableSession,
+    missing_sessions,
+    not_a_regular_file,
+    read_trial_file,
+)
 from crs_study.dataset.schema import (
     MISSING,
     SYMBOL_COLUMNS,
@@ -65,6 +88,7 @@ from crs_study.dataset.schema import (
     symbols_are_numbers,
     trial_columns,
 )
+from crs_study.dataset.session_store import StoppedSession, explained_by_interruption
 from crs_study.errors import DatasetError
 
 INT_COLUMNS = ("trial_index", "block", "repetition", "frames", "late_frames", "response")
@@ -123,9 +147,16 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
     found = {Path(p): _sessions_of(Path(p), task) for p in paths}
     _refuse_several_tasks(found)
     for path, name in zip(paths, names, strict=True):
+        accounted: set[tuple[str, str, str]] = set()
         for session in found[Path(path)]:
             tsv = session.tsv
-            table, meta, problems = _read_session(session, name, len(files))
+            accounted.add((session.participant, "" if session.session is None
+                           else str(session.session), session.task))
+            try:
+                table, meta, problems, notes = _read_session(session, name, len(files))
+            except UnreadableSession as exc:
+                warnings += _raise_if_strict([str(exc)], strict)
+                continue
             key = (meta["participant"], meta["session"], meta.pop("_sha256"))
             if key in seen and seen[key] != Path(path):
                 raise DatasetError(
@@ -134,9 +165,13 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
                     "and analysing both would count its trials twice; give one of them")
             seen.setdefault(key, Path(path))
             files.append(tsv)
-            warnings += _raise_if_strict(problems, strict)
+            warnings += _raise_if_strict(problems, strict) + notes
             frames.append(table)
             sessions.append(meta)
+        warnings += _raise_if_strict(missing_sessions(path, accounted, task), strict)
+    if not frames:
+        raise DatasetError(f"no readable session in {', '.join(map(str, paths))}: "
+                           f"{warnings[0] if warnings else 'none found'}")
     trials, problems = _typed(pd.concat(frames, ignore_index=True), files)
     warnings += _raise_if_strict(problems, strict)
     several = len(paths) > 1
@@ -233,7 +268,7 @@ def _dataset_name(path: Path) -> str:
     description = path / "dataset_description.json"
     try:
         name = json.loads(description.read_text(encoding="utf-8")).get("Name")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         name = None
     return str(name) if name else path.resolve().name
 
@@ -262,6 +297,10 @@ def _read_sidecar(paths: SessionPaths) -> tuple[SessionMetadata | None, list[str
     sidecar = paths.sidecar
     if not sidecar.exists():
         return None, [f"{sidecar}: session metadata missing; its trials are unchecked"]
+    why = not_a_regular_file(sidecar)
+    if why is not None:   # a named pipe would block the read forever
+        return None, [f"{sidecar}: session metadata unreadable ({why}); its trials are "
+                      "unchecked"]
     try:
         return SessionMetadata.read(sidecar), []
     except DatasetError as exc:
@@ -271,16 +310,21 @@ def _read_sidecar(paths: SessionPaths) -> tuple[SessionMetadata | None, list[str
 
 
 def _read_session(paths: SessionPaths, dataset: str, file_number: int
-                  ) -> tuple[pd.DataFrame, dict, list[str]]:
-    """One session's rows as read (typed later, all files at once) and its metadata."""
+                  ) -> tuple[pd.DataFrame, dict, list[str], list[str]]:
+    """One session's rows as read (typed later, all files at once), its metadata, its
+    problems (failed checks) and notes (an interruption, a warning even with ``strict``)."""
     tsv = paths.tsv
     participant = paths.participant
     session = "" if paths.session is None else str(paths.session)
-    with os_errors(DatasetError, "read", tsv):
-        data = tsv.read_bytes()
+    data = read_trial_file(paths)
     metadata, problems = _read_sidecar(paths)
+    notes: list[str] = []
+    stopped = None if metadata is None else explained_by_interruption(data, metadata)
+    if stopped is not None:
+        notes.append(_stopped_note(metadata, stopped, paths))
+        data = data[:len(data) - stopped.torn_bytes]
     if metadata is not None:
-        problems += _check_metadata(metadata, paths, data, session)
+        problems += _check_metadata(metadata, paths, data, session, stopped is not None)
     header = data.split(b"\n", 1)[0].decode("utf-8", "replace").rstrip("\r").split("\t")
     symbol = symbol_column(header)
     text = TEXT_COLUMNS if symbol is None or symbols_are_numbers(symbol) else \
@@ -296,7 +340,7 @@ def _read_session(paths: SessionPaths, dataset: str, file_number: int
     if missing:
         raise DatasetError(f"{tsv}: missing column {missing[0]} "
                            f"(expected the columns of crs_study.dataset.schema.TRIAL_COLUMNS)")
-    if metadata is not None and metadata.trials_completed != len(raw):
+    if metadata is not None and stopped is None and metadata.trials_completed != len(raw):
         problems.append(f"{tsv}: TrialsCompleted is {metadata.trials_completed!r} but the file "
                         f"holds {len(raw)} trials (possible tampering)")
     raw.insert(0, "_row", np.arange(2, len(raw) + 2))
@@ -310,18 +354,37 @@ def _read_session(paths: SessionPaths, dataset: str, file_number: int
                **{k: recorded.get(k) for k in SESSION_SUMMARY_KEYS}}
     summary["Protocol"] = recorded.get("Protocol")
     summary["_sha256"] = sha256_bytes(data)   # for the copy check; popped by load_datasets
-    return raw, summary, problems
+    return raw, summary, problems, notes
+
+
+def _stopped_note(metadata: SessionMetadata, stopped: StoppedSession, paths: SessionPaths
+                  ) -> str:
+    """What a session that stopped before its end is: interrupted, not tampered with."""
+    how = ("interrupted (its status was never updated: the process was killed or crashed)"
+           if metadata.status == "running" else "interrupted")
+    if stopped.unrecorded:
+        how += (f"; its trial file holds {stopped.unrecorded} row(s) more than the sidecar's "
+                f"TrialsCompleted {metadata.trials_completed}, within the {stopped.lag} the "
+                "sidecar may lag by, and the rows it recorded are intact")
+    if stopped.torn_bytes:
+        how += (f"; a torn last row ({stopped.torn_bytes} bytes, cut by the interruption) is "
+                "left out")
+    return (f"{paths.sidecar}: session status is {metadata.status!r}: the session stopped "
+            f"before its end, {how}; its {stopped.rows} of {metadata.trials_planned} trials "
+            "are analysed as they stand (running the same command again completes it)")
 
 
 def _check_metadata(metadata: SessionMetadata, paths: SessionPaths, data: bytes,
-                    session: str) -> list[str]:
+                    session: str, stopped: bool) -> list[str]:
+    """The integrity checks of one session (``stopped``: an interruption explains how its
+    trial file and sidecar disagree, :func:`explained_by_interruption`)."""
     problems = []
     sidecar, tsv = paths.sidecar, paths.tsv
     recorded = metadata.trials_sha256
     actual = sha256_bytes(data)
     if recorded is None:
         problems.append(f"{sidecar}: TrialsSha256 missing; the trials cannot be verified")
-    elif recorded != actual:
+    elif recorded != actual and not stopped:
         problems.append(f"{tsv}: TAMPERED? sha256 is {actual[:16]}... but the session recorded "
                         f"TrialsSha256 {str(recorded)[:16]}...; the file changed after the "
                         "session was written")
@@ -338,7 +401,7 @@ def _check_metadata(metadata: SessionMetadata, paths: SessionPaths, data: bytes,
         if value != expected:
             problems.append(f"{sidecar}: {key} is {value!r} but the file name says "
                             f"{expected!r} (possible tampering)")
-    if metadata.status in ("running", "interrupted"):
+    if metadata.status in ("running", "interrupted") and not stopped:
         problems.append(f"{sidecar}: session status is {metadata.status!r}: its "
                         f"{metadata.trials_completed} of {metadata.trials_planned} "
                         "trials are analysed as they stand")
@@ -368,10 +431,11 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
             out[column] = values.astype(object).where(values.notna(), np.nan)
         elif column in INT_COLUMNS or column == symbol:
             numbers = _numbers(values, column, where)
-            fraction = numbers.notna() & (numbers % 1 != 0)
+            # a whole number an int64 holds: 1e308 or 99999999999999999999 is no trial's count
+            fraction = numbers.notna() & ((numbers % 1 != 0) | (numbers.abs() >= 2.0 ** 53))
             if fraction.any():
                 raise DatasetError(f"{where(fraction)}: column {column!r}: expected a whole "
-                                   f"number, got {values[fraction].iloc[0]!r}")
+                                   f"number below 2**53, got {values[fraction].iloc[0]!r}")
             out[column] = numbers.astype("Int64")
         elif column in FLOAT_COLUMNS:
             out[column] = _numbers(values, column, where)

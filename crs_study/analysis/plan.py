@@ -35,7 +35,8 @@ BIAS_CORRECTIONS = ("miller-madow", "none")
 BOOTSTRAP_UNITS = ("participant", "trial")
 PSYCHOMETRIC_FUNCTIONS = ("logistic", "weibull")
 REPORT_FORMATS = ("markdown", "html")
-CHARTS = ("accuracy", "confusion", "speed_accuracy", "caf", "psychometric")
+CHARTS = ("accuracy", "confusion", "speed_accuracy", "caf", "psychometric", "tracks",
+          "thresholds")
 #: Columns a protocol may vary; the first present with more than one value is the level
 #: (``digit_height`` in a digit dataset, ``symbol_height`` in any other; the last two for
 #: data written by other tools).

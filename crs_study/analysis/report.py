@@ -54,6 +54,7 @@ from crs_study.analysis.secondary import SecondaryResult, secondary_tests
 from crs_study.analysis.sources import summarise_sources
 from crs_study.analysis.speed_accuracy import SpeedAccuracyResult, analyse_speed_accuracy
 from crs_study.analysis.study_data import DatasetPaths, StudyData, load_dataset
+from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
 from crs_study.dataset.bids import DERIVATIVES, derivatives_dir
 from crs_study.dataset.outputs import OutputsRecord, participants_by_dataset
 from crs_study.errors import AnalysisError, DatasetError
@@ -61,7 +62,7 @@ from crs_study.paths import recorded_path
 
 #: The charts :meth:`Analysis.plot` draws by name (``confusion``: one per condition, through
 #: :func:`crs_study.analysis.charts.plot_confusion` and ``Analysis.confusions[condition]``).
-PLOTS = ("accuracy", "speed_accuracy", "caf", "psychometric")
+PLOTS = ("accuracy", "speed_accuracy", "caf", "psychometric", "tracks", "thresholds")
 
 
 @dataclass(frozen=True)
@@ -102,6 +103,9 @@ class Analysis:
         What the reader must know, one sentence each (as ``results.json`` lists them).
     files : ReportFiles or None
         What ``analyze(write=True)`` wrote (:meth:`write` returns its own).
+    thresholds : ThresholdResult or None
+        Adaptive sessions' thresholds per participant and condition and their paired
+        comparison (else ``skipped``).
     """
 
     data: StudyData
@@ -115,6 +119,7 @@ class Analysis:
     warnings: tuple[str, ...]
     content: dict = field(repr=False)  # results.json's, but ``charts``: see to_dict()
     files: ReportFiles | None = None
+    thresholds: ThresholdResult | None = None
 
     @property
     def plan(self) -> AnalysisPlan:
@@ -155,7 +160,9 @@ class Analysis:
         draw = {"accuracy": lambda: charts.plot_accuracy(self.accuracy, ax),
                 "speed_accuracy": lambda: charts.plot_speed_accuracy(self.speed_accuracy, ax),
                 "caf": lambda: charts.plot_caf(self.speed_accuracy, ax),
-                "psychometric": lambda: charts.plot_psychometric(self.psychometric, ax)}
+                "psychometric": lambda: charts.plot_psychometric(self.psychometric, ax),
+                "tracks": lambda: charts.plot_tracks(self.thresholds, ax),
+                "thresholds": lambda: charts.plot_thresholds(self.thresholds, ax)}
         if chart not in draw:
             raise AnalysisError(f"no chart {chart!r}; expected one of {', '.join(PLOTS)} "
                                 "(a confusion matrix: charts.plot_confusion("
@@ -308,6 +315,10 @@ def run_analyses(data: StudyData) -> Analysis:
         trials, conditions, chance, psych_plan.level_column, psych_plan.function,
         psych_plan.lapse_max, psych_plan.threshold, psych_plan.bootstrap, plan.seed, alpha)
     warnings += psychometric.warnings
+    thresholds = analyse_thresholds(data.all_trials, trials, data.sessions, conditions,
+                                    reference, chance, psych_plan.lapse_max,
+                                    psych_plan.bootstrap, plan.seed, alpha)
+    warnings += thresholds.warnings
     tables = accuracy.to_dict()
     primary_part, secondary_part = primary.to_dict(), secondary.to_dict()
     # named as the trials name the symbol: accuracy_by_digit and per_digit for digit data
@@ -329,6 +340,9 @@ def run_analyses(data: StudyData) -> Analysis:
         "psychometric": psychometric.to_dict(),
         "warnings": warnings,
     }
+    if not thresholds.skipped:  # (results.json of fixed-level studies is as it was)
+        results = {**{k: v for k, v in results.items() if k != "warnings"},
+                   "thresholds": thresholds.to_dict(), "warnings": warnings}
     results["headline"] = headline(results)
     kinds = sorted(set(data.sources["kind"]))
     results["sources"] = {"kind": kinds[0] if len(kinds) == 1 else "mixed",
@@ -351,7 +365,8 @@ def run_analyses(data: StudyData) -> Analysis:
         results["warnings"].append(f"results.json: non-finite values written as null at "
                                    f"{', '.join(non_finite[:5])}")
     return Analysis(data, accuracy, primary, secondary, Confusions(confusions), speed,
-                    psychometric, results["headline"], tuple(results["warnings"]), results)
+                    psychometric, results["headline"], tuple(results["warnings"]), results,
+                    thresholds=thresholds)
 
 
 def draw_charts(analysis: Analysis, folder: Path) -> list[Path]:
@@ -373,6 +388,11 @@ def draw_charts(analysis: Analysis, folder: Path) -> list[Path]:
     if "psychometric" in wanted and analysis.psychometric.fits:
         files.append(charts.save(charts.plot_psychometric(analysis.psychometric),
                                  folder / "psychometric.png"))
+    adaptive = analysis.thresholds is not None and not analysis.thresholds.skipped
+    for name in ("tracks", "thresholds"):
+        if name in wanted and adaptive:
+            draw = charts.plot_tracks if name == "tracks" else charts.plot_thresholds
+            files.append(charts.save(draw(analysis.thresholds), folder / f"{name}.png"))
     return files
 
 

@@ -32,6 +32,9 @@ REFERENCES = (
     "Combining speed and accuracy to control for speed-accuracy trade-offs(?). Behav Res "
     "Methods 51:40.",
     "Wichmann FA, Hill NJ (2001) The psychometric function I. Percept Psychophys 63:1293.",
+    "Watson AB (2017) QUEST+: a general multidimensional Bayesian adaptive psychometric "
+    "method. J Vis 17(3):10.",
+    "Levitt H (1971) Transformed up-down methods in psychoacoustics. J Acoust Soc Am 49:467.",
 )
 
 
@@ -84,7 +87,9 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
                    ("table", _table(pd.DataFrame(sources["sessions"])))]
         blocks += [("p", note) for note in sources["notes"]]
     exclusions = pd.DataFrame(results["exclusions"]).T
-    if not exclusions.empty:
+    if not exclusions.empty:  # conditions in the plan's order, as in every other table
+        order = [c for c in plan.conditions if c in exclusions.columns]
+        exclusions = exclusions[order + [c for c in exclusions.columns if c not in order]]
         exclusions.index.name = "excluded because"
         blocks += [("p", "Exclusions declared in the plan (trials per condition):"),
                    ("table", _table(exclusions.reset_index()))]
@@ -163,6 +168,27 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
             "guess"]])))
         if "psychometric" in images:
             blocks.append(("image", images["psychometric"]))
+    thresholds = analysis.thresholds
+    if thresholds is not None and not thresholds.skipped:
+        design = thresholds.design
+        blocks.append(("h2", "Adaptive thresholds"))
+        blocks.append(("p", f"{design.procedure} chose {design.level_column} ({design.scale} "
+                            f"scale); each threshold is the level identified at "
+                            f"{design.target_rate:.3g} correct: the procedure's own estimate "
+                            "(QUEST+ posterior, or the mean of the staircase's last "
+                            "reversals) and a psychometric fit over all the trials, with "
+                            "95 % intervals."))
+        blocks.append(("list", [c.sentence(design.level_column)
+                                for c in thresholds.comparisons] or
+                       ["no condition could be compared (fewer than 2 participants with "
+                        "thresholds in both)"]))
+        blocks.append(("table", _table(thresholds.to_frame()[[
+            "participant_id", "condition", "n_trials", "reversals", "procedure_threshold",
+            "procedure_ci_low", "procedure_ci_high", "fit_threshold", "fit_ci_low",
+            "fit_ci_high"]])))
+        for stem in ("tracks", "thresholds"):
+            if stem in images:
+                blocks.append(("image", images[stem]))
     blocks += [("h2", "Methods and references"), ("list", list(REFERENCES)),
                ("p", f"crs-study {results['software']['version']}, generated "
                      f"{results['generated_at']}.")]

@@ -29,7 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true",
                         help="print results.json on stdout instead of the headline")
     parser.add_argument("--strict", action="store_true",
-                        help="a failed checksum or metadata check is an error, not a warning")
+                        help="a failed checksum or metadata check is an error, not a warning (an "
+                             "interrupted session is analysed as it stands either way)")
     sources = parser.add_argument_group(
         "simulated and human sessions",
         "a dataset holding both is refused unless one of these says what to analyse")

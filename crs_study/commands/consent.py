@@ -23,9 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     def add(name: str, help_text: str) -> argparse.ArgumentParser:
         sub = actions.add_parser(name, help=help_text, description=help_text,
                                  formatter_class=HelpFormatter)
-        sub.add_argument("--register", metavar="DIR", default=None,
-                         help="consent register directory (default: $CRS_STUDY_CONSENT_DIR "
-                              "or ~/.crs-study/consent)")
+        # one name with `run --consent-register`; --register, its old name, still works
+        sub.add_argument("--consent-register", "--register", dest="register", metavar="DIR",
+                         default=None, help="consent register directory (default: "
+                         "$CRS_STUDY_CONSENT_DIR or ~/.crs-study/consent)")
         return sub
 
     record = add("record", "record a participant's consent on a form")
@@ -84,6 +85,11 @@ def run(args: argparse.Namespace) -> int:
               f"{record.form_version}, {record.time}, experimenter {record.experimenter}")
         return 0
     if args.action == "list":
+        folder = register.directory
+        if not folder.is_dir():  # a typo must not read as "no consent given"
+            what = "is a file, not a folder" if folder.exists() else "no such folder"
+            raise ConsentError(f"--consent-register {folder}: {what}; expected the consent "
+                               "register's folder (the one `consent record` wrote)")
         records = register.records()
         for record in records.values():
             row = asdict(record)

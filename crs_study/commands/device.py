@@ -1,4 +1,5 @@
-"""Work with the display's controllers: check, neutral pose, sweep, calibrate, monitor a port.
+"""Work with the display's controllers: check, identify, neutral pose, sweep, calibrate,
+monitor a port; boards starts virtual ones on pseudo-terminals (no hardware needed).
 
 Device URLs: ``serial://PORT[,PORT...]`` (one port per controller, in device-file order; a
 PORT is a path like /dev/ttyUSB0 or any pyserial URL such as spy:///dev/ttyUSB0 or loop://)
@@ -28,6 +29,8 @@ import numpy as np
 import serial
 
 from crs_study.commands import HelpFormatter
+from crs_study.commands import _device_boards as device_boards
+from crs_study.commands._device_boards import describe_message
 from crs_study.device import Device, calibration, open_device, serial_port
 from crs_study.device.base import full_frame_rate_hz, full_frame_wire_time_s
 from crs_study.device.calibration import calibration_table, previous_default_endpoints
@@ -41,7 +44,7 @@ from crs_study.paths import DEFAULT_PROTOCOL, shipped_file
 from crs_study.protocol import load_protocol, wire_budget
 from crs_study.signals import deferred, describe, terminate_as_interrupt
 
-#: ``sweep`` limits: the LSC move time is 0..30000 ms (hardware.md), one frame period a frame.
+#: ``sweep`` limits: the LSC move time is 0..30000 ms (LSC protocol), one frame period a frame.
 SWEEP_MIN_RATE_HZ = 1 / 30
 SWEEP_MAX_RATE_HZ = 100.0
 SWEEP_MAX_S = 600.0
@@ -107,22 +110,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="stop after this long (default: until Ctrl-C)")
     monitor.add_argument("--max-frames", type=int, default=None, help="stop after this many")
     monitor.add_argument("--baud", type=int, default=9600)
+    device_boards.add_actions(add, actions)
 
 
 def run(args: argparse.Namespace) -> int:
     # SIGTERM and SIGHUP (a kill, a closed terminal) end an action as Ctrl-C does: the device
     # goes to neutral and the ports are released on the way out, never left mid-move
-    with warnings.catch_warnings(record=True) as caught, terminate_as_interrupt():
-        warnings.simplefilter("always", DeviceWarning)
-        try:
+    try:
+        with warnings.catch_warnings(record=True) as caught, terminate_as_interrupt():
+            warnings.simplefilter("always", DeviceWarning)
             return _ACTIONS[args.action](args)
-        finally:
-            for warning in caught:
-                if issubclass(warning.category, DeviceWarning):
-                    print(f"crs-study device: warning: {warning.message}", file=sys.stderr)
-                else:
-                    warnings.warn_explicit(warning.message, warning.category,
-                                           warning.filename, warning.lineno)
+    finally:
+        # shown once the recording has stopped (re-issued inside it, each warning was
+        # recorded again, into the list being read: a loop that never ended)
+        for warning in caught:
+            if issubclass(warning.category, DeviceWarning):
+                print(f"crs-study device: warning: {warning.message}", file=sys.stderr)
+            else:
+                warnings.warn_explicit(warning.message, warning.category,
+                                       warning.filename, warning.lineno)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -181,6 +187,9 @@ def _close(device: Device) -> list[str]:
 def _check(args: argparse.Namespace) -> int:
     device = _open(args)
     layout = device.layout
+    apart = device_boards.told_apart(args.device, layout, args.boards)  # before a servo moves
+    if not apart.ok:
+        raise DeviceError(f"--device {args.device}: {apart.how}")
     with _session(device):
         battery = device.battery_mv()
     balance = channel_balance(layout)
@@ -192,6 +201,7 @@ def _check(args: argparse.Namespace) -> int:
         "balance": balance.describe(), "balanced": balance.balanced,
         "channels_per_controller": balance.counts,
         "rewire": [{"from": a, "to": b, "channels": n} for a, b, n in balance.moves],
+        "told_apart": apart.how,
         "full_frame_ms": full_frame_wire_time_s(layout) * 1e3,
         "full_frame_rate_hz": full_frame_rate_hz(layout),
     }
@@ -208,6 +218,8 @@ def _check(args: argparse.Namespace) -> int:
                                                    else f"{mv / 1000:.2f} V"))
     # the map in use: pinned by the device file, never moved by software (serial_device,
     # "Which channel goes on which controller")
+    print(f"boards told apart {apart.how}" if apart.how.startswith("by ") else
+          f"boards told apart: {apart.how}")
     print("channel map (pinned by the device file; each channel is a servo's wire on a board):")
     for name, channels in report["channels"].items():
         print(f"  {name}: " + ", ".join(channels))
@@ -293,6 +305,8 @@ def _sweep(args: argparse.Namespace) -> int:
                 setpoints[index] = fraction * actuator.calibration.travel_mm
                 device.send(setpoints, move_ms=period_ms)
                 device.clock.sleep_until(start + (k + 1) / args.frame_rate)
+    print(f"sweep done: {len(chosen)} channel(s) through their range; the display is back in "
+          "its neutral pose")
     return 0
 
 
@@ -422,7 +436,7 @@ def _monitor(args: argparse.Namespace) -> int:
                 raise DeviceError(f"--port {spec}: read failed: {exc}") from None
             # an empty read: the line was quiet for the read timeout; frames held back for
             # the bytes after them (a possible false header) are decided now
-            events = [(f.offset, _describe(f.message))
+            events = [(f.offset, describe_message(f.message))
                       for f in (decoder.feed(data) if data else decoder.idle())]
             runs = _join([*held, *decoder.take_skipped()])
             # a run that reaches the end of what was read may go on in the next read
@@ -446,7 +460,7 @@ def _monitor(args: argparse.Namespace) -> int:
             pass  # a vanished port may fail to close; the read error above says why
         last = decoder.flush()
         for f in last:
-            print(f"end of stream: @{f.offset} {_describe(f.message)}")
+            print(f"end of stream: @{f.offset} {describe_message(f.message)}")
         frames += len(last)
         for s in _join([*held, *decoder.take_skipped()]):
             print(f"end of stream: skipped {len(s.data)} byte(s) ({s.reason}): "
@@ -466,15 +480,10 @@ def _join(runs: list) -> list:
     return out
 
 
-def _describe(message) -> str:
-    name = type(message).__name__
-    if hasattr(message, "positions"):
-        servos = " ".join(f"{i}:{p}" for i, p in message.positions)
-        extra = f" in {message.time_ms} ms" if hasattr(message, "time_ms") else ""
-        return f"{name} [{len(message.positions)}]{extra}: {servos}"
-    fields = {k: v for k, v in vars(message).items()}
-    return name + (" " + " ".join(f"{k}={v}" for k, v in fields.items()) if fields else "")
+def _identify(args: argparse.Namespace) -> int:
+    with _session(_open(args)) as device:
+        return device_boards.identify(args, device)
 
 
 _ACTIONS = {"check": _check, "neutral": _neutral, "sweep": _sweep, "calibrate": _calibrate,
-            "monitor": _monitor}
+            "monitor": _monitor, "boards": device_boards.boards, "identify": _identify}

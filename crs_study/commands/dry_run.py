@@ -52,7 +52,19 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(result.to_json())
     else:
-        print(f"dry-run: {len(result)} participants, {result.trials} trials "
-              f"({result.session_seconds / 60:.1f} min of simulated session time) in "
-              f"{args.out}")
+        print(summary_line(result, args.out))
     return 0 if result.finished else 130
+
+
+def summary_line(result, out: object) -> str:
+    """What the dry-run did: sessions already complete are named as such (a rerun of a
+    finished dry-run ran nothing; "0.0 min of simulated session time" said so badly)."""
+    already = sum(1 for r in result if r.status == "already-complete")
+    if already == len(result):
+        return (f"dry-run: {len(result)} participants, {result.trials} trials in {out}, all "
+                "already complete: nothing to run")
+    ran = sum(r.trials_run for r in result)
+    done = f"; {already} already complete" if already else ""
+    return (f"dry-run: {len(result)} participants, {result.trials} trials in {out}: {ran} "
+            f"trials run now ({result.session_seconds / 60:.1f} min of simulated session "
+            f"time){done}")

@@ -1,14 +1,15 @@
 """Display quality: D_P and D_S against d/l for every display model and lattice.
 
-Computes the paper's peak position distortion D_P and shape distortion D_S (crs-paper.md,
-Eqs. 1, 2, 5, 6) on periodic 1D, square and hexagonal patches at the shipped devices' pitch,
-writes a chart (quality.png) with the paper's theory lines overlaid and a table
-(quality.csv, quality.md) to --out, and prints a summary; with --json it prints one row per
-line: {"layout", "model", "d_over_l", "D_P", "D_S"}. Points are cached on disk (keyed by the
-source of the models), so a repeated run is quick; points that cannot be computed (a model
-without that lattice, a collapsing beam) are listed with the reason.
+Computes the paper's peak position distortion D_P and shape distortion D_S (Wang, Meng and
+Chen, "Continuity Reinforcement Skeleton for Pixel-based Haptic Display", Eqs. 1, 2, 5, 6) on
+periodic 1D, square and hexagonal patches at the shipped devices' pitch, writes a chart
+(quality.png) with the paper's theory lines overlaid and a table (quality.csv, quality.md) to
+--out, and prints a summary; with --json it prints one row per line: {"layout", "model",
+"d_over_l", "D_P", "D_S"}. Points are cached on disk (keyed by the source of the models), so a
+repeated run is quick; points that cannot be computed (a model without that lattice, a
+collapsing beam) are listed with the reason.
 
-``--speed-accuracy`` answers the other question of issue 2 (point 6): each display model's
+``--speed-accuracy`` answers the other question, which model to use: each display model's
 median time per surface against its error versus the FE reference on CRS bumps (crs1d,
 crs2d), as a table and a chart (speed_accuracy.png, speed_accuracy.md in --out); which model
 to use for what is in :mod:`crs_study.benchmarks.display`.
@@ -165,7 +166,7 @@ def _write(points: list, out: Path) -> list[Path]:
 
 
 def _speed_accuracy(args: argparse.Namespace) -> int:
-    """Time per surface against error versus the reference, chart and table (issue 2, 6)."""
+    """Time per surface against error versus the reference, chart and table."""
     rows = speed_accuracy_rows(quick=True)
     out = args.out if args.out is not None else (None if args.json else Path("quality"))
     written = []

@@ -10,16 +10,21 @@ another session. Sessions on a real device (not sim://) need a consent record fi
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TextIO
 
 from crs_study._files import os_errors
 from crs_study.dataset import dataset_dir
-from crs_study.errors import DatasetError
+from crs_study.errors import ConfigError, DatasetError
 from crs_study.protocol import emit_warnings, load_protocol
+from crs_study.session.responders import make_responder
 from crs_study.session.runner import run_session, seed_check
+from crs_study.session.screen import TerminalScreen
 from crs_study.session.spec import SessionSpec
 
 EXIT_INTERRUPTED = 130
@@ -53,6 +58,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed-check", action="store_true",
                         help="print the seed and plan hash, compare with a stored session, "
                         "write nothing")
+    parser.add_argument("--experimenter-view", type=Path, default=None, metavar="PATH",
+                        help="keypad sessions: show the experimenter's view (status, state, "
+                        "what to do) on PATH, a second terminal such as /dev/pts/4 or a log "
+                        "file, and only the participant's view here (default: both here)")
     parser.add_argument("--json", action="store_true",
                         help="print a JSON summary on stdout and no progress")
 
@@ -83,6 +92,22 @@ def stderr_progress(enabled: bool):
     return show
 
 
+@contextlib.contextmanager
+def experimenter_view(path: Path | None) -> Iterator[TextIO | None]:
+    """The experimenter's stream: ``path`` opened for appending (a terminal or a log), or None
+    (the view shares the participant's terminal)."""
+    if path is None:
+        yield None
+        return
+    try:
+        stream = open(path, "a", encoding="utf-8")  # noqa: SIM115 - closed below
+    except OSError as error:
+        raise ConfigError(f"--experimenter-view {path}: cannot open it for writing "
+                          f"({error.strerror or error})") from None
+    with stream:
+        yield stream
+
+
 @os_errors(DatasetError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
     spec = spec_from_args(args)
@@ -95,12 +120,21 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{key}: {value}")
         return 0
     # odd but legal values, before anything runs
-    emit_warnings(load_protocol(spec.protocol))
-    quiet = args.json
-    show = stderr_progress(not quiet)
-    result = run_session(spec, progress=show)
-    if show and sys.stderr.isatty():
-        sys.stderr.write("\n")
+    protocol = load_protocol(spec.protocol)
+    emit_warnings(protocol)
+    if spec.responder == "keypad":  # the screen shows where the session stands
+        with experimenter_view(args.experimenter_view) as view:
+            keypad = make_responder("keypad", seed=0, protocol=protocol,
+                                    screen=TerminalScreen(sys.stderr, view))
+            result = run_session(spec, responder=keypad)
+    else:
+        if args.experimenter_view is not None:
+            raise ConfigError("--experimenter-view is for --responder keypad (a person at the "
+                              "terminal)")
+        show = stderr_progress(not args.json)
+        result = run_session(spec, progress=show)
+        if show and sys.stderr.isatty():
+            sys.stderr.write("\n")
     if args.json:
         print(json.dumps({
             "status": result.status, "participant": result.participant,

@@ -48,6 +48,29 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _adaptive_lines(a: dict | None) -> list[str]:
+    """The procedure and its level range (an ``[adaptive]`` protocol)."""
+    if not a:
+        return []
+    lines = [f"adaptive: {a['procedure']} chooses {a['parameter']} in each block "
+             f"({a['trials_per_block']} test trials), {a['min']:g} to {a['max']:g} on a "
+             f"{a['scale']} scale ({len(a['grid'])} levels, each checked below); threshold "
+             f"at {a['target_rate']:.4g} correct; practice at {a['practice_level']:g}"]
+    if "staircase" in a:
+        st = a["staircase"]
+        stop = f", or at {st['stop_reversals']} reversals" if st["stop_reversals"] else ""
+        lines.append(f"  staircase {st['rule']} from {st['start']:g}, steps {st['steps']} "
+                     f"levels (easier step x {st['easier_step_ratio']:.4g}); stops after "
+                     f"{a['trials_per_block']} trials{stop}; estimate: mean of the last "
+                     f"{st['estimate_reversals']} reversals")
+    if "quest_plus" in a:
+        q = a["quest_plus"]
+        lines.append(f"  QUEST+ (questplus): {q['thresholds']} thresholds, slopes "
+                     f"{q['slopes']}, lapse rates {q['lapse_rates']}; next level by minimum "
+                     "expected entropy")
+    return lines
+
+
 def _text(s: dict) -> str:
     minutes = s["expected_duration_s"] / 60
     t = s["trials"]
@@ -70,11 +93,13 @@ def _text(s: dict) -> str:
                  if levels["width_to_height"] else "")
         lines.append(f"levels: {levels['parameter']} = {values} ({levels['units']}; dataset "
                      f"column {levels['column']}{shape})")
+        lines += _adaptive_lines(s.get("adaptive"))
         for value, entry in levels["per_level"].items():
-            counts = ", ".join(f"{c} {n['practice']} practice + {n['test']} test"
-                               for c, n in entry["per_condition"].items())
+            counts = "" if entry["per_condition"] is None else ", ".join(
+                f"{c} {n['practice']} practice + {n['test']} test"
+                for c, n in entry["per_condition"].items()) + "; "
             fr = entry["frames_per_trial"]
-            lines.append(f"  {levels['parameter']} = {value}: {counts}; frames per trial "
+            lines.append(f"  {levels['parameter']} = {value}: {counts}frames per trial "
                          f"{fr['min']} to {fr['max']} (mean {fr['mean']:.1f})")
     lines += _block_order_lines(s["block_orders"])
     f = s["frames_per_trial"]

@@ -189,16 +189,12 @@ class Register:
                 continue
             try:
                 event = json.loads(line)
-                kind, label = event["event"], event["participant"]
-                if kind not in ("consent", "withdrawal") or not isinstance(label, str):
-                    raise KeyError(kind)
-                if kind == "consent":
-                    for key in _CONSENT_KEYS:
-                        if not isinstance(event[key], str):
-                            raise KeyError(key)
-            except (json.JSONDecodeError, KeyError, TypeError):
-                raise ConsentError(f"{self.path}:{number}: not a consent register line: "
-                                   f"{line[:60]!r}") from None
+            except (json.JSONDecodeError, RecursionError):
+                event = None
+            problem = _event_problem(event)
+            if problem:
+                raise ConsentError(f"{self.path}:{number}: not a consent register line "
+                                   f"({problem}): {line[:60]!r}") from None
             events.append({**event, "_line": number})
         return events
 
@@ -287,3 +283,19 @@ class Register:
         self._append(self.audit_path, entry)
 
 
+#: The keys each kind of register line must carry, as strings ("name" is optional; a
+#: withdrawal without a time is still final, see :meth:`Register.withdrawn`).
+EVENT_KEYS = {"consent": ("participant", *_CONSENT_KEYS), "withdrawal": ("participant",)}
+
+
+def _event_problem(event: object) -> str | None:
+    """Why ``event`` is not a register line (None when it is)."""
+    if not isinstance(event, dict):
+        return "expected a JSON object"
+    kind = event.get("event")
+    if kind not in EVENT_KEYS:
+        return f"'event' must be one of {', '.join(EVENT_KEYS)}, got {kind!r}"
+    missing = [k for k in EVENT_KEYS[kind] if not isinstance(event.get(k), str)]
+    if missing:
+        return f"a {kind} line needs the key {missing[0]!r} (a string)"
+    return None

@@ -294,7 +294,8 @@ def column_dictionary(task: Task = DEFAULT_TASK) -> dict[str, Any]:
     """
     levels = {**_LEVEL_TEXT, schema.SYMBOLS: {s: f"the {task.noun} {s}" for s in task.symbols}}
     columns: dict[str, Any] = {}
-    described = {**schema.trial_column_docs(task), **schema.level_columns(task)}
+    described = {**schema.trial_column_docs(task), **schema.level_columns(task),
+                 **schema.ADAPTIVE_COLUMNS}
     for name, (description, units) in described.items():
         entry: dict[str, Any] = {"LongName": name.replace("_", " "), "Description": description}
         if units in levels:

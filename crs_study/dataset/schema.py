@@ -177,18 +177,41 @@ def symbols_are_numbers(column: str) -> bool:
 LATER_COLUMNS: tuple[str, ...] = ("rerun",)
 
 
-def trial_columns(level_column: str | None = None, symbol: str = DIGIT_COLUMN
-                  ) -> tuple[str, ...]:
+#: Adaptive columns: a session whose protocol has an ``[adaptive]`` table records, after the
+#: level column, the state of the block's procedure once the trial's response is given
+#: (:mod:`crs_study.adaptive`); n/a on practice trials, which no procedure sees.
+ADAPTIVE_COLUMNS: dict[str, tuple[str, str]] = {
+    "adaptive_estimate": ("The block's threshold estimate after this trial, in the level's "
+                          "units: the level at the protocol's target rate (QUEST+: posterior "
+                          "mean; staircase: mean of the last reversals on its scale); n/a "
+                          "before there is one", "as the level column"),
+    "adaptive_ci_low": ("Lower end of the estimate's 95 % interval (QUEST+: posterior "
+                        "quantile; staircase: Student t over the last reversals)",
+                        "as the level column"),
+    "adaptive_ci_high": ("Upper end of the estimate's 95 % interval", "as the level column"),
+    "adaptive_reversal": ("1 when this trial's response reversed the track's direction "
+                          "(the staircase's reversal levels are these trials' levels)", "0|1"),
+    "adaptive_reversals": ("Reversals of the block's track so far, this trial included",
+                           "count"),
+}
+
+
+def trial_columns(level_column: str | None = None, symbol: str = DIGIT_COLUMN,
+                  adaptive: bool = False) -> tuple[str, ...]:
     """A session TSV's columns: the trial columns with the symbol in ``symbol`` (one of
-    :data:`SYMBOL_COLUMNS`), and ``level_column`` right after it."""
+    :data:`SYMBOL_COLUMNS`), ``level_column`` right after it and, for an adaptive protocol,
+    :data:`ADAPTIVE_COLUMNS` after that."""
     if symbol not in SYMBOL_COLUMNS:
         raise ValueError(f"expected a symbol column {list(SYMBOL_COLUMNS)}, got {symbol!r}")
     names = [symbol if n == DIGIT_COLUMN else n for n in TRIAL_COLUMNS]
     if level_column is None:
+        if adaptive:
+            raise ValueError("adaptive columns need the level column")
         return tuple(names)
     if level_column not in LEVEL_COLUMNS:
         raise ValueError(f"expected a level column {sorted(LEVEL_COLUMNS)}, got {level_column!r}")
-    names.insert(names.index(symbol) + 1, level_column)
+    at = names.index(symbol) + 1
+    names[at:at] = [level_column, *(ADAPTIVE_COLUMNS if adaptive else ())]
     return tuple(names)
 
 

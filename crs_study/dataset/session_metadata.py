@@ -8,11 +8,14 @@ indent, a final newline), so a sidecar read and written again is byte for byte t
 
 Reading is strict: a key the format does not have, a key it needs that is missing, or a value
 of the wrong type is a one-line :class:`~crs_study.errors.DatasetError` naming the file and the
-key. One key may be absent: ``StimulusSha256`` (sidecars begun by software older than the
+key. Two keys may be absent: ``StimulusSha256`` (sidecars begun by software older than the
 stimulus fingerprint lack it; read as None, and the runner then records null: it cannot vouch
-for trials drawn by older software). One is written only when not empty: ``Interruptions``
+for trials drawn by older software). Two are written only when not empty: ``Interruptions``
 (why the session stopped before its end: a sidecar of a session never interrupted, or written
-by older software, has none).
+by older software, has none) and ``AdaptiveStateSha256`` (only adaptive protocols have it,
+read as None when absent: the fingerprint of the procedures' state after ``TrialsCompleted``
+trials, :meth:`crs_study.adaptive.AdaptiveRun.fingerprint`; a resume replays the recorded
+responses and must reach it).
 
 The JSON keys are BIDS-style CamelCase; entries of ``Resumes`` have ``Time``, ``AtTrial``,
 ``DeviceURL``, ``SoftwareVersion``; entries of ``Faults`` ``trial``, ``time``, ``message``
@@ -39,10 +42,11 @@ ClockKind = Literal["real", "virtual"]
 STATUSES: tuple[str, ...] = ("running", "interrupted", "complete")
 CLOCKS: tuple[str, ...] = ("real", "virtual")
 #: Keys a sidecar written by older software may lack (read as None).
-OPTIONAL_KEYS = frozenset({"StimulusSha256"})
-#: Keys written only when not empty, read as ``()`` when absent (sessions never interrupted,
-#: and every sidecar older software wrote, have none).
-WHEN_PRESENT_KEYS = frozenset({"Interruptions"})
+OPTIONAL_KEYS = frozenset({"StimulusSha256", "AdaptiveStateSha256"})
+#: Keys written only when not empty, read as ``()`` (or None, when optional) when absent
+#: (sessions never interrupted, fixed protocols, and every sidecar older software wrote, have
+#: none).
+WHEN_PRESENT_KEYS = frozenset({"Interruptions", "AdaptiveStateSha256"})
 #: Why a session stopped before its end (:class:`Interruption`): the experimenter's pause key,
 #: a signal (SIGINT is Ctrl-C), a device fault, the participant's consent withdrawn, another
 #: error (a full disk), or a crash found on resume (killed, power cut: the sidecar still said
@@ -296,6 +300,7 @@ class SessionMetadata(_Record):
     resumes: tuple[Resume, ...] = ()
     faults: tuple[Fault, ...] = ()
     interruptions: tuple[Interruption, ...] = ()
+    adaptive_state_sha256: str | None = None
 
     _KEYS = (
         ("TaskName", "task_name", _label),
@@ -326,6 +331,8 @@ class SessionMetadata(_Record):
         ("TrialsPlanned", "trials_planned", _whole(0)),
         ("TrialsCompleted", "trials_completed", _whole(0)),
         ("TrialsSha256", "trials_sha256", _or_none(_sha256)),  # the _beh.tsv bytes, last write
+        # the adaptive procedures' state after TrialsCompleted trials (adaptive protocols)
+        ("AdaptiveStateSha256", "adaptive_state_sha256", _or_none(_sha256)),
         ("Resumes", "resumes", _entries(Resume, "Resumes")),  # one per resume
         ("Faults", "faults", _entries(Fault, "Faults")),     # device faults during trials
         ("Interruptions", "interruptions",                   # why it stopped, when it did
@@ -356,6 +363,9 @@ class SessionMetadata(_Record):
             data = json.loads(text)
         except ValueError as exc:
             raise DatasetError(f"{source}: not a readable session sidecar: {exc}") from None
+        except RecursionError:  # json recurses once per level of nesting
+            raise DatasetError(f"{source}: not a readable session sidecar: arrays or objects "
+                               "nested too deeply") from None
         return cls.from_dict(data, source)
 
     @classmethod
@@ -395,10 +405,12 @@ class SessionMetadata(_Record):
         return {i.at_trial for i in self.interruptions if i.trial_cut}
 
     def with_progress(self, status: Status, trials_completed: int, trials_sha256: str,
-                      end_time: datetime | None) -> SessionMetadata:
+                      end_time: datetime | None, adaptive_state_sha256: str | None = None
+                      ) -> SessionMetadata:
         """A copy with the session's progress updated (what each sidecar write changes)."""
         return replace(self, status=status, trials_completed=trials_completed,
-                       trials_sha256=trials_sha256, end_time=end_time)
+                       trials_sha256=trials_sha256, end_time=end_time,
+                       adaptive_state_sha256=adaptive_state_sha256)
 
 
 #: What a stored session must match to be resumed: JSON key -> how a message names it.

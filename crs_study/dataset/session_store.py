@@ -34,6 +34,7 @@ import hashlib
 import os
 import zlib
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TextIO
@@ -57,6 +58,53 @@ from crs_study.errors import DatasetError, SessionError
 #: (and when the session stops), so it may lag the trial file by as many rows; with it, by
 #: one (a kill between a row and the sidecar write after it).
 UNDURABLE_SIDECAR_EVERY = 10
+
+
+def sidecar_lag(stored: SessionMetadata) -> int:
+    """How many rows the trial file of the session ``stored`` describes may hold beyond its
+    ``TrialsCompleted`` after a kill: :data:`UNDURABLE_SIDECAR_EVERY` for a session on the
+    virtual clock (a dry-run, written without per-trial durability), else one."""
+    return UNDURABLE_SIDECAR_EVERY if stored.virtual_clock else 1
+
+
+@dataclass(frozen=True)
+class StoppedSession:
+    """A session that stopped before its end whose trial file and sidecar disagree only as
+    an interruption leaves them (:func:`explained_by_interruption`)."""
+
+    #: whole rows in the trial file (every one of them a trial done)
+    rows: int
+    #: rows beyond the sidecar's ``TrialsCompleted`` (the sidecar lagged when it stopped)
+    unrecorded: int
+    #: bytes of a torn last line (a kill in the middle of an append), to be left out
+    torn_bytes: int
+    #: the most rows the sidecar may lag by (:func:`sidecar_lag`)
+    lag: int
+
+
+def explained_by_interruption(data: bytes, stored: SessionMetadata) -> StoppedSession | None:
+    """Whether an interruption explains how the trial file ``data`` disagrees with the
+    sidecar ``stored``; None when it does not (the file or the sidecar was changed).
+
+    The check :meth:`SessionStore.check_resumable` makes before a resume, read-only: the
+    session is not complete; after a torn last line (no newline) is set aside, the file
+    holds ``TrialsCompleted`` whole rows plus at most :func:`sidecar_lag` more; and its
+    header and first ``TrialsCompleted`` rows hash to ``TrialsSha256``, the rows the sidecar
+    recorded. A complete session, more rows than the lag, fewer rows than recorded, or
+    recorded rows rewritten are not explained.
+    """
+    if stored.is_complete or stored.trials_sha256 is None:
+        return None
+    keep = len(data) if data.endswith(b"\n") else data.rfind(b"\n") + 1
+    if keep == 0:
+        return None
+    rows = data[:keep].count(b"\n") - 1
+    done, lag = stored.trials_completed, sidecar_lag(stored)
+    if not done <= rows <= done + lag:
+        return None
+    if sha256_bytes(_first_lines(data, done + 1)) != stored.trials_sha256:
+        return None
+    return StoppedSession(rows, rows - done, len(data) - keep, lag)
 
 
 class SessionStore:

@@ -3,6 +3,8 @@
 Layers inside (each module imports only those above it)::
 
     base          the interface (Device, FrameReport), wire constants, the URL registry
+    identity      which board is behind which port: USB serial number, by-id path; the
+                  register of boards an experimenter confirmed (device identify)
     calibration   millimetres to whole-us pulse widths and back (PulseMap)
     codec         LSC frames as typed data, and their bytes
     decoder       bytes back to frames: one frame, or a stream with garbage in it
@@ -10,6 +12,7 @@ Layers inside (each module imports only those above it)::
     schedule      the estimate of a stimulus's wire use and latency; channel balance
     virtual_controller, protocol_lscsim, virtual_pty    a virtual LSC-24 board, as a pyserial
                   URL and as a pseudo-terminal
+    virtual_boards  a device file's boards on pseudo-terminals, with taps (device boards)
     serial_port   one board's port: its options, its writer and reader threads
     serial_device the real device: one port per controller
     sim_options   what a sim:// URL sets (timings, injected faults)

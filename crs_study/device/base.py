@@ -5,9 +5,9 @@ device-file order) or ``open_device("sim://?faults...", layout, clock)``: the UR
 looked up in a registry (:func:`register_scheme`), which :mod:`crs_study.device` fills with
 its two implementations, so this module never imports them. Both take setpoint
 vectors in millimetres in :class:`~crs_study.geometry.Layout` actuator order and turn them into
-LSC SERVO_MOVE frames (hardware.md); the simulated device decodes those very bytes.
+LSC SERVO_MOVE frames (LSC protocol); the simulated device decodes those very bytes.
 
-Wire arithmetic (hardware.md): 9600 baud 8N1 is 10 bits a byte, 1.0417 ms; a SERVO_MOVE for
+Wire arithmetic (LSC protocol): 9600 baud 8N1 is 10 bits a byte, 1.0417 ms; a SERVO_MOVE for
 n servos is 3 n + 7 bytes.
 """
 
@@ -22,7 +22,7 @@ from typing import Self
 import numpy as np
 
 from crs_study.clock import Clock, RealClock
-from crs_study.errors import DeviceError
+from crs_study.errors import CrsStudyWarning, DeviceError
 from crs_study.geometry.layout import Layout
 
 BAUD_RATE = 9600
@@ -30,8 +30,9 @@ BITS_PER_BYTE = 10  # start + 8 data + stop
 BYTE_TIME_S = BITS_PER_BYTE / BAUD_RATE
 
 
-class DeviceWarning(UserWarning):
-    """Something odd but not fatal about the device (no battery answer, unbalanced channels)."""
+class DeviceWarning(CrsStudyWarning):
+    """Something odd but not fatal about the device (no battery answer, unbalanced channels);
+    the command line prints it in one line, like every message of ours."""
 
 
 #: A board reporting less than this on open is refused (2S pack cut-off, 3.0 V a cell); both
@@ -40,7 +41,7 @@ LOW_BATTERY_MV = 6000
 
 
 def servo_move_bytes(n_servos: int) -> int:
-    """Bytes on the wire for a SERVO_MOVE frame of ``n_servos``: 3 n + 7 (hardware.md)."""
+    """Bytes on the wire for a SERVO_MOVE frame of ``n_servos``: 3 n + 7 (LSC protocol)."""
     return 3 * n_servos + 7
 
 
@@ -56,7 +57,7 @@ def full_frame_wire_time_s(layout: Layout) -> float:
     """Time for a frame that moves every channel: the busiest controller's SERVO_MOVE.
 
     Controllers have their own ports and are written concurrently, so the slowest one bounds
-    the frame. 19 servos: 64 bytes, 66.7 ms (hardware.md).
+    the frame. 19 servos: 64 bytes, 66.7 ms (LSC protocol).
     """
     busiest = max(channels_per_controller(layout).values(), default=0)
     return servo_move_bytes(busiest) * BYTE_TIME_S if busiest else 0.0

@@ -3,7 +3,7 @@
 :meth:`PulseMap.to_pulses` is the one map from millimetres to pulse widths: both devices and
 the wire estimate use it, and the ``device calibrate`` command starts each channel from it.
 Each actuator's :class:`~crs_study.geometry.layout.Calibration` (the device file's numbers) maps
-stroke to pulse width linearly (hardware.md, "Linear PWM servos")::
+stroke to pulse width linearly (linear PWM servos: pulse width in proportion to stroke)::
 
     pulse = zero_us + (full_us - zero_us) * mm / travel_mm,   mm in [0, travel_mm]
 
@@ -31,6 +31,12 @@ from crs_study.geometry.layout import Layout, load_layout
 
 #: Setpoints this far outside [0, travel] are float noise and are clipped, not refused (mm).
 DEFAULT_TOLERANCE_MM = 1e-6
+
+#: The pulse resolution (us): :meth:`PulseMap.to_pulses` rounds to the nearest whole
+#: microsecond, the LSC's (SERVO_MOVE carries an integer). The renderer's feed cap leaves room
+#: for half of it (:data:`crs_study.rendering.feed_cap.PULSE_QUANTUM_US`, the same number: the
+#: rendering stage sits below the device's; tests/test_feed_cap.py checks they agree).
+PULSE_QUANTUM_US = 1.0
 
 
 @dataclass(frozen=True, eq=False)

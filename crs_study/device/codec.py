@@ -1,6 +1,6 @@
 """The Hiwonder/LOBOT LSC-series controller protocol: frames as typed data, bytes, and back.
 
-Pure code, no I/O (hardware.md, "Hiwonder / LOBOT LSC-series PWM servo controller protocol")::
+Pure code, no I/O (Hiwonder's LSC-series servo controller communication protocol)::
 
     0x55 0x55  Length  Command  parameters...     Length = len(parameters) + 2
 
@@ -33,7 +33,7 @@ command examples (``55 55 05 06 02 00 00``, ``55 55 05 0B 08 32 00``, ``55 55 05
 01``), are in tests/test_codec.py.
 
 Value ranges enforced by the encoders (and by the decoder, which is how it resynchronises):
-pulse width 500..2500 us, move time 0..30000 ms (hardware.md), servo ids 0..32 (the largest
+pulse width 500..2500 us, move time 0..30000 ms (LSC protocol), servo ids 0..32 (the largest
 channel a device file may name: ``channel_base`` <= 1 and at most 32 channels), ids unique in a
 frame, at least one servo per multi-servo frame, 8- and 16-bit fields in range.
 

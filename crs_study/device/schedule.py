@@ -1,6 +1,6 @@
 """Frame scheduling: what a stimulus costs on the wire, the frame rate it allows, its latency.
 
-The wire (hardware.md): each controller has its own 9600-baud port, 10 bits a byte
+The wire (LSC protocol): each controller has its own 9600-baud port, 10 bits a byte
 (1.0417 ms), written concurrently; a SERVO_MOVE for n servos is 3 n + 7 bytes. A frame is on the
 wire until its busiest controller's bytes have left.
 

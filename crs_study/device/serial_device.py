@@ -265,12 +265,19 @@ class SerialDevice(Device):
 
     def heartbeat_check(self, asked: object) -> None:
         """Every board answered the question :meth:`heartbeat_ask` put, within
-        ``heartbeat_timeout_s`` of it (an answer already in is not waited for), else a
+        ``heartbeat_timeout_s`` of it (an answer already in is not waited for; a board that
+        did not answer is asked once more, as a garbled reply is no hung board), else a
         :class:`DeviceError` naming the silent ones; an answer below ``min_battery_mv`` is
         one too. Failures are also appended to :attr:`faults`."""
         before, deadline = asked  # type: ignore[misc]
         answers = [port.battery_answer(b, deadline) for port, b in zip(self.ports, before,
                                                                         strict=True)]
+        if None in answers:  # asked once more: a reply garbled on the wire is no hung board
+            again = {i: port.ask_battery() for i, (port, mv) in
+                     enumerate(zip(self.ports, answers, strict=True)) if mv is None}
+            deadline = time.monotonic() + self.options.heartbeat_timeout_s
+            for i, token in again.items():
+                answers[i] = self.ports[i].battery_answer(token, deadline)
         silent = [port.label for port, mv in zip(self.ports, answers, strict=True) if mv is None]
         problem = None
         if silent:

@@ -66,7 +66,7 @@ OUT_WAITING_LOW_BYTES = 4
 #: Longest single wait of a writer thread (s): it looks at its port again at least this often.
 MAX_WAIT_S = 0.5
 
-#: Baud rates a port may be opened at (the LSC boards take 9600 only; hardware.md).
+#: Baud rates a port may be opened at (the LSC boards take 9600 only; LSC protocol).
 MIN_BAUD, MAX_BAUD = 300, 4_000_000
 #: Longest full-refresh interval (s), as the simulated device's; longer is a typo, and a
 #: wait that long overflows the platform's time_t.
@@ -82,7 +82,7 @@ class SerialOptions:
     move_ms: int | None = None  # SERVO_MOVE time when send() gets none; None: one full frame
     refresh_s: float = DEFAULT_REFRESH_S  # a frame this long after the last full one: full
     deadband_us: int = DEFAULT_DEADBAND_US  # resend a channel when it moved more than this
-    baud: int = 9600  # the LSC boards support 9600 only (hardware.md)
+    baud: int = 9600  # the LSC boards support 9600 only (LSC protocol)
     pace: bool = True  # write no faster than the wire carries bytes
     lead_s: float = 0.002  # write this early before the wire frees, against wake-up jitter
     write_timeout_s: float = 0.5

@@ -19,9 +19,21 @@ URL syntax (options may also be given as keyword arguments; keywords win)::
     brownout_at=5.0      the servo supply browns out 5.0 s after open(); ``A@5``: board A only
     hang_at=B@2.0        board B stops reading 2.0 s after open(): bytes lost, no answers,
                          servos hold their last command (seen only by a heartbeat)
+    fault_period=20      the timed faults (disconnect_at, stall, brownout_at, hang_at) come
+                         back on every resumed run of a session, the first of them 20 s after
+                         the device opens (their spacing kept); without it they fire once per
+                         session
+    faults_met=0         set by the session runner: the device faults the session has met
+                         (its sidecar's Faults); with one or more and no fault_period, the
+                         timed faults are not injected again
 
 Times are seconds after :meth:`SimulatedDevice.open`. A malformed or unknown option is a
 one-line :class:`~crs_study.errors.DeviceError`.
+
+Once per session: a session that met a timed fault is resumed by running the same command
+again, which opens the device anew. Were the faults armed again on every open, the resumed
+run would meet the same fault at the same time after its start and never progress; so
+without ``fault_period`` a session meets each example fault once and then runs to the end.
 
 The faults these options inject, as the caller sees them, are described in
 :mod:`crs_study.device.simulated`.
@@ -60,6 +72,20 @@ class SimOptions:
     stall: tuple[tuple[str, int, float], ...] = ()  # (controller, channel, s)
     brownout_at: tuple[tuple[str | None, float], ...] = ()
     hang_at: tuple[tuple[str | None, float], ...] = ()
+    fault_period: float | None = None
+    faults_met: int = 0
+
+    def fault_shift(self) -> float | None:
+        """How much later than written the timed faults fire on this opening: 0 on a
+        session's first run (or before it met a fault); with ``fault_period``, so that the
+        first comes that long after the open; None: not injected (once per session)."""
+        if self.faults_met <= 0:
+            return 0.0
+        if self.fault_period is None:
+            return None
+        times = [at for _, at in self.disconnect_at] + [at for *_, at in self.stall] + \
+            [at for _, at in self.brownout_at] + [at for _, at in self.hang_at]
+        return self.fault_period - min(times, default=0.0)
 
     @classmethod
     def parse(cls, url: str, layout: Layout, **overrides: object) -> SimOptions:
@@ -149,6 +175,8 @@ _PARSERS = {
     "battery_mv": lambda u, k, r, lay: _number(u, k, r, int, 0, 0xFFFF),
     "seed": lambda u, k, r, lay: _number(u, k, r, int, 0, 2**63 - 1),
     "garbage_rate": lambda u, k, r, lay: _number(u, k, r, float, 0.0, 1.0),
+    "fault_period": lambda u, k, r, lay: float(_number(u, k, r, float, 1e-3, 1e9)),
+    "faults_met": lambda u, k, r, lay: _number(u, k, r, int, 0, 10**9),
     "disconnect_at": _timed,
     "stall": _stalls,
     "brownout_at": _timed,

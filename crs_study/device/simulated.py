@@ -74,12 +74,11 @@ from crs_study.device.codec import BatteryVoltage, Direction, get_battery_voltag
 from crs_study.device.decoder import FrameDecoder
 from crs_study.device.schedule import warn_if_unbalanced
 from crs_study.device.sim_options import SimOptions, controller_names
+from crs_study.device.virtual_boards import board_specs
 from crs_study.device.virtual_controller import (
     ServoBank,
-    ServoSpec,
     VirtualController,
     clear_decode_cache,
-    speed_us_per_s,
 )
 from crs_study.device.writes import (
     ChannelSplit,
@@ -90,7 +89,7 @@ from crs_study.device.writes import (
 from crs_study.errors import DeviceError
 from crs_study.geometry.layout import Layout
 
-#: The battery reply ``55 55 04 0F lo hi`` (hardware.md): how long the host waits for it.
+#: The battery reply ``55 55 04 0F lo hi`` (LSC protocol): how long the host waits for it.
 BATTERY_REPLY_BYTES = 6
 
 
@@ -160,15 +159,7 @@ class SimulatedDevice(Device):
         opts = self.options
         self.boards = []
         for c in self.layout.controllers:
-            specs = [ServoSpec() for _ in range(c.channels)]
-            for a in self.layout.actuators:
-                if a.controller == c.name:
-                    cal = a.calibration
-                    specs[a.channel - c.channel_base] = ServoSpec(
-                        rest_us=cal.zero_us,
-                        max_speed_us_s=speed_us_per_s(cal.zero_us, cal.full_us, cal.travel_mm,
-                                                      self.layout.servo_speed_s_per_mm),
-                    )
+            specs = board_specs(self.layout, c.name)
             board = VirtualController(c.name, c.channels, c.channel_base, specs,
                                       opts.battery_mv, t0, record=self.record)
             self.boards.append(board)
@@ -177,21 +168,26 @@ class SimulatedDevice(Device):
         # every board's servos in one bank (boards hold views): one read per displayed frame
         self._servos = ServoBank.joined([b.servos for b in self.boards])
         names = controller_names(self.layout)
-        for name, at in opts.disconnect_at:
+        shift = opts.fault_shift()  # None: the session met its faults already (once each)
+        disconnects = opts.disconnect_at if shift is not None else ()
+        stalls = opts.stall if shift is not None else ()
+        brownouts = opts.brownout_at if shift is not None else ()
+        t_faults = t0 + (shift or 0.0)
+        for name, at in disconnects:
             for i, wire in enumerate(self._wires):
                 if name in (None, names[i]):
-                    wire.vanish_at = min(wire.vanish_at, t0 + at)
-        for name, channel, at in opts.stall:
-            self.boards[names.index(name)].stall(channel, t0 + at)
-        for name, at in opts.brownout_at:
+                    wire.vanish_at = min(wire.vanish_at, t_faults + at)
+        for name, channel, at in stalls:
+            self.boards[names.index(name)].stall(channel, t_faults + at)
+        for name, at in brownouts:
             for i, board in enumerate(self.boards):
                 if name in (None, names[i]):
-                    board.brownout(t0 + at)
-        for name, at in opts.hang_at:
+                    board.brownout(t_faults + at)
+        for name, at in (opts.hang_at if shift is not None else ()):
             for i, board in enumerate(self.boards):
                 if name in (None, names[i]):
-                    board.hang(t0 + at)
-        times = [w.vanish_at for w in self._wires] + [t0 + at for _, at in opts.brownout_at]
+                    board.hang(t_faults + at)
+        times = [w.vanish_at for w in self._wires] + [t_faults + at for _, at in brownouts]
         self._fault_at = min(times, default=math.inf)
         self._check_batteries(t0)
 
@@ -452,11 +448,16 @@ class SimulatedDevice(Device):
         return self._ask_batteries(wait=False)
 
     def heartbeat_check(self, asked: object) -> None:
-        """Every board answered (the clock waits for the replies if they are not in yet), or
-        a :class:`DeviceError` names those that did not (a hung board, a vanished port) or
-        read below :data:`LOW_BATTERY_MV`."""
+        """Every board answered (the clock waits for the replies if they are not in yet; a
+        board whose reply did not come is asked once more, as a garbled reply on a noisy line
+        is no hung board), or a :class:`DeviceError` names those that did not (a hung board,
+        a vanished port) or read below :data:`LOW_BATTERY_MV`."""
         arrived, answers = asked  # type: ignore[misc]
         self.clock.sleep_until(max(self.clock.now(), arrived))
+        if None in answers:  # asked once more: a reply garbled on the wire is no hung board
+            again = self._ask_batteries()
+            answers = [mv if mv is not None else other
+                       for mv, other in zip(answers, again, strict=True)]
         silent = [w.board.name for w, mv in zip(self._wires, answers, strict=True) if mv is None]
         if silent:
             self._fault(f"{self.url}: controller(s) {', '.join(silent)} did not answer "

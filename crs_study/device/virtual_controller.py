@@ -5,7 +5,7 @@ The board is driven by bytes and time only, so the same object sits behind
 their last bit arrives), behind a pyserial URL (``lscsim://``, :mod:`.protocol_lscsim`) and
 behind a pseudo-terminal (:mod:`.virtual_pty`).
 
-What it models (hardware.md)
+What it models (LSC protocol)
     * Framing: the streaming :class:`~crs_study.device.decoder.FrameDecoder` of the real
       codec; skipped garbage and malformed frames are counted as bad frames and beep.
     * SERVO_MOVE: each servo moves from where it is to the commanded pulse width along a
@@ -166,7 +166,8 @@ def speed_us_per_s(zero_us: float, full_us: float, travel_mm: float,
                    speed_s_per_mm: float) -> float:
     """Speed limit in pulse-width units: |full - zero| / travel (us/mm) over s/mm.
 
-    hardware.md: 0.08 s/cm = 0.008 s/mm; a 1000 us, 9 mm stroke takes 72 ms (13 889 us/s).
+    The paper's servos (Methods): 0.08 s/cm = 0.008 s/mm; a 1000 us, 9 mm stroke takes 72 ms
+    (13 889 us/s).
     """
     return abs(full_us - zero_us) / travel_mm / speed_s_per_mm
 
@@ -284,7 +285,7 @@ class VirtualController:
 
     @property
     def beeps(self) -> int:
-        """The board beeps once per bad frame (hardware.md)."""
+        """The board beeps once per bad frame (LSC protocol)."""
         return self.bad_frames
 
     def battery_mv(self, t: float | None = None) -> int:

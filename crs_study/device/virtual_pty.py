@@ -4,7 +4,7 @@
 that reads what the serial code writes, hands it to a
 :class:`~.virtual_controller.VirtualController` and writes the board's replies back. The slave
 side is a real tty path (``/dev/pts/N``): pyserial opens it like any port, which is how
-pyserial's own tests use ptys (hardware.md, "Testing serial code without hardware")::
+pyserial's own tests use ptys (pyserial's test suite)::
 
     with VirtualControllerPty(VirtualController("A", record=True)) as bridge:
         device = open_device(f"serial://{bridge.port}", layout)
@@ -26,6 +26,14 @@ slave as a pyserial port whose ``out_waiting`` is that backlog::
 
 :meth:`vanish` closes the master side: the slave's writes then fail with EIO, as when a USB
 serial adapter is pulled out mid-stream.
+
+The tap: with ``tap=True`` every byte the board receives is copied, as it arrives, to a second
+pty whose slave path is :attr:`VirtualControllerPty.tap_port`, so ``crs-study device monitor
+--port TAP`` decodes the line to the board as a hardware tap on its RX wire would. Nobody
+reading the tap never holds the board up: copies go out without blocking and, while more
+than :data:`TAP_STALE_BYTES` wait unread, what waits is dropped first (a monitor attached
+later sees the line from about then). ``listener(data, arrived)``, when given, is called with
+every chunk the board receives (the ``device boards`` command's live view).
 """
 
 from __future__ import annotations
@@ -40,6 +48,7 @@ import termios
 import threading
 import time
 import tty
+from collections.abc import Callable
 from typing import Any
 
 import serial
@@ -48,13 +57,25 @@ from crs_study.device.virtual_controller import VirtualController
 
 #: Longest the thread blocks in select(): how quickly it notices stop() and vanish().
 POLL_S = 0.01
+#: Unread bytes on the tap beyond which the tap is flushed before the next copy.
+TAP_STALE_BYTES = 1024
 
 
 class VirtualControllerPty:
     """A virtual board on the master side of a pty pair; :attr:`port` is the slave path."""
 
-    def __init__(self, board: VirtualController | None = None, baud: int | None = None) -> None:
+    def __init__(self, board: VirtualController | None = None, baud: int | None = None,
+                 tap: bool = False,
+                 listener: Callable[[bytes, float], None] | None = None) -> None:
         self.board = board or VirtualController(t0=time.monotonic())
+        self.listener = listener
+        self.tap_port: str | None = None
+        self._tap = (-1, -1)
+        if tap:
+            self._tap = pty.openpty()
+            tty.setraw(self._tap[1])
+            os.set_blocking(self._tap[0], False)
+            self.tap_port = os.ttyname(self._tap[1])
         self.baud = baud
         self.master, self.slave = pty.openpty()
         tty.setraw(self.slave)  # no echo, no line discipline: bytes pass untouched
@@ -96,11 +117,27 @@ class VirtualControllerPty:
                 with self._lock:
                     self.bytes_received += len(data)
                     reply = self.board.receive(data, arrived)
+                self._copy_to_tap(data)
+                if self.listener is not None:
+                    self.listener(data, arrived)
                 if reply:
                     os.write(self.master, reply)
         except (OSError, ValueError) as exc:  # the master was closed under us (vanish)
             if self._master_open:
                 self.error = exc
+
+    def _copy_to_tap(self, data: bytes) -> None:
+        """Copy what the board received to the tap, never blocking (module docstring)."""
+        master, slave = self._tap
+        if master < 0:
+            return
+        try:
+            unread = struct.unpack("i", fcntl.ioctl(slave, termios.FIONREAD, b"\0\0\0\0"))[0]
+            if unread > TAP_STALE_BYTES:
+                termios.tcflush(slave, termios.TCIFLUSH)
+            os.write(master, data)
+        except (BlockingIOError, OSError):
+            pass  # a full or closed tap loses the copy, never the board's bytes
 
     # -- control ------------------------------------------------------------------------------
 
@@ -170,6 +207,9 @@ class VirtualControllerPty:
             _close(self.master)
         _close(self.slave)
         self.slave = -1
+        for fd in self._tap:
+            _close(fd)
+        self._tap = (-1, -1)
 
     def __enter__(self) -> VirtualControllerPty:
         return self

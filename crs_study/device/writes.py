@@ -17,7 +17,7 @@ The calls
     other bytes (a battery query) went on this wire at ``t``. ``predict(t)``: what the waiting
     frame's write will be (what a device reports for a frame it hands over).
 
-The policy (hardware.md: 9600 baud, 10 bits a byte, 1.0417 ms; a SERVO_MOVE for n servos is
+The policy (LSC protocol: 9600 baud, 10 bits a byte, 1.0417 ms; a SERVO_MOVE for n servos is
 3 n + 7 bytes)
     * Merging, never queueing: a frame wanted while the wire is busy waits; a newer one
       replaces it; when the wire frees, one write carries the newest wanted frame. Latency

@@ -254,6 +254,19 @@ class CompressedBeams:
         length = np.einsum("bq,bq->b", self._grid_weights, np.sqrt(1.0 + top * top))
         return length * self._top_stretch - self._top_offset
 
+    def longest_operator(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`longest_feeds` as arrays over the layout's pixels: ``(slopes, weights,
+        offset)``, with longest = ``weights @ sqrt(1 + (slopes @ h)^2) - offset`` per beam.
+
+        ``slopes`` (B, nq, n_pixels): dy/ds at each node of the shape at margin N_cr per mm
+        of each pixel's height (0 for the pixels off the beam); ``weights`` (B, nq): the
+        quadrature weights (mm) times the steel's stretch; ``offset`` (B,): S + tolerance.
+        """
+        slopes = np.zeros(self._top_slopes.shape[:2] + (self.layout.n_pixels,))
+        for b, j in zip(*np.nonzero(self.pixel_map >= 0), strict=True):
+            slopes[b, :, self.pixel_map[b, j]] += self._top_slopes[b, :, j]
+        return slopes, self._grid_weights * self._top_stretch[:, None], self._top_offset.copy()
+
     def solve(self, setpoints_mm: np.ndarray, check_yield_curvature: bool = True,
               model: str = "beam") -> BeamProfiles:
         """Shapes with N solved so each beam's arc length equals its commanded length."""

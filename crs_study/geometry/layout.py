@@ -198,6 +198,11 @@ def layout_key(layout: Layout) -> tuple:
 
 #: Finest fabric mesh (subdivisions of a pitch) the 2D display models will build.
 MAX_FABRIC_SUBDIVISIONS = 64
+#: Lower bounds of a device file's lengths and speeds: far below any real display (a 1/64
+#: pitch margin, a 0.01 mm stroke, a servo 0.001 s/cm fast), far above where arithmetic fails.
+MIN_END_MARGIN_PITCH = 1 / MAX_FABRIC_SUBDIVISIONS
+MIN_TRAVEL_MM = 0.01
+MIN_SPEED_S_PER_CM = 0.001
 
 
 def fabric_mesh_for_margin(margin_pitch: float, at_least: int = 8) -> int | None:
@@ -235,7 +240,8 @@ def layout_from_dict(data: dict, source: str = "<device>") -> Layout:
     geometry = root.table("geometry")
     lattice = geometry.string("lattice", choices=("line", "hex"))
     pitch = geometry.number("pitch_mm", minimum=1.0, maximum=1000.0)
-    margin = geometry.number("end_margin_pitch", 1.0, minimum=0.0, exclusive_minimum=True,
+    # bounded below (a subnormal margin made the beam solver divide by nothing)
+    margin = geometry.number("end_margin_pitch", 1.0, minimum=MIN_END_MARGIN_PITCH,
                              maximum=10.0)
     if lattice == "hex" and fabric_mesh_for_margin(margin) is None:
         raise geometry.fail("end_margin_pitch", "on a hexagonal display the clamps must fall on "
@@ -246,11 +252,10 @@ def layout_from_dict(data: dict, source: str = "<device>") -> Layout:
     geometry.done()
 
     servos = root.table("servos")
-    travel = servos.number("travel_mm", minimum=0.0, exclusive_minimum=True, maximum=100.0)
-    boundary_travel = servos.number("boundary_travel_mm", minimum=0.0, exclusive_minimum=True,
-                                    maximum=100.0)
-    speed = servos.number("speed_s_per_cm", minimum=0.0, exclusive_minimum=True,
-                          maximum=100.0) / 10.0
+    # bounded below: a travel of 1e-320 mm made every pulse width infinite
+    travel = servos.number("travel_mm", minimum=MIN_TRAVEL_MM, maximum=100.0)
+    boundary_travel = servos.number("boundary_travel_mm", minimum=MIN_TRAVEL_MM, maximum=100.0)
+    speed = servos.number("speed_s_per_cm", minimum=MIN_SPEED_S_PER_CM, maximum=100.0) / 10.0
     servos.done()
 
     section = _read_beam_section(root.table("beam"))

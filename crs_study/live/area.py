@@ -88,10 +88,17 @@ class RecognitionArea:
     def bump(self, x_mm: float, y_mm: float, z_mm: float) -> Bump | None:
         """The bump under a finger at (x_f, y_f, z_f); None when the finger is outside the
         area (a flat display). Height: z_f within [0, max_height_mm]."""
+        placed = self.place(x_mm, y_mm, z_mm)
+        return None if placed is None else Bump(placed[:2], self.diameter_mm, placed[2])
+
+    def place(self, x_mm: float, y_mm: float, z_mm: float
+              ) -> tuple[float, float, float] | None:
+        """:meth:`bump`'s centre (layout frame) and height as plain floats, without building
+        the Bump (the live loop's path to :meth:`Renderer.render_bump`); None outside."""
         if not self.contains(x_mm, y_mm):
             return None
-        height = min(max(float(z_mm), 0.0), self.max_height_mm)
-        return Bump(self.to_layout(x_mm, y_mm), self.diameter_mm, height)
+        x, y = self.to_layout(x_mm, y_mm)
+        return x, y, min(max(float(z_mm), 0.0), self.max_height_mm)
 
     def describe(self) -> str:
         if self.edges is None:

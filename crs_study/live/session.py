@@ -51,6 +51,7 @@ from crs_study.live.link import MAX_BATCH, Listener, parse_address
 from crs_study.live.packet import decode_packet
 from crs_study.live.record import Recorder
 from crs_study.live.result import FrameCounts, LatencyLog, LiveResult, PacketCounts
+from crs_study.rendering.feed_cap import WIRE_DEADBAND_US, WireSlack
 from crs_study.rendering.render import Renderer
 from crs_study.signals import deferred, describe, terminate_as_interrupt
 
@@ -130,7 +131,9 @@ class LiveSession:
         self.area = RecognitionArea.for_layout(self.layout, self.config.area_margin_mm,
                                                self.config.diameter_mm,
                                                self.config.max_height_mm)
-        self.renderer = Renderer(self.layout, self.config.condition)  # clip, feed cap
+        # clip policy and feed cap as a session's, the cap's room for this device's dead-band
+        deadband = getattr(getattr(device, "options", None), "deadband_us", WIRE_DEADBAND_US)
+        self.renderer = Renderer(self.layout, self.config.condition, wire=WireSlack(deadband))
         self.tap = tap
         self.view = view
         self.neutral = self.layout.neutral_setpoints()
@@ -292,12 +295,12 @@ class LiveSession:
         packet, datagram, decode_s = self.newest
         self.newest = None
         start = time.thread_time()
-        bump = self.area.bump(packet.x_mm, packet.y_mm, packet.z_mm)
+        placed = self.area.place(packet.x_mm, packet.y_mm, packet.z_mm)
         clamped = False
-        if bump is None or bump.height_mm <= 0.0:
+        if placed is None or placed[2] <= 0.0:
             kind, setpoints = "flat", self.neutral
         else:
-            rendering = self.renderer.render(bump)
+            rendering = self.renderer.render_bump(placed[:2], self.area.diameter_mm, placed[2])
             kind, setpoints, clamped = "finger", rendering.setpoints, bool(rendering.clamped)
         self.packets.shown += 1
         frame = self._hand_over(setpoints, kind, packet.sequence, decode_s, start, clamped)

@@ -156,6 +156,53 @@ def connect(scheduler: Any, timeout: float | None = None):
                          f"({reason})") from None
 
 
+#: Seconds a local cluster's worker may take to start and reach its scheduler. Distributed's
+#: default (30 s to connect) is short for a 2-core machine busy with other work, where a
+#: spawned worker importing numpy, scipy and statsmodels can take longer than that.
+LOCAL_START_TIMEOUT = 180.0
+#: Starts of a local cluster tried before giving up (a start that fails measures nothing).
+LOCAL_START_ATTEMPTS = 3
+
+
+@contextlib.contextmanager
+def local_cluster(workers: int, *, timeout: float = LOCAL_START_TIMEOUT,
+                  attempts: int = LOCAL_START_ATTEMPTS) -> Iterator[Any]:
+    """A :class:`distributed.Client` of a Dask ``LocalCluster`` on loopback with ``workers``
+    worker processes of one thread each (single-threaded BLAS, as the process pool's), every
+    worker started and connected before it is yielded; closed afterwards.
+
+    Processes, not threads: each worker must use a core of its own (the fits hold the GIL in
+    Python code), or ``workers`` would not measure what that many machines do. Starting is
+    not part of any measurement, so a slow start gets ``timeout`` seconds (to connect and for
+    every worker to arrive) and a failed one (distributed's "Cluster closed without starting
+    up") is tried again, ``attempts`` times in all, before it is a :class:`PowerError`.
+    """
+    import dask
+    from distributed import Client, LocalCluster
+
+    seconds = f"{timeout:g}s"
+    failures: list[str] = []
+    with dask.config.set({"distributed.comm.timeouts.connect": seconds,
+                          "distributed.comm.timeouts.tcp": seconds}), single_threaded_blas():
+        for _ in range(attempts):
+            with contextlib.ExitStack() as stack:
+                try:
+                    cluster = stack.enter_context(LocalCluster(
+                        n_workers=workers, threads_per_worker=1, processes=True,
+                        host="127.0.0.1", dashboard_address=None))
+                    client = stack.enter_context(Client(cluster, timeout=timeout,
+                                                        set_as_default=False))
+                    client.wait_for_workers(workers, timeout=timeout)
+                except (OSError, RuntimeError, TimeoutError) as exc:
+                    failures.append(str(exc).splitlines()[0] if str(exc)
+                                    else type(exc).__name__)
+                    continue
+                yield client
+                return
+    raise PowerError(f"a local Dask cluster of {workers} worker(s) did not start in "
+                     f"{attempts} attempts of {timeout:g} s ({'; '.join(failures)})")
+
+
 def _dask(client, function, tasks) -> Iterator[tuple[int, Any]]:
     from distributed import as_completed
 

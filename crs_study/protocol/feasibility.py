@@ -30,7 +30,9 @@ The checks, in the order a failure is reported:
 
 A protocol with ``[levels]`` is checked at each level as a fixed stimulus; lines shared by all
 levels are kept once, the others carry their level, and a failure is named
-``levels.values[i]: at PARAMETER = VALUE: KEY: ...``.
+``levels.values[i]: at PARAMETER = VALUE: KEY: ...``. An adaptive protocol is checked at every
+level its procedure can show (the grid and the practice level); a failure names the bound
+nearer to the level (``adaptive.max: at PARAMETER = VALUE: ...``).
 """
 
 from __future__ import annotations
@@ -183,7 +185,7 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
                                  sized=not levels.varies_size)
         if checked[-1].severity == "error":
             inner = checked[-1]
-            return found + [Finding("error", f"levels.values[{i}]",
+            return found + [Finding("error", level_key(protocol, i, value),
                                     f"at {levels.parameter} = {value:g}: "
                                     + inner.describe(), inner.values)]
         per_level.append(checked)
@@ -194,6 +196,19 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
         found += [Finding("ok", f.key_path, f"{levels.parameter} = {value:g}: {f.message}",
                           f.values) for f in lines if f.message not in shared]
     return found
+
+
+def level_key(protocol: Protocol, i: int, value: float) -> str:
+    """The key a finding at the protocol's ``i``-th level ``value`` names:
+    ``levels.values[i]``, or for an adaptive protocol the bound nearer to it (or
+    ``adaptive.practice_level``)."""
+    spec = protocol.adaptive
+    if spec is None:
+        return f"levels.values[{i}]"
+    if spec.practice_level is not None and value == spec.practice and value not in spec.grid():
+        return "adaptive.practice_level"
+    middle = spec.from_axis(sum(spec.axis_bounds) / 2)
+    return "adaptive.max" if value >= middle else "adaptive.min"
 
 
 def _consent(protocol: Protocol) -> Finding:

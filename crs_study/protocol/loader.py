@@ -8,7 +8,9 @@ rate), ``[conditions]``
 (repetitions, blocking, counterbalancing, run constraint, practice, breaks, inter-trial
 interval) and ``[responses]`` (keys, time limit, feedback). An optional ``[levels]`` table
 varies one stimulus parameter across trials (a psychometric study,
-:class:`~crs_study.protocol.model.LevelSpec`).
+:class:`~crs_study.protocol.model.LevelSpec`); an optional ``[adaptive]`` table lets a
+staircase or QUEST+ choose it trial by trial instead
+(:class:`~crs_study.adaptive.spec.AdaptiveSpec`).
 
 Reading is strict (:mod:`crs_study._toml`): each table declares its keys
 (:func:`~crs_study.protocol.model.table_keys`, spelled by the stimulus set named in
@@ -33,8 +35,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from crs_study._toml import Section, parse_toml
+from crs_study._toml import Section, parse_toml, path_problem
 from crs_study._toml_lines import locate, one_line
+from crs_study.adaptive.spec import AdaptiveSpec, QuestPlusSpec, StaircaseSpec
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import BUILTIN_DEVICES
 from crs_study.paths import resolve_protocol
@@ -47,7 +50,7 @@ from crs_study.protocol.model import (
     Protocol,
     ResponseSpec,
     StimulusSpec,
-    one_line_problem,
+    adaptive_levels,
     table_keys,
 )
 from crs_study.protocol.odd_values import protocol_warnings, warning_findings
@@ -139,7 +142,7 @@ def _is_its_text(protocol: Protocol) -> bool:
     try:
         data = tomllib.loads(text)
         return protocol_from_dict(data, protocol.path, text, protocol.sha256) == protocol
-    except (tomllib.TOMLDecodeError, ConfigError):
+    except (tomllib.TOMLDecodeError, ConfigError, RecursionError):
         return False
 
 
@@ -181,6 +184,12 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     levels_table = table("levels") if root.has("levels") else None
     if levels_table is None:
         root.raw("levels", None)
+    adaptive_table = table("adaptive") if root.has("adaptive") else None
+    if adaptive_table is None:
+        root.raw("adaptive", None)
+    elif levels_table is not None:
+        raise root.fail("adaptive", "a protocol either crosses fixed [levels] with its "
+                        "trials or lets [adaptive] choose them: remove one of the two tables")
     root.done()
 
     study_fields: dict[str, Any] = {
@@ -198,7 +207,9 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     prompts_table.done()
     conditions_table.done()
     levels = _levels(levels_table, set_name) if levels_table is not None else None
-    stimulus = _stimulus(stimulus_table, path, set_name, levels)
+    adaptive = _adaptive(adaptive_table, set_name) if adaptive_table is not None else None
+    stimulus = _stimulus(stimulus_table, path, set_name,
+                         levels if adaptive is None else adaptive_levels(adaptive, set_name))
     design = _design(design_table, set_name)
     if design.ordering == "interleaved" and prompts:
         raise conditions_table.fail(
@@ -208,12 +219,13 @@ def _protocol(data: dict, path: Path, text: str, sha256: str) -> Protocol:
     responses = _responses(responses_table, stimulus)
     return Protocol(path=path, text=text, sha256=sha256, conditions=names,
                     condition_prompts=prompts, stimulus=stimulus, design=design,
-                    responses=responses, levels=levels, **study_fields)
+                    responses=responses, levels=levels, adaptive=adaptive, **study_fields)
 
 
 def _one_line(section: Section, key: str) -> str:
+    """A one-line string that can name a file (``device``, ``strokes_file``)."""
     value = section.raw(key)
-    problem = one_line_problem(value)
+    problem = path_problem(value)
     if problem is not None:
         raise section.fail(key, problem)
     return value
@@ -264,6 +276,37 @@ def _levels(table: Section, set_name: str) -> LevelSpec:
     width = table.raw("width_to_height", ... if parameter == size else None)
     table.done()
     return LevelSpec(parameter, values, width, set_name)
+
+
+def _adaptive(table: Section, set_name: str) -> AdaptiveSpec:
+    """The ``[adaptive]`` table and its procedure's sub-table (protocols/README.md)."""
+    def sub(name: str, required: tuple[str, ...]) -> dict | None:
+        if not table.has(name):
+            table.raw(name, None)
+            return None
+        section = table.table(name, keys=table_keys()[f"adaptive.{name}"])
+        for key in required:
+            section.raw(key)  # a missing required key is named with its line
+        values = {key: section.raw(key) for key in section.data}
+        section.done()
+        return values
+
+    staircase = sub("staircase", ("rule", "start", "steps"))
+    quest_plus = sub("quest_plus", ("thresholds", "slopes", "lapse_rates"))
+    parameter = table.raw("parameter")
+    spec = AdaptiveSpec(
+        parameter, table.raw("procedure"), table.raw("trials"), table.raw("min"),
+        table.raw("max"), table.raw("scale"), table.raw("levels"),
+        target_rate=table.raw("target_rate", None),
+        practice_level=table.raw("practice_level", None),
+        # a varied height needs the digits' shape; with another parameter the key is refused
+        width_to_height=table.raw("width_to_height",
+                                  ... if parameter == LevelSpec.size_parameter(set_name)
+                                  else None),
+        staircase=StaircaseSpec(**staircase) if staircase is not None else None,
+        quest_plus=QuestPlusSpec(**quest_plus) if quest_plus is not None else None)
+    table.done()
+    return spec
 
 
 def _check_strokes_file(table: Section, strokes_file: str, shown: StimulusSpec) -> None:

@@ -3,7 +3,8 @@
 A :class:`Protocol` holds one table of the file per part: ``[study]`` (its own fields),
 ``[stimulus]`` (:class:`~crs_study.stimuli.stimulus.StimulusSpec`, from the stimulus layer),
 ``[conditions]``, ``[design]`` (:class:`DesignSpec`), ``[responses]`` (:class:`ResponseSpec`)
-and the optional ``[levels]`` (:class:`LevelSpec`). Every dataclass checks its fields on
+and the optional ``[levels]`` (:class:`LevelSpec`) or ``[adaptive]`` (an ``AdaptiveSpec``;
+``levels`` then lists every level its procedure can show). Every dataclass checks its fields on
 construction: a wrong type or a value out of range is a one-line
 :class:`~crs_study.errors.ProtocolError` carrying the protocol key at fault (``key_path``),
 whether the value came from a file (:mod:`crs_study.protocol.loader` adds the file and the
@@ -24,9 +25,16 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Literal, get_args
 
-from crs_study._toml import integer_problem, number_problem, string_problem
+from crs_study._toml import (
+    integer_problem,
+    number_problem,
+    one_line_problem,
+    path_problem,
+    string_problem,
+)
+from crs_study.adaptive.spec import ADAPTIVE_TABLE_KEYS, WIDTH_TO_HEIGHT_RANGE, AdaptiveSpec
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import Layout, load_layout
 from crs_study.paths import shipped_file
@@ -99,18 +107,8 @@ def level_parameters(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, str, f
 LEVEL_PARAMETERS = level_parameters()
 #: Most levels one protocol may declare (each multiplies the number of trials).
 MAX_LEVELS = 20
-#: The range of ``levels.width_to_height`` (symbol width over height).
-WIDTH_TO_HEIGHT_RANGE = (0.05, 20.0)
 
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-
-
-def one_line_problem(value: Any) -> str | None:
-    """Why ``value`` is not a non-empty one-line string (None when it is)."""
-    problem = string_problem(value)
-    if problem is None and (not value.strip() or "\n" in value):
-        problem = f"expected a non-empty one-line string, got {value!r}"
-    return problem
 
 
 def _fail(key_path: str, problem: str | None) -> None:
@@ -309,6 +307,8 @@ class Protocol:
     design: DesignSpec
     responses: ResponseSpec
     levels: LevelSpec | None = None  # None: every trial shows the [stimulus] values
+    #: a procedure chooses each test trial's level (``levels`` is then derived from it)
+    adaptive: AdaptiveSpec | None = None
     #: what the device checks passed (:func:`crs_study.protocol.feasibility.check_on_device`)
     checks: tuple[str, ...] = field(default=(), compare=False)
     #: odd but legal values, one line each (``FILE:LINE: key: ...``;
@@ -323,7 +323,8 @@ class Protocol:
         _fail("study.version", one_line_problem(self.version))
         _fail("study.title", string_problem(self.title))
         for key in ("device", "consent_form", "consent_form_version", "analysis_plan"):
-            _fail(f"study.{key}", one_line_problem(getattr(self, key)))
+            check = one_line_problem if key == "consent_form_version" else path_problem
+            _fail(f"study.{key}", check(getattr(self, key)))
         names = self.conditions
         if not isinstance(names, list | tuple):
             _fail("conditions.names", f"expected an array, got {names!r}")
@@ -347,6 +348,9 @@ class Protocol:
                       f"names follow it), got {spec.set_name!r}")
         _freeze(self, conditions=tuple(names),
                 condition_prompts=tuple((n, p) for n, p in self.condition_prompts))
+        if self.adaptive is not None:
+            _check_adaptive(self)
+            _freeze(self, levels=adaptive_levels(self.adaptive, self.stimulus.set_name))
 
     @property
     def level_values(self) -> tuple[float | None, ...]:
@@ -419,6 +423,26 @@ class Protocol:
         return _layout(self.device)
 
 
+def adaptive_levels(spec: AdaptiveSpec, set_name: str = DEFAULT_SET) -> LevelSpec:
+    """Every level an adaptive procedure can show, as the :class:`LevelSpec` the pipeline reads
+    (checked by the adaptive spec, so not by ``LevelSpec``: it may hold over MAX_LEVELS)."""
+    levels = object.__new__(LevelSpec)
+    _freeze(levels, parameter=spec.parameter, values=spec.shown_levels(),
+            width_to_height=spec.width_to_height, set_name=set_name)
+    return levels
+
+
+def _check_adaptive(protocol: Protocol) -> None:
+    """What ``[adaptive]`` asks of the other tables
+    (:meth:`~crs_study.adaptive.spec.AdaptiveSpec.check_protocol`)."""
+    if not isinstance(protocol.adaptive, AdaptiveSpec):
+        _fail("adaptive", f"expected an adaptive spec, got {protocol.adaptive!r}")
+    set_name = protocol.stimulus.set_name
+    protocol.adaptive.check_protocol(
+        protocol.design.ordering, protocol.design.repetitions, tuple(level_parameters(set_name)),
+        LevelSpec.size_parameter(set_name), len(protocol.symbols), protocol.symbol_set.plural)
+
+
 def table_keys(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, ...]]:
     """The keys of each table (``""``: the top level) of a protocol showing the set
     ``set_name``, as the set spells them; a key outside them is refused at once."""
@@ -429,7 +453,7 @@ def table_keys(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, ...]]:
                      for f in fields(cls) if f.name != "set_name" or cls is StimulusSpec)
 
     return {
-        "": ("study", "stimulus", "conditions", "design", "responses", "levels"),
+        "": ("study", "stimulus", "conditions", "design", "responses", "levels", "adaptive"),
         "study": ("id", "version", "title", "device", "consent_form", "consent_form_version",
                   "analysis_plan"),
         "stimulus": keys(StimulusSpec),
@@ -437,6 +461,7 @@ def table_keys(set_name: str = DEFAULT_SET) -> dict[str, tuple[str, ...]]:
         "design": keys(DesignSpec),
         "responses": keys(ResponseSpec),
         "levels": keys(LevelSpec),
+        **ADAPTIVE_TABLE_KEYS,
     }
 
 

@@ -22,7 +22,7 @@ import warnings
 
 from crs_study._toml_lines import find_line
 from crs_study.errors import CrsStudyWarning
-from crs_study.protocol.feasibility import Finding
+from crs_study.protocol.feasibility import Finding, level_key
 from crs_study.protocol.model import Protocol
 from crs_study.protocol.plan import make_plan, trial_seconds
 from crs_study.stimuli.stimulus import make_stimulus
@@ -116,7 +116,7 @@ def _stroke_speed_warnings(protocol: Protocol) -> _Found:
         spec = protocol.stimulus_at(level)
         key = "stimulus.stroke_speed_mm_s"
         if protocol.levels is not None and protocol.levels.parameter == "stroke_speed_mm_s":
-            key = f"levels.values[{i}]"
+            key = level_key(protocol, i, level)
         at = "" if level is None else f"at {protocol.levels.parameter} = {level:g}: "
         speed = spec.stroke_speed_mm_s
         drawing = max(make_stimulus(protocol, layout, d, level).duration_s

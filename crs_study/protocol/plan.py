@@ -42,6 +42,12 @@ Design
     the plans and fingerprints of digit protocols are those of versions before stimulus
     sets.
 
+    Adaptive: a protocol with ``[adaptive]`` has one block per condition (``repetitions =
+    1``) of ``adaptive.trials`` test trials whose level the block's procedure chooses when the
+    trial comes (``level`` is None in the plan); the symbols are dealt evenly (each
+    ``trials // n`` times, and once more for ``trials mod n`` of them, drawn as the first
+    symbols of a shuffled list). Practice trials show ``adaptive.practice_level``.
+
     Breaks: ``break_before`` on a trial preceded by a multiple of ``break_every`` trials of
     its block. Block starts carry the condition's prompt to the experimenter instead.
 """
@@ -189,12 +195,17 @@ def trial_seconds(protocol: Protocol, plan: TrialPlan, layout: Layout | None = N
     """Expected duration of each trial of ``plan`` (s): its stimulus, the expected response
     time from offset (``responses.expected_response_s``), the inter-trial interval, and the
     break before it when it has one (``design.break_duration_s``). The experimenter's block
-    changes (mounting the skeleton) are not counted."""
+    changes (mounting the skeleton) are not counted. An adaptive trial, whose level is chosen
+    as it comes, is counted at the middle level of the procedure's grid."""
     layout = layout if layout is not None else protocol.layout()
     durations: dict[tuple[Symbol, float | None], float] = {}
     seconds = []
+    middle = None
+    if protocol.adaptive is not None:
+        grid = protocol.adaptive.grid()
+        middle = grid[len(grid) // 2]
     for trial in plan.trials:
-        key = (trial.symbol, trial.level)
+        key = (trial.symbol, trial.level if trial.level is not None else middle)
         if key not in durations:
             durations[key] = make_stimulus(protocol, layout, *key).duration_s
         seconds.append(durations[key] + protocol.responses.expected_response_s
@@ -278,7 +289,9 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
     symbols = protocol.symbols
     run = {"run_key": protocol.symbol_set.spelled("max_same_symbol_run"),
            "plural": protocol.symbol_set.plural}
-    levels = protocol.levels.values if protocol.levels is not None else None
+    adaptive = protocol.adaptive
+    levels = protocol.levels.values if protocol.levels is not None and adaptive is None \
+        else None
     blocks = block_order(protocol, counterbalance)
     conditions_of = [b.split("+") for b in blocks]
     appearances: dict[str, int] = {}
@@ -293,7 +306,12 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
             appearances[condition] = nth + 1
             per_condition = blocks.count(condition) if design.ordering == "blocked" else 1
             reps = [r for r in range(design.repetitions) if r % per_condition == nth]
-            for symbol in symbols:
+            if adaptive is not None:  # the block's track: trials dealt evenly to the symbols
+                per_symbol, extra = divmod(adaptive.trials, len(symbols))
+                more = set(draw.shuffled(symbols)[:extra])
+                for symbol in symbols:
+                    test_groups[(condition, symbol)] = list(range(per_symbol + (symbol in more)))
+            for symbol in symbols if adaptive is None else ():
                 if levels is None:
                     test_groups[(condition, symbol)] = list(reps)
                 else:
@@ -325,6 +343,8 @@ def make_plan(protocol: Protocol, participant: str, session: int, counterbalance
         items = [("practice", *p) for p in practice] + [("test", *t) for t in test]
         for position, (kind, condition, symbol, *rest) in enumerate(items):
             level, repetition = (None, rest[0]) if levels is None else rest
+            if adaptive is not None and kind == "practice":
+                level = adaptive.practice
             feedback = protocol.feedback_practice if kind == "practice" else \
                 protocol.feedback_test
             trials.append(PlannedTrial(

@@ -41,6 +41,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
+from crs_study.adaptive.spec import AdaptiveSpec
 from crs_study.errors import ProtocolError
 from crs_study.geometry.layout import BUILTIN_DEVICES
 from crs_study.protocol.model import Protocol, table_keys
@@ -100,10 +101,24 @@ def protocol_tables(protocol: Protocol) -> dict[str, dict[str, Any]]:
         "design": table("design", protocol.design),
         "responses": table("responses", protocol.responses),
     }
-    if protocol.levels is not None:
+    if protocol.adaptive is not None:
+        tables["adaptive"] = adaptive_table(protocol.adaptive)
+    elif protocol.levels is not None:
         tables["levels"] = table("levels", protocol.levels)
     return {name: {k: v for k, v in table.items() if v is not None}
             for name, table in tables.items()}
+
+
+def adaptive_table(spec: AdaptiveSpec) -> dict[str, Any]:
+    """The ``[adaptive]`` table of ``spec`` (its procedure's sub-table nested, None left
+    out)."""
+    attributes = {"min": "minimum", "max": "maximum"}
+    table = {key: getattr(spec, attributes.get(key, key)) for key in table_keys()["adaptive"]}
+    for name in ("staircase", "quest_plus"):
+        sub = table.pop(name)
+        if sub is not None:
+            table[name] = {f.name: getattr(sub, f.name) for f in fields(sub)}
+    return {k: v for k, v in table.items() if v is not None}
 
 
 def changed_keys(before: dict[str, Any], after: dict[str, Any], prefix: str = "") -> list[str]:

@@ -2,6 +2,10 @@
 
 * :mod:`~crs_study.rendering.render`: the conditions (pixel-only, CRS) as strategies, the
   clamp policy and the feed cap (:class:`Renderer`);
+* :mod:`~crs_study.rendering.feed_cap`: the feed cap's rules, with room for what the boards
+  hold (whole-us pulses, the write policy's dead-band: :class:`~.feed_cap.WireSlack`);
+* :mod:`~crs_study.rendering.bump_path`: a bump's setpoints with few numpy calls (the live
+  link's and the sessions' path for the built-in conditions);
 * :mod:`~crs_study.rendering.frames`: the one cache of a stimulus's rendered frames
   (:func:`render_frames`).
 

@@ -1,5 +1,5 @@
 """The one cache of rendered frames: a stimulus's setpoints, rendered once per device,
-condition and feed cap.
+condition, feed cap and the wire's slack the cap leaves room for.
 
 A digit's stimulus is the same in every trial (:mod:`crs_study.stimuli.stimulus`), so its
 frames are rendered once and then served from here to everything that needs them: the
@@ -24,14 +24,15 @@ _RENDERED_MAX = 512
 
 def render_frames(stimulus: Stimulus, renderer: Renderer) -> np.ndarray:
     """Setpoints (n, n_actuators) of every frame, rendered once per stimulus, device,
-    condition and feed cap and then served from a cache (read-only array).
+    condition, feed cap and wire slack and then served from a cache (read-only array).
 
     The clamp policy is not part of the key: a stimulus that renders under ``"error"`` needs
     no clip, so its frames are those ``"clip"`` gives, and the device check (``"error"``) and
     the sessions (``"clip"``) share one rendering. Frames rendered under ``"clip"`` that had
     to be clipped are rendered again under ``"error"``, which raises at the first such frame.
     """
-    key = (stimulus.key, layout_key(renderer.layout), renderer.condition, renderer.cap_feed)
+    key = (stimulus.key, layout_key(renderer.layout), renderer.condition, renderer.cap_feed,
+           renderer.wire)
     cached = _RENDERED.get(key)
     if cached is not None and not (cached[1] and renderer.policy == "error"):
         _RENDERED.move_to_end(key)

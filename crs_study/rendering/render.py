@@ -32,7 +32,10 @@ steel's elastic shortening, ~N_cr S / EA, a few micrometres), and tall bumps who
 exceeds what the pixel heights can guide. So the total feed of each beam is capped at
 :meth:`~crs_study.display.beam.CompressedBeams.longest_feeds` (the beam then shows its longest
 stable shape) and the cap is reported in :attr:`Rendering.clamped` like any clip, or raised
-under ``policy="error"``. Measured (``crs-study`` at commit of this change): the shipped digit
+under ``policy="error"``. By default (``wire``) the cap also leaves room for what the boards
+hold instead of the setpoints (whole-us pulses, the write policy's dead-band), so that the
+pulses they keep never collapse a beam either (:mod:`~crs_study.rendering.feed_cap`).
+Measured (``crs-study`` at commit of this change, before the wire's room): the shipped digit
 stimuli need no cap (0 of 537 frames); bump centres uniform in the 2D pixel hull need it in
 0/3000 frames at z_f = 1 mm and 35/3000 at 5 mm; centres beyond the hull, where the flat-beam
 case lives, in ~23 %. ``cap_feed=False`` keeps the paper's rule unchanged (the quality
@@ -46,6 +49,7 @@ is ever passed on silently.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -55,6 +59,8 @@ import numpy as np
 from crs_study.display.beam import CompressedBeams
 from crs_study.errors import RenderError
 from crs_study.geometry.layout import Layout
+from crs_study.rendering.bump_path import BumpPath
+from crs_study.rendering.feed_cap import DEFAULT_WIRE, FeedCap, WireSlack
 from crs_study.stimuli.targets import Bump, arc_excess
 
 ClampPolicy = Literal["clip", "error"]
@@ -135,10 +141,17 @@ def register_condition(name: str,
 
 
 class Renderer:
-    """Renders targets for one layout and condition, reusing precomputed beam geometry."""
+    """Renders targets for one layout and condition, reusing precomputed beam geometry.
+
+    ``wire``: what the boards may hold instead of a setpoint (whole-us pulses, the write
+    policy's dead-band), which the feed cap leaves room for (:mod:`~crs_study.rendering.
+    feed_cap`); ``None``: the setpoints reach the beams exactly (the cap is then the longest
+    stable shape itself). A :class:`Bump` under a built-in condition takes the fast path of
+    :mod:`~crs_study.rendering.bump_path` (the same setpoints within 1e-10 mm).
+    """
 
     def __init__(self, layout: Layout, condition: str, policy: ClampPolicy = "clip",
-                 cap_feed: bool = True) -> None:
+                 cap_feed: bool = True, wire: WireSlack | None = DEFAULT_WIRE) -> None:
         if condition not in CONDITIONS:
             raise RenderError(
                 f"unknown condition {condition!r}; known: {', '.join(sorted(CONDITIONS))}"
@@ -152,23 +165,67 @@ class Renderer:
         self._geometry = BeamGeometry(layout)
         self._upper = np.array([a.calibration.travel_mm for a in layout.actuators])
         self.cap_feed = cap_feed
-        self._beams = None  # CompressedBeams, built on the first frame that feeds a beam
+        self.wire = wire if cap_feed else None
+        self._cap = FeedCap(layout, self.wire) if cap_feed and layout.beams else None
         # A line of pixels shows the 1D counterpart of Eq. 7: the profile in x alone
         self._line_y = float(layout.pixel_xy[0, 1]) if layout.lattice == "line" else None
+        fast = {render_crs: True, render_pixel_only: False}.get(self._func)
+        self._bump = None if fast is None else BumpPath(layout, crs=fast)
+        n = layout.n_pixels
+        self._pixel_upper = float(self._upper[:n].min()) if n else 0.0
+        self._feed_upper = float(self._upper[n:].min()) if layout.n_actuators > n else 0.0
 
-    def _longest_feeds(self, heights: np.ndarray) -> np.ndarray:
-        if self._beams is None:
-            self._beams = CompressedBeams.for_layout(self.layout)
-        return self._beams.longest_feeds(heights)
+    @property
+    def _beams(self) -> CompressedBeams | None:
+        """The cap's beam solver once a frame has fed a beam (None before, and without a cap)."""
+        return None if self._cap is None else self._cap._beams
 
     def render(self, target: Bump) -> Rendering:
+        if self._bump is not None and type(target) is Bump:
+            centre = target.centre_mm
+            return self._render_bump(centre[0], centre[1], target.diameter_mm,
+                                     target.height_mm)
         if self._line_y is not None and target.centre_mm[1] != self._line_y:
             target = target.moved_to((target.centre_mm[0], self._line_y))  # y_f is ignored
         raw = self._func(self.layout, target, self._geometry)
         return self.limit(raw)
 
+    def render_bump(self, centre_mm: tuple[float, float], diameter_mm: float,
+                    height_mm: float) -> Rendering:
+        """``render(Bump(centre_mm, diameter_mm, height_mm))`` without building the Bump
+        (the live link's path: one frame per packet); the same checks of the numbers."""
+        cx, cy = float(centre_mm[0]), float(centre_mm[1])
+        diameter, height = float(diameter_mm), float(height_mm)
+        if self._bump is None or not (math.isfinite(diameter) and diameter > 0
+                                      and math.isfinite(height) and height >= 0
+                                      and math.isfinite(cx) and math.isfinite(cy)):
+            return self.render(Bump((cx, cy), diameter, height))  # its checks, its messages
+        return self._render_bump(cx, cy, diameter, height)
+
+    def _render_bump(self, cx: float, cy: float, diameter: float, height: float
+                     ) -> Rendering:
+        if self._line_y is not None:
+            cy = self._line_y  # y_f is ignored on a line of pixels
+        path = self._bump
+        heights, starts, ends = path.parts(cx, cy, diameter, height)
+        if height > self._pixel_upper or (starts and max(max(starts), max(ends))
+                                          > self._feed_upper):
+            return self.limit(path.setpoints(heights, starts, ends))  # something to clip
+        # nothing lies outside its range (pixels <= z_f, feeds >= 0): limit() would clip
+        # nothing, so only the cap is left
+        if self._cap is None or not starts:
+            return Rendering(path.setpoints(heights, starts, ends), ())
+        setpoints = path.setpoints(heights, starts, ends)
+        capped_starts, capped_ends, messages = self._cap.apply(
+            setpoints[: self.layout.n_pixels], starts, ends)
+        if messages and self.policy == "error":
+            raise RenderError(f"{self.condition}: {messages[0]}")
+        if capped_starts != starts or capped_ends != ends:
+            setpoints = path.setpoints(heights, capped_starts, capped_ends)
+        return Rendering(setpoints, tuple(messages))
+
     def limit(self, raw: np.ndarray) -> Rendering:
-        """Apply the clamp policy to a raw setpoint vector."""
+        """Apply the clamp policy and the feed cap to a raw setpoint vector."""
         clipped = np.clip(raw, 0.0, self._upper)
         bad = np.flatnonzero(np.abs(clipped - raw) > 1e-12)
         messages = [
@@ -178,34 +235,22 @@ class Renderer:
         ]
         if messages and self.policy == "error":
             raise RenderError(f"{self.condition}: setpoint out of range: {messages[0]}")
-        if self.cap_feed and self.layout.beams:
-            clipped, capped = self._cap_feeds(clipped)
-            if capped and self.policy == "error":
-                raise RenderError(f"{self.condition}: {capped[0]}")
-            messages += capped
-        if not messages:
+        capped = clipped
+        if self._cap is not None:
+            g = self._geometry
+            starts, ends = clipped[g.start_servo].tolist(), clipped[g.end_servo].tolist()
+            capped_starts, capped_ends, cap_messages = self._cap.apply(
+                clipped[: self.layout.n_pixels], starts, ends)
+            if cap_messages and self.policy == "error":
+                raise RenderError(f"{self.condition}: {cap_messages[0]}")
+            messages += cap_messages
+            if capped_starts != starts or capped_ends != ends:
+                capped = clipped.copy()
+                capped[g.start_servo] = capped_starts
+                capped[g.end_servo] = capped_ends
+        if not messages and capped is clipped:
             return Rendering(raw, ())
-        return Rendering(clipped, tuple(messages))
-
-    def _cap_feeds(self, setpoints: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        """Each beam's total feed at most its longest stable one (module docstring)."""
-        g = self._geometry
-        total = setpoints[g.start_servo] + setpoints[g.end_servo]
-        if not total.any():
-            return setpoints, []
-        longest = np.maximum(self._longest_feeds(setpoints[: self.layout.n_pixels]), 0.0)
-        over = np.flatnonzero(total > longest)
-        if over.size == 0:
-            return setpoints, []
-        capped = setpoints.copy()
-        start, end = split_feed(np.minimum(total, longest), self.layout.boundary_travel_mm)
-        capped[g.start_servo[over]] = start[over]
-        capped[g.end_servo[over]] = end[over]
-        return capped, [
-            f"beam {b}: feed {total[b]:.4f} mm capped to {longest[b]:.4f} mm (the longest "
-            f"stable shape through its pixel heights; more would collapse the beam)"
-            for b in over
-        ]
+        return Rendering(capped, tuple(messages))
 
 
 def render(layout: Layout, target: Bump, condition: str, policy: ClampPolicy = "clip"

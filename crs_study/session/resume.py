@@ -6,8 +6,9 @@ counterbalance index, the trial plan's sha256, the device file's sha256 and the 
 bump path the protocol draws. A resume recomputes them and refuses, in one line naming what
 differs, a session whose files or software would now play another plan (:func:`check_resume`);
 it also refuses to finish a session by another kind of run than the one that began it
-(:func:`check_same_kind_of_run`), and stored rows that do not belong to the plan
-(:func:`check_rows`).
+(:func:`check_same_kind_of_run`), stored rows that do not belong to the plan
+(:func:`check_rows`), and stored frames that this software would render otherwise
+(:func:`check_frames`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from crs_study._files import sha256_bytes
 from crs_study.dataset.session_metadata import FINGERPRINTS, SessionMetadata
+from crs_study.dataset.session_store import read_frame_log
 from crs_study.errors import SessionError
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
@@ -100,16 +102,66 @@ def check_same_kind_of_run(stored: SessionMetadata, spec: SessionSpec, responder
                 "another --session")
 
 
-def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path, column: str) -> None:
+def check_rows(rows: list[dict[str, str]], plan: TrialPlan, tsv: Path, column: str, *,
+               may_skip: bool = False) -> None:
     """The stored rows are the plan's first trials, in order (else the file is another's);
-    ``column`` holds the symbol shown (the protocol's set's :attr:`column`)."""
+    ``column`` holds the symbol shown (the protocol's set's :attr:`column`).
+
+    ``may_skip``: an adaptive protocol's rows may leave out trials (those a finished staircase
+    skipped: :func:`crs_study.session.adaptive.rebuild` checks which); their indices still
+    rise."""
     if len(rows) > len(plan.trials):
         raise SessionError(f"{tsv}: {len(rows)} rows but the plan has {len(plan.trials)} trials")
+    previous = -1
     for k, row in enumerate(rows):
-        trial = plan.trials[k]
+        index = k
+        if may_skip:
+            try:
+                index = int(row["trial_index"])
+            except ValueError:
+                index = -1
+            if not previous < index < len(plan.trials):
+                raise SessionError(f"{tsv}: row {k + 1} holds trial_index "
+                                   f"{row['trial_index']!r} after {previous}; the file does not "
+                                   "belong to this plan")
+            previous = index
+        trial = plan.trials[index]
         stored = (row["trial_index"], row["condition"], row[column])
         wanted = (str(trial.index), trial.condition, str(trial.symbol))
         if stored != wanted:
             raise SessionError(f"{tsv}: row {k + 1} holds (trial_index, condition, {column}) = "
                                f"{stored}, the plan says {wanted}; the file does not belong "
                                "to this plan")
+
+
+def check_frames(frame_log: Path, rows: list[dict[str, str]], plan: TrialPlan, frames,
+                 level_column: str | None = None) -> None:
+    """The frames stored for the trials so far are those this software renders for them.
+
+    A renderer that draws other setpoints than the one that began the session (the feed cap
+    leaving room for the wire's whole-us pulses, say) would otherwise mix two renderings in
+    one session silently; the fingerprints cover the bump paths, not the setpoints.
+    ``frames``: the session's :class:`~crs_study.session.trials.TrialFrames`. Each row is
+    matched to its planned trial by ``trial_index`` (a staircase that stopped skips planned
+    trials); a trial whose level the plan leaves open (an adaptive one) is rendered at the
+    level its row records in ``level_column``.
+    """
+    if not rows or not frame_log.exists():
+        return
+    stored: dict[str, list[str]] = {}
+    for line in read_frame_log(frame_log):
+        if line["kind"] == "stimulus":
+            values = [v for k, v in line.items() if k.startswith("a") and k[1:].isdigit()]
+            stored.setdefault(line["trial"], []).append("\t".join(values))
+    for row in rows:
+        trial = plan.trials[int(row["trial_index"])]
+        level = trial.level
+        if level is None and level_column is not None and row.get(level_column, "n/a") != "n/a":
+            level = float(row[level_column])
+        now = frames.setpoint_text(trial.symbol, trial.condition, level)
+        if stored.get(str(trial.index), []) != now:
+            raise SessionError(
+                f"{frame_log}: cannot resume: trial {trial.index} ({trial.condition}, "
+                f"{trial.symbol!r}) was shown with other setpoints than this software renders "
+                "(the renderer changed since the session began); finish it with the software "
+                "that began it or start another --session")

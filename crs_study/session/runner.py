@@ -53,19 +53,21 @@ from crs_study.dataset.session_metadata import (
     SessionMetadata,
     now_utc,
 )
-from crs_study.dataset.session_store import UNDURABLE_SIDECAR_EVERY, SessionStore
+from crs_study.dataset.session_store import SessionStore, sidecar_lag
 from crs_study.device import open_device
-from crs_study.errors import ConsentError, DeviceError, SessionError
+from crs_study.errors import ConsentError, DatasetError, DeviceError, SessionError
 from crs_study.geometry.layout import Layout, device_file_path
 from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.protocol.plan import TrialPlan, make_plan
+from crs_study.session.adaptive import choose, next_to_play, rebuild
 from crs_study.session.prompts import resume_prompt
 from crs_study.session.responders import Responder, make_responder
 from crs_study.session.responders.keypad import PauseRequested
 from crs_study.session.resume import (
     Fingerprints,
+    check_frames,
     check_resume,
     check_rows,
     check_same_kind_of_run,
@@ -109,10 +111,20 @@ def choose_clock(spec: SessionSpec, responder: Responder) -> str:
     if spec.clock == "virtual" and responder.needs_real_clock:
         raise SessionError(f"the {responder.name} responder needs --clock real (a person answers "
                            "in real time)")
-    if spec.clock == "virtual" and not spec.device_url.startswith("sim://"):
-        raise SessionError(f"--clock virtual needs the simulated device (sim://); "
-                           f"{spec.device_url} moves real servos in real time")
+    if spec.clock == "virtual" and not simulated_url(spec.device_url):
+        raise SessionError(f"--clock virtual needs the simulated device (sim://) or virtual "
+                           f"boards (serial://lscsim://A,lscsim://B); {spec.device_url} moves "
+                           "real servos in real time")
     return spec.clock
+
+
+def simulated_url(url: str) -> bool:
+    """True for a device with no real servos behind it: ``sim://`` or ``serial://`` whose every
+    port is a virtual board (``lscsim://NAME``)."""
+    if url.startswith("sim://"):
+        return True
+    ports = url[len("serial://"):].split(",") if url.startswith("serial://") else []
+    return bool(ports) and all(p.startswith("lscsim://") for p in ports)
 
 
 def prepare(spec: SessionSpec) -> tuple[Protocol, Layout, TrialPlan, Dataset]:
@@ -152,10 +164,11 @@ def dataset_task(symbol_set: StimulusSet) -> schema.Task:
 
 def session_columns(protocol: Protocol) -> tuple[str, ...]:
     """The session TSV's columns: the schema's with the set's symbol column, plus the level
-    column when levels vary."""
+    column when levels vary (and the adaptive columns when a procedure chooses them)."""
     levels = protocol.levels
     return schema.trial_columns(levels.column if levels is not None else None,
-                                protocol.symbol_set.column)
+                                protocol.symbol_set.column,
+                                adaptive=protocol.adaptive is not None)
 
 
 def seed_check(spec: SessionSpec) -> dict[str, str | int]:
@@ -218,8 +231,11 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         if stored is not None and stored.is_complete:
             # Never rewritten: checked read-only (no torn-tail cut), then left alone.
             rows = store.verify_complete(stored.trials_sha256)
-            check_rows(rows, plan, paths.tsv, protocol.symbol_set.column)
-            if len(rows) != n_trials:
+            check_rows(rows, plan, paths.tsv, protocol.symbol_set.column,
+                       may_skip=protocol.adaptive is not None)
+            if protocol.adaptive is not None:  # trials a finished staircase skipped
+                rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar, complete=True)
+            elif len(rows) != n_trials:
                 raise SessionError(
                     f"{paths.sidecar}: the session is marked complete but holds {len(rows)} "
                     f"of {n_trials} planned trials; a completed session is never rewritten: "
@@ -234,28 +250,40 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             check_same_kind_of_run(stored, spec, responder.name, clock_kind, paths.sidecar)
         # The sidecar lags the trial file by a row at most, or by the trials between two
         # sidecar writes of a session written without per-trial durability (a dry-run).
-        lag = UNDURABLE_SIDECAR_EVERY if stored is not None and stored.virtual_clock else 1
+        lag = sidecar_lag(stored) if stored is not None else 1
         store.check_resumable(stored, sidecar_lag=lag)
         began = store.started_trial()  # what the previous run noted, before this one does
         rows = store.recover_rows()
-        check_rows(rows, plan, paths.tsv, protocol.symbol_set.column)
+        check_rows(rows, plan, paths.tsv, protocol.symbol_set.column,
+                   may_skip=protocol.adaptive is not None)
+        run = rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar)
+        first = next_to_play(plan, rows, run)  # len(rows) unless a staircase skipped trials
+        check_frames(paths.frame_log, rows, plan, trial_frames(protocol, layout),
+                     None if protocol.levels is None else protocol.levels.column)
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
-                             responder.name, n_trials, len(rows), began)
+                             responder.name, n_trials, first, began)
         faults = {f.trial for f in metadata.faults}
         state = SessionState(spec, protocol, layout, plan, store, metadata, rows, faults,
+                             adaptive=run,
+                             adaptive_sha256=None if run is None else run.fingerprint(),
                              cut=metadata.cut_trials())
         resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
         clock: Clock = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
         frames = trial_frames(protocol, layout)
         store.create()
         save(state, "running", final=True)
-        first = len(rows)
+        stored_before = len(rows)
         status = "interrupted"
         origin = 0.0
+        current = first  # the plan index of the trial under way (a skipped one never is)
         try:
+            options = dict(device_options or {})
+            if spec.device_url.startswith("sim://"):  # injected faults: once per session
+                options.setdefault("faults_met", len(metadata.faults))
             with terminate_as_interrupt(), responder, open_device(
-                    spec.device_url, layout, clock, **(device_options or {})) as device:
+                    spec.device_url, layout, clock, **options) as device:
                 device.neutral()
+                responder.start_session(spec.participant, spec.session, plan, first)
                 if clock_kind == "virtual":
                     clock.sleep_until(0.0)
                     if rows:
@@ -269,13 +297,17 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                 if first and not responder.simulated:
                     responder.prompt(resume_prompt(plan, first), clock)
                 for k in range(first, n_trials):
+                    trial = choose(plan.trials[k], run)
+                    if trial is None:  # its block's staircase has finished
+                        continue
+                    current = k
                     if gate is not None:
                         gate.recheck()  # a withdrawal stops the session here
                     if progress:
                         progress(f"sub-{spec.participant} ses-{spec.session}: trial "
                                  f"{k + 1}/{n_trials}")
                     state.in_trial = True
-                    run_trial(state, device, responder, clock, origin, frames, plan.trials[k])
+                    run_trial(state, device, responder, clock, origin, frames, trial)
                     state.in_trial = False
                 status = "complete"
         except KeyboardInterrupt as interrupt:
@@ -296,7 +328,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                 f"stay in {spec.dataset} until withdrawn: crs-study consent withdraw "
                 f"--participant {spec.participant} --dataset {spec.dataset}") from None
         except DeviceError as error:
-            k = len(state.rows)
+            k = current if state.in_trial else len(state.rows)
             where = f"at trial {k + 1}/{n_trials}" if state.in_trial else \
                 f"before trial {k + 1}/{n_trials}"
             if state.in_trial:
@@ -307,6 +339,14 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             save_after_failure(state)
             raise DeviceError(f"device fault {where}: {error}; the session is marked "
                               "interrupted: run the same command to resume") from None
+        except DatasetError as error:  # a full disk, a folder gone: the stored trials stay
+            status = "failed"
+            record_interruption(state, "error", f"{type(error).__name__}: {error}")
+            save_after_failure(state)
+            raise DatasetError(
+                f"{error}; the session is paused at trial {len(state.rows) + 1}/{n_trials} "
+                f"with the {len(state.rows)} trials before it stored: fix that (free some "
+                "space) and run the same command to resume") from None
         except BaseException as error:
             status = "failed"
             record_interruption(state, "error", f"{type(error).__name__}: {error}")
@@ -319,7 +359,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
             save(state, "complete", final=True)
         done = len(state.rows)
         return SessionResult(
-            status, spec.participant, spec.session, n_trials, done, done - first,
+            status, spec.participant, spec.session, n_trials, done, done - stored_before,
             state.late_frames, (clock.now() - origin) - resume_at,
             time.perf_counter() - wall_start, paths.tsv, paths.sidecar,
             f"session {spec.session} of participant {spec.participant}: {done}/{n_trials} "
@@ -331,7 +371,8 @@ def _metadata(spec: SessionSpec, protocol: Protocol, plan: TrialPlan, device_tex
               responder_name: str, n_trials: int, first: int,
               began: int | None) -> SessionMetadata:
     """The sidecar of a session beginning now, or resumed now from ``stored`` at trial
-    ``first`` (the rows stored); ``began`` is the trial the previous run noted as begun."""
+    ``first`` (the plan index of the next trial to play: the number of rows stored, unless a
+    staircase skipped trials); ``began`` is the trial the previous run noted as begun."""
     resumes: tuple[Resume, ...] = ()
     faults: tuple[Fault, ...] = ()
     interruptions: tuple[Interruption, ...] = ()

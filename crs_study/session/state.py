@@ -6,6 +6,7 @@ import contextlib
 import signal
 from dataclasses import dataclass, field, replace
 
+from crs_study.adaptive import AdaptiveRun
 from crs_study.dataset.session_metadata import Interruption, SessionMetadata, Status, now_utc
 from crs_study.dataset.session_store import SessionStore
 from crs_study.errors import CrsStudyError
@@ -30,6 +31,9 @@ class SessionState:
     faults: set[int] = field(default_factory=set)
     late_frames: int = 0
     in_trial: bool = False  # a device fault now interrupts a trial (rerun with device_fault)
+    adaptive: AdaptiveRun | None = None  # the blocks' procedures ([adaptive] protocols)
+    #: the procedures' fingerprint after ``rows`` (set with each stored row)
+    adaptive_sha256: str | None = None
     #: the trial whose stimulus has begun and whose row is not yet stored (None between)
     started: int | None = None
     #: trials an earlier run cut after their stimulus began (their rows say rerun = 1)
@@ -40,8 +44,10 @@ def record_interruption(state: SessionState, cause: str, detail: str) -> None:
     """Add why the session stops now to its sidecar's ``Interruptions`` (saved by the next
     :func:`save`); the trial is cut when its stimulus had begun."""
     cut = state.started is not None
-    entry = Interruption(now_utc(), len(state.rows), cause, detail.splitlines()[0] if detail
-                         else "", cut)
+    # the trial cut (its plan index: an adaptive staircase may have skipped trials), else
+    # the number of trials stored
+    at = state.started if cut else len(state.rows)
+    entry = Interruption(now_utc(), at, cause, detail.splitlines()[0] if detail else "", cut)
     state.metadata = replace(state.metadata,
                              interruptions=(*state.metadata.interruptions, entry))
 
@@ -57,7 +63,7 @@ def save(state: SessionState, status: Status, final: bool = False) -> None:
         state.store.sync()
     state.metadata = state.metadata.with_progress(
         status, len(state.rows), state.store.trials_sha256,
-        now_utc() if status != "running" else None)
+        now_utc() if status != "running" else None, state.adaptive_sha256)
     state.store.write_sidecar(state.metadata, final=final)
 
 

@@ -45,6 +45,7 @@ from crs_study.protocol.model import Protocol
 from crs_study.protocol.plan import PlannedTrial
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
+from crs_study.session.adaptive import is_adaptive, row_fields
 from crs_study.session.prompts import BREAK_PROMPT
 from crs_study.session.responders.base import Responder, StimulusRecord
 from crs_study.session.state import SessionState, save
@@ -162,8 +163,12 @@ def replay(state: SessionState, device: Device, clock: Clock, frames: TrialFrame
     positions) and therefore every later trial are exactly those of an uninterrupted run.
     """
     period = 1.0 / float(state.protocol.frame_rate_hz)
-    for row, trial in zip(state.rows, state.plan.trials, strict=False):
-        frame_times, setpoints = frames.get(trial.symbol, trial.condition, trial.level)
+    for row in state.rows:
+        trial = state.plan.trials[int(row["trial_index"])]
+        level = trial.level
+        if state.adaptive is not None and trial.trial_type == "test":  # chosen when shown
+            level = float(row[state.protocol.levels.column])
+        frame_times, setpoints = frames.get(trial.symbol, trial.condition, level)
         present(device, clock, frame_times, setpoints, period)
         device.heartbeat()  # asked after the stimulus, as the trial did
         clock.sleep_until(float(row["trial_end"]))
@@ -179,10 +184,18 @@ def frame_line(kind: str, frame: int, due: float, report: FrameReport, origin: f
 
 def run_trial(state: SessionState, device: Device, responder: Responder, clock: Clock,
               origin: float, frames: TrialFrames, trial: PlannedTrial) -> None:
-    """Play ``trial``, collect its response and store it durably (the module docstring)."""
+    """Play ``trial``, collect its response and store it durably (the module docstring).
+
+    In an adaptive protocol ``trial`` carries the level its block's procedure chose
+    (:func:`crs_study.session.adaptive.choose`); the response is given to the procedure and
+    its new state goes into the row (:data:`crs_study.dataset.schema.ADAPTIVE_COLUMNS`)."""
     protocol = state.protocol
     if trial.prompt_before or trial.break_before:
-        responder.prompt(trial.prompt_before or BREAK_PROMPT, clock)
+        text = trial.prompt_before or BREAK_PROMPT
+        if trial.break_before:  # the rest it is meant to be: the keypad counts it down
+            responder.prompt(text, clock, rest_s=float(protocol.design.break_duration_s))
+        else:
+            responder.prompt(text, clock)
     if trial.break_before and not responder.needs_real_clock:  # a person rests until ready
         clock.sleep(float(protocol.design.break_duration_s))
     level = trial.level
@@ -218,6 +231,10 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
     }
     if protocol.levels is not None:
         row[protocol.levels.column] = level
+    if state.adaptive is not None:
+        update = state.adaptive.update(trial.block, correct) \
+            if is_adaptive(trial, state.adaptive) else None
+        row.update(row_fields(update))
     text = frames.setpoint_text(trial.symbol, trial.condition, level)
     log = [frame_line("stimulus", i, onset + frame_times[i], r, origin, text[i])
            for i, r in enumerate(reports)]
@@ -228,6 +245,8 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
         state.store.append_frames(trial.index, columns, log)
         state.store.append_row(row)
         state.rows.append({k: str(v) for k, v in row.items()})
+        if state.adaptive is not None:
+            state.adaptive_sha256 = state.adaptive.fingerprint()
         state.started = None
         state.late_frames += shown.late
         if state.spec.durable or len(state.rows) % DRY_RUN_SIDECAR_EVERY == 0:

@@ -19,6 +19,11 @@ import numpy as np
 
 from crs_study.errors import RenderError
 
+#: The steepest bump (pi z_f / l, Eq. 7) any model is asked to show: far beyond what a pixel
+#: display of millimetre pitch can render, and below where the arc-length quadrature's panel
+#: count (one per 0.3 of slope) would overflow memory.
+MAX_SLOPE = 1e4
+
 
 @dataclass(frozen=True)
 class Bump:
@@ -43,6 +48,13 @@ class Bump:
             raise RenderError(f"bump height must be >= 0 mm, got {self.height_mm!r}")
         if not all(np.isfinite(self.centre_mm)):
             raise RenderError(f"bump centre must be finite, got {self.centre_mm!r}")
+        slope = math.pi * self.height_mm / self.diameter_mm  # Eq. 7's steepest slope
+        if not slope <= MAX_SLOPE:
+            raise RenderError(
+                f"bump_height_mm = {self.height_mm!r}, bump_diameter_mm = {self.diameter_mm!r}: "
+                f"the bump's steepest slope pi z_f / l = {slope:.3g} is beyond {MAX_SLOPE:g} (a "
+                "diameter far below the display's pitch); expected bump_diameter_mm >= "
+                f"{math.pi * self.height_mm / MAX_SLOPE:.3g} mm")
 
     def radius(self, xy_mm: np.ndarray) -> np.ndarray:
         """Distance rho from the centre for points (..., 2)."""

@@ -34,6 +34,8 @@ def make_responder(spec: str, *, seed: int, layout: Layout | None = None,
     if spec == "keypad":
         if protocol is not None and "keys" not in options:
             options["keys"] = {protocol.key_for(s): s for s in protocol.symbols}
+        if protocol is not None and "instruction" not in options:
+            options["instruction"] = protocol.symbol_set.instructions  # what the screen shows
         return KeypadResponder(**options)
     if spec.startswith("scripted:") and len(spec) > len("scripted:"):
         return ScriptedResponder(spec[len("scripted:"):],

@@ -20,7 +20,7 @@ import numpy as np
 
 from crs_study.clock import Clock
 from crs_study.geometry.layout import Layout
-from crs_study.protocol.plan import PlannedTrial
+from crs_study.protocol.plan import PlannedTrial, TrialPlan
 from crs_study.stimuli.strokes import Symbol
 from crs_study.stimuli.symbol_set import PAUSE_KEYS as SET_PAUSE_KEYS
 
@@ -96,6 +96,13 @@ class Responder(ABC):
         writes anything; the default has nothing to check."""
         return None
 
+    def start_session(self, participant: str, session: int, plan: TrialPlan,
+                      first: int = 0) -> None:
+        """Called once the device and the responder are open, before trial ``first`` (the
+        first to play: not 0 when resumed); the keypad's screen shows where the session
+        stands."""
+        return None
+
     def begin_trial(self, trial: PlannedTrial, onset_time: float, clock: Clock) -> None:
         """Called just before the stimulus onset (clock time ``onset_time``)."""
         return None
@@ -108,8 +115,9 @@ class Responder(ABC):
         """Feedback after a practice trial; the default does nothing."""
         return None
 
-    def prompt(self, text: str, clock: Clock) -> None:
-        """An experimenter prompt (a break, mount the skeleton); simulations continue at once."""
+    def prompt(self, text: str, clock: Clock, rest_s: float | None = None) -> None:
+        """An experimenter prompt (a break, mount the skeleton); simulations continue at once.
+        ``rest_s``: the break's intended rest (the keypad counts it down)."""
         return None
 
     def __enter__(self) -> Responder:

@@ -47,7 +47,11 @@ displayed bump lag and cut the corners of fast strokes. The effect is weak: with
 frames a trial a slow stroke gives no more samples than a fast one, and the skin has no
 temporal blur here (8 participants, 10 to 160 mm/s: pixel-only 44 % to 41 %, CRS 68 % to 79 %
 with no trend). The sensing window grows when needed to hold the largest symbol (``sense_radius_mm``
-is a minimum).
+is a minimum). In an adaptive protocol (``[adaptive]``) a test trial carries the level its
+block's procedure chose (:func:`crs_study.session.adaptive.choose`), one of the levels the
+protocol lists, so the observer answers it as any other level: 8 simulated participants on
+protocols/digit_size_adaptive.toml put the CRS threshold (QUEST+, 50 % correct) at 0.715 times
+the pixel-only one (95 % CI 0.576 to 0.887).
 
 Randomness comes from ``np.random.default_rng([seed, trial.index])`` only, so a resumed session
 answers exactly as an uninterrupted one. Cost: at most ``max_sensed_frames`` frames a trial are

@@ -1,0 +1,70 @@
+"""A session whose stored frames this software would render otherwise is not resumed.
+
+The feed cap now leaves room for the boards' whole-us pulses and dead-band
+(crs_study.rendering.feed_cap), so a CRS frame's setpoints differ from those of the software
+before it (a dry-run of the default protocol: 3350 of 6853 frame-log rows), while the
+fingerprints (protocol, plan, device file, bump paths) are the same. Resuming a session begun
+before the change would mix two renderings in one session: the runner compares the stored
+frames of the trials so far with what it renders for them and refuses in one line.
+"""
+
+from __future__ import annotations
+
+import pytest
+from _session_helpers import PauseAt, record_consent, tiny_protocol
+
+from crs_study.errors import SessionError
+from crs_study.protocol.plan import plan_seed
+from crs_study.rendering.render import Renderer
+from crs_study.session import trials
+from crs_study.session.runner import run_session
+from crs_study.session.spec import SessionSpec
+
+#: The trial the first run is paused at: trials 0..3 stored, CRS ones among them.
+PAUSE_AT = 4
+
+
+def older_renderer(layout, condition):
+    """The renderer as it was before the wire's room: the cap at the longest shape alone."""
+    return Renderer(layout, condition, wire=None)
+
+
+@pytest.fixture
+def paused_by_older_software(tmp_path, monkeypatch):
+    """A tiny session paused at trial 4 by software that rendered with the older cap."""
+    record_consent("p01")  # a person's label passes the consent gate on sim:// too
+    protocol = tiny_protocol(tmp_path)
+    spec = SessionSpec(protocol, "p01", tmp_path / "dataset", "sim://", 1, "random", "virtual",
+                       counterbalance=1)
+    with monkeypatch.context() as patch:
+        patch.setattr(trials, "Renderer", older_renderer)
+        patch.setattr(trials, "_trial_frames", {})
+        paused = run_session(spec, responder=PauseAt(plan_seed("tiny", "1.0.0", "p01", 1),
+                                                     PAUSE_AT))
+    assert (paused.status, paused.trials_completed) == ("interrupted", PAUSE_AT)
+    monkeypatch.setattr(trials, "_trial_frames", {})  # this software's frames from here on
+    return spec
+
+
+def test_a_session_rendered_otherwise_is_refused_in_one_line(paused_by_older_software):
+    spec = paused_by_older_software
+    with pytest.raises(SessionError, match=r"frames\.tsv\.gz: cannot resume: trial \d+ \(crs, "
+                                           r"\d\) was shown with other setpoints than "
+                                           r"this software renders") as caught:
+        run_session(spec)
+    assert "\n" not in str(caught.value)
+    # nothing was written by the refused run: the session is still the paused one
+    sidecar = spec.dataset / "sub-p01/ses-1/beh/sub-p01_ses-1_task-digitid_beh.json"
+    assert '"Status": "interrupted"' in sidecar.read_text(encoding="utf-8")
+
+
+def test_the_same_software_resumes_its_own_session(tmp_path, monkeypatch):
+    monkeypatch.setattr(trials, "_trial_frames", {})
+    record_consent("p01")
+    spec = SessionSpec(tiny_protocol(tmp_path), "p01", tmp_path / "dataset", "sim://", 1,
+                       "random", "virtual", counterbalance=1)
+    paused = run_session(spec, responder=PauseAt(plan_seed("tiny", "1.0.0", "p01", 1),
+                                                 PAUSE_AT))
+    assert paused.trials_completed == PAUSE_AT
+    finished = run_session(spec)
+    assert (finished.status, finished.trials_completed) == ("complete", 8)
