@@ -45,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     curve.add_argument("--participants", metavar="A:B[:STEP]", default="4:40:4",
                        help="participant counts (a range, a number, or a comma list)")
     curve.add_argument("--repetitions", metavar="A:B[:STEP]", default=None,
-                       help="repetitions per digit and condition (default: the protocol's)")
+                       help="repetitions per symbol and condition (default: the "
+                            "protocol's)")
     curve.add_argument("--studies", metavar="N", default="1000",
                        help="simulated studies per point")
     curve.add_argument("--target", metavar="POWER", default="0.8", help="power sought")

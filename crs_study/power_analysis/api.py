@@ -43,7 +43,7 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     ----------
     protocol : a protocol file, a shipped protocol's name or a loaded ``Protocol``.
     pilot : a pilot dataset (mode 1): the primary GLMM fitted to it generates the studies,
-        new participants and digits drawn for each (simr's ``extend``). Default (mode 2):
+        new participants and symbols drawn for each (simr's ``extend``). Default (mode 2):
         the simulated observer's predicted accuracy of every stimulus on the simulated
         device plus a between-participant SD (:mod:`crs_study.power_analysis.observer`).
     effect_scale : multiplies the condition effect(s) of the generating model.
@@ -68,7 +68,7 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     Notes
     -----
     Each study is tested exactly as ``analyze`` tests a dataset: the plan's GLMM ``correct ~
-    condition + (1 | participant) [+ (1 | digit)]``, its likelihood-ratio test, alpha from
+    condition + (1 | participant) [+ (1 | symbol)]``, its likelihood-ratio test, alpha from
     the plan, separation and failures handled as there and counted in the result
     (:mod:`crs_study.power_analysis.study`). The power at each point carries its Clopper-Pearson
     95 % interval (Monte Carlo error). Participant k is the same simulated person at every N
@@ -173,7 +173,7 @@ def _observer_model(design, protocol, participant_sd, draws, backend, effect_sca
 
     source = protocol if hasattr(protocol, "design") else design.protocol_path
     if notify:
-        stimuli = len(design.digits) * len(design.conditions) * len(design.levels)
+        stimuli = len(design.symbols) * len(design.conditions) * len(design.levels)
         notify(f"predicting the simulated observer's accuracy of {stimuli} stimuli "
                f"({draws or DEFAULT_DRAWS} noise draws each)")
     prediction = predict(source, draws or DEFAULT_DRAWS, backend=backend)

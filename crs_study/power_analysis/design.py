@@ -1,11 +1,17 @@
 """What a simulated study of a protocol looks like, and how ``analyze`` would test it.
 
 :class:`PowerDesign` is the protocol's design as the analysis meets it (its conditions in the
-analysis plan's order with the reference first, its digits and levels, and the test trials
-each participant has in every (condition, digit, level) cell, practice excluded, read from
-the protocol's own trial plan) together with the plan's primary test: random effects,
-method, quadrature points and alpha. :func:`parse_range` reads the ``--participants`` and
-``--repetitions`` ranges.
+analysis plan's order with the reference first, the symbols it shows, whatever its stimulus set
+(digits, letters, a lab's set file), and its levels, and the test trials each participant has
+in every (condition, symbol, level) cell, practice excluded, read from the protocol's own
+trial plan) together with the plan's primary test: random effects, method, quadrature points
+and alpha. :func:`parse_range` reads the ``--participants`` and ``--repetitions`` ranges.
+
+The symbol factor is named as the data name it: ``symbol_column`` is the dataset column of the
+protocol's set (``digit`` for the digit set, ``symbol`` for any other,
+:attr:`crs_study.stimuli.symbol_set.StimulusSet.column`), which is what ``analyze`` groups the
+symbol's random intercept by, whatever the plan calls that intercept (``digit`` or ``symbol``,
+:data:`crs_study.analysis.primary.SYMBOL_EFFECTS`).
 """
 
 from __future__ import annotations
@@ -17,12 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from crs_study.analysis.plan import AnalysisPlan, default_plan_path, load_plan
+from crs_study.analysis.plan import SYMBOL_EFFECTS, AnalysisPlan, default_plan_path, load_plan
 from crs_study.analysis.report import order_conditions
 from crs_study.errors import CrsStudyError
 from crs_study.paths import resolve_protocol
 from crs_study.protocol import analysis_plan_path, load_protocol
 from crs_study.protocol.plan import make_plan
+from crs_study.stimuli.strokes import Symbol
 
 
 class PowerError(CrsStudyError):
@@ -33,16 +40,23 @@ class PowerError(CrsStudyError):
 class PowerDesign:
     """A protocol's design and its analysis plan's primary test.
 
-    ``conditions`` start with ``reference``; ``repetitions`` is the protocol's (test trials
-    per participant in each (condition, digit, level) cell); ``levels`` is ``(None,)`` for a
-    protocol without ``[levels]``. ``random_effects``, ``method``, ``n_quadrature`` and
-    ``alpha`` are the plan's: the test :func:`crs_study.analysis.primary.primary_test` runs;
-    ``exclusions`` the plan's exclusion rules (for a pilot's and a dry-run's trials).
+    ``conditions`` start with ``reference``; ``symbols`` the symbols shown, in the protocol's
+    order (ints for the digit set, strings for any other); ``repetitions`` is the protocol's
+    (test trials per participant in each (condition, symbol, level) cell); ``levels`` is
+    ``(None,)`` for a protocol without ``[levels]``. ``random_effects``, ``method``,
+    ``n_quadrature`` and ``alpha`` are the plan's: the test
+    :func:`crs_study.analysis.primary.primary_test` runs; ``exclusions`` the plan's exclusion
+    rules (for a pilot's and a dry-run's trials). ``symbol_column`` is the dataset column of
+    the symbol shown (``digit`` or ``symbol``, module docstring), ``noun`` one symbol in words
+    (``digit``, ``letter``), ``symbol_keys`` each symbol's position in its stimulus set (the
+    key of its random streams: for the digit set, the digit itself). Left out, as in a design
+    built by hand, integer symbols are digits (column ``digit``, their own keys) and any
+    others symbols (column ``symbol``, keyed by their order).
     """
 
     conditions: tuple[str, ...]
     reference: str
-    digits: tuple[int, ...]
+    symbols: tuple[Symbol, ...]
     levels: tuple[float | None, ...]
     repetitions: int
     random_effects: tuple[str, ...] = ("participant", "digit")
@@ -53,11 +67,29 @@ class PowerDesign:
     plan: str = ""
     protocol_path: str | None = None
     exclusions: Any = field(default=None, compare=False, repr=False)   # the plan's
+    symbol_column: str = ""
+    noun: str = ""
+    symbol_keys: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.reference != self.conditions[0] or len(self.conditions) < 2:
             raise PowerError(f"the design needs the reference condition first and another "
                              f"one, got {self.conditions!r} (reference {self.reference!r})")
+        if len(set(self.symbols)) != len(self.symbols) or not self.symbols:
+            raise PowerError(f"the design needs distinct symbols, got {self.symbols!r}")
+        # a design built by hand: integers are digits, their own keys; others symbols
+        digits = all(isinstance(s, int | np.integer) and not isinstance(s, bool)
+                     for s in self.symbols)
+        for name, value in (("symbol_column", "digit" if digits else "symbol"),
+                            ("noun", "digit" if digits else "symbol")):
+            if not getattr(self, name):
+                object.__setattr__(self, name, value)
+        if self.symbol_keys is None:
+            keys = self.symbols if digits else range(len(self.symbols))
+            object.__setattr__(self, "symbol_keys", tuple(int(k) for k in keys))
+        elif len(self.symbol_keys) != len(self.symbols):
+            raise PowerError(f"the design needs a stream key per symbol, got "
+                             f"{self.symbol_keys!r} for {self.symbols!r}")
 
     @property
     def comparisons(self) -> tuple[str, ...]:
@@ -65,14 +97,36 @@ class PowerDesign:
         return self.conditions[1:]
 
     @property
+    def symbol_effect_name(self) -> str | None:
+        """The plan's name of the symbol's random intercept (``digit`` or ``symbol``: the one
+        it names besides participant), None when it has none."""
+        return next((e for e in self.random_effects if e in SYMBOL_EFFECTS), None)
+
+    @property
+    def symbol_effect(self) -> bool:
+        """The fitted model has a random intercept of the symbol (fit_glmm drops a factor
+        with a single level, so a one-symbol protocol has none)."""
+        return self.symbol_effect_name is not None and len(self.symbols) > 1
+
+    @property
+    def digits(self) -> tuple[Symbol, ...]:
+        """:attr:`symbols` under the name it had when every protocol showed digits."""
+        return self.symbols
+
+    @property
     def digit_effect(self) -> bool:
-        """The fitted model has a random intercept of digit (fit_glmm drops a factor with a
-        single level, so a one-digit protocol has none)."""
-        return "digit" in self.random_effects and len(self.digits) > 1
+        """:attr:`symbol_effect` under the name it had when every protocol showed digits."""
+        return self.symbol_effect
+
+    @property
+    def symbol_sd_name(self) -> str:
+        """The name of the symbol intercept's SD in reports: ``digit_sd`` for the digit set
+        (as before stimulus sets), ``symbol_sd`` for any other."""
+        return f"{self.symbol_column}_sd"
 
     def cell_trials(self, repetitions: int) -> np.ndarray:
-        """Trials per participant in each (digit, condition) cell, levels pooled (D, C)."""
-        return np.full((len(self.digits), len(self.conditions)),
+        """Trials per participant in each (symbol, condition) cell, levels pooled (D, C)."""
+        return np.full((len(self.symbols), len(self.conditions)),
                        float(repetitions * len(self.levels)))
 
     def fixed_design(self) -> np.ndarray:
@@ -82,11 +136,18 @@ class PowerDesign:
         return np.column_stack([np.ones(C), np.eye(C)[:, 1:]])
 
     def to_dict(self) -> dict[str, Any]:
-        return {"protocol": self.protocol, "plan": self.plan,
-                "conditions": list(self.conditions), "reference": self.reference,
-                "digits": list(self.digits), "levels": list(self.levels),
-                "repetitions": self.repetitions, "random_effects": list(self.random_effects),
-                "method": self.method, "n_quadrature": self.n_quadrature, "alpha": self.alpha}
+        """The design as JSON: ``symbols`` and ``symbol_column`` for any set; a digit design
+        keeps its ``digits`` key too (as written before stimulus sets)."""
+        out = {"protocol": self.protocol, "plan": self.plan,
+               "conditions": list(self.conditions), "reference": self.reference,
+               "digits": list(self.symbols), "levels": list(self.levels),
+               "repetitions": self.repetitions, "random_effects": list(self.random_effects),
+               "method": self.method, "n_quadrature": self.n_quadrature, "alpha": self.alpha,
+               "symbols": list(self.symbols), "symbol_column": self.symbol_column,
+               "noun": self.noun}
+        if self.symbol_column != "digit":
+            del out["digits"]
+        return out
 
 
 def design_from_protocol(protocol: Any, plan: Any = None) -> PowerDesign:
@@ -107,18 +168,29 @@ def design_from_protocol(protocol: Any, plan: Any = None) -> PowerDesign:
         pd.DataFrame({"condition": list(protocol.conditions)}), plan)
     repetitions = _test_trials_per_cell(protocol)
     primary = plan.primary
+    shown = protocol.symbol_set
     return PowerDesign(
-        conditions=tuple(conditions), reference=reference,
-        digits=tuple(int(d) for d in protocol.symbols),
+        conditions=tuple(conditions), reference=reference, symbols=tuple(protocol.symbols),
         levels=tuple(protocol.level_values), repetitions=repetitions,
         random_effects=tuple(primary.random_effects), method=primary.method,
         n_quadrature=int(primary.n_quadrature), alpha=float(plan.alpha),
         protocol=f"{protocol.study_id} {protocol.version}", plan=plan.name,
-        protocol_path=str(Path(protocol.path)), exclusions=plan.exclusions)
+        protocol_path=str(Path(protocol.path)), exclusions=plan.exclusions,
+        symbol_column=shown.column, noun=shown.noun, symbol_keys=symbol_keys(protocol))
+
+
+def symbol_keys(protocol: Any) -> tuple[int, ...]:
+    """Each symbol's position in the protocol's stimulus set: the key of its random streams
+    (the observer's noise, :mod:`crs_study.power_analysis.observer`). For the digit set the
+    position is the digit (its symbols are 0 to 9 in order), as the streams were keyed when
+    every protocol showed digits; for another set it does not depend on which of its symbols
+    a protocol shows, or in which order."""
+    alphabet = list(protocol.symbol_set.symbols)
+    return tuple(alphabet.index(s) for s in protocol.symbols)
 
 
 def _test_trials_per_cell(protocol: Any) -> int:
-    """The test trials of each (condition, digit, level) cell in the protocol's own plans
+    """The test trials of each (condition, symbol, level) cell in the protocol's own plans
     (two counterbalance positions), checked to be one number for every cell."""
     from collections import Counter
 
@@ -132,7 +204,8 @@ def _test_trials_per_cell(protocol: Any) -> int:
                     for lv in protocol.level_values}
         if set(cells) != expected:
             raise PowerError(f"{protocol.path}: the trial plan does not show every (condition, "
-                             "digit, level) cell; the power analysis needs a complete design")
+                             f"{protocol.symbol_set.noun}, level) cell; the power analysis "
+                             "needs a complete design")
         counts |= set(cells.values())
     if len(counts) != 1:
         raise PowerError(f"{protocol.path}: the cells of the trial plan have different numbers "

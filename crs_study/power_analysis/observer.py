@@ -1,6 +1,7 @@
 """Mode 2: the simulated observer's predicted accuracy of every stimulus, without sessions.
 
-For each (level, digit, condition) of a protocol the stimulus is rendered once and shown
+For each (level, symbol, condition) of a protocol (digits, letters, a set file's symbols) the
+stimulus is rendered once and shown
 once on a fresh simulated device, exactly as a session shows a test trial
 (:class:`crs_study.session.trials.TrialFrames` for the frames, the runner's presentation for the
 displayed setpoints a hand meets, the display neutral since the previous trial's offset, a
@@ -8,10 +9,12 @@ response and an inter-trial interval earlier; tests/test_power_observer.py check
 displayed setpoints against a dry-run's). The perceptual observer
 (:class:`crs_study.session.responders.observer.PerceptualObserver`) then senses it ``draws`` times,
 each with fresh receptor noise, and its decision model gives the probability of naming the
-right digit, ``p = (1 - lapse) softmax(-d / T) + lapse / n`` over the template distances
-``d``. The predicted accuracy of the typical participant (``T`` the calibrated temperature,
-ability ``z = 0``) is the mean of that probability over the draws: an integral over the
-sensing noise by Monte Carlo, with its standard error, never a sampled response.
+right symbol among those the protocol shows (a session's choices,
+:func:`crs_study.session.trials.symbol_choices`), ``p = (1 - lapse) softmax(-d / T) + lapse /
+n`` over the template distances ``d``. The predicted accuracy of the typical participant
+(``T`` the calibrated temperature, ability ``z = 0``) is the mean of that probability over
+the draws: an integral over the sensing noise by Monte Carlo, with its standard error, never
+a sampled response.
 
 Participants differ as the observer's do: a simulated participant's temperature is ``T
 exp(ability_sd z)``, ``z ~ N(0, 1)``, and their accuracy of every cell follows from the same
@@ -38,16 +41,17 @@ from crs_study.clock import VirtualClock
 from crs_study.device import open_device
 from crs_study.paths import resolve_protocol
 from crs_study.power_analysis.backends import Backend
-from crs_study.power_analysis.design import PowerDesign, PowerError
+from crs_study.power_analysis.design import PowerDesign, PowerError, symbol_keys
 from crs_study.power_analysis.model import GenerativeModel
 from crs_study.protocol import load_protocol
 from crs_study.session.responders.base import StimulusRecord
 from crs_study.session.responders.observer import ObserverOptions, PerceptualObserver
 from crs_study.session.runner import SETTLE_S
-from crs_study.session.trials import present, trial_frames
+from crs_study.session.trials import present, symbol_choices, trial_frames
+from crs_study.stimuli.strokes import Symbol
 
 #: Noise draws per stimulus: the per-condition accuracy's Monte Carlo SE is about 0.3 /
-#: sqrt(draws x digits), under 0.01 for ten digits.
+#: sqrt(draws x symbols), under 0.01 for ten symbols.
 DEFAULT_DRAWS = 200
 
 
@@ -86,7 +90,7 @@ class ObserverPrediction:
 def _choice_probability(distances: np.ndarray, correct: np.ndarray, temperature: float,
                         lapse: float) -> np.ndarray:
     """The observer's Luce choice rule with lapses (``PerceptualObserver.
-    choice_probabilities``) for the right digit, per draw: ``(L, D, C, draws)``."""
+    choice_probabilities``) for the right symbol, per draw: ``(L, D, C, draws)``."""
     n = distances.shape[-1]
     guess = ~np.isfinite(distances).all(axis=-1)
     d = np.where(np.isfinite(distances), distances, 0.0)
@@ -103,9 +107,11 @@ def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: A
             **observer_options: Any) -> ObserverPrediction:
     """The observer's predictions for every stimulus of ``protocol`` (module docstring).
 
-    The noise of draw ``j`` of cell (level ``l``, digit ``d``, condition ``c``) comes from
-    ``default_rng([seed, l, d, c, j])``, so the answer is the same on any backend: the
-    (level, digit) pairs are mapped like the studies (``backend``: an open
+    The noise of draw ``j`` of cell (level ``l``, symbol ``d``, condition ``c``) comes from
+    ``default_rng([seed, l, k, c, j])``, ``k`` the symbol's position in its stimulus set
+    (:func:`~crs_study.power_analysis.design.symbol_keys`: the digit itself for the digit
+    set), so the answer is the same on any backend: the (level, symbol) pairs are mapped like
+    the studies (``backend``: an open
     :class:`~crs_study.power_analysis.backends.Backend`; None: in this process).
     """
 
@@ -114,14 +120,14 @@ def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: A
     if not hasattr(protocol, "design"):
         protocol = load_protocol(resolve_protocol(protocol))
     options = ObserverOptions(**observer_options)
-    levels, digits, conditions = protocol.level_values, protocol.symbols, protocol.conditions
-    tasks = [(str(protocol.path), li, int(digit), draws, seed, observer_options)
-             for li in range(len(levels)) for digit in digits]
+    levels, symbols, conditions = protocol.level_values, protocol.symbols, protocol.conditions
+    tasks = [(str(protocol.path), li, key, draws, seed, observer_options)
+             for li in range(len(levels)) for key in symbol_keys(protocol)]
     cells = (backend or Backend()).map(_cell_distances, tasks)
-    shape = (len(levels), len(digits), len(conditions))
+    shape = (len(levels), len(symbols), len(conditions))
     distances = np.stack(cells).reshape(shape + cells[0].shape[1:])
-    choices = [int(d) for d in digits]
-    correct = np.broadcast_to(np.array([choices.index(int(d)) for d in digits])[None, :, None],
+    choices = symbol_choices(protocol)
+    correct = np.broadcast_to(np.array([choices.index(s) for s in symbols])[None, :, None],
                               shape).copy()
     per_draw = _choice_probability(distances, correct, options.temperature_mm, options.lapse)
     return ObserverPrediction(per_draw.mean(axis=-1),
@@ -131,30 +137,32 @@ def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: A
 
 
 def _cell_distances(task: tuple) -> np.ndarray:
-    """Template distances (C, draws, choices) of one (level, digit) in every condition."""
+    """Template distances (C, draws, choices) of one (level, symbol) in every condition; the
+    symbol is named by its position ``key`` in the protocol's stimulus set."""
 
-    path, li, digit, draws, seed, options = task
+    path, li, key, draws, seed, options = task
     protocol = load_protocol(path)
+    symbol = protocol.symbol_set.symbols[key]
     layout = protocol.layout()
     level = protocol.level_values[li]
     observer = PerceptualObserver(layout, protocol, 0, **options)
     observer.temperature_mm = observer.options.temperature_mm        # ability z = 0
-    choices = tuple(int(d) for d in protocol.symbols)
+    choices = symbol_choices(protocol)
     out = np.full((len(protocol.conditions), draws, len(choices)), np.nan)
     for ci, condition in enumerate(protocol.conditions):
-        record = shown_stimulus(protocol, layout, digit, condition, level)
+        record = shown_stimulus(protocol, layout, symbol, condition, level)
         for j in range(draws):
-            path_ = observer.peak_path(record, np.random.default_rng([seed, li, digit, ci, j]))
+            path_ = observer.peak_path(record, np.random.default_rng([seed, li, key, ci, j]))
             out[ci, j] = observer.choice_probabilities(path_, choices, level)[1]
     return out
 
 
-def shown_stimulus(protocol: Any, layout: Any, digit: int, condition: str,
+def shown_stimulus(protocol: Any, layout: Any, symbol: Symbol, condition: str,
                    level: float | None):
     """What a hand meets when one stimulus is shown on a fresh simulated device: the
     runner's frames and presentation (its ``StimulusRecord``)."""
 
-    frame_times, frames = trial_frames(protocol, layout).get(digit, condition, level)
+    frame_times, frames = trial_frames(protocol, layout).get(symbol, condition, level)
     period = 1.0 / float(protocol.frame_rate_hz)
     # As between a session's trials: the display went neutral at the last offset, then the
     # response and the inter-trial interval passed. The gap matters: a write that starts a
@@ -169,15 +177,17 @@ def shown_stimulus(protocol: Any, layout: Any, digit: int, condition: str,
         clock.sleep_until(0.0)
         shown = present(device, clock, frame_times, frames, period)
     return StimulusRecord(layout, condition, frame_times + period, shown.displayed,
-                          tuple(int(d) for d in protocol.symbols), shown.onset, shown.offset)
+                          symbol_choices(protocol), shown.onset, shown.offset)
 
 
 def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: float | None = None,
                         draws: int = DEFAULT_DRAWS, prediction: ObserverPrediction | None = None
                         ) -> GenerativeModel:
     """The generating model of mode 2: ``logit`` of the predicted accuracy per (level,
-    digit, condition) in the design's condition order, and the participant SD (given, else
-    the observer's calibration)."""
+    symbol, condition) in the design's condition order, and the participant SD (given, else
+    the observer's calibration). ``details`` hold the accuracy per symbol as
+    ``accuracy_by_symbol`` (condition -> symbol -> accuracy) and, for the digit set, the same
+    under its name before stimulus sets, ``accuracy_by_digit``."""
     if prediction is None:
         prediction = predict(protocol, draws)
     if not hasattr(protocol, "design"):
@@ -195,6 +205,8 @@ def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: floa
             prediction.temperature_mm * np.exp(prediction.ability_sd * z)), 1e-6, 1 - 1e-6))
             for z in grid])[..., order]
     se = prediction.std_error[:, :, order]
+    by_symbol = {c: dict(zip(map(str, design.symbols), accuracy[:, :, k].mean(axis=0).tolist(),
+                             strict=True)) for k, c in enumerate(design.conditions)}
     details = {"draws": int(prediction.distances.shape[3]),
                "accuracy_by_condition": {c: float(a) for c, a in zip(
                    design.conditions, accuracy.mean(axis=(0, 1)), strict=True)},
@@ -202,10 +214,9 @@ def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: floa
                                                    for c, s in zip(design.conditions,
                                                                    np.moveaxis(se, 2, 0),
                                                                    strict=True)},
-               "accuracy_by_digit": {c: dict(zip(map(str, design.digits),
-                                                  accuracy[:, :, k].mean(axis=0).tolist(),
-                                                  strict=True))
-                                     for k, c in enumerate(design.conditions)},
+               **({"accuracy_by_digit": by_symbol} if design.symbol_column == "digit"
+                  else {}),
+               "accuracy_by_symbol": by_symbol,
                "participant_sd_from_calibration": derived,
                "participant_sd_given": participant_sd is not None,
                "participants": ("the observer's: temperature T exp(ability_sd z), z ~ N(0, 1)"

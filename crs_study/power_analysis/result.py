@@ -4,7 +4,7 @@ Columns of :meth:`PowerResult.to_frame` (one row per point and comparison):
 
 =================  =========================================================================
 participants       N, participants per simulated study
-repetitions        test trials per participant in each (condition, digit, level) cell
+repetitions        test trials per participant in each (condition, symbol, level) cell
 comparison         the condition tested against ``reference``
 studies            simulated studies at this point
 significant        studies whose primary p (as ``analyze`` reports it) is below alpha
@@ -212,9 +212,11 @@ class PowerResult:
 
     def recovery(self) -> pd.DataFrame:
         """Per point and parameter: the mean estimate over the studies, its standard error
-        and the number of studies with an estimate (``fit_glmm``'s ML estimates)."""
+        and the number of studies with an estimate (``fit_glmm``'s ML estimates). The symbol
+        intercept's SD is ``digit_sd`` for the digit set, ``symbol_sd`` for any other."""
         names = (["Intercept"] + [f"condition[{c}]" for c in self.design.comparisons]
-                 + ["participant_sd"] + (["digit_sd"] if self.design.digit_effect else []))
+                 + ["participant_sd"]
+                 + ([self.design.symbol_sd_name] if self.design.symbol_effect else []))
         theta = self.raw["theta"]
         rows = []
         for i, (n, r) in enumerate(self.points):

@@ -6,7 +6,8 @@ process pool or a Dask cluster (:mod:`crs_study.power_analysis.backends`, STYLE.
 
 Each simulated study is tested as ``analyze`` tests a dataset
 (:func:`crs_study.analysis.primary.primary_test`): the full GLMM ``correct ~ condition +
-(1 | participant) [+ (1 | digit)]`` and, per non-reference condition, the model without it;
+(1 | participant) [+ (1 | symbol)]`` (the symbol's intercept grouped by the design's
+symbol column, ``digit`` for the digit set) and, per non-reference condition, the model without it;
 the likelihood-ratio p of each comparison; a separated condition tested at the supremum; a
 reduced model that cannot be fitted: the Wald p; a full model that cannot be fitted: Fisher's
 exact test on the pooled table. A study's outcome records which of these it was (``KINDS``).
@@ -117,7 +118,7 @@ def outcomes(design: PowerDesign, shape: tuple[int, ...]) -> dict[str, np.ndarra
     """Empty outcome arrays of :class:`TaskResult`'s fields for ``shape`` (points, studies,
     or studies, or () for one study): no test, NaN numbers, flags off."""
     K = len(design.comparisons)
-    n_params = len(design.conditions) + 1 + int(design.digit_effect)
+    n_params = len(design.conditions) + 1 + int(design.symbol_effect)
     return {"p_value": np.full(shape + (K,), np.nan),
             "kind": np.full(shape + (K,), NONE, dtype=np.int8),
             "log_odds": np.full(shape + (K,), np.nan),
@@ -137,7 +138,7 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
     S = len(Y)
     K = len(design.comparisons)
     trials = design.cell_trials(repetitions)
-    cells = CellDesign(design.fixed_design(), trials, design.digit_effect)
+    cells = CellDesign(design.fixed_design(), trials, design.symbol_effect)
     out = outcomes(design, (S,))
     n_params = cells.n_params
     out["curvature"] = np.zeros((S, n_params, n_params))
@@ -195,16 +196,28 @@ def lr_pvalue(statistic: np.ndarray) -> np.ndarray:
 
 
 def cells_frame(design: PowerDesign, Y: np.ndarray, trials: np.ndarray) -> pd.DataFrame:
-    """One study's cells (P, D, C) as the aggregated trial table ``fit_primary`` takes."""
+    """One study's cells (P, D, C) as the aggregated trial table ``fit_primary`` takes: the
+    symbol shown in the design's symbol column (``digit`` for the digit set, ``symbol`` for
+    any other), as a dataset of the protocol names it."""
     P, D, C = Y.shape
     p, d, c = np.meshgrid(np.arange(P), np.arange(D), np.arange(C), indexing="ij")
     width = max(2, len(str(P)))
     return pd.DataFrame({
         "participant_id": [f"sim{k + 1:0{width}d}" for k in p.ravel()],
-        "digit": np.asarray(design.digits)[d.ravel()],
+        design.symbol_column: _as_array(design.symbols)[d.ravel()],
         "condition": np.asarray(design.conditions, dtype=object)[c.ravel()],
         "correct": Y.ravel().astype(float),
         "n_trials": np.broadcast_to(trials, (P, D, C)).ravel().astype(float)})
+
+
+def _as_array(symbols: tuple) -> np.ndarray:
+    """The symbols as a column: integers (the digit set) as integers, others as objects
+    (never numpy's fixed-width strings, and never a label turned into a number)."""
+    if all(isinstance(s, int) and not isinstance(s, bool) for s in symbols):
+        return np.asarray(symbols)
+    out = np.empty(len(symbols), dtype=object)
+    out[:] = list(symbols)
+    return out
 
 
 def reference_test(design: PowerDesign, Y: np.ndarray, trials: np.ndarray) -> dict:
@@ -238,8 +251,8 @@ def decide_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
              ["Intercept"] + [f"condition[{c}]" for c in design.comparisons]]
     variances = full.variance_components
     theta.append(float(np.sqrt(variances.get("participant_id", np.nan))))
-    if design.digit_effect:
-        theta.append(float(np.sqrt(variances.get("digit", np.nan))))
+    if design.symbol_effect:
+        theta.append(float(np.sqrt(variances.get(design.symbol_column, np.nan))))
     converged = bool(full.converged)
     for j, test in enumerate(fits.tests):
         if test.test is None and test.column in full.params.index:
