@@ -32,11 +32,10 @@ import numpy as np
 
 from crs_study.device.calibration import PulseMap
 from crs_study.device.codec import ServoMove
+from crs_study.device.virtual_boards import board_specs
 from crs_study.device.virtual_controller import (
     ServoBank,
-    ServoSpec,
     VirtualController,
-    speed_us_per_s,
 )
 from crs_study.geometry.layout import Layout
 
@@ -211,25 +210,9 @@ class BoardTap:
         self.unmatched += 1
 
 
-def servo_specs(layout: Layout, controller: str) -> list:
-    """Each channel's servo on board ``controller`` as the simulated device models it: resting
-    at its calibrated 0 mm pulse, as fast as the layout's servo speed (0.08 s/cm), converted
-    through its calibration; channels without an actuator keep the board's default."""
-
-    c = next(c for c in layout.controllers if c.name == controller)
-    specs = [ServoSpec() for _ in range(c.channels)]
-    for a in layout.actuators:
-        if a.controller == controller:
-            cal = a.calibration
-            specs[a.channel - c.channel_base] = ServoSpec(
-                rest_us=cal.zero_us,
-                max_speed_us_s=speed_us_per_s(cal.zero_us, cal.full_us, cal.travel_mm,
-                                              layout.servo_speed_s_per_mm))
-    return specs
-
-
 def virtual_boards(layout: Layout, t0: float) -> list[VirtualController]:
     """One recording :class:`VirtualController` per controller of ``layout`` (device-file
-    order), with the layout's servos (:func:`servo_specs`): boards for pty ports."""
-    return [VirtualController(c.name, c.channels, c.channel_base, servo_specs(layout, c.name),
+    order), with the layout's servos (:func:`~crs_study.device.virtual_boards.board_specs`, as
+    the simulated device models them): boards for pty ports."""
+    return [VirtualController(c.name, c.channels, c.channel_base, board_specs(layout, c.name),
                               t0=t0, record=True) for c in layout.controllers]
