@@ -24,11 +24,11 @@ from __future__ import annotations
 import difflib
 import math
 import tomllib
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from crs_study._toml_lines import find_line, syntax_error
+from crs_study._toml_lines import find_line, locate, one_line, syntax_error
 from crs_study.errors import ConfigError
 
 #: How alike (difflib's ratio) a stray key and a valid one must be to suggest the valid one
@@ -60,6 +60,39 @@ def read_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[
         raise error(f"{path}: not valid TOML: {exc}") from None
     except RecursionError:
         raise error(f"{path}: {TOO_DEEP}") from None
+
+
+T = TypeVar("T")
+
+
+def file_version(path: Path, what: str, error: type[ConfigError] = ConfigError) -> int:
+    """The modification time (ns) of the regular file ``path``, a cache key for its parsed
+    contents; a missing or unreadable file, or a folder, raises ``error`` naming ``what``."""
+    try:
+        mtime = path.stat().st_mtime_ns
+    except FileNotFoundError:
+        raise error(f"{path}: no such {what}") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what}: {exc}") from None
+    if not path.is_file():
+        raise error(f"{path}: expected a {what}, got a directory")
+    return mtime
+
+
+def parse_toml_file(path: str, what: str, parse: Callable[[dict, str, str], T],
+                    error: type[ConfigError] = ConfigError) -> T:
+    """``parse(data, path, text)`` of the TOML file ``path``; unreadable bytes, a syntax
+    error and any :class:`ConfigError` of ``parse`` raise ``error`` in one line naming the
+    file (and the line, where the key has one)."""
+    try:
+        text = Path(path).read_bytes().decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: cannot read the {what}: {one_line(exc)}") from None
+    data = parse_toml(text, path, error)
+    try:
+        return parse(data, path, text)
+    except ConfigError as exc:
+        raise locate(exc, path, text) from None
 
 
 def parse_toml(text: str, source: str | Path, error: type[ConfigError] = ConfigError

@@ -25,9 +25,8 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from crs_study._toml import Section, parse_toml
-from crs_study._toml_lines import locate, one_line
-from crs_study.errors import ConfigError, ProtocolError
+from crs_study._toml import Section, file_version, parse_toml_file
+from crs_study.errors import ProtocolError
 from crs_study.paths import data_dir
 from crs_study.stimuli.strokes import (  # noqa: F401 - the digit module's names since v1
     Glyph,
@@ -87,15 +86,7 @@ def _digit_set(path: str, mtime_ns: int) -> StimulusSet:
 
 @lru_cache(maxsize=16)
 def _load_cached(path: str, mtime_ns: int) -> dict[int, Glyph]:
-    try:
-        text = Path(path).read_bytes().decode("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProtocolError(f"{path}: cannot read the strokes file: {one_line(exc)}") from None
-    data = parse_toml(text, path, ProtocolError)
-    try:
-        return _parse(data, path, text)
-    except ConfigError as exc:
-        raise locate(exc, path, text) from None
+    return parse_toml_file(path, "strokes file", _parse, ProtocolError)
 
 
 def load_digits(path: str | Path | None = None) -> dict[int, Glyph]:
@@ -106,15 +97,7 @@ def load_digits(path: str | Path | None = None) -> dict[int, Glyph]:
     expected ...``.
     """
     path = Path(path) if path is not None else shipped_strokes_path()
-    try:
-        mtime = path.stat().st_mtime_ns
-    except FileNotFoundError:
-        raise ProtocolError(f"{path}: no such strokes file") from None
-    except OSError as exc:
-        raise ProtocolError(f"{path}: cannot read the strokes file: {exc}") from None
-    if not path.is_file():
-        raise ProtocolError(f"{path}: expected a strokes file, got a directory")
-    return _load_cached(str(path), mtime)
+    return _load_cached(str(path), file_version(path, "strokes file", ProtocolError))
 
 
 def _parse(data: dict, source: str, text: str | None = None) -> dict[int, Glyph]:

@@ -35,9 +35,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from crs_study._toml import Section, parse_toml, string_problem
-from crs_study._toml_lines import locate, one_line
-from crs_study.errors import ConfigError, ProtocolError
+from crs_study._toml import Section, file_version, parse_toml_file, string_problem
+from crs_study.errors import ProtocolError
 from crs_study.stimuli.strokes import Glyph, Symbol, read_strokes, sized_glyphs
 
 #: Format number of a set file (format 1 is the digit set's strokes-only file).
@@ -147,29 +146,13 @@ def key_problem(key: object) -> str | None:
 
 @lru_cache(maxsize=16)
 def _load_cached(path: str, mtime_ns: int) -> StimulusSet:
-    try:
-        text = Path(path).read_bytes().decode("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProtocolError(f"{path}: cannot read the set file: {one_line(exc)}") from None
-    data = parse_toml(text, path, ProtocolError)
-    try:
-        return _parse(data, path, text)
-    except ConfigError as exc:
-        raise locate(exc, path, text) from None
+    return parse_toml_file(path, "set file", _parse, ProtocolError)
 
 
 def load_set_file(path: str | Path) -> StimulusSet:
     """Read a set file (module docstring), strictly; cached per file and modification time."""
     path = Path(path)
-    try:
-        mtime = path.stat().st_mtime_ns
-    except FileNotFoundError:
-        raise ProtocolError(f"{path}: no such stimulus set file") from None
-    except OSError as exc:
-        raise ProtocolError(f"{path}: cannot read the set file: {exc}") from None
-    if not path.is_file():
-        raise ProtocolError(f"{path}: expected a stimulus set file, got a directory")
-    return _load_cached(str(path), mtime)
+    return _load_cached(str(path), file_version(path, "stimulus set file", ProtocolError))
 
 
 def _one_line(section: Section, key: str) -> str:
