@@ -88,6 +88,16 @@ def test_a_design_built_by_hand_names_its_symbols_by_their_kind():
         PowerDesign(("a", "b"), "a", ("x", "x"), (None,), 2)
 
 
+
+def test_an_adaptive_protocol_is_refused_in_one_line_naming_its_procedure(capsys):
+    # its levels follow the responses: no fixed (condition, symbol, level) cells to draw
+    with pytest.raises(PowerError, match=r"digit_size_adaptive\.toml: its levels are chosen "
+                                         r"adaptively \(\[adaptive\], quest-plus\)"):
+        design_from_protocol("digit_size_adaptive")
+    assert main(["power", "digit_size_adaptive"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "crs-study dry-run" in err
+
 # --- mode 2 against mode 3 on the letters --------------------------------------------------
 
 @pytest.fixture(scope="module")
