@@ -98,6 +98,7 @@ def test_an_adaptive_protocol_is_refused_in_one_line_naming_its_procedure(capsys
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "crs-study dry-run" in err
 
+
 # --- mode 2 against mode 3 on the letters --------------------------------------------------
 
 @pytest.fixture(scope="module")
