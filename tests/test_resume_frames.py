@@ -74,6 +74,16 @@ def test_the_same_software_resumes_its_own_session(tmp_path, monkeypatch):
     assert (finished.status, finished.trials_completed) == ("complete", 8)
 
 
+def _stimulus_frames(log) -> dict[str, list[str]]:
+    """The stimulus frames of a frame log per trial, as setpoint text (the resume check's)."""
+    stored: dict[str, list[str]] = {}
+    for line in read_frame_log(log):
+        if line["kind"] == "stimulus":
+            values = [v for k, v in line.items() if k.startswith("a") and k[1:].isdigit()]
+            stored.setdefault(line["trial"], []).append("\t".join(values))
+    return stored
+
+
 #: A dead-band wider than the default: the feed cap's room and rest floor change with it
 #: (0.34 mm on the default protocol's CRS digits at 30 us against 1 us).
 WIDE_DEADBAND_US = 30
@@ -97,11 +107,7 @@ def test_a_session_renders_for_its_devices_own_dead_band(tmp_path, monkeypatch):
     layout = load_layout("crs2d")
     plan = make_plan(protocol, "p01", 1, 1)
     log = tmp_path / "dataset/sourcedata/sub-p01/ses-1/sub-p01_ses-1_task-digitid_frames.tsv.gz"
-    stored: dict[str, list[str]] = {}
-    for line in read_frame_log(log):
-        if line["kind"] == "stimulus":
-            values = [v for k, v in line.items() if k.startswith("a") and k[1:].isdigit()]
-            stored.setdefault(line["trial"], []).append("\t".join(values))
+    stored = _stimulus_frames(log)
     wide = trials.TrialFrames(protocol, layout, WireSlack(WIDE_DEADBAND_US))
     default = trials.TrialFrames(protocol, layout)
     crs_differs = False
@@ -115,3 +121,33 @@ def test_a_session_renders_for_its_devices_own_dead_band(tmp_path, monkeypatch):
                                 "virtual", counterbalance=1))
     finished = run_session(spec)
     assert (finished.status, finished.trials_completed) == ("complete", 8)
+
+
+def test_run_takes_the_device_options_from_the_command_line(tmp_path, monkeypatch, capsys):
+    """``run --deadband-us`` reaches the device (and so the renderer), as ``device check``'s
+    and ``live``'s do; a serial-only option on sim:// is refused before anything runs."""
+    from crs_study.cli import main
+
+    monkeypatch.setattr(trials, "_trial_frames", {})
+    path = tiny_protocol(tmp_path)
+    argv = ["run", str(path), "--participant", "sim01", "--device", "sim://", "--out",
+            str(tmp_path / "ds"), "--responder", "random", "--clock", "virtual", "--json"]
+    assert main([*argv, "--deadband-us", str(WIDE_DEADBAND_US)]) == 0
+    log = tmp_path / "ds/sourcedata/sub-sim01/ses-1/sub-sim01_ses-1_task-digitid_frames.tsv.gz"
+    protocol = load_protocol(path)
+    wide = trials.TrialFrames(protocol, load_layout("crs2d"), WireSlack(WIDE_DEADBAND_US))
+    default = trials.TrialFrames(protocol, load_layout("crs2d"))
+    plan = make_plan(protocol, "sim01", 1, 0)
+    stored = _stimulus_frames(log)
+    assert len(stored) == len(plan.trials)
+    differs = False
+    for index, shown in stored.items():
+        trial = plan.trials[int(index)]
+        assert shown == wide.setpoint_text(trial.symbol, trial.condition)
+        differs |= shown != default.setpoint_text(trial.symbol, trial.condition)
+    assert differs
+    capsys.readouterr()
+    assert main([*argv, "--session", "2", "--no-battery-check"]) == 2
+    err = capsys.readouterr().err
+    assert "--no-battery-check: for serial:// devices only" in err and err.count("\n") == 1
+    assert not (tmp_path / "ds/sub-sim01/ses-2").exists()
