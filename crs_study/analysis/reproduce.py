@@ -10,9 +10,10 @@ What is compared
     Every value of both files, in the same place: numbers within ``rtol`` of each other
     (relative to the larger, with ``atol`` near 0; the GLMM's maximiser stops within ~1e-8 of
     its optimum, so bit-for-bit equality would fail across BLAS builds while the published
-    digits hold), everything else exactly, a key or list item present in one file only as a
-    difference. The datasets' paths are compared as written relative to each dataset (an
-    absolute path names the machine, not the data).
+    digits hold); whole numbers in both files (counts, seeds) and everything else exactly; a
+    key or list item present in one file only as a difference. The datasets' paths are
+    compared as written relative to each dataset (an absolute path names the machine, not the
+    data).
 
 What is not
     Where and when the analysis ran and with what it drew: ``generated_at``, the ``charts``
@@ -176,6 +177,11 @@ class _Walk:
                              now[i] if i < len(now) else None)
             return
         self.compared += 1
+        if isinstance(earlier, int) and isinstance(now, int) and not (
+                isinstance(earlier, bool) or isinstance(now, bool)):
+            if earlier != now:  # counts and seeds: exact (a seed's last digits are beyond a
+                self.differences.append(Difference(where, earlier, now))  # float's)
+            return
         if _number(earlier) and _number(now):
             gap = abs(float(earlier) - float(now))
             scale = max(abs(float(earlier)), abs(float(now)))
