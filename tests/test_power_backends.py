@@ -33,7 +33,7 @@ def test_one_job_two_jobs_and_a_dask_cluster_give_identical_results(model):
     one = _run(model, jobs=1)
     two = _run(model, jobs=2)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None) as cluster:
+                      **backends.QUIET_SCHEDULER) as cluster:
         by_address = _run(model, scheduler=cluster.scheduler_address)
         with Client(cluster) as client:
             by_client = _run(model, scheduler=client)
@@ -111,3 +111,20 @@ def test_a_failed_start_is_tried_again_and_then_said_in_one_line(monkeypatch):
         with backends.local_cluster(1):
             pass
     assert "\n" not in str(info.value)
+
+
+def test_a_local_cluster_starts_beside_another_program_on_8787(model):
+    # the scheduler's HTTP server used to take the dashboard's default port, and warned
+    # (an error here) when another cluster or program had it
+    import socket
+
+    with socket.socket() as taken:
+        taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            taken.bind(("0.0.0.0", 8787))
+        except OSError:
+            pass  # someone has it already: the same situation
+        else:
+            taken.listen()
+        with backends.local_cluster(1) as client:
+            assert client.submit(sum, [1, 2]).result() == 3

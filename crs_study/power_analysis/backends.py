@@ -164,6 +164,14 @@ LOCAL_START_TIMEOUT = 180.0
 LOCAL_START_ATTEMPTS = 3
 
 
+#: A LocalCluster's scheduler without the dashboard, and its HTTP server (health and metrics
+#: routes, started even without the dashboard) on a free port: on its default, 8787, a second
+#: cluster on the machine (another power run, another test process) gets a "Port 8787 is
+#: already in use" warning, an error where warnings are errors.
+QUIET_SCHEDULER = {"dashboard_address": None,
+                   "scheduler_kwargs": {"dashboard_address": "127.0.0.1:0"}}
+
+
 @contextlib.contextmanager
 def local_cluster(workers: int, *, timeout: float = LOCAL_START_TIMEOUT,
                   attempts: int = LOCAL_START_ATTEMPTS) -> Iterator[Any]:
@@ -189,7 +197,7 @@ def local_cluster(workers: int, *, timeout: float = LOCAL_START_TIMEOUT,
                 try:
                     cluster = stack.enter_context(LocalCluster(
                         n_workers=workers, threads_per_worker=1, processes=True,
-                        host="127.0.0.1", dashboard_address=None))
+                        host="127.0.0.1", **QUIET_SCHEDULER))
                     client = stack.enter_context(Client(cluster, timeout=timeout,
                                                         set_as_default=False))
                     client.wait_for_workers(workers, timeout=timeout)
