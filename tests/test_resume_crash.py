@@ -37,7 +37,7 @@ A run's wall time is a few tenths of a second of start-up and half a second of t
 a trial's sidecar write lasts about a millisecond, so kills uniform in time would mostly land
 in start-up and almost never between trials or in the completion write; the strata and the
 holds (which change nothing that is written) spread them over the whole session. The spread
-achieved is printed (``pytest -s``) and each of start-up, mid-trial, between trials and
+achieved is printed (``pytest -n 0 -s``) and each of start-up, mid-trial, between trials and
 completion write must be hit.
 """
 
