@@ -37,6 +37,7 @@ listed before it (checked: ``[tool.importlinter]`` in pyproject.toml):
 ``device``     the LSC-24 wire, the serial device and the simulated one
 ``dataset``    the stored BIDS dataset: schema, session sidecar, paths, durable writes
 ``consent``    consent forms, the register, the gate, withdrawal
+``adaptive``   staircases and QUEST+: the next level from the responses so far
 ``protocol``   protocol files, trial plans, the checks against the device
 ``session``    the runner, the trial loop, resume, dry-runs, responders
 ``analysis``   the analysis of stored datasets (it reads the dataset alone)

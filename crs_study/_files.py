@@ -21,6 +21,7 @@ import contextlib
 import errno
 import hashlib
 import os
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -35,6 +36,23 @@ def sha256_bytes(data: bytes) -> str:
 def sha256_file(path: str | Path) -> str:
     """Hex sha256 of a file's bytes."""
     return sha256_bytes(Path(path).read_bytes())
+
+
+def not_a_regular_file(path: Path) -> str | None:
+    """Why ``path`` cannot be read as a file (a folder, a named pipe, ...), or None when it
+    is one. Reading a named pipe would wait for a writer forever; root reads any file, so
+    these are the unreadable files root meets too."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return "a folder, not a file"
+    if stat.S_ISFIFO(mode):
+        return "a named pipe, not a file"
+    return "not a regular file"
 
 
 def describe_os_error(error: OSError, what: str = "", path: str | Path | None = None) -> str:

@@ -168,3 +168,27 @@ def test_when_no_session_is_readable_the_error_says_why(dataset):
                        r"file") as refused:
         load_datasets(dataset)
     assert "\n" not in str(refused.value)
+
+
+def test_a_named_pipe_for_the_outputs_record_is_one_line_not_a_hang(dataset, tmp_path):
+    # the record is read by every analysis and every withdrawal: a named pipe in its place
+    # would wait for a writer for ever (the subprocess timeout fails the test if it does)
+    from crs_study.dataset.outputs import registry_path
+    record = registry_path(dataset)
+    record.unlink(missing_ok=True)
+    os.mkfifo(record)
+    done = crs_study("analyze", dataset, "--out", tmp_path / "out", timeout=60)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "record of analysis outputs (a named pipe, not a file)" in done.stderr
+    withdraw = crs_study("consent", "withdraw", "--participant", "sim02", "--dataset", dataset,
+                         "--dry-run", timeout=60)
+    assert withdraw.returncode == 2 and "a named pipe, not a file" in withdraw.stderr
+
+
+def test_a_named_pipe_for_the_dataset_description_leaves_the_folder_name(dataset):
+    description = dataset / "dataset_description.json"
+    description.unlink()
+    os.mkfifo(description)
+    data = load_datasets(dataset)   # must not wait on the pipe
+    assert sorted(data.trials["participant"].unique()) == ["sim01", "sim02", "sim03"]
+    assert dataset.name in data.trials["dataset"].unique().tolist()

@@ -35,3 +35,8 @@ def test_bench_live_quick():
     paused = names["render one frame after a frame's pause (CPU), median"]
     warm = names["render one frame back to back (CPU), median"]
     assert 0 < warm["value"] < 1.0 and 0 < paused["value"] < 5.0  # ms, this run's cold cost
+    empty_paused = names["an empty call after a frame's pause (CPU), median"]
+    empty_warm = names["an empty call back to back (CPU), median"]
+    # the machine's floor: timing nothing costs less than rendering a frame, either way
+    assert 0 <= empty_warm["value"] < warm["value"]
+    assert 0 <= empty_paused["value"] < paused["value"]

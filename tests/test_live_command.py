@@ -135,6 +135,8 @@ def test_a_signal_leaves_the_boards_neutral_and_the_ports_free(boards, layout2d,
     (["live", "--device", "sim://", "--no-battery-check"], "serial:// devices only"),
     (["live", "--device", "bogus://"], "unknown device URL"),
     (["live-send", "--digit", "12"], "digit"),
+    (["live-send", "--symbol", "A", "--set", "letters"], "letter: expected one of C, J"),
+    (["live-send", "--hold", "--set", "letters"], "--set: names the stimulus set of --symbol"),
     (["live-send", "--replay", "/nonexistent.jsonl"], "no such recording"),
     (["live-send", "--hold", "--to", "x"], "expected HOST:PORT"),
 ])

@@ -18,9 +18,11 @@ from crs_study.live import (
     read_trace,
     send_trace,
     stroke_trace,
+    symbol_trace,
 )
 from crs_study.live.trace import DIGIT_ASPECT
 from crs_study.stimuli.digits import load_digits
+from crs_study.stimuli.sets import load_stimulus_set
 
 
 def distance_to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
@@ -45,6 +47,17 @@ def test_digit_trace_follows_the_strokes_at_the_speed():
     steps = np.linalg.norm(np.diff(trace.xyz[:, :2], axis=0), axis=1)
     assert steps.max() <= 30.0 / 72.0 + 1e-9  # never faster than the finger speed
     assert np.median(steps[steps > 0]) == pytest.approx(30.0 / 72.0)
+
+
+def test_a_letter_is_written_with_the_letter_sets_strokes():
+    trace = symbol_trace("S", "letters", height_mm=60.0, speed_mm_s=30.0, press_mm=5.0)
+    assert trace.name == "letter S, 60 mm at 30 mm/s"
+    strokes = load_stimulus_set("letters").glyph("S").scaled(60.0 * DIGIT_ASPECT, 60.0)
+    pressed = trace.xyz[:, 2] == 5.0
+    near = np.min([distance_to_polyline(trace.xyz[pressed, :2], s) for s in strokes], axis=0)
+    assert pressed.sum() > 100 and near.max() < 1e-9
+    # the digit set through the same path is digit_trace, sample for sample
+    assert np.array_equal(symbol_trace("4").xyz, digit_trace(4).xyz)
 
 
 def test_stroke_and_hold_and_jitter():
@@ -74,6 +87,9 @@ def test_resampled_interpolates_linearly_in_time():
     (lambda: stroke_trace((0, 0), (0, 0)), "two different"),
     (lambda: hold_trace(duration_s=-1.0), "duration"),
     (lambda: hold_trace().jittered(-1.0), "jitter"),
+    (lambda: symbol_trace("A", "letters"), r"letter: expected one of C, J, L to N, .* got 'A'"),
+    (lambda: symbol_trace("C", "runes"), r"stimulus set: 'runes' is not a shipped stimulus set"),
+    (lambda: symbol_trace("C", "letters", height_mm=0.0), "letter height"),
 ])
 def test_bad_traces_are_one_line_errors(make, message):
     with pytest.raises(LiveError, match=message):
@@ -121,3 +137,22 @@ def test_bad_recordings(tmp_path, text, message):
         read_trace(path)
     with pytest.raises(LiveError, match="no such recording"):
         read_trace(tmp_path / "missing.jsonl")
+
+
+def test_live_send_writes_a_letter_from_the_command_line(capsys):
+    from crs_study.cli import main
+
+    trace = symbol_trace("C", "letters", rate_hz=500.0, speed_mm_s=200.0, height_mm=30.0)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        sock.settimeout(2.0)
+        host, port = sock.getsockname()
+        assert main(["live-send", "--to", f"{host}:{port}", "--symbol", "C", "--set",
+                     "letters", "--rate", "500", "--speed-mm-s", "200", "--height-mm", "30",
+                     "--json"]) == 0
+        packets = [decode_packet(sock.recv(64)) for _ in range(len(trace))]
+    report = json.loads(capsys.readouterr().out)
+    assert report["trace"] == "letter C, 30 mm at 200 mm/s" and report["packets"] == len(trace)
+    got = np.array([[p.x_mm, p.y_mm, p.z_mm] for p in packets])
+    assert np.allclose(got, trace.xyz, atol=1e-5)

@@ -12,6 +12,7 @@ from crs_study.cli import main
 from crs_study.device.schedule import wire_plan
 from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol, wire_budget
+from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
 from crs_study.stimuli.stimulus import make_stimulus
@@ -36,8 +37,9 @@ def test_each_condition_sums_the_wire_plans_of_its_stimuli():
     layout = protocol.layout()
     budget = wire_budget(protocol, deadband_us=2, refresh_s=0.5)
     crs = budget.condition("crs")
+    # the frames a session on a device with this dead-band sends (the cap leaves it room)
     plans = [wire_plan(layout, render_frames(make_stimulus(protocol, layout, d),
-                                             Renderer(layout, "crs")),
+                                             Renderer(layout, "crs", wire=WireSlack(2))),
                        protocol.frame_rate_hz, deadband_us=2, refresh_s=0.5)
              for d in protocol.symbols]
     assert crs.frames == sum(p.n_frames for p in plans)
@@ -51,6 +53,23 @@ def test_each_condition_sums_the_wire_plans_of_its_stimuli():
     frame = budget.to_frame()
     assert list(frame["condition"]) == ["pixel-only", "crs"]
     assert json.loads(budget.to_json())["conditions"][1]["frames"] == crs.frames
+
+
+def test_the_budget_renders_for_the_dead_band_it_plans():
+    # a wider dead-band moves the CRS frames (the cap's room, the feeds' rest floor): the
+    # estimate must plan the frames a session on that device sends, not the default's
+    protocol = load_protocol(PILOT)
+    layout = protocol.layout()
+    wide = wire_budget(protocol, deadband_us=30).condition("crs")
+    frames = [render_frames(make_stimulus(protocol, layout, d),
+                            Renderer(layout, "crs", wire=WireSlack(30))) for d in protocol.symbols]
+    default = [render_frames(make_stimulus(protocol, layout, d), Renderer(layout, "crs"))
+               for d in protocol.symbols]
+    plans = [wire_plan(layout, f, protocol.frame_rate_hz, deadband_us=30) for f in frames]
+    others = [wire_plan(layout, f, protocol.frame_rate_hz, deadband_us=30) for f in default]
+    bytes_of = [sum(int(p.changed_bytes.sum()) for p in ps) for ps in (plans, others)]
+    assert bytes_of[0] != bytes_of[1]  # the two renderings differ on the wire
+    assert wide.mean_bytes_per_frame == pytest.approx(bytes_of[0] / wide.frames)
 
 
 def test_validate_and_device_check_report_the_same_budget(capsys):

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from questplus.qp import QuestPlus
 
 from crs_study.adaptive.spec import AdaptiveSpec
 from crs_study.adaptive.staircase import TrialUpdate
@@ -56,6 +55,10 @@ class QuestPlusEngine:
     """``questplus.QuestPlus`` for a :class:`QuestPlusDesign`; responses are booleans."""
 
     def __init__(self, design: QuestPlusDesign) -> None:
+        # imported here: questplus imports scipy.stats (~0.9 s), and protocols import this
+        # package whether or not a QUEST+ track ever runs
+        from questplus.qp import QuestPlus
+
         self.design = design
         self.qp = QuestPlus(
             stim_domain={"intensity": np.asarray(design.intensities, float)},

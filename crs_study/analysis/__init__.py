@@ -4,8 +4,9 @@ speed against accuracy, psychometric functions, charts and the report.
 The public entry points are :func:`analyze` (every analysis of the plan, as an
 :class:`Analysis` of result objects; the report written on request), :func:`load_dataset`
 (the trials an analysis sees, as :class:`StudyData`), :func:`load_datasets` (the loader's
-checked table of every trial), :func:`load_plan` and :func:`fit_primary` (the primary
-likelihood-ratio tests alone, for power simulations); they are imported lazily so that
+checked table of every trial), :func:`load_plan`, :func:`fit_primary` (the primary
+likelihood-ratio tests alone, for power simulations) and :func:`compare_results` (a
+reanalysis against an earlier ``results.json``); they are imported lazily so that
 ``import crs_study.analysis.glmm`` does not pull in matplotlib.
 """
 
@@ -26,6 +27,8 @@ _EXPORTS = {
     "AnalysisPlan": "crs_study.analysis.plan",
     "fit_primary": "crs_study.analysis.primary",
     "PrimaryFits": "crs_study.analysis.primary",
+    "compare_results": "crs_study.analysis.reproduce",
+    "ResultsComparison": "crs_study.analysis.reproduce",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -72,15 +72,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from crs_study._files import sha256_bytes
+from crs_study._files import not_a_regular_file, sha256_bytes
 from crs_study.analysis.plan import Exclusions
 from crs_study.dataset import WITHDRAWAL_JOURNAL, SessionMetadata, SessionPaths, find_sessions
-from crs_study.dataset.evidence import (
-    UnreadableSession,
-    missing_sessions,
-    not_a_regular_file,
-    read_trial_file,
-)
+from crs_study.dataset.evidence import UnreadableSession, missing_sessions, read_trial_file
 from crs_study.dataset.schema import (
     MISSING,
     SYMBOL_COLUMNS,
@@ -267,6 +262,8 @@ def apply_exclusions(trials: pd.DataFrame, rules: Exclusions
 def _dataset_name(path: Path) -> str:
     description = path / "dataset_description.json"
     try:
+        if not_a_regular_file(description):  # missing, or a named pipe that would block
+            raise OSError
         name = json.loads(description.read_text(encoding="utf-8")).get("Name")
     except (OSError, ValueError, AttributeError, RecursionError):
         name = None

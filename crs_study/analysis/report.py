@@ -50,6 +50,12 @@ from crs_study.analysis.plan import AnalysisPlan
 from crs_study.analysis.primary import PrimaryResult, primary_test
 from crs_study.analysis.psychometric import PsychometricResult, analyse_psychometric
 from crs_study.analysis.report_text import write_report
+from crs_study.analysis.reproduce import (
+    DEFAULT_RTOL,
+    ResultsComparison,
+    compare_results,
+    read_results,
+)
 from crs_study.analysis.secondary import SecondaryResult, secondary_tests
 from crs_study.analysis.sources import summarise_sources
 from crs_study.analysis.speed_accuracy import SpeedAccuracyResult, analyse_speed_accuracy
@@ -153,6 +159,15 @@ class Analysis:
     def to_json(self) -> str:
         """``results.json``'s text, byte for byte as :meth:`write` writes it."""
         return json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n"
+
+    def compare(self, earlier: str | os.PathLike[str] | dict, rtol: float = DEFAULT_RTOL
+                ) -> ResultsComparison:
+        """This analysis against an earlier one's ``results.json`` (a path, or its content):
+        every value that differs beyond a relative ``rtol``, ignoring when, where and with
+        which version each ran (:mod:`crs_study.analysis.reproduce`)."""
+        if not isinstance(earlier, dict):
+            earlier = read_results(earlier)
+        return compare_results(earlier, self.to_dict(), rtol)
 
     def plot(self, chart: str = "accuracy", ax: Axes | None = None) -> Axes:
         """One of the report's charts (:data:`PLOTS`) on ``ax`` (a new figure without);

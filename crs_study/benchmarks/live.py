@@ -24,9 +24,10 @@ newest wins), frames written a second, on pty the host model's error (the write 
 prediction of a frame's landing against the board's record), and the software per packet in a
 warm loop (decode, render, pulses, the SERVO_MOVE bytes of both boards, packet after packet with
 no wait: medians of 5 repeats of CPU time), which tells the work from what a loop that sleeps
-between frames pays on a loaded machine (cold caches); and the renderer's part alone, one frame
+between frames pays on a loaded machine (cold caches); the renderer's part alone, one frame
 after a pause of the frame's wire time (as in the loop) and back to back, the cold caches' cost
-in this run.
+in this run; and the same pair for an empty call (two reads of the thread's CPU clock around a
+call that does nothing), the machine's own floor under every figure taken after a pause.
 
 A quick run sends the first 2.5 s of the trace.
 """
@@ -173,30 +174,50 @@ def warm_software_s(trace) -> float:
     return median_seconds(pipeline, repeat=5, timer=time.process_time) / len(packets)
 
 
-def render_after_pause_s(trace, pause_s: float, quick: bool) -> tuple[float, float]:
-    """Thread CPU seconds of one live frame's rendering (the renderer's bump path), median:
-    ``(after a pause of pause_s, back to back)`` over the trace's pressed packets.
-
-    The loop sleeps between frames while the machine's other processes run; the first pair
-    of figures tells what that costs the same work (cold caches) in this run."""
-    layout = load_layout("crs2d")
-    area, renderer = RecognitionArea.for_layout(layout), Renderer(layout, "crs")
+def pressed_placements(trace, quick: bool) -> list[tuple[float, float, float]]:
+    """The trace's pressed packets as (x, y, height) in the layout frame, thinned to 20 (quick)
+    or 80."""
+    area = RecognitionArea.for_layout(load_layout("crs2d"))
     placed = [p for p in (area.place(x, y, z) for x, y, z in trace.xyz.tolist())
               if p is not None and p[2] > 0.0]
-    placed = placed[:: max(1, len(placed) // (20 if quick else 80))]
-    renderer.render_bump(placed[0][:2], area.diameter_mm, placed[0][2])  # the beams' tables
+    return placed[:: max(1, len(placed) // (20 if quick else 80))]
+
+
+def cpu_after_pause_s(work, items, pause_s: float) -> tuple[float, float]:
+    """Thread CPU seconds of ``work(item)``, median over ``items``: ``(after a pause of
+    pause_s, back to back)`` (three passes).
+
+    The live loop sleeps between frames while the machine's other processes run; the pair
+    tells what that costs the same work (cold caches) in this run."""
     paused, warm = [], []
-    for x, y, z in placed:
+    for item in items:
         time.sleep(pause_s)
         start = time.thread_time()
-        renderer.render_bump((x, y), area.diameter_mm, z)
+        work(item)
         paused.append(time.thread_time() - start)
     for _ in range(3):
-        for x, y, z in placed:
+        for item in items:
             start = time.thread_time()
-            renderer.render_bump((x, y), area.diameter_mm, z)
+            work(item)
             warm.append(time.thread_time() - start)
     return statistics.median(paused), statistics.median(warm)
+
+
+def render_work(placed):
+    """One live frame's rendering (the renderer's bump path) of a placement, its tables
+    built."""
+    renderer = Renderer(load_layout("crs2d"), "crs")
+    diameter = RecognitionArea.for_layout(renderer.layout).diameter_mm
+    renderer.render_bump(placed[0][:2], diameter, placed[0][2])  # the beams' tables
+
+    def work(item) -> None:
+        renderer.render_bump(item[:2], diameter, item[2])
+
+    return work
+
+
+def nothing(item) -> None:
+    """The empty work: what timing a call costs, after a pause and back to back."""
 
 
 def run(quick: bool) -> list[Figure]:
@@ -210,8 +231,10 @@ def run(quick: bool) -> list[Figure]:
     wire = next(f.baseline for f in out if f.name == "pty: arrival->last byte, median")
     out.append(Figure(AREA, "software per packet, warm loop (CPU)", warm_software_s(trace) * 1e3,
                       "ms", "frame wire time (median, this run)", wire))
-    paused, warm = render_after_pause_s(trace, wire * 1e-3, quick)
-    for label, seconds in (("after a frame's pause", paused), ("back to back", warm)):
-        out.append(Figure(AREA, f"render one frame {label} (CPU), median", seconds * 1e3, "ms",
-                          "frame wire time (median, this run)", wire))
+    placed = pressed_placements(trace, quick)
+    for what, work in (("render one frame", render_work(placed)), ("an empty call", nothing)):
+        paused, warm = cpu_after_pause_s(work, placed, wire * 1e-3)
+        for label, seconds in (("after a frame's pause", paused), ("back to back", warm)):
+            out.append(Figure(AREA, f"{what} {label} (CPU), median", seconds * 1e3, "ms",
+                              "frame wire time (median, this run)", wire))
     return out

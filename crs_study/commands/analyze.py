@@ -3,15 +3,20 @@ secondary tests, confusions and information transfer, speed against accuracy, ps
 functions when a level varies. Writes results.json, a report and PNG charts; prints the
 headline. The analysis plan is --plan, else the one the protocol declares, else
 analysis/digit_identification.toml. See analysis/README.md.
+
+--check RESULTS reanalyses and compares with an earlier results.json instead of writing:
+"the same numbers" (exit 0) or every value that differs (exit 1).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 from crs_study._files import os_errors
 from crs_study.analysis import analyze
+from crs_study.analysis.reproduce import DEFAULT_RTOL, check_tolerance, read_results
 from crs_study.dataset import dataset_dir
 from crs_study.errors import AnalysisError
 
@@ -26,6 +31,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="DIR", default=None,
                         help="output directory (default: DATASET/derivatives/crs-study)"
                              "%(default).0s")
+    parser.add_argument("--check", metavar="RESULTS", default=None,
+                        help="compare with an earlier results.json instead of writing: exit 0 "
+                             "when every number agrees, 1 when one differs%(default).0s")
+    parser.add_argument("--check-rtol", metavar="R", type=float, default=DEFAULT_RTOL,
+                        help="--check: relative tolerance of a number (default %(default)g)")
     parser.add_argument("--json", action="store_true",
                         help="print results.json on stdout instead of the headline")
     parser.add_argument("--strict", action="store_true",
@@ -46,12 +56,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.out is not None:
         dataset_dir(args.out)  # --out '' is a one-line error, not the current folder
+    if args.check is not None:
+        if args.out is not None:
+            raise AnalysisError("--check writes nothing: leave out --out")
+        check_tolerance(args.check_rtol)
+        earlier = read_results(args.check)  # before the work: a wrong path fails at once
     result = analyze(args.datasets, args.plan, args.out, strict=args.strict,
-                     include_simulated=args.include_simulated, responders=args.responder)
+                     include_simulated=args.include_simulated, responders=args.responder,
+                     write=args.check is None)
     for warning in result.warnings:
         loud = "TAMPERED" in warning or "tampering" in warning
         print(f"crs-study analyze: {'WARNING' if loud else 'warning'}: {warning}",
               file=sys.stderr)
+    if args.check is not None:
+        verdict = result.compare(earlier, args.check_rtol)
+        print(json.dumps(verdict.to_dict()) if args.json else verdict.describe())
+        return 0 if verdict.same else 1
     if args.json:
         print(result.to_json(), end="")  # results.json as written
         return 0

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from crs_study.commands import HelpFormatter
+from crs_study.commands import HelpFormatter, add_device_options, device_options
 from crs_study.commands import _device_boards as device_boards
 from crs_study.commands._device_boards import describe_message
 from crs_study.device import Device, calibration, open_device, serial_port
@@ -64,18 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              help="serial:///dev/ttyUSB0,/dev/ttyUSB1 or sim://")
             sub.add_argument("--layout", default="crs2d", metavar="NAME|FILE",
                              help="device file: crs2d, crs1d or a path")
-            group = sub.add_argument_group("serial options")
-            group.add_argument("--deadband-us", type=int, default=None,
-                               help="resend a channel when it moved more than this (us)")
-            group.add_argument("--refresh-s", type=float, default=None,
-                               help="the first frame this long after the last full one "
-                                    "carries every channel (s; 0: never)")
-            group.add_argument("--min-battery-mv", type=int, default=None,
-                               help="refuse a board reporting less (mV; 0: no check)")
-            group.add_argument("--battery-timeout-s", type=float, default=None,
-                               help="wait this long for each board's battery reply")
-            group.add_argument("--no-battery-check", action="store_true",
-                               help="do not ask the boards for their battery voltage")
+            add_device_options(sub, battery_limits=True)
         return sub
 
     check = add("check", "open the ports, read batteries, show the channel map and wire budget")
@@ -139,19 +128,7 @@ def _open(args: argparse.Namespace, layout: Layout | None = None) -> Device:
     for serial://; the dead-band and refresh (which the simulator models too) for sim://; an
     option the device cannot honour is refused, never ignored."""
     layout = layout or load_layout(args.layout)
-    flags = {"deadband_us": ("--deadband-us", args.deadband_us),
-             "refresh_s": ("--refresh-s", args.refresh_s),
-             "min_battery_mv": ("--min-battery-mv", args.min_battery_mv),
-             "battery_timeout_s": ("--battery-timeout-s", args.battery_timeout_s),
-             "check_battery": ("--no-battery-check", False if args.no_battery_check else None)}
-    options = {key: value for key, (_, value) in flags.items() if value is not None}
-    if args.device.startswith("sim://"):
-        serial_only = [flags[k][0] for k in options if k not in ("deadband_us", "refresh_s")]
-        if serial_only:
-            raise DeviceError(f"{', '.join(serial_only)}: for serial:// devices only, got "
-                              f"--device {args.device!r}")
-    elif not args.device.startswith("serial://"):
-        options = {}  # open_device names the unknown URL
+    options = device_options(args, args.device)
     return open_device(args.device, layout, **options)
 
 

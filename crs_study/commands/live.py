@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from crs_study.commands import HelpFormatter
+from crs_study.commands import HelpFormatter, add_device_options, device_options
 from crs_study.device import open_device
 from crs_study.errors import DeviceError
 from crs_study.geometry.layout import load_layout
@@ -59,14 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this long (default: until Ctrl-C)")
     timing.add_argument("--max-packets", type=int, default=None,
                         help="stop after this many datagrams")
-    device = parser.add_argument_group("device options")
-    device.add_argument("--deadband-us", type=int, default=None,
-                        help="resend a channel when it moved more than this (us; default 1)")
-    device.add_argument("--refresh-s", type=float, default=None,
-                        help="the first frame this long after the last full one carries every "
-                             "channel (s; 0: never; default 1)")
-    device.add_argument("--no-battery-check", action="store_true",
-                        help="serial:// only: do not ask the boards for their battery voltage")
+    add_device_options(parser)
     out = parser.add_argument_group("output")
     out.add_argument("--record", default=None, metavar="FILE",
                      help="write every packet and frame as JSON lines (a new file)")
@@ -85,15 +78,9 @@ def run(args: argparse.Namespace) -> int:
         silence_s=args.silence_s, exit_on_silence=args.exit_on_silence, move_ms=args.move_ms,
         duration_s=args.seconds, max_packets=args.max_packets, record=args.record)
     layout = load_layout(args.layout)
-    options: dict = {k: v for k, v in (("deadband_us", args.deadband_us),
-                                       ("refresh_s", args.refresh_s)) if v is not None}
+    options = device_options(args, args.device)
     if args.device.startswith("sim://"):
-        if args.no_battery_check:
-            raise DeviceError(f"--no-battery-check: for serial:// devices only, got --device "
-                              f"{args.device!r}")
         options["record"] = True  # the virtual boards' record times the frames
-    elif args.no_battery_check:
-        options["check_battery"] = False
     device = open_device(args.device, layout, **options)
     live_view = sys.stdout.isatty() and not (args.no_view or args.json)
     session = LiveSession(device, config, view=TerminalView() if live_view else _Announce())

@@ -2,7 +2,8 @@
 without a headset.
 
 One source: --digit D (a finger writing digit D with the package's strokes, lifting between
-strokes), --stroke (a straight stroke from --start to --end), --hold (a finger held still at
+strokes), --symbol S (symbol S of the stimulus set --set: the letters' strokes, a set file's),
+--stroke (a straight stroke from --start to --end), --hold (a finger held still at
 --centre for --seconds), or --replay FILE (the accepted packets of a ``crs-study live --record``
 file, at their recorded times unless --rate is given). --jitter-mm adds a tremor (Gaussian, per
 packet, on x and y). Packets go at --rate a second (72: the Quest 2's frame rate), on an
@@ -14,11 +15,19 @@ from __future__ import annotations
 import argparse
 
 from crs_study.commands import HelpFormatter
+from crs_study.live.errors import LiveError
 from crs_study.live.link import parse_address
 from crs_study.live.record import read_trace
 from crs_study.live.sender import send_trace
-from crs_study.live.trace import HEADSET_RATE_HZ, digit_trace, hold_trace, stroke_trace
+from crs_study.live.trace import (
+    HEADSET_RATE_HZ,
+    digit_trace,
+    hold_trace,
+    stroke_trace,
+    symbol_trace,
+)
 from crs_study.signals import describe, terminate_as_interrupt
+from crs_study.stimuli.sets import DEFAULT_SET
 
 
 def _point(text: str) -> tuple[float, float]:
@@ -40,19 +49,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where crs-study live listens")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--digit", type=int, metavar="D", help="write digit D (0-9)")
+    source.add_argument("--symbol", metavar="S",
+                        help="write symbol S of the stimulus set --set (e.g. --symbol S "
+                             "--set letters)")
     source.add_argument("--stroke", action="store_true", help="one straight stroke")
     source.add_argument("--hold", action="store_true", help="a finger held still")
     source.add_argument("--replay", metavar="FILE", help="a crs-study live --record file")
     parser.add_argument("--rate", type=float, default=None,
                         help="packets a second (default 72; --replay: the recorded times)")
     shape = parser.add_argument_group("the made-up traces")
+    shape.add_argument("--set", default=None, metavar="NAME|FILE",
+                       help="--symbol: a shipped stimulus set (digits, letters) or a set file")
     shape.add_argument("--speed-mm-s", type=float, default=30.0, help="finger speed")
     shape.add_argument("--height-mm", type=float, default=60.0,
-                       help="--digit: mean digit height (the width is 0.6 of it)")
+                       help="--digit, --symbol: mean height (the width is 0.6 of it)")
     shape.add_argument("--press-mm", type=float, default=5.0,
                        help="press depth z_f: the bump's height")
     shape.add_argument("--centre", type=_point, default=(0.0, 0.0), metavar="X,Y",
-                       help="--digit, --hold: where (mm from the display's centre)")
+                       help="--digit, --symbol, --hold: where (mm from the display's centre)")
     shape.add_argument("--start", type=_point, default=(-50.0, 0.0), metavar="X,Y",
                        help="--stroke: from")
     shape.add_argument("--end", type=_point, default=(50.0, 0.0), metavar="X,Y",
@@ -69,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
     import json
 
 
+    if args.set is not None and args.symbol is None:
+        raise LiveError("--set: names the stimulus set of --symbol; give --symbol too")
     address = parse_address(args.to, "--to")
     rate = HEADSET_RATE_HZ if args.rate is None else args.rate
     if args.replay:
@@ -78,6 +94,9 @@ def run(args: argparse.Namespace) -> int:
     elif args.digit is not None:
         trace = digit_trace(args.digit, args.height_mm, args.speed_mm_s, args.press_mm, rate,
                             args.centre)
+    elif args.symbol is not None:
+        trace = symbol_trace(args.symbol, args.set or DEFAULT_SET, args.height_mm, args.speed_mm_s,
+                             args.press_mm, rate, args.centre)
     elif args.stroke:
         trace = stroke_trace(args.start, args.end, args.speed_mm_s, args.press_mm, rate)
     else:

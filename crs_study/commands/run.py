@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TextIO
 
 from crs_study._files import os_errors
+from crs_study.commands import add_device_options, device_options
 from crs_study.dataset import dataset_dir
 from crs_study.errors import ConfigError, DatasetError
 from crs_study.protocol import emit_warnings, load_protocol
@@ -64,6 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "file, and only the participant's view here (default: both here)")
     parser.add_argument("--json", action="store_true",
                         help="print a JSON summary on stdout and no progress")
+    add_device_options(parser)
 
 
 def spec_from_args(args: argparse.Namespace):
@@ -122,17 +124,18 @@ def run(args: argparse.Namespace) -> int:
     # odd but legal values, before anything runs
     protocol = load_protocol(spec.protocol)
     emit_warnings(protocol)
+    options = device_options(args, spec.device_url)
     if spec.responder == "keypad":  # the screen shows where the session stands
         with experimenter_view(args.experimenter_view) as view:
             keypad = make_responder("keypad", seed=0, protocol=protocol,
                                     screen=TerminalScreen(sys.stderr, view))
-            result = run_session(spec, responder=keypad)
+            result = run_session(spec, responder=keypad, device_options=options)
     else:
         if args.experimenter_view is not None:
             raise ConfigError("--experimenter-view is for --responder keypad (a person at the "
                               "terminal)")
         show = stderr_progress(not args.json)
-        result = run_session(spec, progress=show)
+        result = run_session(spec, progress=show, device_options=options)
         if show and sys.stderr.isatty():
             sys.stderr.write("\n")
     if args.json:

@@ -35,10 +35,10 @@ from __future__ import annotations
 
 import csv
 import io
-import stat
 from collections.abc import Collection
 from pathlib import Path
 
+from crs_study._files import not_a_regular_file
 from crs_study.dataset.bids import (
     PARTICIPANTS_TSV,
     SOURCEDATA,
@@ -52,23 +52,6 @@ from crs_study.errors import DatasetError
 #: A session as (participant, session label, task), the session "" for a dataset without
 #: sessions.
 SessionKey = tuple[str, str, str]
-
-
-def not_a_regular_file(path: Path) -> str | None:
-    """Why ``path`` cannot be read as a file (a folder, a named pipe, ...), or None when it
-    is one. Reading a named pipe would wait for a writer forever; root reads any file, so
-    these are the unreadable files root meets too."""
-    try:
-        mode = path.stat().st_mode
-    except OSError as exc:
-        return exc.strerror or type(exc).__name__
-    if stat.S_ISREG(mode):
-        return None
-    if stat.S_ISDIR(mode):
-        return "a folder, not a file"
-    if stat.S_ISFIFO(mode):
-        return "a named pipe, not a file"
-    return "not a regular file"
 
 
 class UnreadableSession(DatasetError):

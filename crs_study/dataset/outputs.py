@@ -27,7 +27,13 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from crs_study._files import append_durably, os_errors, sha256_file, write_atomically
+from crs_study._files import (
+    append_durably,
+    not_a_regular_file,
+    os_errors,
+    sha256_file,
+    write_atomically,
+)
 from crs_study.dataset.folder import Dataset, utc_now
 from crs_study.errors import DatasetError
 
@@ -61,6 +67,9 @@ def read_outputs(dataset: str | Path) -> list[AnalysisOutput]:
     path = registry_path(dataset)
     if not path.exists():
         return []
+    why = not_a_regular_file(path)
+    if why is not None:  # a named pipe would block the reader (and a withdrawal) for ever
+        raise DatasetError(f"{path}: cannot read the record of analysis outputs ({why})")
     with os_errors(DatasetError, "read", path):
         text = path.read_text(encoding="utf-8")
     runs: dict[str, AnalysisOutput] = {}

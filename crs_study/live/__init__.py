@@ -33,10 +33,17 @@ from crs_study.live.record import read_trace
 from crs_study.live.result import LiveResult
 from crs_study.live.sender import SendReport, send_trace
 from crs_study.live.session import LiveConfig, LiveSession, serve
-from crs_study.live.trace import FingerTrace, digit_trace, hold_trace, stroke_trace
+from crs_study.live.trace import (
+    FingerTrace,
+    digit_trace,
+    hold_trace,
+    stroke_trace,
+    symbol_trace,
+)
 
 __all__ = [
     "FingerPacket", "FingerTrace", "LiveConfig", "LiveError", "LiveResult", "LiveSession",
     "PacketError", "RecognitionArea", "SendReport", "decode_packet", "digit_trace",
     "encode_packet", "hold_trace", "read_trace", "send_trace", "serve", "stroke_trace",
+    "symbol_trace",
 ]

@@ -51,7 +51,7 @@ from crs_study.live.link import MAX_BATCH, Listener, parse_address
 from crs_study.live.packet import decode_packet
 from crs_study.live.record import Recorder
 from crs_study.live.result import FrameCounts, LatencyLog, LiveResult, PacketCounts
-from crs_study.rendering.feed_cap import WIRE_DEADBAND_US, WireSlack
+from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.render import Renderer
 from crs_study.signals import deferred, describe, terminate_as_interrupt
 
@@ -132,8 +132,8 @@ class LiveSession:
                                                self.config.diameter_mm,
                                                self.config.max_height_mm)
         # clip policy and feed cap as a session's, the cap's room for this device's dead-band
-        deadband = getattr(getattr(device, "options", None), "deadband_us", WIRE_DEADBAND_US)
-        self.renderer = Renderer(self.layout, self.config.condition, wire=WireSlack(deadband))
+        self.renderer = Renderer(self.layout, self.config.condition,
+                                 wire=WireSlack.for_device(device))
         self.tap = tap
         self.view = view
         self.neutral = self.layout.neutral_setpoints()

@@ -4,11 +4,13 @@ A :class:`FingerTrace` is samples (t_k, x_k, y_k, z_k): seconds from its start, 
 packet's coordinates (mm from the recognition area's centre; z the press depth). Made-up
 traces (every one a pure function of its arguments and, for jitter, a seed):
 
-* :func:`digit_trace`: a finger writing a digit with the package's strokes
-  (:mod:`crs_study.digits`): each stroke at constant speed along its arc length (sampled as a
-  session's stimulus is, :func:`crs_study.digits.sample_stroke`), pressing ``press_mm``; between
-  strokes the finger lifts (z = 0: a flat display) and moves straight to the next stroke's
-  start; it rests pressed at the first and the last point for ``hold_s``.
+* :func:`symbol_trace`: a finger writing a symbol of a stimulus set (the digits, the
+  letters, a set file: :mod:`crs_study.stimuli.sets`) with that set's strokes: each stroke at
+  constant speed along its arc length (sampled as a session's stimulus is,
+  :func:`crs_study.stimuli.digits.point_at`), pressing ``press_mm``; between strokes the
+  finger lifts (z = 0: a flat display) and moves straight to the next stroke's start; it rests
+  pressed at the first and the last point for ``hold_s``. :func:`digit_trace` is the digit
+  set's.
 * :func:`stroke_trace`: one straight stroke at constant speed.
 * :func:`hold_trace`: a finger held still; with :meth:`FingerTrace.jittered` a trembling one
   (independent Gaussian noise of ``sd_mm`` on x and y per sample).
@@ -25,14 +27,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from crs_study.errors import ProtocolError
 from crs_study.live.errors import LiveError
 from crs_study.stimuli.digits import arc_lengths, load_digits, point_at
+from crs_study.stimuli.sets import DEFAULT_SET, load_stimulus_set
 
 #: The headset's frame rate (Oculus Quest 2, the paper's): packets a second.
 HEADSET_RATE_HZ = 72.0
 #: Highest rate a trace may be sent or resampled at (packets/s).
 MAX_RATE_HZ = 2000.0
-#: Width of a drawn digit per unit of its height (the default protocol's 0.49 / 0.81 pitch).
+#: Width of a drawn symbol per unit of its height (the shipped protocols' 0.49 / 0.81 pitch,
+#: digits and letters alike).
 DIGIT_ASPECT = 0.49 / 0.81
 
 
@@ -122,11 +127,41 @@ def digit_trace(digit: int, height_mm: float = 60.0, speed_mm_s: float = 30.0,
     digits = load_digits(strokes_file)
     if digit not in digits:
         raise LiveError(f"digit: expected one of {sorted(digits)}, got {digit!r}")
-    height = _positive("digit height", height_mm)
+    return _written(digits[digit], f"digit {digit}", height_mm, speed_mm_s, press_mm, rate_hz,
+                    centre_mm, hold_s)
+
+
+def symbol_trace(symbol: str, stimulus_set: str = DEFAULT_SET, height_mm: float = 60.0,
+                 speed_mm_s: float = 30.0, press_mm: float = 5.0,
+                 rate_hz: float = HEADSET_RATE_HZ, centre_mm: tuple[float, float] = (0.0, 0.0),
+                 hold_s: float = 0.2) -> FingerTrace:
+    """A finger writing ``symbol`` (as written: ``"7"``, ``"A"``) of ``stimulus_set`` (a
+    shipped set's name or a set file) with that set's strokes, as :func:`digit_trace`."""
+    try:
+        shown = load_stimulus_set(stimulus_set)
+    except ProtocolError as exc:  # a set file's own errors name the file and line
+        raise LiveError(str(exc) if exc.source else f"stimulus set: {exc.reason}") from None
+    found = shown.symbol_of(str(symbol))
+    if found is None:
+        raise LiveError(f"{shown.noun}: expected one of {shown.describe()} (the {shown.name} "
+                        f"set), got {str(symbol)!r}")
+    try:
+        glyph = shown.glyph(found)
+    except ProtocolError as exc:
+        raise LiveError(str(exc)) from None
+    return _written(glyph, f"{shown.noun} {found}", height_mm, speed_mm_s, press_mm, rate_hz,
+                    centre_mm, hold_s)
+
+
+def _written(glyph, what: str, height_mm: float, speed_mm_s: float, press_mm: float,
+             rate_hz: float, centre_mm: tuple[float, float], hold_s: float) -> FingerTrace:
+    """A finger writing ``glyph``'s strokes (module docstring), ``height_mm`` high on
+    average and ``DIGIT_ASPECT`` times that wide, centred at ``centre_mm``."""
+    height = _positive(f"{what.split()[0]} height", height_mm)
     speed = _positive("finger speed", speed_mm_s)
     rate = check_rate(rate_hz)
     press = _positive("press depth", press_mm)
-    strokes = digits[digit].scaled(height * DIGIT_ASPECT, height, centre_mm)
+    strokes = glyph.scaled(height * DIGIT_ASPECT, height, centre_mm)
     rows: list[np.ndarray] = []
 
     def add(points: np.ndarray, z: float) -> None:
@@ -139,7 +174,7 @@ def digit_trace(digit: int, height_mm: float = 60.0, speed_mm_s: float = 30.0,
             add(_path(np.array([strokes[i - 1][-1], stroke[0]]), speed, rate)[1:-1], 0.0)
         add(_path(stroke, speed, rate), press)
     add(np.repeat(strokes[-1][-1:], held, axis=0), press)
-    return _with_times(rows, rate, f"digit {digit}, {height:g} mm at {speed:g} mm/s")
+    return _with_times(rows, rate, f"{what}, {height:g} mm at {speed:g} mm/s")
 
 
 def stroke_trace(start_mm: tuple[float, float], end_mm: tuple[float, float],

@@ -160,6 +160,13 @@ def design_from_protocol(protocol: Any, plan: Any = None) -> PowerDesign:
 
     if not hasattr(protocol, "design"):
         protocol = load_protocol(resolve_protocol(protocol))
+    if protocol.adaptive is not None:
+        # each trial's level depends on the responses before it: a study cannot be drawn
+        # cell by cell from a model, and the plan's result is the threshold, not a cell's
+        # accuracy
+        raise PowerError(f"{protocol.path}: its levels are chosen adaptively ([adaptive], "
+                         f"{protocol.adaptive.procedure}); power covers protocols with fixed "
+                         "levels: rehearse this one with crs-study dry-run")
     if plan is None:
         plan = analysis_plan_path(protocol) or default_plan_path()
     if not isinstance(plan, AnalysisPlan):

@@ -32,6 +32,7 @@ from crs_study.device.base import (
 from crs_study.device.schedule import DEFAULT_DEADBAND_US, DEFAULT_REFRESH_S, wire_plan
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
+from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
 from crs_study.stimuli.stimulus import make_stimulus
@@ -105,7 +106,8 @@ def wire_budget(protocol: Protocol, layout: Layout | None = None, *,
                for d in protocol.symbols]
     conditions = []
     for condition in protocol.conditions:
-        renderer = Renderer(layout, condition)
+        # the frames a session on this device sends: the cap's room for its dead-band
+        renderer = Renderer(layout, condition, wire=WireSlack(int(deadband_us)))
         plans = [wire_plan(layout, render_frames(s, renderer), rate, deadband_us=deadband_us,
                            refresh_s=refresh_s) for s in stimuli]
         frames = sum(p.n_frames for p in plans)

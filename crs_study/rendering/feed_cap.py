@@ -107,6 +107,16 @@ class WireSlack:
             raise RenderError(f"wire slack: pulse quantum: expected us > 0, "
                               f"got {self.quantum_us!r}")
 
+    @classmethod
+    def for_device(cls, device: object) -> WireSlack:
+        """The slack of ``device``'s write policy: its ``options.deadband_us`` (both shipped
+        devices have one: ``sim://?deadband_us=``, ``SerialOptions.deadband_us``); the default
+        dead-band for a device without one. A dead-band wider than the default needs more
+        room under the longest stable shape, so every renderer that feeds a device takes the
+        device's own."""
+        deadband = getattr(getattr(device, "options", None), "deadband_us", WIRE_DEADBAND_US)
+        return cls(int(deadband))
+
     @property
     def hold_us(self) -> float:
         """Farthest a board's pulse may be from the exact one: half a quantum of rounding

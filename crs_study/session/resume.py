@@ -163,5 +163,6 @@ def check_frames(frame_log: Path, rows: list[dict[str, str]], plan: TrialPlan, f
             raise SessionError(
                 f"{frame_log}: cannot resume: trial {trial.index} ({trial.condition}, "
                 f"{trial.symbol!r}) was shown with other setpoints than this software renders "
-                "(the renderer changed since the session began); finish it with the software "
-                "that began it or start another --session")
+                "(the renderer, or the device's dead-band, changed since the session "
+                "began); finish it with the software and device options that began it or "
+                "start another --session")

@@ -61,6 +61,7 @@ from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.protocol.plan import TrialPlan, make_plan
+from crs_study.rendering.feed_cap import WireSlack
 from crs_study.session.adaptive import choose, next_to_play, rebuild
 from crs_study.session.prompts import resume_prompt
 from crs_study.session.responders import Responder, make_responder
@@ -258,18 +259,24 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                    may_skip=protocol.adaptive is not None)
         run = rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar)
         first = next_to_play(plan, rows, run)  # len(rows) unless a staircase skipped trials
-        check_frames(paths.frame_log, rows, plan, trial_frames(protocol, layout),
-                     None if protocol.levels is None else protocol.levels.column)
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
                              responder.name, n_trials, first, began)
+        clock: Clock = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
+        options = dict(device_options or {})
+        if spec.device_url.startswith("sim://"):  # injected faults: once per session
+            options.setdefault("faults_met", len(metadata.faults))
+        # made (its options checked) before anything is written, opened below; the frames'
+        # feed cap leaves room for this device's own dead-band
+        device = open_device(spec.device_url, layout, clock, **options)
+        frames = trial_frames(protocol, layout, WireSlack.for_device(device))
+        check_frames(paths.frame_log, rows, plan, frames,
+                     None if protocol.levels is None else protocol.levels.column)
         faults = {f.trial for f in metadata.faults}
         state = SessionState(spec, protocol, layout, plan, store, metadata, rows, faults,
                              adaptive=run,
                              adaptive_sha256=None if run is None else run.fingerprint(),
                              cut=metadata.cut_trials())
         resume_at = float(rows[-1]["trial_end"]) if rows else 0.0
-        clock: Clock = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
-        frames = trial_frames(protocol, layout)
         store.create()
         save(state, "running", final=True)
         stored_before = len(rows)
@@ -277,11 +284,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         origin = 0.0
         current = first  # the plan index of the trial under way (a skipped one never is)
         try:
-            options = dict(device_options or {})
-            if spec.device_url.startswith("sim://"):  # injected faults: once per session
-                options.setdefault("faults_met", len(metadata.faults))
-            with terminate_as_interrupt(), responder, open_device(
-                    spec.device_url, layout, clock, **options) as device:
+            with terminate_as_interrupt(), responder, device:
                 device.neutral()
                 responder.start_session(spec.participant, spec.session, plan, first)
                 if clock_kind == "virtual":

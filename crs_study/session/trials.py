@@ -43,6 +43,7 @@ from crs_study.errors import SessionError
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol
 from crs_study.protocol.plan import PlannedTrial
+from crs_study.rendering.feed_cap import DEFAULT_WIRE, WireSlack
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
 from crs_study.session.adaptive import is_adaptive, row_fields
@@ -71,9 +72,11 @@ class TrialFrames:
     :func:`~crs_study.rendering.frames.render_frames`'; here are the renderer of each
     condition and the frames' text for the frame log."""
 
-    def __init__(self, protocol: Protocol, layout: Layout) -> None:
+    def __init__(self, protocol: Protocol, layout: Layout, wire: WireSlack = DEFAULT_WIRE
+                 ) -> None:
         self.protocol = protocol
         self.layout = layout
+        self.wire = wire  # the device's write policy: the feed cap leaves room for it
         self._renderers: dict[str, Renderer] = {}
         self._text: dict[tuple[Symbol, str, float | None], list[str]] = {}
 
@@ -82,7 +85,7 @@ class TrialFrames:
         """``(frame_times (n,), setpoints (n, n_actuators))``, both read-only."""
         stimulus = make_stimulus(self.protocol, self.layout, symbol, level)
         if condition not in self._renderers:
-            self._renderers[condition] = Renderer(self.layout, condition)
+            self._renderers[condition] = Renderer(self.layout, condition, wire=self.wire)
         frames = render_frames(stimulus, self._renderers[condition])
         times = stimulus.frame_times
         if frames.ndim != 2 or len(frames) != len(times) or len(times) == 0:
@@ -100,15 +103,17 @@ class TrialFrames:
         return self._text[key]
 
 
-_trial_frames: dict[tuple[str, str], TrialFrames] = {}
+_trial_frames: dict[tuple[str, str, WireSlack], TrialFrames] = {}
 
 
-def trial_frames(protocol: Protocol, layout: Layout) -> TrialFrames:
-    """One :class:`TrialFrames` per protocol and device file per process (shared by dry-run
-    participants)."""
-    key = (protocol.sha256, layout.source)
+def trial_frames(protocol: Protocol, layout: Layout, wire: WireSlack = DEFAULT_WIRE
+                 ) -> TrialFrames:
+    """One :class:`TrialFrames` per protocol, device file and write policy's slack per process
+    (shared by dry-run participants). ``wire``: the device's
+    (:meth:`~crs_study.rendering.feed_cap.WireSlack.for_device`)."""
+    key = (protocol.sha256, layout.source, wire)
     if key not in _trial_frames:
-        _trial_frames[key] = TrialFrames(protocol, layout)
+        _trial_frames[key] = TrialFrames(protocol, layout, wire)
     return _trial_frames[key]
 
 
