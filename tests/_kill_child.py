@@ -20,9 +20,10 @@ import sys
 import time
 
 #: What the fork server imports before the first fork: this module, the CLI and what the
-#: ``run`` command imports when it runs (the runner, the dataset, the protocol, QUEST+).
+#: ``run`` command imports when it runs (the runner, the dataset, the protocol, and what the
+#: adaptive procedures import on first use: QUEST+ and scipy.stats).
 PRELOAD = ["_kill_child", "crs_study.cli", "crs_study.commands.run", "crs_study.dataset",
-           "crs_study.session.runner"]
+           "crs_study.session.runner", "questplus.qp", "scipy.stats"]
 
 
 def mark(phases: str, what: str) -> None:
