@@ -2,6 +2,8 @@
 
 import argparse
 
+from crs_study.errors import DeviceError
+
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Shows an option's default where it tells the reader something.
@@ -42,8 +44,6 @@ def device_options(args: argparse.Namespace, url: str) -> dict[str, object]:
     """The options :func:`add_device_options` added that were given, as ``open_device``
     takes them; an option the device cannot honour is refused, never ignored (the battery
     options on ``sim://``). An unknown scheme gets none: ``open_device`` names it."""
-    from crs_study.errors import DeviceError
-
     flags = {"deadband_us": ("--deadband-us", args.deadband_us),
              "refresh_s": ("--refresh-s", args.refresh_s),
              "min_battery_mv": ("--min-battery-mv", getattr(args, "min_battery_mv", None)),
