@@ -79,7 +79,6 @@ def test_the_fingerprint_depends_on_responses_and_settings():
     assert c.fingerprint() != d.fingerprint()
 
 
-
 @pytest.mark.parametrize("spec", [STAIR, QUEST], ids=["staircase", "quest-plus"])
 def test_asking_a_track_for_its_level_changes_no_fingerprint(spec):
     """A resume asks the next trial's track whether it has finished (creating the track)
@@ -93,6 +92,7 @@ def test_asking_a_track_for_its_level_changes_no_fingerprint(spec):
         asked.finished(0), asked.next_level(1), asked.finished(1)
         assert asked.state() == untouched.state()
         assert asked.fingerprint() == untouched.fingerprint()
+
 
 def sidecar(adaptive_sha256=None) -> SessionMetadata:
     return SessionMetadata(
