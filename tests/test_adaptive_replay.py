@@ -79,6 +79,21 @@ def test_the_fingerprint_depends_on_responses_and_settings():
     assert c.fingerprint() != d.fingerprint()
 
 
+@pytest.mark.parametrize("spec", [STAIR, QUEST], ids=["staircase", "quest-plus"])
+def test_asking_a_track_for_its_level_changes_no_fingerprint(spec):
+    """A resume asks the next trial's track whether it has finished (creating the track)
+    before it writes the sidecar; a later resume checks the stored fingerprint at the same
+    trial count without asking. The state is a function of the responses alone, so asking
+    changes nothing (it did: two kills at the first trial of a block made the session
+    unresumable, "the adaptive procedures' state after 1 trials differs")."""
+    for before in ([], [(0, True)]):
+        asked, _ = live(spec, before)
+        untouched, _ = live(spec, before)
+        asked.finished(0), asked.next_level(1), asked.finished(1)
+        assert asked.state() == untouched.state()
+        assert asked.fingerprint() == untouched.fingerprint()
+
+
 def sidecar(adaptive_sha256=None) -> SessionMetadata:
     return SessionMetadata(
         task_name="digitid", task_description="d", instructions="i", protocol_text="p",

@@ -5,6 +5,7 @@ what the hardware reports, refusing swapped USB boards."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -60,6 +61,34 @@ class BoardsCommand:
         return self.text
 
 
+def wait_until_open(process: subprocess.Popen, path: str, timeout: float = 60.0) -> None:
+    """Until ``process`` has ``path`` open (its file descriptors, in /proc)."""
+    target = os.path.realpath(path)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert process.poll() is None, f"ended before opening {path}"
+        with contextlib.suppress(OSError):  # a descriptor may close while it is read
+            fds = Path(f"/proc/{process.pid}/fd")
+            if any(os.path.realpath(fd) == target for fd in fds.iterdir()):
+                return
+        time.sleep(0.02)
+    raise AssertionError(f"{path} not opened within {timeout} s")
+
+
+def read_until(process: subprocess.Popen, marker: str, timeout: float) -> str:
+    """What ``process`` printed until ``marker`` (or it ended, or ``timeout`` passed)."""
+    seen = ""
+    deadline = time.monotonic() + timeout
+    while marker not in seen and time.monotonic() < deadline:
+        ready, _, _ = select.select([process.stdout], [], [], 0.1)
+        if ready:
+            chunk = os.read(process.stdout.fileno(), 65536).decode()
+            if not chunk:
+                break
+            seen += chunk
+    return seen
+
+
 def readme_device_steps() -> list[str]:
     """Step 2 of the README's study, as written (``crs-study device ...`` lines)."""
     text = README.read_text(encoding="utf-8")
@@ -88,13 +117,18 @@ def test_the_readmes_device_steps_run_against_virtual_boards(tmp_path, monkeypat
             assert "Traceback" not in done.stderr
         assert (tmp_path / "calibrated.toml").exists()
         # a tap shows what board A receives, decoded by device monitor
+        # (opened before neutral is sent; stopped with Ctrl-C, its way to end, once it has
+        # printed the move, or after 30 s)
         monitor = subprocess.Popen([*CLI, "device", "monitor", "--port", boards.taps["A"],
-                                    "--seconds", "4"], stdout=subprocess.PIPE, text=True,
-                                   env=env)
-        time.sleep(1.5)
+                                    "--seconds", "30"], stdout=subprocess.PIPE, env=env)
+        wait_until_open(monitor, boards.taps["A"])
         subprocess.run([*CLI, "device", "neutral", "--device", boards.url], check=True,
                        capture_output=True, env=env, timeout=60)
-        seen, _ = monitor.communicate(timeout=60)
+        seen = read_until(monitor, "ServoMove [19]", timeout=30.0)
+        monitor.send_signal(signal.SIGINT)
+        rest, _ = monitor.communicate(timeout=60)
+        seen += rest.decode()
+        assert monitor.returncode == 0 and "stopped" in seen, seen
         assert "ServoMove [19]" in seen, seen
     finally:
         text = boards.stop()

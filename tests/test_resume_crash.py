@@ -12,11 +12,13 @@ is left behind. The whole test runs twice: on a fixed protocol, and on an adapti
 (QUEST+ chooses each test trial's digit height, issue 17: a resumed run rebuilds the tracks by
 replaying the stored responses and must reach the sidecar's fingerprint).
 
-Where the kills land. The child is ``crs_study.cli.main`` behind a few wrappers (:data:`CHILD`)
-that append phase markers (monotonic time, phase) to a file: trial k begins, trial k's row is
-stored, a sidecar write begins and ends (``running`` after each trial, ``complete`` at the
-end), a replay of stored trials begins and ends. Each kill is classified by the last marker
-before it (:func:`phase_at`): start-up (interpreter, imports, protocol checks, the first
+Where the kills land. The child is ``crs_study.cli.main`` behind a few wrappers
+(:func:`_kill_child.run`), forked from a server that imported crs_study once (so a run's life
+is its session, not the 1.5 s of importing scipy and pandas, before any file is opened); the
+wrappers append phase markers (monotonic time, phase) to a file: trial k begins, trial k's
+row is stored, a sidecar write begins and ends (``running`` after each trial, ``complete`` at
+the end), a replay of stored trials begins and ends. Each kill is classified by the last
+marker before it (:func:`phase_at`): start-up (the command line, protocol checks, the first
 sidecar), replay, mid-trial, between trials (the row stored, the sidecar not yet rewritten,
 the next trial not begun), the completion write, after completion. The moments are drawn
 from four kinds, each responder's 15 kills in a seeded random order (:func:`schedule`):
@@ -31,12 +33,12 @@ from four kinds, each responder's 15 kills in a seeded random order (:func:`sche
   ``os.replace`` is where it waits), and the kill falls at a uniform moment from the start
   of that write to the end of the hold.
 
-A run's wall time is about 1 s of start-up (mostly importing scipy) and half a second of
-trials, and a trial's sidecar write lasts about a millisecond, so kills uniform in time
-would mostly land in start-up and almost never between trials or in the completion write;
-the strata and the holds (which change nothing that is written) spread them over the whole
-session. The spread achieved is printed (``pytest -s``) and each of start-up, mid-trial,
-between trials and completion write must be hit.
+A run's wall time is a few tenths of a second of start-up and half a second of trials, and
+a trial's sidecar write lasts about a millisecond, so kills uniform in time would mostly land
+in start-up and almost never between trials or in the completion write; the strata and the
+holds (which change nothing that is written) spread them over the whole session. The spread
+achieved is printed (``pytest -n 0 -s``) and each of start-up, mid-trial, between trials and
+completion write must be hit.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ import csv
 import gzip
 import hashlib
 import json
+import multiprocessing
 import os
 import random
 import signal
@@ -56,85 +59,19 @@ import sys
 import time
 from pathlib import Path
 
+import _kill_child
 import pytest
 from _session_helpers import adaptive_protocol, assert_same_but_reruns, tiny_protocol
 
+#: The runs are forked from a server that imported crs_study first (:mod:`_kill_child`).
+FORKS = multiprocessing.get_context("forkserver")
+FORKS.set_forkserver_preload(_kill_child.PRELOAD)
 KILLS = 30
 HOLD_S = 0.25
 WALL_CLOCK_SIDECAR_KEYS = {"StartTime", "EndTime", "Resumes"}
 #: Keys a killed session has and its uninterrupted reference has not: why it stopped, and the
 #: hash of a trial file whose rerun trials say rerun = 1 (checked against the file instead).
 INTERRUPTION_SIDECAR_KEYS = {"Interruptions", "TrialsSha256"}
-
-#: The child process: crs_study.cli.main with phase markers and the optional holds (module
-#: docstring). Environment: CRS_TEST_PHASES (marker file), CRS_TEST_HOLD_ROW (trial index),
-#: CRS_TEST_HOLD_COMPLETE (1), CRS_TEST_HOLD_S.
-CHILD = r"""
-import os, sys, time
-
-PHASES = os.environ["CRS_TEST_PHASES"]
-HOLD_S = float(os.environ.get("CRS_TEST_HOLD_S", "0"))
-HOLD_ROW = int(os.environ.get("CRS_TEST_HOLD_ROW", "-1"))
-HOLD_COMPLETE = os.environ.get("CRS_TEST_HOLD_COMPLETE") == "1"
-
-
-def mark(what):
-    fd = os.open(PHASES, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-    os.write(fd, f"{time.monotonic():.6f} {what}\n".encode())
-    os.close(fd)
-
-
-mark("process")
-import crs_study.dataset as dataset
-import crs_study.session.runner as runner
-from crs_study.cli import main
-
-mark("imported")
-real_run_trial, real_save, real_replay = runner.run_trial, runner.save, runner.replay
-real_append_row, real_replace = dataset.SessionStore.append_row, os.replace
-completing = False
-
-
-def run_trial(state, device, responder, clock, origin, cache, trial):
-    mark(f"trial {trial.index}")
-    real_run_trial(state, device, responder, clock, origin, cache, trial)
-
-
-def append_row(self, row):
-    real_append_row(self, row)
-    mark(f"row {row['trial_index']}")
-    if row["trial_index"] == HOLD_ROW:
-        mark(f"hold row {HOLD_ROW}")
-        time.sleep(HOLD_S)
-
-
-def save(state, status, final=False):
-    global completing
-    mark(f"save-begin {status}")
-    completing = status == "complete"
-    real_save(state, status, final)
-    completing = False
-    mark(f"save-end {status}")
-
-
-def replace(src, dst, *args, **kwargs):
-    if completing and HOLD_COMPLETE and str(dst).endswith("_beh.json"):
-        mark("hold complete")
-        time.sleep(HOLD_S)
-    return real_replace(src, dst, *args, **kwargs)
-
-
-def replay(*args):
-    mark("replay-begin")
-    real_replay(*args)
-    mark("replay-end")
-
-
-runner.run_trial, runner.save, runner.replay = run_trial, save, replay
-dataset.SessionStore.append_row = append_row
-os.replace = replace
-sys.exit(main(sys.argv[1:]))
-"""
 
 PHASE_NAMES = ("start-up", "replay", "mid-trial", "between trials", "completion write",
                "after completion")
@@ -146,12 +83,38 @@ def arguments(protocol, dataset, session, responder):
             str(session)]
 
 
-def start(protocol, dataset, session, responder, phases: Path, **holds) -> subprocess.Popen:
+class Run:
+    """One ``crs-study run`` forked from the fork server (:mod:`_kill_child`): the few calls
+    of :class:`subprocess.Popen` the test makes (poll, wait, SIGKILL, stderr)."""
+
+    def __init__(self, argv: list[str], env: dict[str, str], stderr: Path) -> None:
+        self.stderr_path = stderr
+        self.process = FORKS.Process(target=_kill_child.run, args=(argv, env, str(stderr)),
+                                     daemon=True)
+        self.process.start()
+
+    def poll(self) -> int | None:
+        return self.process.exitcode
+
+    def wait(self, timeout: float) -> int:
+        self.process.join(timeout)
+        if self.process.exitcode is None:
+            raise subprocess.TimeoutExpired("crs-study run", timeout)
+        return self.process.exitcode
+
+    def kill(self) -> None:
+        if self.process.exitcode is None:
+            self.process.kill()  # SIGKILL
+
+    def error(self) -> str:
+        return self.stderr_path.read_text() if self.stderr_path.exists() else ""
+
+
+def start(protocol, dataset, session, responder, phases: Path, **holds) -> Run:
     env = dict(os.environ, CRS_TEST_PHASES=str(phases), CRS_TEST_HOLD_S=str(HOLD_S))
     env.update({f"CRS_TEST_HOLD_{k.upper()}": str(v) for k, v in holds.items()})
-    return subprocess.Popen([sys.executable, "-c", CHILD,
-                             *arguments(protocol, dataset, session, responder)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    return Run(arguments(protocol, dataset, session, responder), env,
+               phases.with_suffix(".err"))
 
 
 def markers(phases: Path) -> list[tuple[float, str]]:
@@ -186,7 +149,7 @@ def phase_at(events: list[tuple[float, str]], moment: float) -> str:
     return state
 
 
-def wait_for(phases: Path, what: str, process: subprocess.Popen, timeout=60.0) -> bool:
+def wait_for(phases: Path, what: str, process: Run, timeout=60.0) -> bool:
     """Poll the marker file until ``what`` appears (True) or the process ends (False)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -237,7 +200,7 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
         protocol = adaptive_protocol(tmp_path, procedure="quest-plus", trials=12)
     planned = 26  # 3 digits x 2 conditions x 4 (adaptive: 12 a block) + 2 practice
     dataset = tmp_path / "killed"
-    references: dict[int, subprocess.Popen] = {}
+    references: dict[int, Run] = {}
 
     def reference(number, responder, phases=None):
         """The uninterrupted run of a session, in the background (compared at the end)."""
@@ -254,7 +217,7 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
         # The first session's reference first: how long start-up and a trial take.
         timing_log = tmp_path / f"timing-{session}.log"
         reference(session, responder, timing_log)
-        assert references[session].wait(timeout=120) == 0, references[session].stderr.read()
+        assert references[session].wait(timeout=120) == 0, references[session].error()
         timing = markers(timing_log)
         begin = next(t for t, w in timing if w == "process")
         first = next(t for t, w in timing if w == "trial 0")
@@ -294,17 +257,17 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
                     process.wait(timeout=60)
                 if process.poll() is None:
                     moment = time.monotonic()
-                    process.send_signal(signal.SIGKILL)
+                    process.kill()  # SIGKILL
                     events = markers(phases)
                     kills.append((kind, phase_at(events, moment),
                                   (moment - events[0][0]) / life if events else 0.0))
                     if kind in plan:
                         plan.remove(kind)
-                process.wait(timeout=60)
+                # killed, or done; a run that fails on its own (a resume refused) is the bug
+                assert process.wait(timeout=60) in (0, -signal.SIGKILL), process.error()
             finally:
                 process.kill()
-                process.wait()
-                process.stderr.close()
+                process.wait(timeout=60)
             if is_complete(dataset, session):  # finished (or killed once it had)
                 sessions.append((session, responder))
                 session += 1
@@ -332,8 +295,7 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
 
     for number, _ in sessions:
         done = references[number]
-        assert done.wait(timeout=120) == 0, done.stderr.read()
-        done.stderr.close()
+        assert done.wait(timeout=120) == 0, done.error()
         tsv, sidecar, frames = session_files(dataset, number)
         ref_tsv, ref_sidecar, ref_frames = session_files(tmp_path / f"whole-{number}", number)
         with open(tsv, newline="") as handle:
@@ -366,3 +328,33 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
     for needed in ("start-up", "mid-trial", "between trials", "completion write"):
         assert hit[needed] >= 1, (needed, kills)
     assert resumed >= KILLS // 2  # the kills really landed inside sessions
+
+
+@pytest.mark.parametrize("procedure", ["quest-plus", "staircase"])
+def test_two_kills_at_the_first_adaptive_trial_leave_a_resumable_session(tmp_path, procedure):
+    """The kills that found the empty-track fingerprint (tests/test_adaptive_replay.py): the
+    first run is killed with trial 0 (practice) stored and the sidecar not yet rewritten;
+    its resume writes the sidecar and is killed with trial 1 (the block's first adaptive
+    trial) stored; the same command then finishes the session, equal to an uninterrupted
+    run of it. Before the fix the third run refused: "the adaptive procedures' state after
+    1 trials differs"."""
+    protocol = adaptive_protocol(tmp_path, procedure=procedure, trials=4)
+    dataset, whole = tmp_path / "killed", tmp_path / "whole"
+    reference = start(protocol, whole, 1, "random", tmp_path / "whole.log")
+    for row in (0, 1):
+        phases = tmp_path / f"phases-{row}.log"
+        process = start(protocol, dataset, 1, "random", phases, row=row)
+        try:
+            assert wait_for(phases, f"hold row {row}", process), process.error()
+        finally:
+            process.kill()
+            process.wait(timeout=60)
+        assert stored_rows(dataset, 1) == row + 1 and not is_complete(dataset, 1)
+    finished = start(protocol, dataset, 1, "random", tmp_path / "finish.log")
+    assert finished.wait(timeout=120) == 0, finished.error()
+    assert reference.wait(timeout=120) == 0, reference.error()
+    tsv, sidecar, frames = session_files(dataset, 1)
+    ref_tsv, _, ref_frames = session_files(whole, 1)
+    assert_same_but_reruns(tsv, ref_tsv, set())
+    assert gzip.decompress(frames.read_bytes()) == gzip.decompress(ref_frames.read_bytes())
+    assert len(json.loads(sidecar.read_text())["Resumes"]) == 2

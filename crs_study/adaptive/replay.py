@@ -85,8 +85,13 @@ class AdaptiveRun:
             track.update(bool(row.correct))
 
     def state(self) -> dict:
+        """The settings and every track that has had a trial: a track is created when it is
+        first asked for its level, and a resume asks before it writes the sidecar while
+        :func:`crs_study.session.adaptive.rebuild` checks that fingerprint without asking,
+        so a track without trials (the fresh state) is left out."""
         return {"spec": repr(self.spec), "n_choices": self.n_choices,
-                "blocks": {str(b): t.state() for b, t in sorted(self.tracks.items())}}
+                "blocks": {str(b): t.state() for b, t in sorted(self.tracks.items())
+                           if t.trials}}
 
     def fingerprint(self) -> str:
         """sha256 of the state of every track (responses, levels, reversals, next level,
