@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -25,10 +26,12 @@ from tests._pty_helpers import boards_fixture  # noqa: F401  (the ``boards`` fix
 CLI = [sys.executable, "-m", "crs_study"]
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+def announced_port(text: str) -> int:
+    """The port a ``live --listen 127.0.0.1:0`` process says it listens on (the kernel chose
+    it: no other test process can be given the same one, as a probed free port could)."""
+    found = re.search(r"127\.0\.0\.1:(\d+)", text)
+    assert found, text
+    return int(found.group(1))
 
 
 def test_summary_is_r_quantile_type_7():
@@ -73,14 +76,15 @@ def test_board_tap_times_frames_and_skips_a_replaced_one(layout2d):
 
 
 def test_live_and_live_send_processes_json(tmp_path):
-    port = free_port()
     record = tmp_path / "rec.jsonl"
     live = subprocess.Popen(CLI + ["live", "--device", "sim://", "--listen",
-                                   f"127.0.0.1:{port}", "--max-packets", "40", "--json",
+                                   "127.0.0.1:0", "--max-packets", "40", "--json",
                                    "--record", str(record)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert "listening on" in live.stderr.readline()
+        line = live.stderr.readline()
+        assert "listening on" in line
+        port = announced_port(line)
         sent = subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--hold",
                                      "--seconds", "0.6", "--jitter-mm", "0.5", "--json"],
                               capture_output=True, text=True, timeout=30)
@@ -94,21 +98,24 @@ def test_live_and_live_send_processes_json(tmp_path):
     assert result["stopped_by"] == "max packets" and result["packets"]["received"] == 40
     assert result["latency_source"] == "boards" and result["arrival_stamps"] == "kernel"
     assert result["latency"]["wire"]["n"] > 5
-    replay = subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{free_port()}",
-                                   "--replay", str(record)],
-                            capture_output=True, text=True, timeout=30)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sink:  # held: ours alone
+        sink.bind(("127.0.0.1", 0))
+        replay = subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{sink.getsockname()[1]}",
+                                       "--replay", str(record)],
+                                capture_output=True, text=True, timeout=30)
     assert replay.returncode == 0 and "sent 40 packets" in replay.stdout, replay.stderr
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
 def test_a_signal_leaves_the_boards_neutral_and_the_ports_free(boards, layout2d, signum):
     a, b = boards(2)
-    port = free_port()
     live = subprocess.Popen(CLI + ["live", "--device", f"serial://{a.path},{b.path}",
-                                   "--listen", f"127.0.0.1:{port}", "--no-view"],
+                                   "--listen", "127.0.0.1:0", "--no-view"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert "listening on" in live.stderr.readline()
+        line = live.stderr.readline()
+        assert "listening on" in line
+        port = announced_port(line)
         subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--hold",
                               "--centre", "0,0", "--seconds", "0.4"], check=True, timeout=30)
         assert len(a.wait_for(2)) >= 2  # the start's neutral pose, then the bump
@@ -158,22 +165,23 @@ def test_a_port_in_use_and_an_existing_recording(tmp_path, capsys):
     assert "in use by another program" in capsys.readouterr().err
     existing = tmp_path / "r.jsonl"
     existing.write_text("keep me")
-    assert main(["live", "--device", "sim://", "--listen", f"127.0.0.1:{free_port()}",
+    assert main(["live", "--device", "sim://", "--listen", "127.0.0.1:0",
                  "--record", str(existing)]) == 2
     assert "already exists" in capsys.readouterr().err and existing.read_text() == "keep me"
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed")
 def test_the_live_view_in_a_terminal(tmp_path):
-    port = free_port()
     name = f"crs-live-{os.getpid()}"
-    command = " ".join(CLI + ["live", "--device", "sim://", "--listen", f"127.0.0.1:{port}"])
+    command = " ".join(CLI + ["live", "--device", "sim://", "--listen", "127.0.0.1:0"])
     subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "150", "-y", "20",
                     f"cd {os.getcwd()} && {command}; sleep 5"], check=True)
     try:
         deadline = time.monotonic() + 20
-        while "waiting for packets" not in _pane(name) and time.monotonic() < deadline:
+        while "waiting for packets" not in (screen := _pane(name)) \
+                and time.monotonic() < deadline:
             time.sleep(0.1)
+        port = announced_port(screen)  # the view's title: crs-study live  127.0.0.1:PORT
         subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--stroke",
                               "--speed-mm-s", "100"], check=True, timeout=30)
         deadline = time.monotonic() + 10
