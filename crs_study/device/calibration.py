@@ -63,8 +63,6 @@ class PulseMap:
     _pulse_low_f: np.ndarray = field(init=False, repr=False)
     _pulse_high_f: np.ndarray = field(init=False, repr=False)
     _whole_endpoints: bool = field(init=False, repr=False)
-    # per channel, as Python floats: (accept high, travel, span, zero, pulse low, pulse high)
-    _frame_rows: tuple[tuple[float, ...], ...] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         # whole-us endpoints: rint of a value inside [zero, full] (off by float noise only)
@@ -82,10 +80,6 @@ class PulseMap:
         for name, value in derived.items():
             value.setflags(write=False)
             object.__setattr__(self, name, value)
-        object.__setattr__(self, "_frame_rows", tuple(zip(
-            derived["_accept_high_mm"].tolist(), self.travel_mm.tolist(),
-            derived["_span_us"].tolist(), self.zero_us.tolist(),
-            derived["_pulse_low_f"].tolist(), derived["_pulse_high_f"].tolist(), strict=True)))
 
     @classmethod
     def from_layout(cls, layout: Layout, tolerance_mm: float = DEFAULT_TOLERANCE_MM
@@ -120,8 +114,6 @@ class PulseMap:
                 f"setpoints: expected {self.n_channels} values per frame (one per actuator), "
                 f"got shape {mm.shape!r}"
             )
-        if mm.ndim == 1:
-            return self._frame_pulses(mm.tolist())
         ok = mm >= -self.tolerance_mm
         ok &= mm <= self._accept_high_mm  # NaN fails both
         if not ok.all():
@@ -144,30 +136,6 @@ class PulseMap:
             np.maximum(pulses, self._pulse_low_f, out=pulses)
             np.minimum(pulses, self._pulse_high_f, out=pulses)
         return pulses.astype(np.int64)
-
-    def _frame_pulses(self, mm: list[float]) -> np.ndarray:
-        """:meth:`to_pulses` of one frame in Python floats, the same arithmetic in the same
-        order (clip, times span, over travel, plus zero; ``round`` ties to even as ``np.rint``;
-        tests/test_calibration.py holds the two equal). One frame is 37 numbers: numpy's
-        per-call cost is the whole of its cost, and the live loop meets it with cold caches
-        (141 us against 77 us here after a 29 ms pause, medians of 60 frames; warm 10-17 us
-        both: :mod:`crs_study.rendering.bump_path` has the measurement)."""
-        pulses = []
-        low = -self.tolerance_mm
-        clip = not self._whole_endpoints
-        for channel, (value, (high, travel, span, zero, pulse_low, pulse_high)) in enumerate(
-                zip(mm, self._frame_rows, strict=True)):
-            if not low <= value <= high:  # NaN fails both
-                raise DeviceError(
-                    f"channel {self.labels[channel]}: setpoint {value!r} mm is outside its "
-                    f"calibrated range 0..{travel:g} mm")
-            value = value if value > 0.0 else 0.0
-            value = value if value < travel else travel
-            pulse = round(value * span / travel + zero)
-            if clip:
-                pulse = min(max(pulse, pulse_low), pulse_high)
-            pulses.append(pulse)
-        return np.array(pulses, dtype=np.int64)
 
     def to_mm(self, pulses_us: np.ndarray, check: bool = True) -> np.ndarray:
         """Setpoints (mm) for pulse widths, ``(pulse - zero_us) / ((full_us - zero_us) /

@@ -12,19 +12,14 @@ Why it is faster (measured: ``crs-study bench render`` and ``crs-study bench liv
     checking and converting its inputs: about 40 numpy calls a 2D CRS frame with the feed cap,
     nearly all on arrays of 9 to 19 numbers, where a call's fixed cost is the whole cost. Here
     the pixel positions, the beam lines and their actuator indices are unpacked once per
-    layout, and the pixel heights (19 cosines), the per-beam chord and its quadrature (9 beams
-    x 20 nodes) are plain float arithmetic; numpy runs only in the feed cap's products
-    (:mod:`~crs_study.rendering.feed_cap`, 5 calls).
-
-Why plain floats even where numpy is faster back to back
-    The live loop sleeps between frames while the machine's other processes run, and meets
-    this code with cold caches. On the shared 2-core machine a frame took 370 us after a 29 ms
-    pause against 60-100 us back to back; a distinct numpy call cost ~14 us cold against
-    ~2.5 us warm, a loop of float arithmetic ~1.7x its warm time (thread CPU time, medians of
-    60-80 frames). The chord's quadrature as 9 numpy calls: 36 us warm, 220 us cold; as the
-    loop over nodes here: 56 us warm, 121 us cold (the whole frame: ``crs-study
-    bench live``'s "render one frame after a frame's pause" figure). Fewer distinct calls is
-    what counts there.
+    layout; the pixel heights (19 cosines) and the per-beam scalars of the chord (foot of the
+    centre, half chord, clipped ends) are plain float arithmetic; numpy runs only on the
+    chord's quadrature nodes (9 calls) and the feed cap's products
+    (:mod:`~crs_study.rendering.feed_cap`, 5 calls). The live loop sleeps between frames while
+    the machine's other processes run, and meets every numpy call with cold caches: on the
+    shared 2-core machine a frame took 370 us after a 29 ms pause against 60-100 us back to
+    back, the general path 510 us against 80-150 (thread CPU time, medians of 80 frames of a
+    finger writing 9, three runs); fewer distinct calls is what counts there.
 
 Within rounding, not to the last bit
     The pixel heights use Python's ``math`` (cos, hypot) where the general path uses numpy's
@@ -76,7 +71,7 @@ class BumpPath:
         self._lines = tuple(lines)
         self._servos = tuple((b.start_servo, b.end_servo) for b in layout.beams)
         self._rest = [0.0] * (self.n_actuators - self.n_pixels)
-        self._rules: dict[int, tuple[tuple[tuple[float, float], ...], float]] = {}
+        self._rules: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
 
     def parts(self, cx: float, cy: float, diameter: float, height: float
               ) -> tuple[list[float], list[float], list[float]]:
@@ -116,14 +111,14 @@ class BumpPath:
             values[end_servo] = end
         return np.array(values)
 
-    def _rule(self, panels: int) -> tuple[tuple[tuple[float, float], ...], float]:
-        """The chord's quadrature rule for ``panels`` panels as (node, weight) pairs of Python
-        floats, and the weights' sum (cached per rule)."""
+    def _rule(self, panels: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """The chord's quadrature rule for ``panels`` panels: nodes as a column, weights, and
+        the weights' sum (cached per rule)."""
         rule = self._rules.get(panels)
         if rule is None:
             nodes, weights = _panel_rule(panels)
-            pairs = tuple(zip(nodes.tolist(), weights.tolist(), strict=True))
-            rule = self._rules[panels] = (pairs, float(weights.sum()))
+            rule = self._rules[panels] = (np.ascontiguousarray(nodes[:, None]),
+                                          np.ascontiguousarray(weights), float(weights.sum()))
         return rule
 
     def _feeds(self, cx: float, cy: float, diameter: float, height: float) -> list[float]:
@@ -133,24 +128,12 @@ class BumpPath:
             sqrt(1 + s^2) - 1 = c hypot(t, 1/c) - 1,   s = c t,  c = pi z_f / l,
             t = sin(2 pi rho / l) p / rho,             rho = hypot(p, q),
 
-        so that sum_n w_n [...] = c sum_n w_n hypot(t_n, 1/c) - sum_n w_n. The cancellation
-        costs ~1e-15 of the chord's length (tests/test_render_bump_path.py's tolerance).
-
-        In Python floats, one loop over the nodes of the beams the chord crosses (9 beams x 20
-        nodes at most for a pressing finger), no numpy: the live loop meets this code with
-        cold caches, where each distinct numpy call costs ~14 us against ~0.3 us a node here
-        (module docstring).
-        """
+        so that sum_n w_n [...] = c sum_n w_n hypot(t_n, 1/c) - sum_n w_n: 9 numpy calls
+        (against 19), the last subtraction in floats per beam. The cancellation costs
+        ~1e-15 of the chord's length (tests/test_render_bump_path.py's tolerance)."""
         radius = 0.5 * diameter
         radius_sq = radius * radius
-        amplitude = math.pi * height / diameter  # c, the steepest slope
-        if not amplitude > _LEAST_AMPLITUDE:
-            return [0.0] * len(self._lines)  # no slope: no excess (below 1e-290 mm)
-        pairs, weight_sum = self._rule(max(1, math.ceil(amplitude / _SLOPE_PER_PANEL)))
-        flat = 1.0 / amplitude
-        wavenumber = _TWO_PI / diameter
-        hypot, sin, sqrt = math.hypot, math.sin, math.sqrt
-        feeds = []
+        mids, widths, offsets = [], [], []
         for sx, sy, ux, uy, span in self._lines:
             rx = cx - sx
             ry = cy - sy
@@ -159,22 +142,28 @@ class BumpPath:
             if not offset_sq >= 0.0:  # np.maximum(., 0.0), NaN aside
                 offset_sq = 0.0
             reach = radius_sq - offset_sq
-            half = sqrt(reach) if reach >= 0.0 else 0.0
+            half = math.sqrt(reach) if reach >= 0.0 else 0.0
             lo = along - half
             lo = (lo if lo < span else span) if lo >= 0.0 else 0.0
             hi = along + half
             hi = (hi if hi < span else span) if hi >= 0.0 else 0.0
-            width = 0.5 * (hi - lo)
-            if not width:  # no chord: no excess
-                feeds.append(0.0)
-                continue
-            mid = 0.5 * (lo + hi) - along  # from the foot of the centre
+            widths.append(0.5 * (hi - lo))
+            mids.append(0.5 * (lo + hi) - along)
             # the centre's distance from the line, > 0 so that rho = 0 nowhere
-            offset = max(sqrt(offset_sq), _LEAST_OFFSET_MM)
-            total = 0.0
-            for node, weight in pairs:
-                p = mid + node * width  # signed distance from the foot of the centre
-                rho = hypot(p, offset)
-                total += weight * hypot(sin(rho * wavenumber) * p / rho, flat)
-            feeds.append(width * (amplitude * total - weight_sum))
-        return feeds
+            offsets.append(max(math.sqrt(offset_sq), _LEAST_OFFSET_MM))
+        amplitude = math.pi * height / diameter  # c, the steepest slope
+        if not amplitude > _LEAST_AMPLITUDE or not any(widths):
+            return [0.0] * len(widths)  # no slope or no chord: no excess (below 1e-290 mm)
+        nodes, weights, weight_sum = self._rule(max(1, math.ceil(amplitude / _SLOPE_PER_PANEL)))
+        width_row, mid_row, offset_row = np.array((widths, mids, offsets))
+        p = nodes * width_row  # (nodes, beams): signed distance from the foot of the centre
+        p += mid_row
+        rho = np.hypot(p, offset_row)
+        phase = rho * (_TWO_PI / diameter)
+        np.sin(phase, out=phase)
+        phase *= p
+        phase /= rho  # t
+        np.hypot(phase, 1.0 / amplitude, out=phase)
+        sums = (weights @ phase).tolist()
+        return [width * (amplitude * total - weight_sum)
+                for width, total in zip(widths, sums, strict=True)]
