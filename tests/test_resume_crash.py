@@ -89,6 +89,7 @@ class Run:
 
     def __init__(self, argv: list[str], env: dict[str, str], stderr: Path) -> None:
         self.stderr_path = stderr
+        self.killed = False
         self.process = FORKS.Process(target=_kill_child.run, args=(argv, env, str(stderr)),
                                      daemon=True)
         self.process.start()
@@ -104,7 +105,18 @@ class Run:
 
     def kill(self) -> None:
         if self.process.exitcode is None:
+            self.killed = True
             self.process.kill()  # SIGKILL
+
+    #: The exit code multiprocessing's forkserver reports when it could not read a child's
+    #: status (popen_forkserver.Popen.poll: EOFError -> 255). Seen once in five loaded runs
+    #: for a child this test had just SIGKILLed (its stderr: the trials up to the kill, no
+    #: error); crs-study itself exits 0, 1 or 2.
+    STATUS_LOST = 255
+
+    def ended_as_expected(self, code: int) -> bool:
+        """Finished (0), or killed by this test (SIGKILL, or a lost status after the kill)."""
+        return code in (0, -signal.SIGKILL) or (self.killed and code == self.STATUS_LOST)
 
     def error(self) -> str:
         return self.stderr_path.read_text() if self.stderr_path.exists() else ""
@@ -264,7 +276,8 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
                     if kind in plan:
                         plan.remove(kind)
                 # killed, or done; a run that fails on its own (a resume refused) is the bug
-                assert process.wait(timeout=60) in (0, -signal.SIGKILL), process.error()
+                code = process.wait(timeout=60)
+                assert process.ended_as_expected(code), (code, process.error())
             finally:
                 process.kill()
                 process.wait(timeout=60)
