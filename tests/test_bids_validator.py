@@ -29,6 +29,17 @@ def validator() -> str | None:
     return str(beside) if beside.exists() else shutil.which("bids-validator-deno")
 
 
+def valid_report(dataset) -> dict:
+    """The validator's JSON report of ``dataset``, checked to hold no error (exit status 0)."""
+    done = subprocess.run([validator(), str(dataset), "--format", "json"], capture_output=True,
+                          text=True, timeout=300)
+    report = json.loads(done.stdout)
+    errors = [i for i in report["issues"]["issues"] if i.get("severity") == "error"]
+    assert errors == [], errors
+    assert done.returncode == 0
+    return report
+
+
 def crs_study(*args: str) -> subprocess.CompletedProcess:
     done = subprocess.run([sys.executable, "-m", "crs_study", *args], capture_output=True,
                           text=True, timeout=300)
@@ -55,12 +66,7 @@ def test_dry_run_dataset_is_valid_bids(tmp_path):
     source = dataset / "sourcedata/sub-p7k2m9q/ses-1"
     (source / "sub-p7k2m9q_ses-1_task-digitid_beh-torn-20260101T000000000000Z.bin").write_bytes(
         b"3\tte")
-    done = subprocess.run([validator(), str(dataset), "--format", "json"], capture_output=True,
-                          text=True, timeout=300)
-    report = json.loads(done.stdout)
-    errors = [i for i in report["issues"]["issues"] if i.get("severity") == "error"]
-    assert errors == [], errors
-    assert done.returncode == 0
+    report = valid_report(dataset)
     summary = report["summary"]
     assert sorted(summary["subjects"]) == ["p7k2m9q", "sim01", "sim02", "sim03"]
     assert summary["tasks"] == ["digitid"] and summary["dataTypes"] == ["beh"]
@@ -74,10 +80,5 @@ def test_a_letter_dataset_is_valid_bids(tmp_path):
     dataset = tmp_path / "letters"
     crs_study("dry-run", str(tiny_letter_protocol(tmp_path)), "--participants", "2", "--out",
               str(dataset), "--responder", "observer")
-    done = subprocess.run([validator(), str(dataset), "--format", "json"], capture_output=True,
-                          text=True, timeout=300)
-    report = json.loads(done.stdout)
-    errors = [i for i in report["issues"]["issues"] if i.get("severity") == "error"]
-    assert errors == [], errors
-    assert done.returncode == 0
+    report = valid_report(dataset)
     assert report["summary"]["tasks"] == ["letterid"]
