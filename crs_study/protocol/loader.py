@@ -244,6 +244,15 @@ def _device(study: Section, path: Path) -> str:
     return str(device_path)
 
 
+def _file_beside(section: Section, key: str, value: str, path: Path, expected: str) -> str:
+    """The file ``value`` names (absolute, or relative to the protocol at ``path``), checked to
+    exist: a one-line error under ``key`` saying ``expected`` otherwise."""
+    candidate = Path(value) if Path(value).is_absolute() else path.parent / value
+    if not candidate.is_file():
+        raise section.fail(key, f"expected {expected}, got {value!r} (no file at {candidate})")
+    return str(candidate)
+
+
 def _set_name(root: Section, path: Path) -> str:
     """``stimulus.set``, read first (it spells the other keys): a shipped set's name, or a set
     file's path (relative to the protocol) resolved, its file read now so that its errors come
@@ -255,11 +264,7 @@ def _set_name(root: Section, path: Path) -> str:
     value = _one_line(section, "set")
     name = value
     if value not in shipped_sets():
-        candidate = Path(value) if Path(value).is_absolute() else path.parent / value
-        if not candidate.is_file():
-            raise section.fail("set", f"expected a shipped stimulus set or a set file, got "
-                               f"{value!r} (no file at {candidate})")
-        name = str(candidate)
+        name = _file_beside(section, "set", value, path, "a shipped stimulus set or a set file")
     try:
         load_stimulus_set(name)
     except ProtocolError as exc:
@@ -337,12 +342,8 @@ def _stimulus(table: Section, path: Path, set_name: str, levels: LevelSpec | Non
     symbols = table.raw(key_of["symbols"])
     strokes_file = None
     if table.has("strokes_file"):
-        value = _one_line(table, "strokes_file")
-        candidate = Path(value) if Path(value).is_absolute() else path.parent / value
-        if not candidate.is_file():
-            raise table.fail("strokes_file", f"expected a strokes file, got {value!r} "
-                             f"(no file at {candidate})")
-        strokes_file = str(candidate)
+        strokes_file = _file_beside(table, "strokes_file", _one_line(table, "strokes_file"),
+                                    path, "a strokes file")
     else:
         optional("strokes_file")
     varied = () if levels is None else (levels.parameter,) + (
