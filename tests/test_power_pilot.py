@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _power_helpers import pilot_model_matching_analyze
 
-from crs_study.analysis.report import analyze
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
 from crs_study.power_analysis import PowerError, design_from_protocol, model_from_pilot, power
 
@@ -20,14 +20,7 @@ def pilot(tmp_path_factory):
 def test_the_pilots_model_is_analyzes_fit(pilot):
     """The fixed effects and SDs that generate the studies are those of analyze's primary
     GLMM on the pilot (same sessions, exclusions, plan)."""
-    design = design_from_protocol("digit_identification")
-    model = model_from_pilot(design, pilot)
-    fitted = analyze([pilot], write=False).results["primary"]["model"]
-    coefficients = fitted["coefficients"]
-    intercept = coefficients["Intercept"]["estimate"]
-    crs = coefficients["condition[crs]"]["estimate"]
-    np.testing.assert_allclose(model.base[0, 0], [intercept, intercept + crs], rtol=1e-9)
-    variances = fitted["variance_components"]
+    model, variances = pilot_model_matching_analyze("digit_identification", pilot)
     assert model.participant_sd == pytest.approx(np.sqrt(variances["participant_id"]))
     assert model.digit_sd == pytest.approx(np.sqrt(variances["digit"]))
     assert model.source == "pilot" and model.details["n_participants"] == 8

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from _power_helpers import pilot_model_matching_analyze
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from crs_study.analysis.report import analyze
 from crs_study.cli import main
 from crs_study.power_analysis import (
     PowerDesign,
@@ -152,14 +152,7 @@ def letter_pilot(letter_protocol, tmp_path_factory):
 def test_a_letter_dry_run_as_the_pilot_is_analyzes_fit(letter_protocol, letter_pilot):
     """The letter pilot's generating model is analyze's primary GLMM on it: fixed effects,
     participant SD and the SD of the plan's ``symbol`` intercept."""
-    design = design_from_protocol(letter_protocol)
-    model = model_from_pilot(design, letter_pilot)
-    fitted = analyze([letter_pilot], write=False).results["primary"]["model"]
-    coefficients = fitted["coefficients"]
-    intercept = coefficients["Intercept"]["estimate"]
-    crs = coefficients["condition[crs]"]["estimate"]
-    np.testing.assert_allclose(model.base[0, 0], [intercept, intercept + crs], rtol=1e-9)
-    variances = fitted["variance_components"]
+    model, variances = pilot_model_matching_analyze(letter_protocol, letter_pilot)
     assert set(variances) == {"participant_id", "symbol"}
     assert model.participant_sd == pytest.approx(np.sqrt(variances["participant_id"]))
     assert model.symbol_sd == pytest.approx(np.sqrt(variances["symbol"]))
