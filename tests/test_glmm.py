@@ -22,9 +22,10 @@ from crs_study.analysis.glmm import (
     profile_conf_int,
     profile_sd_conf_int,
 )
-from crs_study.analysis.glmm_core import BinomialData, CrossedFactors, SingleFactor
+from crs_study.analysis.glmm_core import BinomialData, CrossedTerms, SingleFactor
 from crs_study.analysis.glmm_reference import load_cbpp
 from crs_study.analysis.glmm_simulate import simulate_trials
+from crs_study.analysis.glmm_terms import RandomTerm
 from crs_study.errors import AnalysisError
 
 SHARED_CBPP = Path(__file__).resolve().parents[2] / "shared/reference/data/cbpp.csv"
@@ -154,6 +155,11 @@ def test_cbpp_as_zero_one_trials(cbpp_laplace, cbpp_trials):
 
 
 # ------------------------------------------------------------------------ the numerical core
+def _intercepts(data: BinomialData) -> CrossedTerms:
+    """Crossed random intercepts, one per grouping factor of ``data``."""
+    return CrossedTerms(data, [RandomTerm(f"g{k}") for k in range(len(data.group_codes))])
+
+
 def _cbpp_data(cbpp) -> BinomialData:
     X = np.column_stack([np.ones(len(cbpp))] + [(cbpp["period"] == k).to_numpy(float)
                                                 for k in (2, 3, 4)])
@@ -205,12 +211,12 @@ def test_crossed_laplace_reduces_to_single_factor(cbpp):
                            (data.group_codes[0], np.arange(56) % 3), (15, 3))
     theta = np.array([-1.4, -1.0, -1.1, -1.6, 0.7])
     single = SingleFactor(data, 1).loglik(theta, False)
-    assert CrossedFactors(crossed).loglik(np.r_[theta, 0.0], False) == pytest.approx(single,
+    assert _intercepts(crossed).loglik(np.r_[theta, 0.0], False) == pytest.approx(single,
                                                                                      abs=1e-9)
 
 
 def test_crossed_laplace_against_dense_computation(rng):
-    """Sparse PIRLS + splu log-determinant = a dense Newton solve + slogdet, written apart."""
+    """The Schur-complement Laplace value = a dense Newton solve + slogdet, written apart."""
     n, J1, J2 = 120, 6, 4
     X = np.column_stack([np.ones(n), rng.integers(0, 2, n)])
     g1, g2 = rng.integers(0, J1, n), rng.integers(0, J2, n)
@@ -230,7 +236,7 @@ def test_crossed_laplace_against_dense_computation(rng):
     H = Z.T @ (Z * (m * p * (1 - p))[:, None]) + np.eye(J1 + J2)
     dense = np.sum(y * eta - m * np.log1p(np.exp(eta))) - u @ u / 2 - np.linalg.slogdet(H)[1] / 2
     data = BinomialData(X, y, m, (g1, g2), (J1, J2))
-    assert CrossedFactors(data).loglik(theta, False) == pytest.approx(dense, abs=1e-9)
+    assert _intercepts(data).loglik(theta, False) == pytest.approx(dense, abs=1e-9)
 
 
 @settings(max_examples=10, deadline=None)
@@ -243,7 +249,7 @@ def test_crossed_gradient_is_exact(theta):
     codes = (rng.integers(0, 6, n), rng.integers(0, 4, n), rng.integers(0, 3, n))
     m = rng.integers(1, 6, n).astype(float)
     y = rng.binomial(m.astype(int), 0.6).astype(float)
-    model = CrossedFactors(BinomialData(X, y, m, codes, (6, 4, 3)))
+    model = _intercepts(BinomialData(X, y, m, codes, (6, 4, 3)))
     theta = np.asarray(theta)
     theta[3:] = np.abs(theta[3:])
     _, g = model.loglik(theta)
@@ -251,21 +257,6 @@ def test_crossed_gradient_is_exact(theta):
     numeric = [(model.loglik(theta + h * e, False) - model.loglik(theta - h * e, False)) / (2 * h)
                for e in np.eye(6)]
     np.testing.assert_allclose(g, numeric, rtol=1e-5, atol=1e-5)
-
-
-def test_crossed_sparse_path_equals_dense(cbpp, monkeypatch):
-    """Beyond MAX_DENSE random effects: splu log-determinant and differenced gradient."""
-    data = _cbpp_data(cbpp)
-    crossed = BinomialData(data.X, data.successes, data.trials,
-                           (data.group_codes[0], np.arange(56) % 3), (15, 3))
-    theta = np.array([-1.4, -1.0, -1.1, -1.6, 0.7, 0.3])
-    dense_value, dense_grad = CrossedFactors(crossed).loglik(theta)
-    monkeypatch.setattr(CrossedFactors, "MAX_DENSE", 10)
-    sparse = CrossedFactors(crossed)
-    assert not sparse.analytic_gradient
-    value, grad = sparse.loglik(theta)
-    assert value == pytest.approx(dense_value, abs=1e-9)
-    np.testing.assert_allclose(grad, dense_grad, atol=1e-5)
 
 
 def test_pooling_rows_changes_nothing(two_conditions):

@@ -12,10 +12,11 @@ from scipy import stats
 from scipy.special import expit
 
 from crs_study.analysis.glmm import fit_glmm, profile_conf_int
-from crs_study.analysis.glmm_core import BinomialData, CrossedFactors
+from crs_study.analysis.glmm_core import BinomialData, CrossedTerms
 from crs_study.analysis.glmm_optimise import local_fit, maximise, variance_slope
 from crs_study.analysis.glmm_reference import load_cbpp
 from crs_study.analysis.glmm_simulate import simulate_trials
+from crs_study.analysis.glmm_terms import RandomTerm
 from crs_study.analysis.primary import fit_primary
 
 
@@ -95,6 +96,12 @@ def test_profile_intervals_free_every_variance():
     assert 2 * (top - held.value) == pytest.approx(cutoff, abs=2e-3) and high > 1.69
 
 
+
+def _intercepts(data: BinomialData) -> CrossedTerms:
+    """Crossed random intercepts, one per grouping factor of ``data``."""
+    return CrossedTerms(data, [RandomTerm(f"g{k}") for k in range(len(data.group_codes))])
+
+
 @settings(max_examples=10, deadline=None)
 @given(sizes=st.permutations([3, 7, 4]), theta=st.lists(st.floats(-1.0, 1.0), min_size=5,
                                                            max_size=5))
@@ -109,7 +116,7 @@ def test_schur_core_equals_the_dense_laplace_whichever_factor_is_largest(sizes, 
     y = rng.binomial(m.astype(int), 0.55).astype(float)
     theta = np.asarray(theta)
     theta[2:] = np.abs(theta[2:]) + 0.1
-    model = CrossedFactors(BinomialData(X, y, m, codes, tuple(sizes)))
+    model = _intercepts(BinomialData(X, y, m, codes, tuple(sizes)))
     Z = np.zeros((n, sum(sizes)))
     offsets = np.cumsum([0, *sizes])
     for k, c in enumerate(codes):

@@ -46,7 +46,7 @@ from scipy.special import gammaln
 from crs_study.analysis.glmm_core import (
     MAX_QUADRATURE,
     BinomialData,
-    CrossedFactors,
+    CrossedTerms,
     NoRandom,
     SingleFactor,
 )
@@ -58,6 +58,7 @@ from crs_study.analysis.glmm_separation import (
     separated_rows,
     separation_direction,
 )
+from crs_study.analysis.glmm_terms import RandomTerm, parse_random, structure_label
 from crs_study.errors import AnalysisError
 
 __all__ = ["fit_glmm", "lrt", "profile_conf_int", "profile_sd_conf_int", "GlmmResult",
@@ -85,7 +86,7 @@ class _Problem:
 
     model: object
     names: list[str]
-    groups: tuple[str, ...]
+    terms: tuple  # the fitted random terms (RandomTerm)
     prior_sd: np.ndarray | None  # per fixed coefficient, None when unpenalised
     user_constant: float
 
@@ -109,10 +110,11 @@ class _Problem:
 
 
 def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
-             groups: str | Sequence[str] = (), *, trials: str | None = None,
+             groups: str | Sequence[str] = (), *, random: str | Sequence[RandomTerm] | None = None,
+             random_design: pd.DataFrame | None = None, trials: str | None = None,
              method: str = "laplace", n_quadrature: int = 25,
              aggregate: bool = True) -> GlmmResult:
-    """Fit ``response ~ fixed + (1 | g1) [+ (1 | g2) ...]``, binomial with logit link, by ML.
+    """Fit ``response ~ fixed + random``, binomial with logit link, by maximum likelihood.
 
     Parameters
     ----------
@@ -120,7 +122,13 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     response : column of 0/1 outcomes, or of successes when ``trials`` is given.
     fixed : right-hand side of a patsy formula (e.g. ``"C(condition, Treatment('off'))"``),
         or a design matrix (DataFrame, one column per coefficient, rows as ``data``).
-    groups : grouping factor(s) of the random intercepts; several are crossed.
+    groups : grouping factor(s) of random intercepts; several are crossed (lme4's ``(1 |
+        g1) + (1 | g2)``). Give either ``groups`` or ``random``.
+    random : the random part in lme4's notation, ``"(1 + condition | participant) + (1 |
+        digit)"`` (``||``: uncorrelated), each term's left side a patsy formula evaluated on
+        ``data``; or :class:`~crs_study.analysis.glmm_terms.RandomTerm` objects whose
+        ``columns`` name columns of ``random_design`` (or whose ``design`` is such a formula).
+    random_design : the design columns the terms of ``random`` name (rows as ``data``).
     trials : column of the number of trials per row (lme4's ``cbind(y, trials - y)``).
     method : ``"laplace"`` or ``"agq"`` (adaptive Gauss-Hermite; one random intercept only).
     n_quadrature : quadrature points for ``"agq"`` (lme4's ``nAGQ``).
@@ -128,25 +136,36 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
 
     Notes
     -----
-    Maximises the Laplace or AGQ marginal log-likelihood jointly over ``(beta, sigma)``
-    (lme4's second optimisation stage) with scipy (TNC, then L-BFGS-B if needed), every sigma
-    unconstrained (the likelihood is even in it), from ``beta = 0, sigma = 1``; a sigma near
-    0 is set to 0 only when the variance-scale slope there is <= 0, otherwise the fit restarts
-    from interior points (:func:`~.glmm_optimise.maximise`). Standard errors: the inverse of
-    the observed information of that objective, fixed-effects block (lme4's
-    ``calc.vcov.hess``), the Hessian by central differences of the exact gradient.
+    Maximises the Laplace or AGQ marginal log-likelihood jointly over ``(beta, theta)``
+    (lme4's second optimisation stage; theta the entries of each term's Cholesky factor, as
+    lme4's) with scipy (TNC, then L-BFGS-B if needed), unconstrained, from ``beta = 0`` and
+    every factor the identity; a covariance near the boundary (an SD near 0, a correlated
+    term near losing rank) is put on it only when the variance-scale slope there says the
+    likelihood falls inward, otherwise the fit restarts from interior points
+    (:func:`~.glmm_optimise.maximise`). Standard errors: the inverse of the observed
+    information of that objective, fixed-effects block (lme4's ``calc.vcov.hess``), the
+    Hessian by central differences of the exact gradient.
     """
     notes: list[str] = []
-    group_list = [groups] if isinstance(groups, str) else list(groups)
+    if not isinstance(data, pd.DataFrame):
+        raise AnalysisError(f"fit_glmm expects a pandas DataFrame, got {type(data).__name__}")
+    if random is not None and (groups if isinstance(groups, str) else list(groups)):
+        raise AnalysisError("give the random effects either as groups= (random intercepts) or "
+                            "as random= (any terms), not both")
+    terms = (_random_terms(data, random, random_design) if random is not None else
+             [RandomTerm(g) for g in ([groups] if isinstance(groups, str) else list(groups))])
+    group_list = [t.group for t in terms]
     _check_arguments(data, response, trials, group_list, method, n_quadrature)
     data = _drop_unused_levels(data, fixed, notes)
     X, names = _design(data, fixed)
     X, names = _drop_aliased(X, names, notes)
     y, m, user_constant = _response(data, response, trials)
-    codes, kept = _group_codes(data, group_list, notes)
-    if method == "agq" and len(kept) > 1:
+    codes, kept = _group_codes(data, terms, notes)
+    Z, kept = _term_designs(data, kept, random_design, notes)
+    single_intercept = len(kept) == 1 and kept[0].is_intercept
+    if method == "agq" and kept and not single_intercept:
         raise AnalysisError(f"adaptive quadrature needs a single random intercept (as lme4's "
-                            f"nAGQ > 1); got crossed groups {kept!r}: use method='laplace'")
+                            f"nAGQ > 1); got {structure_label(kept)}: use method='laplace'")
     direction = separation_direction(X, y, m, _row_codes)
     separated = [] if direction is None else [
         n for n, d in zip(names, direction, strict=True) if d != 0]
@@ -163,28 +182,31 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
                      f"likelihood-ratio test and the one-sided profile limits use the "
                      f"unpenalised likelihood and its supremum")
     fixed_text = fixed if isinstance(fixed, str) else "<design matrix>"
+    groups_done = tuple(t.group for t in terms)
     try:
         if not kept and prior_sd is None:
-            problem = _Problem(NoRandom(_pool(X, y, m, [])), names, (), None, user_constant)
+            problem = _Problem(NoRandom(_pool(X, y, m, [], [])), names, (), None,
+                               user_constant)
             return fit_glm(X, y, m, names, user_constant, len(data), response, fixed_text,
-                           tuple(group_list), notes, problem)
-        binomial = _pool(X, y, m, codes) if aggregate else _unpooled(X, y, m, codes)
+                           groups_done, notes, problem)
+        binomial = (_pool(X, y, m, codes, Z) if aggregate else
+                    _unpooled(X, y, m, codes, Z))
         if not kept:
             model = NoRandom(binomial)
-        elif len(kept) == 1:
+        elif single_intercept:
             model = SingleFactor(binomial, n_quadrature if method == "agq" else 1)
         else:
-            model = CrossedFactors(binomial)
+            model = CrossedTerms(binomial, kept)
         problem = _Problem(model, names, tuple(kept), prior_sd, user_constant)
-        result = optimise(problem, len(data), response, fixed_text, tuple(group_list),
+        result = optimise(problem, len(data), response, fixed_text, groups_done,
                           "glm" if not kept else method,
                           n_quadrature if method == "agq" and kept else (1 if kept else 0),
-                          {g: int(c.max()) + 1 for g, c in zip(kept, codes, strict=True)},
+                          {t.group: int(c.max()) + 1 for t, c in zip(kept, codes, strict=True)},
                           penalty, notes)
         if direction is None:
             return result
-        sup = _supremum(data, response, trials, group_list, method, n_quadrature, X, names,
-                        direction)
+        sup = _supremum(data, response, trials, terms, random_design, method, n_quadrature,
+                        X, names, direction)
         unpenalised = _Problem(model, names, tuple(kept), None, user_constant)
         return dataclasses.replace(result, separation=Separation(
             tuple(separated), tuple(int(np.sign(d)) for d in direction if d != 0), sup,
@@ -192,6 +214,42 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     except _NUMERICAL_ERRORS as exc:
         raise GlmmFitError(f"numerical failure while maximising the likelihood "
                            f"({type(exc).__name__}: {exc})") from exc
+
+
+def _random_terms(data: pd.DataFrame, random, random_design) -> list[RandomTerm]:
+    """The terms of ``random`` (lme4 text, or RandomTerm objects), their columns checked."""
+    if isinstance(random, str):
+        return [RandomTerm(group, tuple(_patsy_columns(data, design)), correlated, design)
+                for design, group, correlated in parse_random(random)]
+    terms = list(random)
+    for term in terms:
+        if not isinstance(term, RandomTerm):
+            raise AnalysisError(f"random= takes lme4 text or RandomTerm objects, got "
+                                f"{type(term).__name__}")
+        if term.design is None and not term.is_intercept:
+            if random_design is None:
+                raise AnalysisError(f"random term {term.label()} names design columns "
+                                    f"{list(term.columns)!r}: give them as random_design=")
+            missing = [c for c in term.columns if c not in random_design.columns]
+            if missing:
+                raise AnalysisError(f"random term {term.label()}: column(s) {missing!r} are "
+                                    f"not in random_design {list(random_design.columns)!r}")
+    return terms
+
+
+def _patsy_columns(data: pd.DataFrame, design: str) -> list[str]:
+    return list(_patsy_design(data, design).columns)
+
+
+def _patsy_design(data: pd.DataFrame, formula: str,
+                  what: str = "random-effects formula") -> pd.DataFrame:
+    import patsy
+
+    try:
+        return patsy.dmatrix(formula, data, NA_action="raise", return_type="dataframe")
+    except patsy.PatsyError as exc:
+        message = str(exc).splitlines()[0]
+        raise AnalysisError(f"{what} {formula!r}: {message}") from None
 
 
 # ----------------------------------------------------------------------------- preparation
@@ -242,13 +300,7 @@ def _design(data: pd.DataFrame, fixed) -> tuple[np.ndarray, list[str]]:
         if "~" in fixed:
             raise AnalysisError(f"fixed is the right-hand side of a formula (e.g. 'condition'), "
                                 f"got {fixed!r}; give the response as response=")
-        import patsy
-
-        try:
-            design = patsy.dmatrix(fixed, data, NA_action="raise", return_type="dataframe")
-        except patsy.PatsyError as exc:
-            message = str(exc).splitlines()[0]
-            raise AnalysisError(f"fixed-effects formula {fixed!r}: {message}") from None
+        design = _patsy_design(data, fixed, "fixed-effects formula")
         X = design.to_numpy(dtype=float)
         names = list(design.columns)
     else:
@@ -299,23 +351,53 @@ def _response(data: pd.DataFrame, response: str, trials: str | None):
     return y, m, constant
 
 
-def _group_codes(data: pd.DataFrame, group_list: list[str], notes: list[str]):
+def _group_codes(data: pd.DataFrame, terms: list[RandomTerm], notes: list[str]):
+    """The level codes of each term's grouping factor; a factor of one level is dropped."""
     codes, kept = [], []
-    for g in group_list:
+    for term in terms:
+        g = term.group
         if data[g].isna().any():
             raise AnalysisError(f"group column {g!r} has {int(data[g].isna().sum())} missing "
                                 f"value(s)")
         c, levels = pd.factorize(data[g], sort=True)
         if len(levels) < 2:
-            shown = g.removesuffix("_id")  # as the report names it: participant
+            shown = term.shown_group()  # as the report names it: participant
+            what = "random intercept" if term.is_intercept else f"random term {term.label()}"
             notes.append(f"grouping factor {shown!r} has a single level ({levels[0]!r}): its "
-                         f"variance is not estimable; the random intercept was dropped")
+                         f"variance is not estimable; the {what} was dropped")
             continue
         codes.append(c.astype(np.intp))
-        kept.append(g)
-    if group_list and not kept:
+        kept.append(term)
+    if terms and not kept:
         notes.append("no random effect left: fitted a fixed-effects logistic regression")
     return codes, kept
+
+
+def _term_designs(data: pd.DataFrame, terms: list[RandomTerm], random_design,
+                  notes: list[str]) -> tuple[tuple[np.ndarray, ...], list[RandomTerm]]:
+    """Each term's design ``Z`` (n, r); a column with no nonzero entry (a condition without
+    trials) is dropped from its term, with a note."""
+    Z, kept = [], []
+    for term in terms:
+        if term.is_intercept and term.design is None:
+            Z.append(np.ones((len(data), 1)))
+            kept.append(term)
+            continue
+        frame = (_patsy_design(data, term.design) if term.design is not None
+                 else random_design.loc[data.index, list(term.columns)])
+        z = frame.to_numpy(dtype=float)
+        if not np.all(np.isfinite(z)):
+            raise AnalysisError(f"random term {term.label()}: its design has missing or "
+                                f"infinite values")
+        empty = [c for c, col in zip(term.columns, z.T, strict=True) if not np.any(col)]
+        for column in empty:
+            notes.append(f"random term {term.label()}: column {column!r} is zero on every "
+                         f"row; dropped from the term")
+            term = term.without(column)
+        z = z[:, [i for i, c in enumerate(frame.columns) if c not in empty]]
+        Z.append(z)
+        kept.append(term)
+    return tuple(Z), kept
 
 
 def _row_codes(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -336,20 +418,27 @@ def _row_codes(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inverse.astype(np.intp), columns[first]
 
 
-def _pool(X, y, m, codes) -> BinomialData:
-    """Sum successes and trials over rows with equal group levels and design row."""
+def _pool(X, y, m, codes, Z) -> BinomialData:
+    """Sum successes and trials over rows with equal group levels, design row and random
+    designs."""
     k = len(codes)
-    inverse, unique = _row_codes(np.column_stack([*(c.astype(float) for c in codes), X]))
-    return BinomialData(unique[:, k:], np.bincount(inverse, y), np.bincount(inverse, m),
+    widths = [z.shape[1] for z in Z]
+    inverse, unique = _row_codes(np.column_stack([*(c.astype(float) for c in codes), X,
+                                                  *Z]))
+    p = X.shape[1]
+    ends = k + p + np.cumsum(widths, dtype=int)
+    pooled_Z = tuple(unique[:, e - w:e] for e, w in zip(ends, widths, strict=True))
+    return BinomialData(unique[:, k:k + p], np.bincount(inverse, y), np.bincount(inverse, m),
                         tuple(unique[:, i].astype(np.intp) for i in range(k)),
-                        tuple(int(c.max()) + 1 for c in codes))
+                        tuple(int(c.max()) + 1 for c in codes), pooled_Z or None)
 
 
-def _unpooled(X, y, m, codes) -> BinomialData:
-    return BinomialData(X, y, m, tuple(codes), tuple(int(c.max()) + 1 for c in codes))
+def _unpooled(X, y, m, codes, Z) -> BinomialData:
+    return BinomialData(X, y, m, tuple(codes), tuple(int(c.max()) + 1 for c in codes),
+                        tuple(Z) or None)
 
 
-def _supremum(data, response, trials, group_list, method, n_quadrature, X, names,
+def _supremum(data, response, trials, terms, random_design, method, n_quadrature, X, names,
               direction) -> float:
     """The supremum of the unpenalised log-likelihood of separated data: the maximum over the
     rows that the separation does not push to 0 or 1 (those contribute 0 in the limit, and
@@ -359,8 +448,8 @@ def _supremum(data, response, trials, group_list, method, n_quadrature, X, names
         return 0.0
     rest = data.loc[keep]
     design = pd.DataFrame(X[keep], columns=names, index=rest.index)
-    fit = fit_glmm(rest, response, design, group_list, trials=trials, method=method,
-                   n_quadrature=n_quadrature)
+    fit = fit_glmm(rest, response, design, random=terms, random_design=random_design,
+                   trials=trials, method=method, n_quadrature=n_quadrature)
     return fit.separation.sup_loglike if fit.separation else fit.loglike
 
 

@@ -10,6 +10,7 @@ from scipy import optimize, stats
 
 from crs_study.analysis.glmm_optimise import Optimum, boundary_failures, maximise
 from crs_study.analysis.glmm_result import GlmmResult
+from crs_study.analysis.glmm_terms import INTERCEPT, covariance, sd_and_correlation
 
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
 _END_TOLERANCE = 5e-5       # Brent's tolerance on a profile end (log-odds or SD)
@@ -28,32 +29,37 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
              notes: list[str]) -> GlmmResult:
     """Maximise the (penalised) marginal log-likelihood and assemble the result.
 
-    From ``beta = 0, sigma = 1`` (lme4's start), by :func:`~.glmm_optimise.maximise`: sigmas
-    unconstrained, a variance reported at 0 only when its variance-scale slope at 0 says the
+    From ``beta = 0`` and every loading the identity (lme4's start), by
+    :func:`~.glmm_optimise.maximise`: theta unconstrained, a boundary (an SD at 0, a
+    correlated term of reduced rank) taken only when its variance-scale slope says the
     likelihood falls inward. ``converged`` is true when the gradient over the parameters not
-    on the boundary is within lme4's tolerance (``2 max |dl/dtheta| < 2e-3``, or the
-    Newton step ``H^-1 g`` below 1e-4 as lme4 scales it) *and* every boundary variance passed
-    that check; each boundary or singular-fit sentence is a measured statement.
+    on the boundary is within lme4's tolerance (``2 max |dl/dtheta| < 2e-3``, or the Newton
+    step ``H^-1 g`` below 1e-4 as lme4 scales it) *and* every boundary passed that check;
+    each boundary or singular-fit sentence is a measured statement. ``problem.terms`` holds
+    the fitted terms (:class:`~.glmm_terms.RandomTerm`).
     """
-    n_fixed, n_var = problem.n_fixed, problem.model.n_variance
-    start = np.r_[np.zeros(n_fixed), np.ones(n_var)]  # lme4 starts at theta = 1
+    n_fixed = problem.n_fixed
+    layout = getattr(problem.model, "layout", None)
+    theta_start = layout.start() if layout is not None else np.ones(problem.model.n_variance)
+    start = np.r_[np.zeros(n_fixed), theta_start]
     opt = maximise(problem, start)
     theta, at_zero = opt.theta, opt.at_zero
     failed = boundary_failures(opt)
-    for k, slope in at_zero.items():
-        # named as the report names it: participant, not the column participant_id
-        g = problem.groups[k - n_fixed].removesuffix("_id")
-        if k in failed:
-            notes.append(f"the variance of the random intercept for {g!r} ended at 0 although "
-                         f"the likelihood rises as it moves inward (d loglik / d variance = "
-                         f"{slope:.3g} at 0) and no interior start found a higher maximum; "
-                         f"estimates may be unreliable")
+    terms = tuple(problem.terms)
+    singular = []
+    for face in opt.faces:
+        sentence = describe_face(face, terms, theta, n_fixed)
+        if face in failed:
+            notes.append(f"{sentence} although the likelihood rises as it moves inward (d "
+                         f"loglik / d variance = {face.slope:.3g} there) and no interior start "
+                         f"found a higher maximum; estimates may be unreliable")
             continue
-        notes.append(f"the variance of the random intercept for {g!r} is estimated at 0 "
-                     f"(boundary, a singular fit): the likelihood falls as the variance moves "
-                     f"inward from 0 (d loglik / d variance = {slope:.3g} at 0, every other "
-                     f"parameter re-maximised); a likelihood-ratio test of this variance "
-                     f"follows a 50:50 mixture of chi2(0) and chi2(1)")
+        singular.append(sentence)
+        tail = ("a likelihood-ratio test of this variance follows a 50:50 mixture of chi2(0) "
+                "and chi2(1)" if not face.block.matrix else "the fit is singular")
+        notes.append(f"{sentence} (boundary, a singular fit): the likelihood falls as it moves "
+                     f"inward (d loglik / d variance = {face.slope:.3g} there, every other "
+                     f"parameter re-maximised); {tail}")
     value, gradient = problem.objective(theta)
     free = [i for i in range(len(theta)) if i not in at_zero]
     information = -_hessian(problem, theta, free)
@@ -72,17 +78,66 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     cov = _fixed_covariance(information, n_fixed, notes)
     names = problem.names
     loglike = float(problem.model.loglik(theta, grad=False)) + problem.user_constant
+    variances = _variances(terms, theta[n_fixed:])
     return GlmmResult(
         params=pd.Series(theta[:n_fixed], index=names, name="estimate"),
         bse=pd.Series(np.sqrt(np.diag(cov)), index=names, name="std_error"),
         cov_params=pd.DataFrame(cov, index=names, columns=names),
-        variance_components=pd.Series(theta[n_fixed:] ** 2, index=list(problem.groups),
-                                      name="variance", dtype=float),
+        variance_components=variances,
         loglike=loglike, nobs=nobs, n_groups=n_groups, method=method,
         n_quadrature=n_quadrature, converged=converged,
         n_function_evaluations=opt.evaluations, n_iterations=opt.iterations,
         max_abs_gradient=max_grad, response=response, fixed=fixed, groups=groups,
-        penalty=penalty, warnings=tuple(notes), _model=(problem, theta, tuple(at_zero)))
+        penalty=penalty, warnings=tuple(notes), _model=(problem, theta, tuple(at_zero)),
+        terms=terms, theta=tuple(float(t) for t in theta[n_fixed:]),
+        singular=tuple(singular))
+
+
+def _variances(terms, theta: np.ndarray) -> pd.Series:
+    """Every random effect's variance: indexed by the group for a random intercept alone (as
+    before slopes existed), ``group:column`` for each column of a larger term."""
+    index, values = [], []
+    start = 0
+    for term in terms:
+        sigma = covariance(term, theta[start:start + term.n_theta])
+        start += term.n_theta
+        for j, column in enumerate(term.columns):
+            index.append(term.group if term.is_intercept else f"{term.group}:{column}")
+            values.append(float(sigma[j, j]))
+    return pd.Series(values, index=index, name="variance", dtype=float)
+
+
+def describe_face(face, terms, theta: np.ndarray, n_fixed: int) -> str:
+    """A boundary in words: which variance is 0, which correlation is +-1."""
+    term = terms[face.block.term]
+    group = term.shown_group()
+    if not face.block.matrix:
+        column = term.columns[face.block.indices[0] - _term_start(terms, face.block.term,
+                                                                  n_fixed)]
+        what = "random intercept" if column == INTERCEPT else f"random slope of {column!r}"
+        return f"the variance of the {what} for {group!r} is estimated at 0"
+    r, d = term.size, face.deficiency
+    if d == r:
+        return f"every variance of {term.label()} is estimated at 0"
+    null = face.null
+    single = [j for j in range(r) if np.allclose(np.abs(null[j]), 1.0, atol=1e-3)]
+    if d == 1 and single:
+        column = term.columns[single[0]]
+        what = "random intercept" if column == INTERCEPT else f"random slope of {column!r}"
+        return (f"the variance of the {what} for {group!r} is estimated at 0 (in "
+                f"{term.label()})")
+    start = _term_start(terms, face.block.term, n_fixed)
+    sigma = covariance(term, theta[start:start + term.n_theta])
+    sd, corr = sd_and_correlation(sigma)
+    if r == 2 and d == 1:
+        return (f"the correlation of the random effects in {term.label()} is estimated at "
+                f"{corr[0, 1]:+.0f}")
+    return (f"the covariance matrix of {term.label()} is estimated singular (rank {r - d} of "
+            f"{r}: correlations at +-1)")
+
+
+def _term_start(terms, k: int, n_fixed: int) -> int:
+    return n_fixed + sum(t.n_theta for t in terms[:k])
 
 
 def _hessian(problem, theta: np.ndarray, free: list[int]) -> np.ndarray:

@@ -1,27 +1,36 @@
 """Maximising the GLMM objective: local fits, the boundary check and restarts.
 
-The objective ``l(beta, sigma)`` (Laplace or AGQ marginal log-likelihood, see
-:mod:`crs_study.analysis.glmm_core`) is *even* in every random-effect standard deviation
-``sigma_k``: only ``sigma_k^2`` enters the model. Two consequences decide the design:
+The objective ``l(beta, theta)`` (Laplace or AGQ marginal log-likelihood, see
+:mod:`crs_study.analysis.glmm_core`) depends on each term's loading ``T_k`` only through
+``Sigma_k = T_k T_k'``: a random intercept's SD ``sigma`` only through ``sigma^2``, a
+correlated term's loading only up to the sign of each column. Two consequences decide the
+design:
 
 1. On the SD scale the derivative ``dl/dsigma_k`` is exactly 0 at ``sigma_k = 0`` whatever
-   the data say, so the boundary always satisfies the first-order conditions there. A
-   bounded optimiser on ``sigma >= 0`` (the earlier TNC) whose line search clips a sigma onto
-   the bound never leaves it: 23 of 59 lme4 comparisons stopped short that way (issue 12).
-   Here every sigma is optimised *unconstrained* (any real; the estimate is ``|sigma|``), so
-   no step is ever clipped onto 0.
-2. Whether 0 is the estimate is then decided by a check the SD-scale gradient cannot fool:
-   the one-sided derivative of the profile on the *variance* scale ``v = sigma^2`` at
-   ``v = 0``. With every other parameter re-maximised (the fit with ``sigma_k`` held at 0)
-   the envelope theorem gives ``d l_prof / dv (0+) = dl/dv = (1/2) d^2 l / d sigma_k^2`` at
-   ``sigma_k = 0``; it is computed as ``g_k(h) / (2 h)`` from the exact gradient at ``sigma_k
-   = h = 1e-3`` (the derivative on the variance scale at ``v = 1e-6``), or from values where
-   the model's gradient is itself a difference. The boundary is the estimate only when that
-   slope is <= 0 for every sigma held at 0 (the Karush-Kuhn-Tucker condition of the problem
-   on the variance scale, ``v >= 0``), and the boundary fit is at least as high as the best
-   interior one. Otherwise the variance is moved inward: the fit restarts from interior
-   points (``RESTART_SIGMAS``) and the best optimum found is kept, as lme4's ``allFit``
-   compares optimisers (STYLE.md point 19).
+   the data say (and likewise for a zero column of ``T_k``), so the boundary always
+   satisfies the first-order conditions there. A bounded optimiser on ``sigma >= 0`` whose
+   line search clips a sigma onto the bound never leaves it (23 of 59 lme4 comparisons of an
+   earlier version stopped short that way). Here theta is optimised *unconstrained* (any
+   real; the estimate is made lme4's, a non-negative diagonal, afterwards), so no step is
+   ever clipped onto the boundary.
+2. Whether the boundary is the estimate is then decided by a check the SD-scale gradient
+   cannot fool: the one-sided derivative of the profile on the *variance* scale. For a
+   standard deviation (a random intercept, a column of an uncorrelated term) that is ``d
+   l_prof / dv`` at ``v = sigma^2 = 0+``; with every other parameter re-maximised (the fit
+   with ``sigma_k`` held at 0) the envelope theorem gives ``(1/2) d^2 l / d sigma_k^2`` at
+   0, computed as ``g_k(h) / (2 h)`` from the exact gradient at ``sigma_k = h = 1e-3``. For
+   a correlated term the boundary is ``Sigma_k`` losing rank (a variance at 0, or a
+   correlation at +-1): the fit on that face holds the last columns of ``T_k`` at 0 (every
+   matrix of rank ``r - d`` is ``L L'`` with ``L`` lower trapezoidal,
+   :func:`~crs_study.analysis.glmm_terms.rank_deficient_loading`), and the check is the
+   largest eigenvalue of ``N' G N``, ``G = dl/dSigma_k`` and ``N`` the null space of the
+   face's ``Sigma_k``: the slope of ``l`` per unit variance added in the most favourable
+   missing direction (the Karush-Kuhn-Tucker condition on the cone of covariance matrices,
+   Boyd & Vandenberghe 2004, Convex Optimization, sec. 5.9.2), read from ``dl/dT = 2 G T`` at
+   ``T`` extended by ``h N``. The boundary is the estimate only when every such slope is <= 0
+   and the boundary fit is at least as high as the best interior one. Otherwise the fit
+   restarts inward (``RESTART_SIGMAS`` along the rising direction) and the best optimum found
+   is kept, as lme4's ``allFit`` compares optimisers.
 
 The same :func:`maximise` fits the full model, the reduced one and every point of every
 profile, so a profile frees every variance (none is held at the estimate's boundary).
@@ -33,6 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import optimize
+
+from crs_study.analysis.glmm_terms import Block, loading, rank_deficient_loading, theta_of
 
 #: A sigma below this after a local fit is compared with the boundary fit (sigma = 0).
 NEAR_ZERO = 0.05
@@ -56,21 +67,64 @@ _LOCAL_GRADIENT = 2e-5   # max |gradient| of the log-likelihood accepted after t
 
 
 @dataclass
+class Face:
+    """A boundary an optimum sits on: a block's covariance short of ``deficiency`` dimensions.
+
+    ``held`` are the parameter indices held at 0 on it; ``slope`` the largest variance-scale
+    derivative of ``l`` inward (per unit variance, every other parameter as at the optimum;
+    <= ``SLOPE_TOLERANCE`` when the boundary is a maximum); ``direction`` (r,) the unit
+    vector of the term's effects along which ``l`` rises fastest (``None`` for an SD) and
+    ``null`` (r, d) the directions the face's covariance lacks.
+    """
+
+    block: Block
+    held: tuple[int, ...]
+    deficiency: int
+    slope: float = float("nan")
+    direction: np.ndarray | None = None
+    null: np.ndarray | None = None
+
+
+@dataclass
 class Optimum:
     """A maximum of the objective over the parameters not held.
 
-    ``theta`` has every sigma as ``|sigma|``; ``at_zero`` the sigma indices estimated at the
-    boundary (exactly 0 in ``theta``) with their variance-scale slopes ``d l / dv`` at 0+
-    (all <= ``SLOPE_TOLERANCE`` when the boundary check passed).
+    ``theta`` is lme4's (every loading with a non-negative diagonal); ``faces`` the
+    boundaries it sits on (the held parameters exactly 0 in ``theta``), with their slopes.
     """
 
     theta: np.ndarray
     value: float
-    at_zero: dict[int, float] = field(default_factory=dict)
+    faces: list[Face] = field(default_factory=list)
     evaluations: int = 0
     iterations: int = 0
     restarts: int = 0
     message: str = ""
+
+    @property
+    def at_zero(self) -> dict[int, float]:
+        """Each parameter held at 0 on a face, with that face's slope."""
+        return {i: face.slope for face in self.faces for i in face.held}
+
+
+def blocks_of(problem) -> tuple[Block, ...]:
+    """The model's boundary blocks: its terms' (:class:`~.glmm_terms.ThetaLayout`), else one
+    standard deviation per variance parameter."""
+    layout = getattr(problem.model, "layout", None)
+    if layout is not None:
+        return layout.blocks
+    return tuple(Block(k, (problem.n_fixed + k,), False)
+                 for k in range(problem.model.n_variance))
+
+
+def normalise(problem, theta: np.ndarray) -> np.ndarray:
+    """``theta`` with each loading's diagonal non-negative (each SD as ``|sigma|``)."""
+    layout = getattr(problem.model, "layout", None)
+    if layout is not None:
+        return layout.normalised(theta)
+    out = np.asarray(theta, dtype=float).copy()
+    out[problem.n_fixed:] = np.abs(out[problem.n_fixed:])
+    return out
 
 
 class _Counted:
@@ -99,7 +153,7 @@ class _Counted:
 
 def local_fit(problem, start: np.ndarray, held: dict[int, float],
               methods=_METHODS) -> Optimum:
-    """One unconstrained local maximisation (sigmas may go negative; returned as ``|sigma|``).
+    """One unconstrained local maximisation (theta of any sign; returned normalised).
 
     TNC first; L-BFGS-B from TNC's end when the gradient there is not yet small.
     """
@@ -113,10 +167,9 @@ def local_fit(problem, start: np.ndarray, held: dict[int, float],
             _, g = counted(x)
             if np.max(np.abs(g)) < _LOCAL_GRADIENT:
                 break
-    theta = counted.full(x)
-    theta[problem.n_fixed:] = np.abs(theta[problem.n_fixed:])
+    theta = normalise(problem, counted.full(x))
     value = problem.objective(theta, grad=False)
-    return Optimum(theta, float(value), {}, counted.calls + 1, iterations, 0, message)
+    return Optimum(theta, float(value), [], counted.calls + 1, iterations, 0, message)
 
 
 def variance_slope(problem, theta: np.ndarray, index: int) -> float:
@@ -142,48 +195,129 @@ def variance_slope(problem, theta: np.ndarray, index: int) -> float:
     return slope
 
 
+def rank_slope(problem, theta: np.ndarray, face: Face) -> Face:
+    """The face with its slope: the largest eigenvalue of ``N' G N`` (module docstring), from
+    the exact gradient of the loading extended by ``h N``; ``direction`` its eigenvector."""
+    layout = problem.model.layout
+    k = face.block.term
+    r, d = layout.terms[k].size, face.deficiency
+    loadings = [T[0] for T in layout.loadings(theta[None])]
+    T = loadings[k]
+    values, vectors = np.linalg.eigh(T @ T.T)
+    null = vectors[:, :d]
+    h = _SLOPE_STEP
+    extended = T.copy()
+    extended[:, r - d:] = h * null
+    loadings[k] = extended
+    _, _, gradients = problem.model.loadings_loglik(theta[:layout.n_fixed], loadings)
+    M = null.T @ gradients[k][:, r - d:] / (2.0 * h)
+    values, vectors = np.linalg.eigh(0.5 * (M + M.T))
+    problem.objective(theta, grad=False)   # leave the warm start at theta
+    return Face(face.block, face.held, d, float(values[-1]), null @ vectors[:, -1], null)
+
+
+def _faces_near(problem, theta: np.ndarray, held: dict[int, float]) -> list[Face]:
+    """The blocks whose covariance is within ``NEAR_ZERO`` (SD scale) of losing rank."""
+    faces = []
+    for block in blocks_of(problem):
+        if any(i in held for i in block.indices):
+            continue
+        if not block.matrix:
+            if abs(theta[block.indices[0]]) < NEAR_ZERO:
+                faces.append(Face(block, block.indices, 1))
+            continue
+        term = problem.model.layout.terms[block.term]
+        T = loading(term, theta[list(block.indices)])
+        sds = np.sqrt(np.clip(np.linalg.eigvalsh(T @ T.T), 0.0, None))
+        d = int(np.sum(sds < NEAR_ZERO))
+        if d:
+            r = term.size
+            faces.append(Face(block, tuple(i for i, (_, col) in zip(block.indices, term.entries,
+                                                                   strict=True)
+                                           if col >= r - d), d))
+    return faces
+
+
+def _on_face(problem, theta: np.ndarray, faces: list[Face]) -> np.ndarray:
+    """``theta`` moved onto the faces: held SDs 0, correlated loadings of reduced rank."""
+    out = theta.copy()
+    for face in faces:
+        if not face.block.matrix:
+            out[face.held[0]] = 0.0
+            continue
+        term = problem.model.layout.terms[face.block.term]
+        idx = list(face.block.indices)
+        out[idx] = theta_of(term, rank_deficient_loading(loading(term, theta[idx]),
+                                                         face.deficiency))
+    return out
+
+
+def _slopes(problem, theta: np.ndarray, faces: list[Face]) -> list[Face]:
+    out = []
+    for face in faces:
+        if face.block.matrix:
+            out.append(rank_slope(problem, theta, face))
+        else:
+            out.append(Face(face.block, face.held, 1,
+                            variance_slope(problem, theta, face.held[0])))
+    return out
+
+
+def _inward(problem, theta: np.ndarray, faces: list[Face], sigma: float) -> np.ndarray:
+    """``theta`` moved off the rising faces by ``sigma`` (SD scale) along their directions."""
+    out = theta.copy()
+    for face in faces:
+        if not face.block.matrix:
+            out[face.held[0]] = sigma
+            continue
+        term = problem.model.layout.terms[face.block.term]
+        idx = list(face.block.indices)
+        T = loading(term, theta[idx])
+        cov = (T @ T.T + sigma**2 * np.outer(face.direction, face.direction)
+               + (0.1 * sigma) ** 2 * face.null @ face.null.T)
+        out[idx] = theta_of(term, np.linalg.cholesky(cov))
+    return out
+
+
 def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
              profile: bool = False) -> Optimum:
     """The maximum of the objective over the parameters not ``held``, boundary checked.
 
-    A local fit; then, for the sigmas that ended near 0, the fit with them held at 0 and the
-    variance-scale slope of each there. All slopes <= 0 and the boundary fit no lower: the
-    boundary is the estimate. Some slope > 0: restarts from ``RESTART_SIGMAS`` for those
-    sigmas, the best optimum kept, and the check repeated on it (at most ``_MAX_ROUNDS``).
-    ``profile``: the looser tolerances of a profile point (``_PROFILE_METHODS``).
+    A local fit; then, for the blocks that ended near their boundary, the fit on the face
+    (:func:`_faces_near`) and its slopes. All slopes <= 0 and the face's fit no lower: the
+    boundary is the estimate. Some slope > 0: restarts inward (``RESTART_SIGMAS``), the best
+    optimum kept, and the check repeated on it (at most ``_MAX_ROUNDS``). ``profile``: the
+    looser tolerances of a profile point (``_PROFILE_METHODS``).
     """
     held = dict(held or {})
     methods = _PROFILE_METHODS if profile else _METHODS
-    sigmas = [i for i in range(problem.n_fixed, len(start)) if i not in held]
     best = local_fit(problem, np.asarray(start, float), held, methods)
     evaluations, iterations, restarts = best.evaluations, best.iterations, 0
     for _ in range(_MAX_ROUNDS):
-        near = [i for i in sigmas if best.theta[i] < NEAR_ZERO]
+        near = _faces_near(problem, best.theta, held)
         if not near:
             break
-        boundary_start = best.theta.copy()
-        boundary_start[near] = 0.0
-        boundary = local_fit(problem, boundary_start, {**held, **dict.fromkeys(near, 0.0)},
-                             methods)
+        on_face = {i: 0.0 for face in near for i in face.held}
+        boundary = local_fit(problem, _on_face(problem, best.theta, near),
+                             {**held, **on_face}, methods)
         evaluations += boundary.evaluations
         iterations += boundary.iterations
-        slopes = {i: variance_slope(problem, boundary.theta, i) for i in near}
-        inward = [i for i, s in slopes.items() if s > SLOPE_TOLERANCE]
+        faces = _slopes(problem, boundary.theta, near)
+        inward = [face for face in faces if face.slope > SLOPE_TOLERANCE]
         tolerance = 1e-9 * (1.0 + abs(best.value))
         if not inward:
             if boundary.value >= best.value - tolerance:
-                boundary.at_zero = slopes
+                boundary.faces = faces
                 best = boundary
             break
         if best.value > boundary.value + tolerance:
             break        # a small interior SD, higher than the boundary: a true estimate
-        # Moving inward raises l, yet the local fit did not get away from 0 (a flat start):
-        # restart from interior points, keep the best, check again.
+        # Moving inward raises l, yet the local fit did not get away from the face (a flat
+        # start): restart from interior points, keep the best, check again.
         improved = False
         for sigma in RESTART_SIGMAS:
-            restart = boundary.theta.copy()
-            restart[inward] = sigma
-            candidate = local_fit(problem, restart, held, methods)
+            candidate = local_fit(problem, _inward(problem, boundary.theta, inward, sigma),
+                                  held, methods)
             evaluations += candidate.evaluations
             iterations += candidate.iterations
             restarts += 1
@@ -191,13 +325,13 @@ def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
                 best, improved = candidate, True
         if not improved:
             best = boundary      # report the boundary with the slope that says it is not
-            best.at_zero = slopes      # a maximum: the fit is then flagged unconverged
+            best.faces = faces   # a maximum: the fit is then flagged unconverged
             break
     problem.objective(best.theta, grad=False)   # the warm start at the optimum
     best.evaluations, best.iterations, best.restarts = evaluations, iterations, restarts
     return best
 
 
-def boundary_failures(opt: Optimum) -> dict[int, float]:
-    """The boundary sigmas whose variance-scale slope says moving inward raises l."""
-    return {i: s for i, s in opt.at_zero.items() if s > SLOPE_TOLERANCE}
+def boundary_failures(opt: Optimum) -> list[Face]:
+    """The faces whose variance-scale slope says moving inward raises l."""
+    return [face for face in opt.faces if face.slope > SLOPE_TOLERANCE]

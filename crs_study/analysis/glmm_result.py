@@ -23,6 +23,13 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from crs_study.analysis.glmm_terms import (
+    INTERCEPT,
+    covariance,
+    sd_and_correlation,
+    structure_label,
+)
+
 #: Smallest p-value reported as a number; p-values below it are clamped to it (never 0).
 P_FLOOR = float(np.finfo(float).tiny)
 #: Below this, a p-value is printed as "< 1e-16": double precision cannot resolve 1 - p.
@@ -76,11 +83,63 @@ class GlmmResult:
     _model: object = field(default=None, repr=False, compare=False)
     #: :class:`~crs_study.analysis.glmm_separation.Separation` when an ML estimate is infinite
     separation: object = None
+    #: the random terms fitted (:class:`~crs_study.analysis.glmm_terms.RandomTerm`)
+    terms: tuple = ()
+    #: lme4's theta: each term's Cholesky factor entries, column by column
+    theta: tuple[float, ...] = ()
+    #: the boundaries the estimate sits on, as measured facts (one sentence each)
+    singular: tuple[str, ...] = ()
 
     @property
     def n_params(self) -> int:
-        """Estimated parameters: fixed effects plus variance components."""
-        return len(self.params) + len(self.variance_components)
+        """Estimated parameters: fixed effects plus the covariance parameters (theta)."""
+        return len(self.params) + (len(self.theta) if self.terms else
+                                   len(self.variance_components))
+
+    @property
+    def is_singular(self) -> bool:
+        """A variance at 0 or a correlation at +-1 (lme4's ``isSingular``)."""
+        return bool(self.singular)
+
+    @property
+    def random_formula(self) -> str:
+        """The random part in lme4's notation."""
+        if self.terms:
+            return structure_label(self.terms)
+        return " + ".join(f"(1 | {g.removesuffix('_id')})"
+                          for g in self.variance_components.index) or "none"
+
+    def covariances(self) -> dict[str, pd.DataFrame]:
+        """Each term's covariance matrix ``Sigma_k`` (labelled rows and columns), by term."""
+        out = {}
+        start = 0
+        for term in self.terms:
+            theta = np.asarray(self.theta[start:start + term.n_theta])
+            start += term.n_theta
+            names = [_effect_name(c) for c in term.columns]
+            out[term.label()] = pd.DataFrame(covariance(term, theta), index=names,
+                                             columns=names)
+        return out
+
+    def random_effects(self) -> pd.DataFrame:
+        """lme4's "Random effects" table: one row per (group, effect), ``variance``, ``sd``
+        and the correlations with the term's earlier effects (``corr`` a list, empty for the
+        first effect or an uncorrelated term)."""
+        rows = []
+        for term, sigma in zip(self.terms, self.covariances().values(), strict=True):
+            sd, corr = sd_and_correlation(sigma.to_numpy())
+            for j, name in enumerate(sigma.index):
+                rows.append({"group": term.shown_group(), "term": term.label(), "effect": name,
+                             "variance": float(sigma.iloc[j, j]), "sd": float(sd[j]),
+                             "corr": [float(c) for c in corr[j, :j]]
+                             if term.correlated else []})
+        if not self.terms:
+            for g, v in self.variance_components.items():
+                rows.append({"group": g.removesuffix("_id"),
+                             "term": f"(1 | {g.removesuffix('_id')})",
+                             "effect": "(Intercept)", "variance": float(v),
+                             "sd": math.sqrt(v), "corr": []})
+        return pd.DataFrame(rows, columns=["group", "term", "effect", "variance", "sd", "corr"])
 
     @property
     def zvalues(self) -> pd.Series:
@@ -142,38 +201,56 @@ class GlmmResult:
             "deviance": self.deviance, "nobs": self.nobs, "n_groups": dict(self.n_groups),
             "converged": self.converged, "penalty": self.penalty,
             "separation": None if self.separation is None else self.separation.to_dict(),
-            "warnings": list(self.warnings)}
+            "random_formula": self.random_formula, "theta": list(self.theta),
+            "random_effects_table": self.random_effects().to_dict(orient="records"),
+            "singular": list(self.singular), "warnings": list(self.warnings)}
 
     def summary(self) -> str:
         """A text summary in the layout of lme4's ``summary(glmer(...))``."""
-        how = {"laplace": "Laplace approximation",
-               "agq": f"adaptive Gauss-Hermite quadrature, {self.n_quadrature} points",
+        how = {"laplace": "Laplace Approximation",
+               "agq": f"Adaptive Gauss-Hermite Quadrature, nAGQ = {self.n_quadrature}",
                "glm": "fixed-effects logistic regression (no random effect estimable)"}
-        lines = [f"Binomial-logit mixed model, maximum likelihood ({how[self.method]})",
+        lines = [f"Generalized linear mixed model fit by maximum likelihood "
+                 f"({how[self.method]}) [glmerMod]", " Family: binomial  ( logit )",
                  f"Formula: {self.response} ~ {self.fixed}"
-                 + "".join(f" + (1 | {g})" for g in self.variance_components.index),
-                 f"{'AIC':>10s} {'BIC':>10s} {'logLik':>10s} {'deviance':>10s}",
+                 + ("" if self.random_formula == "none" else f" + {self.random_formula}"),
+                 "", f"{'AIC':>10s} {'BIC':>10s} {'logLik':>10s} {'deviance':>10s}",
                  f"{self.aic:10.1f} {self.bic:10.1f} {self.loglike:10.2f} {self.deviance:10.1f}",
                  "", "Random effects:"]
-        for g, v in self.variance_components.items():
-            lines.append(f"  {g:20s} (Intercept)  variance {v:.4g}  std.dev. {math.sqrt(v):.4g}"
-                         f"  ({self.n_groups.get(g, 0)} groups)")
-        if not len(self.variance_components):
-            lines.append("  none")
-        lines += [f"Number of obs: {self.nobs}", "", "Fixed effects:",
-                  f"{'':24s} {'Estimate':>9s} {'Std.Err':>9s} {'z':>8s} {'Pr(>|z|)':>10s}"
-                  f" {'OR':>9s} {'95% CI of OR':>21s}"]
-        frame = self.to_frame()
-        for name, row in frame.iterrows():
+        table = self.random_effects()
+        if len(table):
+            lines.append(f" {'Groups':<13s} {'Name':<22s} {'Variance':>9s} {'Std.Dev.':>9s}"
+                         f"  Corr")
+            last = None
+            for row in table.itertuples():
+                group = row.group if row.term != last else ""
+                last = row.term
+                corr = " ".join(f"{c:6.2f}" for c in row.corr)
+                lines.append(f" {group:<13s} {row.effect:<22s} {row.variance:9.4g} "
+                             f"{row.sd:9.4g}  {corr}".rstrip())
+            groups = ", ".join(f"{g.removesuffix('_id')}, {n}"
+                               for g, n in self.n_groups.items())
+            lines.append(f"Number of obs: {self.nobs}, groups:  {groups}")
+        else:
+            lines += ["  none", f"Number of obs: {self.nobs}"]
+        lines += ["", "Fixed effects:",
+                  f"{'':24s} {'Estimate':>9s} {'Std.Err':>9s} {'z value':>8s} {'Pr(>|z|)':>10s}"]
+        for name, row in self.to_frame().iterrows():
             lines.append(f"{str(name):24s} {row.estimate:9.4f} {row.std_error:9.4f} {row.z:8.3f}"
-                         f" {format_pvalue(row.p_value):>10s} {row.odds_ratio:9.4g}"
-                         f"   [{row.or_ci_low:.4g}, {row.or_ci_high:.4g}]")
+                         f" {format_pvalue(row.p_value):>10s}")
+        lines.append("")
         lines.append(f"converged: {self.converged}, function evaluations: "
                      f"{self.n_function_evaluations}, max |gradient|: {self.max_abs_gradient:.2g}")
+        lines.append("boundary (singular) fit: " + ("; ".join(self.singular)
+                                                     if self.singular else "no"))
         if self.penalty:
             lines.append(f"penalty: {self.penalty}")
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
+
+
+def _effect_name(column: str) -> str:
+    return "(Intercept)" if column == INTERCEPT else column
 
 
 @dataclass(frozen=True)
