@@ -62,7 +62,8 @@ def ours(name: str) -> dict:
                            "condition": rows["condition"].to_numpy(),
                            "correct": rows["successes"].to_numpy(),
                            "n_trials": rows["trials"].to_numpy()})
-    fits = fit_primary(trials, ["pixel-only", "crs"], "pixel-only", ("participant", "digit"))
+    fits = fit_primary(trials, ["pixel-only", "crs"], "pixel-only", ("participant", "digit"),
+                       structure="intercepts")
     full, (test,) = fits.full, fits.tests
     sds = {g.removesuffix("_id"): row for g, row in profile_sd_conf_int(full).iterrows()}
     return {"full": full, "test": test, "loglike_full": test.test.loglike_full,

@@ -9,7 +9,7 @@ import pandas as pd
 from scipy import optimize, stats
 
 from crs_study.analysis.glmm_optimise import Optimum, boundary_failures, maximise
-from crs_study.analysis.glmm_result import GlmmResult
+from crs_study.analysis.glmm_result import BoundaryFace, GlmmResult
 from crs_study.analysis.glmm_terms import INTERCEPT, covariance, sd_and_correlation
 
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
@@ -46,15 +46,16 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     theta, at_zero = opt.theta, opt.at_zero
     failed = boundary_failures(opt)
     terms = tuple(problem.terms)
-    singular = []
+    faces = []
     for face in opt.faces:
-        sentence = describe_face(face, terms, theta, n_fixed)
-        if face in failed:
+        described = describe_face(face, terms, theta, n_fixed)
+        sentence = described.text
+        if any(face is f for f in failed):
             notes.append(f"{sentence} although the likelihood rises as it moves inward (d "
                          f"loglik / d variance = {face.slope:.3g} there) and no interior start "
                          f"found a higher maximum; estimates may be unreliable")
             continue
-        singular.append(sentence)
+        faces.append(described)
         tail = ("a likelihood-ratio test of this variance follows a 50:50 mixture of chi2(0) "
                 "and chi2(1)" if not face.block.matrix else "the fit is singular")
         notes.append(f"{sentence} (boundary, a singular fit): the likelihood falls as it moves "
@@ -90,7 +91,7 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
         max_abs_gradient=max_grad, response=response, fixed=fixed, groups=groups,
         penalty=penalty, warnings=tuple(notes), _model=(problem, theta, tuple(at_zero)),
         terms=terms, theta=tuple(float(t) for t in theta[n_fixed:]),
-        singular=tuple(singular))
+        faces=tuple(faces))
 
 
 def _variances(terms, theta: np.ndarray) -> pd.Series:
@@ -107,33 +108,42 @@ def _variances(terms, theta: np.ndarray) -> pd.Series:
     return pd.Series(values, index=index, name="variance", dtype=float)
 
 
-def describe_face(face, terms, theta: np.ndarray, n_fixed: int) -> str:
-    """A boundary in words: which variance is 0, which correlation is +-1."""
+def describe_face(face, terms, theta: np.ndarray, n_fixed: int) -> BoundaryFace:
+    """A boundary as a measured fact: which variance is 0, which correlation is +-1, with the
+    slope of the likelihood there."""
     term = terms[face.block.term]
     group = term.shown_group()
-    if not face.block.matrix:
-        column = term.columns[face.block.indices[0] - _term_start(terms, face.block.term,
-                                                                  n_fixed)]
-        what = "random intercept" if column == INTERCEPT else f"random slope of {column!r}"
-        return f"the variance of the {what} for {group!r} is estimated at 0"
-    r, d = term.size, face.deficiency
-    if d == r:
-        return f"every variance of {term.label()} is estimated at 0"
-    null = face.null
-    single = [j for j in range(r) if np.allclose(np.abs(null[j]), 1.0, atol=1e-3)]
-    if d == 1 and single:
-        column = term.columns[single[0]]
-        what = "random intercept" if column == INTERCEPT else f"random slope of {column!r}"
-        return (f"the variance of the {what} for {group!r} is estimated at 0 (in "
-                f"{term.label()})")
     start = _term_start(terms, face.block.term, n_fixed)
+
+    def variance(column: str, where: str = "") -> BoundaryFace:
+        what = "random intercept" if column == INTERCEPT else f"random slope of {column!r}"
+        return BoundaryFace(term.label(), group, "variance", (column,), face.slope,
+                            f"the variance of the {what} for {group!r} is estimated at 0"
+                            f"{where}", in_slope_term=term.size > 1)
+
+    if not face.block.matrix:
+        return variance(term.columns[face.block.indices[0] - start])
+    r, d = term.size, face.deficiency
+    single = [j for j in range(r) if np.allclose(np.abs(face.null[j]), 1.0, atol=1e-3)]
+    if d == 1 and single:
+        return variance(term.columns[single[0]], f" (in {term.label()})")
+    if d == r:
+        return BoundaryFace(term.label(), group, "rank", term.columns, face.slope,
+                            f"every variance of {term.label()} is estimated at 0",
+                            in_slope_term=True)
     sigma = covariance(term, theta[start:start + term.n_theta])
     sd, corr = sd_and_correlation(sigma)
     if r == 2 and d == 1:
-        return (f"the correlation of the random effects in {term.label()} is estimated at "
-                f"{corr[0, 1]:+.0f}")
-    return (f"the covariance matrix of {term.label()} is estimated singular (rank {r - d} of "
-            f"{r}: correlations at +-1)")
+        bound = 1.0 if corr[0, 1] > 0 else -1.0
+        # G = slope n n' on the face; d loglik / d rho = 2 G_12 sd_1 sd_2 at the bound
+        corr_slope = float(2.0 * face.slope * face.null[0, 0] * face.null[1, 0] * sd[0] * sd[1])
+        return BoundaryFace(term.label(), group, "correlation", term.columns, face.slope,
+                            f"the correlation of the random effects in {term.label()} is "
+                            f"estimated at {bound:+.0f} (d loglik / d correlation = "
+                            f"{corr_slope:.3g} there)", corr_slope, in_slope_term=True)
+    return BoundaryFace(term.label(), group, "rank", term.columns, face.slope,
+                        f"the covariance matrix of {term.label()} is estimated singular "
+                        f"(rank {r - d} of {r}: correlations at +-1)", in_slope_term=True)
 
 
 def _term_start(terms, k: int, n_fixed: int) -> int:

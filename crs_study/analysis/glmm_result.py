@@ -36,6 +36,36 @@ P_FLOOR = float(np.finfo(float).tiny)
 P_TEXT_FLOOR = 1e-16
 
 
+@dataclass(frozen=True)
+class BoundaryFace:
+    """A boundary the estimate sits on, measured: in ``term`` (its label), ``kind``
+    ``"variance"`` (the variance of ``columns[0]`` at 0), ``"correlation"`` (the correlation of
+    the two ``columns`` at +-1) or ``"rank"`` (a covariance matrix of lower rank); ``slope``
+    the derivative of the log-likelihood per unit variance added in the most favourable
+    missing direction (<= 0: the boundary is the maximum), ``correlation_slope`` the profile's
+    ``d loglik / d correlation`` at the correlation's bound (for ``"correlation"``)."""
+
+    term: str
+    group: str
+    kind: str
+    columns: tuple[str, ...]
+    slope: float
+    text: str
+    correlation_slope: float | None = None
+    in_slope_term: bool = False
+
+    @property
+    def involves_slope(self) -> bool:
+        """It concerns a random slope: a slope's variance, or any boundary of a term that has
+        slopes (only a random intercept alone at variance 0 does not)."""
+        return self.in_slope_term or any(c != INTERCEPT for c in self.columns)
+
+    def to_dict(self) -> dict:
+        return {"term": self.term, "group": self.group, "kind": self.kind,
+                "columns": list(self.columns), "slope": self.slope,
+                "correlation_slope": self.correlation_slope, "text": self.text}
+
+
 def format_pvalue(p: float) -> str:
     """A p-value as text: ``"< 1e-16"`` below machine precision, else 3 significant digits."""
     if not math.isfinite(p):
@@ -87,8 +117,8 @@ class GlmmResult:
     terms: tuple = ()
     #: lme4's theta: each term's Cholesky factor entries, column by column
     theta: tuple[float, ...] = ()
-    #: the boundaries the estimate sits on, as measured facts (one sentence each)
-    singular: tuple[str, ...] = ()
+    #: the boundaries the estimate sits on, as measured facts (:class:`BoundaryFace`)
+    faces: tuple = ()
 
     @property
     def n_params(self) -> int:
@@ -97,9 +127,14 @@ class GlmmResult:
                                    len(self.variance_components))
 
     @property
+    def singular(self) -> tuple[str, ...]:
+        """Each boundary of the estimate in words (a variance at 0, a correlation at +-1)."""
+        return tuple(face.text for face in self.faces)
+
+    @property
     def is_singular(self) -> bool:
         """A variance at 0 or a correlation at +-1 (lme4's ``isSingular``)."""
-        return bool(self.singular)
+        return bool(self.faces)
 
     @property
     def random_formula(self) -> str:
@@ -164,8 +199,9 @@ class GlmmResult:
 
     @property
     def boundary(self) -> tuple[str, ...]:
-        """Grouping factors whose variance was estimated at 0 (on the boundary)."""
-        return tuple(g for g, v in self.variance_components.items() if v == 0.0)
+        """Grouping factors whose random intercept, a term of its own, was estimated at 0."""
+        return tuple(g for g, v in self.variance_components.items()
+                     if v == 0.0 and ":" not in g)
 
     def conf_int(self, level: float = 0.95) -> pd.DataFrame:
         """Wald intervals ``estimate -/+ z_{(1+level)/2} * std_error`` (log-odds)."""
@@ -203,7 +239,8 @@ class GlmmResult:
             "separation": None if self.separation is None else self.separation.to_dict(),
             "random_formula": self.random_formula, "theta": list(self.theta),
             "random_effects_table": self.random_effects().to_dict(orient="records"),
-            "singular": list(self.singular), "warnings": list(self.warnings)}
+            "singular": [face.to_dict() for face in self.faces],
+            "warnings": list(self.warnings)}
 
     def summary(self) -> str:
         """A text summary in the layout of lme4's ``summary(glmer(...))``."""

@@ -15,7 +15,14 @@ from typing import Any
 
 from crs_study._toml import Section, read_toml
 from crs_study.analysis.glmm_core import MAX_QUADRATURE
-from crs_study.errors import PlanError
+from crs_study.analysis.structure import (
+    REDUCTION_STEPS,
+    SINGULAR_FIT_RULES,
+    STRUCTURES,
+    RandomSpec,
+    written_terms,
+)
+from crs_study.errors import AnalysisError, PlanError
 from crs_study.paths import shipped_file
 
 TIMEOUT_POLICIES = ("exclude", "count_as_error")
@@ -69,7 +76,10 @@ class Exclusions:
 
 @dataclass(frozen=True)
 class PrimaryTest:
-    """The confirmatory test: correct ~ condition + (1 | participant) [+ (1 | symbol)]."""
+    """The confirmatory test: ``correct ~ condition`` with the random part the plan states
+    (:mod:`crs_study.analysis.structure`): by default the maximal model,
+    ``(1 + condition | participant) [+ (1 + condition | symbol)]``, reduced by the stated
+    rule when its fit is singular."""
 
     outcome: str = "correct"
     test: str = "glmm"
@@ -77,6 +87,21 @@ class PrimaryTest:
     n_quadrature: int = 25
     random_effects: tuple[str, ...] = ("participant",)
     reference: str = ""                # the reference condition; "" = first of plan.conditions
+    structure: str = "maximal"         # "maximal", "intercepts" or an lme4 random part
+    singular_fit: str = "reduce"       # or "keep"
+    reduction: tuple[str, ...] = REDUCTION_STEPS
+
+    @property
+    def random_spec(self) -> RandomSpec:
+        """The random part as :func:`~crs_study.analysis.primary.fit_primary` takes it."""
+        return RandomSpec(self.random_effects, self.structure, self.singular_fit,
+                          self.reduction)
+
+    def model_options(self) -> dict:
+        """The keyword arguments of :func:`~crs_study.analysis.primary.primary_test` and
+        ``fit_primary`` that describe the random part."""
+        return {"structure": self.structure, "singular_fit": self.singular_fit,
+                "reduction": self.reduction}
 
 
 @dataclass(frozen=True)
@@ -207,21 +232,40 @@ def _primary(section: Section, conditions: tuple[str, ...]) -> PrimaryTest:
     test = section.string("test", "glmm", choices=("glmm",))
     method = section.string("method", "laplace", choices=GLMM_METHODS)
     n_quadrature = section.integer("n_quadrature", 25, minimum=1, maximum=MAX_QUADRATURE)
+    structure = section.string("structure", "maximal")
+    written = structure not in STRUCTURES
+    effects_given = section.has("random_effects")
     effects = _strings(section, "random_effects", ("participant",), choices=RANDOM_EFFECTS,
                        unique=True)
+    if written and not effects_given:
+        try:
+            effects = tuple(dict.fromkeys(g for g, *_ in written_terms(structure)))
+        except AnalysisError as exc:
+            raise section.fail("structure", str(exc)) from None
     if "participant" not in effects:
         raise section.fail("random_effects",
                            f"expected 'participant' among the random effects, got {list(effects)}")
     _one_name(section, "random_effects", effects, SYMBOL_EFFECTS)
-    if method == "agq" and len(effects) > 1:
+    singular_fit = section.string("singular_fit", "reduce", choices=SINGULAR_FIT_RULES)
+    reduction = _strings(section, "reduction", REDUCTION_STEPS, choices=REDUCTION_STEPS,
+                         unique=True)
+    try:
+        spec = RandomSpec(effects, structure, singular_fit, reduction)
+    except AnalysisError as exc:
+        raise section.fail("structure", str(exc)) from None
+    single_intercept = len(effects) == 1 and (structure == "intercepts" or (
+        written and written_terms(structure)[0][1:3] == (True, False)))
+    if method == "agq" and not single_intercept:
         raise section.fail("method", "adaptive quadrature needs a single random intercept; "
-                                     f"got 'agq' with random_effects {list(effects)}")
+                                     f"got 'agq' with random_effects {list(effects)} and "
+                                     f"structure {structure!r}")
     reference = section.string("reference", "")
     if reference and conditions and reference not in conditions:
         raise section.fail("reference",
                            f"expected one of plan.conditions {list(conditions)}, got {reference!r}")
     section.done()
-    return PrimaryTest(outcome, test, method, n_quadrature, effects, reference)
+    return PrimaryTest(outcome, test, method, n_quadrature, spec.effects, reference,
+                       spec.structure, spec.singular_fit, spec.reduction)
 
 
 def _exclusions(section: Section) -> Exclusions:

@@ -38,7 +38,17 @@ from scipy import stats
 from crs_study.analysis import glmm
 from crs_study.analysis.accuracy import floor_p, symbol_column_of
 from crs_study.analysis.glmm import GlmmFitError
+from crs_study.analysis.glmm_result import format_pvalue
+from crs_study.analysis.glmm_terms import structure_label
 from crs_study.analysis.jsonable import json_text
+from crs_study.analysis.structure import (
+    REDUCTION_STEPS,
+    ModelStep,
+    RandomSpec,
+    planned_terms,
+    reduce_terms,
+    reduction_reasons,
+)
 from crs_study.errors import AnalysisError
 
 #: Random intercept (as a plan names it) -> its grouping column; the symbol's intercept
@@ -101,6 +111,43 @@ class PrimaryResult:
     omnibus: dict | None
     model: dict | None
     warnings: tuple[str, ...] = field(default=())
+    fits: PrimaryFits | None = field(default=None, repr=False, compare=False)
+
+    def summary(self) -> str:
+        """lme4's ``summary(glmer(...))`` of the model used, the random structure the plan
+        asked for and every reduction step, and the likelihood-ratio test(s)."""
+        if self.fits is None:
+            return "\n".join(["No mixed model was fitted.",
+                              *[f"{c.condition} vs {c.reference}: {c.method}, odds ratio "
+                                f"{c.estimate:.4g}, p = {c.p_value:.3g}"
+                                for c in self.comparisons], *self.warnings])
+        fits = self.fits
+        lines = [fits.full.summary(), "", f"Random structure: the plan asks for "
+                 f"{fits.spec.structure!r} ({structure_label(fits.planned)}), rule for a "
+                 f"singular fit: {fits.spec.singular_fit}"
+                 + (f" ({', then '.join(fits.spec.reduction)})"
+                    if fits.spec.singular_fit == "reduce" else "")]
+        for k, step in enumerate(fits.steps, 1):
+            lines.append(f"  {k}. {step.formula}: "
+                         + (step.action if step.action else "used"))
+        lines += ["", "Likelihood-ratio test(s) of condition (random part as fitted):"]
+        for test in fits.tests:
+            if test.test is None:
+                lines.append(f"  {test.condition} vs {test.reference}: not available "
+                             f"({test.error})")
+                continue
+            lines.append(f"  {test.condition} vs {test.reference}: chi2 = "
+                         f"{test.test.statistic:.4g}, df = {test.test.df}, p = "
+                         f"{format_pvalue(test.test.pvalue)}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        parts = [f"{c.condition} vs {c.reference}: OR "
+                 + ("n/a" if c.estimate is None else f"{c.estimate:.3g}")
+                 + f", p = {format_pvalue(c.p_value)}" for c in self.comparisons]
+        model = ("no mixed model" if self.fits is None else
+                 f"correct ~ condition + {self.fits.full.random_formula}")
+        return f"<PrimaryResult {model}; {'; '.join(parts) or 'no comparison'}; .summary()>"
 
     def to_frame(self) -> pd.DataFrame:
         """One row per comparison (the fields of :class:`Comparison`)."""
@@ -169,49 +216,77 @@ class LrComparison:
 
 @dataclass(frozen=True)
 class PrimaryFits:
-    """The full model and one likelihood-ratio test per non-reference condition."""
+    """The full model and one likelihood-ratio test per non-reference condition.
+
+    ``spec`` is the plan's random part, ``planned`` the terms it asked for on these data,
+    ``steps`` every model the reduction rule fitted (:class:`~.structure.ModelStep`), the one
+    used last.
+    """
 
     full: object = field(repr=False)
     tests: tuple[LrComparison, ...]
     method: str
     warnings: tuple[str, ...] = ()
+    spec: RandomSpec = field(default_factory=RandomSpec)
+    planned: tuple = ()
+    steps: tuple[ModelStep, ...] = ()
 
     def to_frame(self) -> pd.DataFrame:
         return pd.DataFrame([t.to_dict() for t in self.tests])
 
+    def structure(self) -> dict:
+        """What the plan asked for, what was fitted and why (``results.json``'s
+        ``primary.model.structure``)."""
+        return {**self.spec.to_dict(), "planned": structure_label(self.planned),
+                "fitted": self.full.random_formula,
+                "reduced": len(self.steps) > 1,
+                "steps": [step.to_dict() for step in self.steps]}
+
 
 def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
                 random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
-                n_quadrature: int = 25) -> PrimaryFits:
+                n_quadrature: int = 25, *, structure: str = "maximal",
+                singular_fit: str = "reduce",
+                reduction: tuple[str, ...] = REDUCTION_STEPS) -> PrimaryFits:
     """Fit the full model and, per condition, the model without it: the primary LR tests.
 
     No profiles, no files, no report: the unit of work of a power simulation (the same fits
     and tests :func:`primary_test` reports). ``trials`` has ``correct`` (0/1 per row, or the
     number correct when an ``n_trials`` column gives the trials of each row: the aggregated
     form, same likelihood), ``condition``, ``participant_id`` and the symbol shown
-    (``digit`` or ``symbol``); rows with
-    ``correct`` missing are left out. ``conditions`` must hold ``reference`` and another
-    condition. A failure of the full fit raises :class:`GlmmFitError`; of a reduced fit, that
-    test's ``error``. A separated condition (ML odds ratio infinite) is tested at the
-    supremum of the likelihood (:mod:`crs_study.analysis.glmm_separation`).
+    (``digit`` or ``symbol``); rows with ``correct`` missing are left out. ``conditions`` must
+    hold ``reference`` and another condition.
+
+    The random part is the plan's (:mod:`crs_study.analysis.structure`): ``random_effects``
+    the grouping factors, ``structure`` (``maximal``: a random slope of condition by each
+    factor it varies within; ``intercepts``; or lme4 text), and for a singular or failing
+    fit ``singular_fit`` and ``reduction``, applied step by step and recorded in ``steps``.
+    The model without a condition keeps the random part finally used (Barr et al. 2013: the
+    slopes stay in the null model of the test). A failure of every model the rule allows
+    raises :class:`GlmmFitError`; of a reduced fit, that test's ``error``. A separated
+    condition (ML odds ratio infinite) is tested at the supremum of the likelihood
+    (:mod:`crs_study.analysis.glmm_separation`).
     """
     if len(conditions) < 2 or reference not in conditions:
         raise AnalysisError(f"the primary test needs the reference {reference!r} and another "
                             f"condition, got {conditions!r}")
+    spec = RandomSpec(tuple(random_effects), structure, singular_fit, tuple(reduction))
     symbol = symbol_column_of(trials)
     columns = ["correct", "condition", "participant_id", symbol]
     columns += ["n_trials"] if "n_trials" in trials.columns else []
     data = trials.loc[trials["correct"].notna(), columns].reset_index(drop=True)
     data = data.loc[data["condition"].isin(conditions)].reset_index(drop=True)
-    notes = []
-    groups = [symbol if g in SYMBOL_EFFECTS else GROUP_COLUMNS[g] for g in random_effects]
-    if method == "agq" and len(groups) > 1:
-        notes.append("adaptive quadrature needs a single random intercept: fitted with the "
-                     "Laplace approximation instead")
-        method = "laplace"
     counts = "n_trials" if "n_trials" in data.columns else None
     full_design = design(data, conditions, reference)
-    full = _fit(data, full_design, groups, method, n_quadrature, counts)
+    group_columns = {name: symbol if name in SYMBOL_EFFECTS else GROUP_COLUMNS[name]
+                     for name in (*GROUP_COLUMNS, *SYMBOL_EFFECTS)}
+    planned, notes = planned_terms(spec, data, list(full_design.columns[1:]), group_columns)
+    if method == "agq" and not (len(planned) == 1 and planned[0].is_intercept):
+        notes.append(f"adaptive quadrature needs a single random intercept; the plan's model "
+                     f"{structure_label(planned)} is fitted with the Laplace approximation")
+        method = "laplace"
+    full, terms, steps = _fit_by_rule(spec, data, full_design, planned, method, n_quadrature,
+                                      counts)
     tests = []
     for column in full_design.columns[1:]:
         condition = column[len("condition["):-1]
@@ -220,14 +295,43 @@ def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
                                       error="coefficient dropped (no trials or aliased)"))
             continue
         try:
-            reduced = _fit(data, full_design.drop(columns=column), groups, method,
+            reduced = _fit(data, full_design.drop(columns=column), terms, full_design, method,
                            n_quadrature, counts)
         except GlmmFitError as exc:
             tests.append(LrComparison(condition, reference, column, full, error=str(exc)))
             continue
         tests.append(LrComparison(condition, reference, column, full, reduced,
                                   _lrt(full, reduced)))
-    return PrimaryFits(full, tuple(tests), method, tuple(notes))
+    return PrimaryFits(full, tuple(tests), method, tuple(notes), spec, tuple(planned),
+                       tuple(steps))
+
+
+def _fit_by_rule(spec: RandomSpec, data, full_design, terms, method, n_quadrature, counts):
+    """The plan's model, reduced by its rule while the fit is singular, fails or does not
+    converge: ``(fit, terms, steps)``. A random intercept at variance 0 alone is kept (a
+    regular boundary); ``singular_fit = "keep"`` keeps any fit that could be computed."""
+    done: set[str] = set()
+    steps = []
+    while True:
+        label = structure_label(terms)
+        try:
+            fit, error = _fit(data, full_design, terms, full_design, method, n_quadrature,
+                              counts), None
+        except GlmmFitError as exc:
+            fit, error = None, str(exc)
+        reasons = [f"the fit failed ({error})"] if fit is None else reduction_reasons(fit)
+        keep = fit is not None and (not reasons or spec.singular_fit == "keep")
+        following = None if keep else reduce_terms(spec, terms, fit, done)
+        if following is None:
+            if fit is None:
+                raise GlmmFitError(error)
+            steps.append(ModelStep(label, fit.loglike, bool(fit.converged), fit.singular))
+            return fit, terms, steps
+        terms, action = following
+        steps.append(ModelStep(label, None if fit is None else fit.loglike,
+                               bool(fit is not None and fit.converged),
+                               () if fit is None else fit.singular,
+                               f"{'; '.join(reasons)}: {action}", error))
 
 
 def design(trials: pd.DataFrame, conditions: list[str], reference: str) -> pd.DataFrame:
@@ -242,12 +346,15 @@ def design(trials: pd.DataFrame, conditions: list[str], reference: str) -> pd.Da
 
 def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                  random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
-                 n_quadrature: int = 25, alpha: float = 0.05) -> PrimaryResult:
+                 n_quadrature: int = 25, alpha: float = 0.05, *, structure: str = "maximal",
+                 singular_fit: str = "reduce",
+                 reduction: tuple[str, ...] = REDUCTION_STEPS) -> PrimaryResult:
     """Fit the GLMM on the answered ``trials`` and compare each condition with ``reference``.
 
     ``conditions`` are those present in the data, ``reference`` among them. The fits and LR
-    tests are :func:`fit_primary`'s; this adds the profile intervals, the omnibus test and
-    the model summary.
+    tests are :func:`fit_primary`'s (the plan's random part and its rule for a singular fit:
+    ``structure``, ``singular_fit``, ``reduction``); this adds the profile intervals, the
+    omnibus test and the model summary, with the structure planned, fitted and why.
     """
     warnings: list[str] = []
     if len(conditions) < 2 or reference not in conditions:
@@ -255,7 +362,8 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                         f"condition with trials, found {conditions!r}")
         return PrimaryResult((), None, None, tuple(warnings))
     try:
-        fits = fit_primary(trials, conditions, reference, random_effects, method, n_quadrature)
+        fits = fit_primary(trials, conditions, reference, random_effects, method, n_quadrature,
+                           structure=structure, singular_fit=singular_fit, reduction=reduction)
     except GlmmFitError as exc:  # numerical only: a wrong method or n_quadrature raises
         warnings.append(f"the mixed model could not be fitted ({exc}); reported Fisher's exact "
                         "test on the pooled 2 x 2 table of each condition against the reference "
@@ -265,6 +373,7 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                              None, tuple(warnings))
     full = fits.full
     warnings += list(fits.warnings)
+    warnings += _structure_warnings(fits)
     warnings += [f"GLMM: {w}" for w in full.warnings]
     seen = set(full.warnings)
     for group in full.boundary:
@@ -302,10 +411,23 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
     omnibus = None
     if len(comparisons) > 1:
         omnibus = _omnibus(trials, conditions, reference, fits, n_quadrature, warnings)
-    model = full.to_dict(level) if hasattr(full, "to_dict") else None
-    if model is not None:
-        model["random_effects"] = _random_effect_intervals(full, level, warnings)
-    return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings))
+    model = full.to_dict(level)
+    model["random_effects"] = _random_effect_intervals(full, level, warnings)
+    model["structure"] = fits.structure()
+    return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings), fits)
+
+
+def _structure_warnings(fits: PrimaryFits) -> list[str]:
+    """What a reader must know about the random part: every reduction step, and that a model
+    of intercepts alone is anti-conservative when the condition effect varies."""
+    out = [f"GLMM random structure: {step.formula}: {step.action}" for step in fits.steps
+           if step.action]
+    if fits.spec.structure == "intercepts":
+        out.append("GLMM random structure: the plan asks for random intercepts only; when "
+                   "participants (or symbols) differ in the effect of condition, this model's "
+                   "p-value is too small (anti-conservative; Barr et al. 2013): a within-"
+                   "participant design is tested with structure = \"maximal\"")
+    return out
 
 
 def _omnibus(trials, conditions, reference, fits: PrimaryFits, n_quadrature: int,
@@ -316,8 +438,9 @@ def _omnibus(trials, conditions, reference, fits: PrimaryFits, n_quadrature: int
     data = data.reset_index(drop=True)
     counts = "n_trials" if "n_trials" in data.columns else None
     try:
-        null = _fit(data, design(data, conditions, reference)[["Intercept"]],
-                    list(full.groups), fits.method, n_quadrature, counts)
+        full_design = design(data, conditions, reference)
+        null = _fit(data, full_design[["Intercept"]], list(full.terms), full_design,
+                    fits.method, n_quadrature, counts)
     except GlmmFitError as exc:
         warnings.append(f"GLMM omnibus likelihood-ratio test not available: the model "
                         f"without condition could not be fitted ({exc})")
@@ -414,9 +537,10 @@ def _comparison(test: LrComparison, label: str, odds: pd.DataFrame,
         logistic_regression=full.method == "glm")
 
 
-def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, groups: list[str], method: str,
-         n_quadrature: int, trials: str | None = None):
-    return glmm.fit_glmm(data, "correct", design_matrix, groups, trials=trials, method=method,
+def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, terms, random_design: pd.DataFrame,
+         method: str, n_quadrature: int, trials: str | None = None):
+    return glmm.fit_glmm(data, "correct", design_matrix, random=terms,
+                         random_design=random_design, trials=trials, method=method,
                          n_quadrature=n_quadrature)
 
 
@@ -428,8 +552,7 @@ def _method_label(model) -> str:
     how = {"laplace": "Laplace", "agq": f"AGQ {model.n_quadrature} points",
            "glm": "no random effect estimable: logistic regression"}.get(model.method,
                                                                         model.method)
-    effects = "".join(f" + (1 | {g.removesuffix('_id')})"
-                      for g in model.variance_components.index)
+    effects = "" if model.random_formula == "none" else f" + {model.random_formula}"
     penalty = (", separation: ML odds ratio infinite, LR test at the supremum"
                if model.separation is not None else "")
     return f"GLMM correct ~ condition{effects} ({how}{penalty}); odds ratio, LR test"

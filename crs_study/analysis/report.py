@@ -313,7 +313,8 @@ def run_analyses(data: StudyData) -> Analysis:
                             f"% correct ({row['n_correct']}/{row['n_trials']}): its odds are "
                             "infinite (separation); see the GLMM note on what was done")
     primary = primary_test(trials, conditions, reference, plan.primary.random_effects,
-                           plan.primary.method, plan.primary.n_quadrature, alpha)
+                           plan.primary.method, plan.primary.n_quadrature, alpha,
+                           **plan.primary.model_options())
     warnings += primary.warnings
     secondary = secondary_tests(trials, accuracy.by_participant, conditions, reference,
                                 plan.secondary.tests, plan.secondary.correction, alpha)

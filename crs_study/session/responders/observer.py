@@ -119,6 +119,7 @@ class ObserverOptions:
     path_points: int = 16
     temperature_mm: float = 1.9
     ability_sd: float = 0.25
+    benefit_sd: float = 0.25
     lapse: float = 0.05
     rt_median_s: float = 0.5
     rt_uncertainty: float = 2.0
@@ -131,7 +132,7 @@ class ObserverOptions:
                 raise ConfigError(f"observer option {name}: expected a number > 0, "
                                   f"got {getattr(self, name)!r}")
         for name in ("skin_blur_mm", "noise_mm", "detect_mm", "rt_uncertainty", "rt_sigma",
-                     "reuse_tolerance_mm", "ability_sd"):
+                     "reuse_tolerance_mm", "ability_sd", "benefit_sd"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"observer option {name}: expected a number >= 0, "
                                   f"got {getattr(self, name)!r}")
@@ -201,8 +202,11 @@ class PerceptualObserver(Responder):
         self.seed = int(seed)
         # Participants differ: each simulated person's decision noise is the default times
         # exp(ability_sd z), z ~ N(0, 1) drawn once from the seed (a stream apart from the
-        # per-trial ones), so a group has a real between-participant variance to estimate.
+        # per-trial ones), so a group has a real between-participant variance to estimate;
+        # and in how much the skeleton helps them: a second draw, exp(+-benefit_sd w / 2)
+        # (module docstring, "Participants").
         ability = np.random.default_rng([self.seed, 1, 0]).standard_normal()
+        self.benefit_z = float(np.random.default_rng([self.seed, 1, 1]).standard_normal())
         self.temperature_mm = self.options.temperature_mm * float(
             np.exp(self.options.ability_sd * ability))
         self._layout_key = layout_key(self.layout)
@@ -223,6 +227,14 @@ class PerceptualObserver(Responder):
         """The display model the skin meets in ``condition``."""
         return self.options.pixel_model if condition == "pixel-only" else \
             self.options.skeleton_model
+
+    def temperature(self, condition: str) -> float:
+        """This participant's decision noise in ``condition`` (mm): the ability's temperature
+        times ``exp(benefit_sd w s / 2)``, ``s`` = -1 on the pixels alone, +1 on the
+        skeleton."""
+        side = benefit_side(condition)
+        return self.temperature_mm * float(np.exp(0.5 * side * self.options.benefit_sd
+                                                  * self.benefit_z))
 
     def _surface_function(self, model_name: str):
         key = (model_name, self._layout_key, self._points.tobytes())
@@ -313,9 +325,11 @@ class PerceptualObserver(Responder):
         return self._templates[key]
 
     def choice_probabilities(self, path: np.ndarray, choices: tuple[int, ...],
-                             level: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                             level: float | None = None, condition: str | None = None
+                             ) -> tuple[np.ndarray, np.ndarray]:
         """(p, d): choice probabilities and template distances (mm) for each choice, against
-        the templates at the trial's ``level`` (None: no levels)."""
+        the templates at the trial's ``level`` (None: no levels), at this participant's
+        temperature in ``condition`` (None: the ability's alone)."""
         o = self.options
         n = len(choices)
         if len(path) < 2:
@@ -323,7 +337,8 @@ class PerceptualObserver(Responder):
         shape = _normalise(path, o.path_points)
         d = np.array([np.sqrt(np.mean(np.sum((shape - self.template(c, level)) ** 2, axis=1)))
                       for c in choices])
-        logits = -(d - d.min()) / self.temperature_mm
+        temperature = self.temperature_mm if condition is None else self.temperature(condition)
+        logits = -(d - d.min()) / temperature
         p = np.exp(logits)
         p /= p.sum()
         return (1.0 - o.lapse) * p + o.lapse / n, d
@@ -334,7 +349,8 @@ class PerceptualObserver(Responder):
         rng = trial_rng(self.seed, trial.index)
         choices = tuple(stimulus.symbol_choices)
         path = self.peak_path(stimulus, rng)
-        p, d = self.choice_probabilities(path, choices, getattr(trial, "level", None))
+        p, d = self.choice_probabilities(path, choices, getattr(trial, "level", None),
+                                         stimulus.condition)
         u = rng.random()
         index = min(int(np.searchsorted(np.cumsum(p), u * p.sum(), side="right")),
                     len(choices) - 1)
@@ -346,6 +362,12 @@ class PerceptualObserver(Responder):
                               "entropy": entropy, "decision_s": decision_s}
         return respond_at(clock, stimulus, stimulus.duration_s + decision_s, time_limit_s,
                           choices[index])
+
+
+def benefit_side(condition: str) -> float:
+    """-1 for the pixels alone, +1 for a condition with the skeleton: the sign of a
+    participant's benefit draw in that condition's decision noise."""
+    return -1.0 if condition == "pixel-only" else 1.0
 
 
 def _largest_half_diagonal(protocol: Protocol, layout: Layout) -> float:
