@@ -101,6 +101,7 @@ def test_adaptive_quadrature_when_planned():
     trials = _trials(n_participants=10, n_per_cell=30, seed=5)
     laplace = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
     agq = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq",
+                       structure="intercepts",
                        n_quadrature=15)
     assert "AGQ 15 points" in agq.comparisons[0].method
     # same data, close estimates (Laplace and AGQ differ by the integral's approximation only)
@@ -141,18 +142,21 @@ def test_a_configuration_error_surfaces_instead_of_the_fisher_fallback(n_quadrat
 
 def test_the_plan_and_the_glmm_share_one_quadrature_limit():
     plan = AnalysisPlan.from_dict({"plan": {"name": "x"}, "primary": {
-        "method": "agq", "n_quadrature": MAX_QUADRATURE}}, "p.toml")
+        "method": "agq", "n_quadrature": MAX_QUADRATURE, "structure": "intercepts"}},
+        "p.toml")
     assert plan.primary.n_quadrature == MAX_QUADRATURE
     with pytest.raises(PlanError, match=rf"primary\.n_quadrature: expected .*{MAX_QUADRATURE}"
                        ) as info:
         AnalysisPlan.from_dict({"plan": {"name": "x"}, "primary": {
-            "method": "agq", "n_quadrature": MAX_QUADRATURE + 1}}, "p.toml")
+            "method": "agq", "n_quadrature": MAX_QUADRATURE + 1,
+            "structure": "intercepts"}}, "p.toml")
     assert "\n" not in str(info.value)
     # what the plan accepts, the fit accepts: the largest rule runs (and agrees with 25 points)
     trials = _trials(n_participants=6, n_per_cell=10, seed=3)
     top = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq",
-                       n_quadrature=MAX_QUADRATURE)
-    usual = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq")
+                       n_quadrature=MAX_QUADRATURE, structure="intercepts")
+    usual = primary_test(trials, ["pixel-only", "crs"], "pixel-only", method="agq",
+                         structure="intercepts")
     assert top.comparisons[0].log_odds == pytest.approx(usual.comparisons[0].log_odds, abs=1e-6)
 
 

@@ -58,7 +58,10 @@ def test_predictions_are_deterministic_and_shaped_by_the_protocol(tmp_path):
     assert np.array_equal(first.accuracy, again.accuracy)
     assert ((first.accuracy > 0) & (first.accuracy < 1)).all()
     assert first.participant_sd() > 0
-    assert predict(path, draws=6, ability_sd=0.0).participant_sd() == 0.0
+    cov = first.participant_covariance()
+    assert cov.shape == (2, 2) and cov[1, 1] > 0        # people differ in the CRS benefit
+    alike = predict(path, draws=6, ability_sd=0.0, benefit_sd=0.0)
+    assert alike.participant_sd() == 0.0 and not alike.participant_covariance().any()
 
 
 @pytest.fixture(scope="module")
@@ -134,8 +137,9 @@ def test_mode_2_takes_a_given_participant_sd_and_the_designs_condition_order():
 
 
 def test_participants_differ_as_the_observers_do(tmp_path):
-    """Without a given SD a participant of ability z has the observer's accuracy at the
-    temperature T exp(ability_sd z), every cell (the table interpolated in z)."""
+    """Without a given SD a participant of ability z and benefit draw w has the observer's
+    accuracy at the temperature T exp(ability_sd z -+ benefit_sd w / 2) in each condition
+    (the table interpolated in the log-temperature offset)."""
     from scipy.special import logit
 
 
@@ -143,12 +147,23 @@ def test_participants_differ_as_the_observers_do(tmp_path):
     design = design_from_protocol(path)
     prediction = predict(path, draws=6)
     model = model_from_observer(design, path, prediction=prediction)
-    for z in (0.0, 0.73, -1.9):
-        direct = logit(prediction.p_correct(prediction.temperature_mm
-                                             * np.exp(prediction.ability_sd * z)))
-        np.testing.assert_allclose(model.participant_logits(z), direct, atol=2e-3)
+    sides = np.array([-1.0, 1.0])                  # pixel-only, crs (the design's order)
+    for z, w in ((0.0, 0.0), (0.73, -1.2), (-1.9, 0.4)):
+        offsets = prediction.ability_sd * z + 0.5 * prediction.benefit_sd * sides * w
+        direct = np.stack([logit(prediction.p_correct(prediction.temperature_mm
+                                                      * np.exp(o)))[..., c]
+                           for c, o in enumerate(offsets)], axis=-1)
+        np.testing.assert_allclose(model.participant_logits(z, [w]), direct, atol=2e-3)
     sharp, blunt = model.participant_logits(-2.0), model.participant_logits(2.0)
     assert (sharp.mean(axis=1) > blunt.mean(axis=1)).all()     # lower temperature: better
+    helped, hindered = model.participant_logits(0.0, [-2.0]), model.participant_logits(0.0,
+                                                                                     [2.0])
+    gain = lambda x: x[..., 1].mean() - x[..., 0].mean()      # noqa: E731
+    assert gain(helped) > gain(hindered)                       # the benefit varies
     given = model_from_observer(design, path, participant_sd=0.3, prediction=prediction)
     assert given.ability is None
     np.testing.assert_allclose(given.participant_logits(1.0), given.base + 0.3)
+    sloped = model_from_observer(design, path, participant_sd=0.3, participant_slope_sd=0.5,
+                                 prediction=prediction)
+    np.testing.assert_allclose(sloped.participant_logits(1.0, [2.0]),
+                               sloped.base + 0.3 + np.array([0.0, 1.0]))

@@ -10,7 +10,7 @@ from scipy import stats
 
 from crs_study.power_analysis import PowerDesign, model_from_parameters
 from crs_study.power_analysis.result import PowerResult
-from crs_study.power_analysis.study import FISHER, LR, SEPARATED, WALD
+from crs_study.power_analysis.study import FISHER, LR, SEPARATED, WALD, recorded_parameters
 
 DESIGN = PowerDesign(("pixel-only", "crs"), "pixel-only", tuple(range(10)), (None,), 5)
 MODEL = model_from_parameters(DESIGN, {"pixel-only": 0.5, "crs": 0.6}, participant_sd=0.4)
@@ -25,8 +25,10 @@ def _result(powers, studies=1000, sizes=None, kinds=None) -> PowerResult:
         p[i, :round(power * studies), 0] = 0.001
     kind = np.full((P, studies, 1), LR, dtype=np.int8) if kinds is None else kinds
     raw = {"p_value": p, "kind": kind, "log_odds": np.where(p < 0.05, 0.4, 0.1),
-           "theta": np.zeros((P, studies, 4)), "converged": np.ones((P, studies), bool),
-           "boundary": np.zeros((P, studies), bool), "reference": np.zeros((P, studies), bool),
+           "theta": np.zeros((P, studies, len(recorded_parameters(DESIGN)))),
+           "converged": np.ones((P, studies), bool),
+           "boundary": np.zeros((P, studies), bool), "reduced": np.zeros((P, studies), bool),
+           "reference": np.zeros((P, studies), bool),
            "loglike": np.zeros((P, studies)), "loglike_reduced": np.zeros((P, studies, 1))}
     return PowerResult(DESIGN, MODEL, tuple((n, 5) for n in sizes), raw, seed=1, target=0.8)
 

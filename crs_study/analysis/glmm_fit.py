@@ -119,7 +119,7 @@ def describe_face(face, terms, theta: np.ndarray, n_fixed: int) -> BoundaryFace:
         what = "random intercept" if column == INTERCEPT else f"random slope of {column!r}"
         return BoundaryFace(term.label(), group, "variance", (column,), face.slope,
                             f"the variance of the {what} for {group!r} is estimated at 0"
-                            f"{where}", in_slope_term=term.size > 1)
+                            f"{where}", in_slope_term=face.block.matrix)
 
     if not face.block.matrix:
         return variance(term.columns[face.block.indices[0] - start])

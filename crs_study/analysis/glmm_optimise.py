@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
+from crs_study.analysis.glmm_newton import newton
 from crs_study.analysis.glmm_terms import Block, loading, rank_deficient_loading, theta_of
 
 #: A sigma below this after a local fit is compared with the boundary fit (sigma = 0).
@@ -151,13 +152,48 @@ class _Counted:
         return -value, -g[self.mask]
 
 
+class _Single:
+    """One fit as :func:`~.glmm_newton.newton` takes a batch (S = 1), calls counted."""
+
+    def __init__(self, problem):
+        self.problem = problem
+        self.warm = np.zeros((1, 0))     # the model keeps its own warm start
+        self.calls = 0
+
+    def evaluate(self, theta: np.ndarray, grad: bool = True):
+        self.calls += 1
+        if not grad:
+            return np.array([self.problem.objective(theta[0], grad=False)]), None
+        value, g = self.problem.objective(theta[0])
+        return np.array([value]), np.asarray(g)[None]
+
+    def subset(self, index) -> _Single:
+        return self
+
+    def normalised(self, theta: np.ndarray) -> np.ndarray:
+        return normalise(self.problem, theta[0])[None]
+
+
 def local_fit(problem, start: np.ndarray, held: dict[int, float],
               methods=_METHODS) -> Optimum:
     """One unconstrained local maximisation (theta of any sign; returned normalised).
 
-    TNC first; L-BFGS-B from TNC's end when the gradient there is not yet small.
+    Newton's method (:func:`~.glmm_newton.newton`: the exact gradient, a differenced
+    Hessian) first; where it stops short of its gradient tolerance, scipy's TNC from the
+    start, then L-BFGS-B from TNC's end when the gradient there is not yet small.
     """
+    single = _Single(problem)
+    theta0 = np.asarray(start, float).copy()
+    mask = np.zeros(len(theta0), dtype=bool)
+    for i, value in held.items():
+        theta0[i], mask[i] = value, True
+    theta, value, converged, iterations, _ = newton(single, theta0[None], mask[None])
+    if converged[0] and np.isfinite(value[0]):
+        value = problem.objective(theta[0], grad=False)
+        return Optimum(theta[0], float(value), [], single.calls + 1, int(iterations[0]), 0,
+                       "Newton: gradient below tolerance")
     counted = _Counted(problem, held, len(start))
+    counted.calls = single.calls
     x = start[counted.mask]
     iterations, message = 0, "no free parameter"
     if len(x):

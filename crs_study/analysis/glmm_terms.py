@@ -289,10 +289,10 @@ class ThetaLayout:
             if self.terms else np.zeros(0)
 
     def normalised(self, theta: np.ndarray) -> np.ndarray:
-        """``theta`` (size,) with every ``T_k``'s diagonal made non-negative."""
+        """``theta`` (..., size) with every ``T_k``'s diagonal made non-negative."""
         out = np.asarray(theta, dtype=float).copy()
         for term, cut in zip(self.terms, self.slices, strict=True):
-            out[cut] = normalised(term, out[cut])
+            out[..., cut] = normalised(term, out[..., cut])
         return out
 
     def covariances(self, theta: np.ndarray) -> list[np.ndarray]:

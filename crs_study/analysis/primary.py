@@ -283,7 +283,7 @@ def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
     planned, notes = planned_terms(spec, data, list(full_design.columns[1:]), group_columns)
     if method == "agq" and not (len(planned) == 1 and planned[0].is_intercept):
         notes.append(f"adaptive quadrature needs a single random intercept; the plan's model "
-                     f"{structure_label(planned)} is fitted with the Laplace approximation")
+                     f"{structure_label(planned)} is fitted with the Laplace approximation instead")
         method = "laplace"
     full, terms, steps = _fit_by_rule(spec, data, full_design, planned, method, n_quadrature,
                                       counts)
@@ -418,10 +418,10 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
 
 
 def _structure_warnings(fits: PrimaryFits) -> list[str]:
-    """What a reader must know about the random part: every reduction step, and that a model
-    of intercepts alone is anti-conservative when the condition effect varies."""
-    out = [f"GLMM random structure: {step.formula}: {step.action}" for step in fits.steps
-           if step.action]
+    """A caution the random part calls for: a model of intercepts alone is anti-conservative
+    when the condition effect varies. (The reduction steps are the model's story, told in
+    ``model.structure`` and the report, not warnings.)"""
+    out = []
     if fits.spec.structure == "intercepts":
         out.append("GLMM random structure: the plan asks for random intercepts only; when "
                    "participants (or symbols) differ in the effect of condition, this model's "

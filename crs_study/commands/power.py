@@ -35,6 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     effect.add_argument("--participant-sd", metavar="SD", default=None,
                         help="between-participant SD on the logit scale (default: the "
                              "observer's calibration, or the pilot's estimate)")
+    effect.add_argument("--participant-slope-sd", metavar="SD", default=None,
+                        help="how much participants differ in the condition effect: the SD "
+                             "of its random slope on the logit scale (default: the "
+                             "observer's calibration, or the pilot's estimate)")
     effect.add_argument("--fidelity", metavar="model|full", default="model",
                         help="model: trials drawn from the model; full: every study is real "
                              "dry-runs (slow)")
@@ -118,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
     options = {
         "effect_scale": _number(args.effect_scale, "--effect-scale", float, 0),
         "participant_sd": _number(args.participant_sd, "--participant-sd", float, 0),
+        "participant_slope_sd": _number(args.participant_slope_sd, "--participant-slope-sd",
+                                        float, 0),
         "studies": _number(args.studies, "--studies", int, 2),
         "target": _number(args.target, "--target", float),
         "seed": _number(args.seed, "--seed", int, 0),

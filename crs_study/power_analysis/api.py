@@ -31,7 +31,8 @@ FIDELITIES = ("model", "full")
 
 
 def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float = 1.0,
-          participant_sd: float | None = None, participants: Any = "4:40:4",
+          participant_sd: float | None = None, participant_slope_sd: float | None = None,
+          participants: Any = "4:40:4",
           repetitions: Any = None, studies: int = 1000, seed: int = DEFAULT_SEED,
           target: float = 0.8, fidelity: str = "model", jobs: int = 1, scheduler: Any = None,
           plan: Any = None, model: GenerativeModel | None = None, draws: int | None = None,
@@ -49,6 +50,9 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     effect_scale : multiplies the condition effect(s) of the generating model.
     participant_sd : between-participant SD (logit scale) of mode 2; default: from the
         observer's calibration. With a pilot it replaces the pilot's estimate.
+    participant_slope_sd : the SD (logit scale) over participants of the condition effect
+        (the random slope the plan's maximal model fits); default: the observer's
+        calibration or the pilot's estimate, which it replaces.
     participants, repetitions : ranges (``"4:40:4"``, ``"3:10"``, a number or a list);
         repetitions default to the protocol's.
     studies : simulated studies per point. seed : the run's seed (the same seed gives the
@@ -76,7 +80,7 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     """
     started, cpu_started = time.perf_counter(), time.process_time()
     checks = _checked(participants, repetitions, studies, seed, target, fidelity, jobs,
-                      effect_scale, participant_sd)
+                      effect_scale, participant_sd, participant_slope_sd)
     participants, repetitions_given, studies = checks
     design = design_from_protocol(protocol, plan)   # a protocol or plan error names its file
     reps = repetitions_given or (design.repetitions,)
@@ -95,15 +99,17 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     with open_backend(jobs, scheduler) as backend:      # an unreachable scheduler fails here
         if fidelity == "full":
 
-            generating = _observer_model(design, protocol, participant_sd, draws, backend,
-                                         effect_scale, notify)
+            generating = _observer_model(design, protocol, participant_sd,
+                                         participant_slope_sd, draws, backend, effect_scale,
+                                         notify)
             raw = run_full(design, seed, participants, studies, backend, progress)
             notes.append("fidelity full: every study is dry-runs of the protocol by the "
                          "simulated observer, analysed as analyze does; the model shown is "
                          "the observer's prediction, for comparison")
         else:
             generating = model if model is not None else _generating_model(
-                design, protocol, pilot, effect_scale, participant_sd, draws, backend, notify)
+                design, protocol, pilot, effect_scale, participant_sd, participant_slope_sd,
+                draws, backend, notify)
             if model is not None and effect_scale != 1.0:
                 generating = generating.scaled(effect_scale)
             tasks = [PowerTask(design, generating, seed, participants, reps,
@@ -126,7 +132,7 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
 
 
 def _checked(participants, repetitions, studies, seed, target, fidelity, jobs, effect_scale,
-             participant_sd):
+             participant_sd, participant_slope_sd=None):
     """Every option checked before anything runs (one line naming the option)."""
     import math
 
@@ -148,28 +154,27 @@ def _checked(participants, repetitions, studies, seed, target, fidelity, jobs, e
     if not isinstance(effect_scale, int | float) or not math.isfinite(effect_scale) \
             or effect_scale < 0:
         raise PowerError(f"--effect-scale: expected a number >= 0, got {effect_scale!r}")
-    if participant_sd is not None and (not isinstance(participant_sd, int | float)
-                                       or not math.isfinite(participant_sd)
-                                       or participant_sd < 0):
-        raise PowerError(f"--participant-sd: expected a number >= 0, got {participant_sd!r}")
+    for option, value in (("--participant-sd", participant_sd),
+                          ("--participant-slope-sd", participant_slope_sd)):
+        if value is not None and (not isinstance(value, int | float) or isinstance(value, bool)
+                                  or not math.isfinite(value) or value < 0):
+            raise PowerError(f"{option}: expected a number >= 0, got {value!r}")
     return participants, repetitions, studies
 
 
 def _generating_model(design: PowerDesign, protocol, pilot, effect_scale,
-                      participant_sd, draws, backend: Backend, notify) -> GenerativeModel:
-    from dataclasses import replace
-
+                      participant_sd, participant_slope_sd, draws, backend: Backend,
+                      notify) -> GenerativeModel:
     if pilot is not None:
-
-        generating = model_from_pilot(design, pilot)
-        if participant_sd is not None:
-            generating = replace(generating, participant_sd=float(participant_sd))
+        generating = model_from_pilot(design, pilot).with_sds(participant_sd,
+                                                              participant_slope_sd)
         return generating.scaled(effect_scale)
-    return _observer_model(design, protocol, participant_sd, draws, backend, effect_scale,
-                           notify)
+    return _observer_model(design, protocol, participant_sd, participant_slope_sd, draws,
+                           backend, effect_scale, notify)
 
 
-def _observer_model(design, protocol, participant_sd, draws, backend, effect_scale, notify):
+def _observer_model(design, protocol, participant_sd, participant_slope_sd, draws, backend,
+                    effect_scale, notify):
 
     source = protocol if hasattr(protocol, "design") else design.protocol_path
     if notify:
@@ -177,5 +182,5 @@ def _observer_model(design, protocol, participant_sd, draws, backend, effect_sca
         notify(f"predicting the simulated observer's accuracy of {stimuli} stimuli "
                f"({draws or DEFAULT_DRAWS} noise draws each)")
     prediction = predict(source, draws or DEFAULT_DRAWS, backend=backend)
-    return model_from_observer(design, source, participant_sd,
-                               prediction=prediction).scaled(effect_scale)
+    return model_from_observer(design, source, participant_sd, prediction=prediction,
+                               participant_slope_sd=participant_slope_sd).scaled(effect_scale)

@@ -25,6 +25,7 @@ import numpy as np
 
 from crs_study.analysis.plan import SYMBOL_EFFECTS, AnalysisPlan, default_plan_path, load_plan
 from crs_study.analysis.report import order_conditions
+from crs_study.analysis.structure import REDUCTION_STEPS, RandomSpec
 from crs_study.errors import CrsStudyError
 from crs_study.paths import resolve_protocol
 from crs_study.protocol import analysis_plan_path, load_protocol
@@ -63,6 +64,9 @@ class PowerDesign:
     method: str = "laplace"
     n_quadrature: int = 25
     alpha: float = 0.05
+    structure: str = "maximal"
+    singular_fit: str = "reduce"
+    reduction: tuple[str, ...] = REDUCTION_STEPS
     protocol: str = ""
     plan: str = ""
     protocol_path: str | None = None
@@ -90,6 +94,17 @@ class PowerDesign:
         elif len(self.symbol_keys) != len(self.symbols):
             raise PowerError(f"the design needs a stream key per symbol, got "
                              f"{self.symbol_keys!r} for {self.symbols!r}")
+
+    @property
+    def random_spec(self) -> RandomSpec:
+        """The plan's random part (:mod:`crs_study.analysis.structure`)."""
+        return RandomSpec(self.random_effects, self.structure, self.singular_fit,
+                          self.reduction)
+
+    def model_options(self) -> dict:
+        """The keyword arguments of ``fit_primary`` that describe the random part."""
+        return {"structure": self.structure, "singular_fit": self.singular_fit,
+                "reduction": self.reduction}
 
     @property
     def comparisons(self) -> tuple[str, ...]:
@@ -142,7 +157,9 @@ class PowerDesign:
                "conditions": list(self.conditions), "reference": self.reference,
                "digits": list(self.symbols), "levels": list(self.levels),
                "repetitions": self.repetitions, "random_effects": list(self.random_effects),
-               "method": self.method, "n_quadrature": self.n_quadrature, "alpha": self.alpha,
+               "structure": self.structure, "singular_fit": self.singular_fit,
+               "reduction": list(self.reduction), "method": self.method,
+               "n_quadrature": self.n_quadrature, "alpha": self.alpha,
                "symbols": list(self.symbols), "symbol_column": self.symbol_column,
                "noun": self.noun}
         if self.symbol_column != "digit":
@@ -181,6 +198,8 @@ def design_from_protocol(protocol: Any, plan: Any = None) -> PowerDesign:
         levels=tuple(protocol.level_values), repetitions=repetitions,
         random_effects=tuple(primary.random_effects), method=primary.method,
         n_quadrature=int(primary.n_quadrature), alpha=float(plan.alpha),
+        structure=primary.structure, singular_fit=primary.singular_fit,
+        reduction=tuple(primary.reduction),
         protocol=f"{protocol.study_id} {protocol.version}", plan=plan.name,
         protocol_path=str(Path(protocol.path)), exclusions=plan.exclusions,
         symbol_column=shown.column, noun=shown.noun, symbol_keys=symbol_keys(protocol))

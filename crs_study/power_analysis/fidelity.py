@@ -59,7 +59,7 @@ def run_study(task: FidelityTask) -> TaskResult:
         rows.append(decide_trials(design, trials.loc[trials["participant_id"].isin(order[:n])]))
     stack = {key: np.stack([np.asarray(r[key]) for r in rows])[:, None]
              for key in ("p_value", "kind", "log_odds", "theta", "converged", "boundary",
-                         "loglike", "loglike_reduced")}
+                         "reduced", "loglike", "loglike_reduced")}
     stack["reference"] = np.ones((len(rows), 1), dtype=bool)
     return TaskResult((task.study, task.study + 1), seconds=time.process_time() - start,
                       **stack)

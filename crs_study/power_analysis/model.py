@@ -30,6 +30,7 @@ import numpy as np
 from scipy.special import logit
 
 from crs_study.analysis.glmm import GlmmFitError
+from crs_study.analysis.glmm_simulate import psd_factor, slope_covariance
 from crs_study.analysis.load import load_datasets, with_exclusions
 from crs_study.analysis.plan import Exclusions
 from crs_study.analysis.primary import fit_primary
@@ -44,10 +45,16 @@ class GenerativeModel:
     """``base`` (L, D, C) log-odds of the typical participant and symbol; the SDs on the logit
     scale (``digit_sd``: the SD of the symbol's random intercept, whatever the set; it kept
     the name it had when every protocol showed digits, :attr:`symbol_sd` is the same);
-    ``ability`` (G, L, D, C) the log-odds of a participant of ability ``z =
-    ability_grid[g]`` (evenly spaced), used instead of ``base + participant_sd z`` when given
-    (``participant_sd`` then only summarises it and starts the fits); ``source`` and
-    ``details`` say where the numbers come from."""
+    ``source`` and ``details`` say where the numbers come from.
+
+    Random slopes: ``participant_cov`` (C, C), the covariance of a participant's effects
+    (intercept, then the slope of each non-reference condition, treatment coding as the
+    GLMM's), and ``symbol_cov`` likewise; None: a random intercept of ``participant_sd``
+    (``digit_sd``) alone. ``ability`` (G, L, D, C), the observer's log-odds at decision
+    noise ``T exp(ability_grid[g])`` (evenly spaced log-temperature offsets), is used instead
+    when given: a participant's offset in condition ``c`` is ``ability_sd z + benefit_sd
+    benefit_sides[c] w / 2`` (``z``, ``w`` ~ N(0, 1)), and ``participant_cov`` then only
+    summarises it (reports, the fits' starts)."""
 
     base: np.ndarray = field(repr=False)
     participant_sd: float
@@ -56,6 +63,11 @@ class GenerativeModel:
     details: dict = field(default_factory=dict, compare=False)
     ability: np.ndarray | None = field(default=None, repr=False)
     ability_grid: np.ndarray | None = field(default=None, repr=False)
+    participant_cov: np.ndarray | None = field(default=None, repr=False)
+    symbol_cov: np.ndarray | None = field(default=None, repr=False)
+    ability_sd: float = 0.0
+    benefit_sd: float = 0.0
+    benefit_sides: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         base = np.asarray(self.base, dtype=float)
@@ -67,6 +79,19 @@ class GenerativeModel:
             if not (np.isfinite(value) and value >= 0):
                 raise PowerError(f"--{name.replace('_', '-')}: expected a number >= 0, "
                                  f"got {value!r}")
+        C = base.shape[2]
+        for name in ("participant_cov", "symbol_cov"):
+            cov = getattr(self, name)
+            if cov is None:
+                continue
+            cov = np.asarray(cov, dtype=float)
+            if cov.shape != (C, C) or not np.all(np.isfinite(cov)) or not np.allclose(
+                    cov, cov.T) or np.linalg.eigvalsh(cov)[0] < -1e-9 * max(1.0, np.abs(
+                        cov).max()):
+                raise PowerError(f"the model's {name.replace('_', ' ')}ariance must be a "
+                                 f"covariance matrix ({C} x {C}: intercept and a slope per "
+                                 f"non-reference condition), got {cov.tolist()!r}")
+            object.__setattr__(self, name, cov)
         object.__setattr__(self, "base", base)
 
     @property
@@ -74,40 +99,86 @@ class GenerativeModel:
         """The SD of the symbol's random intercept (:attr:`digit_sd`)."""
         return self.digit_sd
 
+    def covariance(self, who: str) -> np.ndarray:
+        """The covariance (C, C) of a participant's (``who = "participant"``) or a symbol's
+        effects: intercept, then a slope per non-reference condition."""
+        C = self.base.shape[2]
+        given = self.participant_cov if who == "participant" else self.symbol_cov
+        if given is not None:
+            return given
+        out = np.zeros((C, C))
+        out[0, 0] = (self.participant_sd if who == "participant" else self.digit_sd) ** 2
+        return out
+
+    def with_sds(self, participant_sd: float | None = None,
+                 participant_slope_sd: float | None = None) -> GenerativeModel:
+        """The model with the participants' intercept SD and/or every slope's SD replaced
+        (their correlations kept); None leaves a number as it is."""
+        if participant_sd is None and participant_slope_sd is None:
+            return self
+        cov = self.covariance("participant")
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = np.nan_to_num(cov / np.outer(sd, sd))
+        np.fill_diagonal(corr, 1.0)
+        if participant_sd is not None:
+            sd[0] = float(participant_sd)
+        if participant_slope_sd is not None:
+            sd[1:] = float(participant_slope_sd)
+        return replace(self, participant_sd=float(sd[0]), participant_cov=corr * np.outer(sd, sd),
+                       ability=None, ability_grid=None)
+
+    def slope_sd(self, who: str = "participant") -> np.ndarray:
+        """The SD of each non-reference condition's random slope (C - 1,)."""
+        return np.sqrt(np.clip(np.diag(self.covariance(who))[1:], 0.0, None))
+
     def scaled(self, effect_scale: float) -> GenerativeModel:
-        """Every condition's difference from the reference (condition 0) times the scale."""
+        """Every condition's difference from the reference (condition 0) times the scale,
+        for the typical participant and symbol; how participants and symbols differ in it
+        (the slopes) stays as it is, as simr's ``fixef(model)["condition"] <- value``."""
         if not (np.isfinite(effect_scale) and effect_scale >= 0):
             raise PowerError(f"--effect-scale: expected a number >= 0, got {effect_scale!r}")
-        def scale(logits):
-            ref = logits[..., :1]
-            return ref + effect_scale * (logits - ref)
-
-        return replace(self, base=scale(self.base),
-                       ability=None if self.ability is None else scale(self.ability),
+        ref = self.base[..., :1]
+        base = ref + effect_scale * (self.base - ref)
+        return replace(self, base=base,
+                       ability=None if self.ability is None else
+                       self.ability + (base - self.base)[None],
                        details={**self.details, "effect_scale": effect_scale})
 
-    def participant_logits(self, z: float) -> np.ndarray:
-        """The log-odds (L, D, C) of a participant of ability ``z``, typical symbols."""
+    def participant_logits(self, z: float, w: np.ndarray | None = None) -> np.ndarray:
+        """The log-odds (L, D, C) of a participant of ability ``z`` and slope draws ``w``
+        (C - 1 standard normals; None: zeros), typical symbols."""
+        C = self.base.shape[2]
+        draws = np.r_[z, np.zeros(C - 1) if w is None else np.asarray(w, dtype=float)]
         if self.ability is None:
-            return self.base + self.participant_sd * z
+            effect = psd_factor(self.covariance("participant")) @ draws
+            return self.base + effect[0] + np.r_[0.0, effect[1:]]
+        sides = np.asarray(self.benefit_sides or (0.0,) * C)
+        offsets = self.ability_sd * z + 0.5 * self.benefit_sd * sides * draws[1]
         grid = self.ability_grid
         step = grid[1] - grid[0]
-        g = int(np.clip(np.floor((z - grid[0]) / step), 0, len(grid) - 2))
-        w = (z - grid[g]) / step
-        return (1.0 - w) * self.ability[g] + w * self.ability[g + 1]
+        out = np.empty(self.base.shape)
+        for c, offset in enumerate(offsets):
+            g = int(np.clip(np.floor((offset - grid[0]) / step), 0, len(grid) - 2))
+            t = (offset - grid[g]) / step
+            out[..., c] = (1.0 - t) * self.ability[g, ..., c] + t * self.ability[g + 1, ..., c]
+        return out
 
     def start(self, design: PowerDesign) -> np.ndarray:
-        """Warm start of the full model's fit: the GLMM parameters nearest this model
-        (treatment-coded means over symbols and levels; the SDs, the symbols' spread when the
-        symbols are fixed)."""
+        """The fixed effects nearest this model (treatment-coded means over symbols and
+        levels): the warm start of the fits' ``beta``."""
         mean = self.base.mean(axis=(0, 1))
-        beta = np.r_[mean[0], mean[1:] - mean[0]]
-        sigmas = [self.participant_sd]
-        if design.symbol_effect:
-            spread = float(np.std(self.base.mean(axis=(0, 2)))) if self.digit_sd == 0 else \
-                self.digit_sd
-            sigmas.append(spread)
-        return np.r_[beta, sigmas]
+        return np.r_[mean[0], mean[1:] - mean[0]]
+
+    def start_covariance(self, who: str) -> np.ndarray:
+        """The warm start of a term's covariance: the model's, or for the symbols of a model
+        whose symbols' differences are all in ``base`` (``symbol_cov`` None, ``digit_sd`` 0),
+        the spread of ``base`` over symbols."""
+        cov = self.covariance(who)
+        if who == "symbol" and self.symbol_cov is None and self.digit_sd == 0:
+            cov = cov.copy()
+            cov[0, 0] = float(np.var(self.base.mean(axis=(0, 2))))
+        return cov
 
     def accuracy(self) -> np.ndarray:
         """P(correct) of the typical participant per condition (symbols and levels averaged,
@@ -118,13 +189,24 @@ class GenerativeModel:
 
     def to_dict(self, design: PowerDesign) -> dict[str, Any]:
         """The model as JSON: ``digit_sd`` (its name before stimulus sets) and ``symbol_sd``
-        are the same number, the SD of the symbol's random intercept."""
+        are the same number, the SD of the symbol's random intercept; ``participant_slope_sd``
+        and ``symbol_slope_sd`` the SD of each non-reference condition's slope, and the
+        covariances in full."""
         acc = self.accuracy()
+        comparisons = design.conditions[1:]
         return {"source": self.source, "participant_sd": self.participant_sd,
-                "participants": ("the observer's ability model (temperature T exp(ability_sd "
-                                 "z))" if self.ability is not None else
-                                 "a random intercept with participant_sd"),
+                "participants": ("the observer's ability and benefit model (temperature T "
+                                 "exp(ability_sd z +- benefit_sd w / 2))"
+                                 if self.ability is not None else
+                                 "random effects drawn from participant_covariance"),
                 "digit_sd": self.digit_sd, "symbol_sd": self.digit_sd,
+                "participant_slope_sd": dict(zip(comparisons,
+                                                 self.slope_sd("participant").tolist(),
+                                                 strict=True)),
+                "symbol_slope_sd": dict(zip(comparisons, self.slope_sd("symbol").tolist(),
+                                            strict=True)),
+                "participant_covariance": self.covariance("participant").tolist(),
+                "symbol_covariance": self.covariance("symbol").tolist(),
                 "accuracy": {c: float(a) for c, a in zip(design.conditions, acc, strict=True)},
                 "log_odds": self.base.tolist(), "details": self.details}
 
@@ -132,12 +214,24 @@ class GenerativeModel:
 def model_from_parameters(design: PowerDesign, accuracy: dict[str, float] | None = None, *,
                           log_odds: dict[str, float] | None = None, participant_sd: float,
                           digit_sd: float = 0.0, source: str = "parameters",
-                          symbol_sd: float | None = None) -> GenerativeModel:
+                          symbol_sd: float | None = None, participant_slope_sd: float = 0.0,
+                          participant_correlation: float = 0.0,
+                          symbol_slope_sd: float = 0.0) -> GenerativeModel:
     """Every symbol and level alike: condition ``c`` correct with ``accuracy[c]`` (or
     ``expit(log_odds[c])``) for the typical participant and symbol; ``symbol_sd`` (the same
-    as ``digit_sd``, which it replaces when given) the SD of the symbol's intercept."""
+    as ``digit_sd``, which it replaces when given) the SD of the symbol's intercept;
+    ``participant_slope_sd`` the SD of every non-reference condition's random slope by
+    participant (correlated ``participant_correlation`` with the intercept), and
+    ``symbol_slope_sd`` by symbol."""
     if symbol_sd is not None:
         digit_sd = symbol_sd
+    for name, value in (("participant-slope-sd", participant_slope_sd),
+                        ("symbol-slope-sd", symbol_slope_sd)):
+        if not (np.isfinite(value) and value >= 0):
+            raise PowerError(f"--{name}: expected a number >= 0, got {value!r}")
+    if not (np.isfinite(participant_correlation) and -1 <= participant_correlation <= 1):
+        raise PowerError(f"--participant-correlation: expected a number from -1 to 1, got "
+                         f"{participant_correlation!r}")
     given = log_odds if log_odds is not None else {
         c: float(logit(a)) for c, a in (accuracy or {}).items()}
     missing = [c for c in design.conditions if c not in given]
@@ -146,9 +240,17 @@ def model_from_parameters(design: PowerDesign, accuracy: dict[str, float] | None
     per_condition = np.array([given[c] for c in design.conditions], dtype=float)
     base = np.broadcast_to(per_condition, (len(design.levels), len(design.symbols),
                                            len(design.conditions))).copy()
+    slopes = len(design.conditions) - 1
+    participant_cov = symbol_cov = None
+    if participant_slope_sd:
+        participant_cov = slope_covariance(float(participant_sd), [participant_slope_sd] * slopes,
+                                           participant_correlation)
+    if symbol_slope_sd:
+        symbol_cov = slope_covariance(float(digit_sd), [symbol_slope_sd] * slopes)
     return GenerativeModel(base, float(participant_sd), float(digit_sd), source,
                            {"log_odds": dict(zip(design.conditions, per_condition.tolist(),
-                                                 strict=True))})
+                                                 strict=True))},
+                           participant_cov=participant_cov, symbol_cov=symbol_cov)
 
 
 def model_from_pilot(design: PowerDesign, dataset: Any) -> GenerativeModel:
@@ -184,7 +286,8 @@ def model_from_pilot(design: PowerDesign, dataset: Any) -> GenerativeModel:
                          "trials; the participant variance needs at least two")
     try:
         fits = fit_primary(trials, list(design.conditions), design.reference,
-                           design.random_effects, design.method, design.n_quadrature)
+                           design.random_effects, design.method, design.n_quadrature,
+                           **design.model_options())
     except GlmmFitError as exc:
         raise PowerError(f"--pilot {dataset}: the primary GLMM could not be fitted ({exc})"
                          ) from None
@@ -200,9 +303,11 @@ def model_from_pilot(design: PowerDesign, dataset: Any) -> GenerativeModel:
         raise PowerError(f"--pilot {dataset}: the fit has no coefficient {absent[0]!r}")
     beta = params[columns].to_numpy(dtype=float)
     log_odds = np.r_[beta[0], beta[0] + beta[1:]]
-    variances = full.variance_components
-    participant_sd = float(np.sqrt(variances.get("participant_id", 0.0)))
-    symbol_sd = float(np.sqrt(variances.get(column, 0.0))) if design.symbol_effect else 0.0
+    participant_cov = fitted_covariance(full, "participant_id", columns)
+    symbol_cov = (fitted_covariance(full, column, columns) if design.symbol_effect
+                  else np.zeros_like(participant_cov))
+    participant_sd = float(np.sqrt(participant_cov[0, 0]))
+    symbol_sd = float(np.sqrt(symbol_cov[0, 0]))
     model = model_from_parameters(design, log_odds=dict(zip(design.conditions, log_odds,
                                                               strict=True)),
                                   participant_sd=participant_sd, digit_sd=symbol_sd,
@@ -212,6 +317,23 @@ def model_from_pilot(design: PowerDesign, dataset: Any) -> GenerativeModel:
                "std_errors": full.bse.to_dict(), "participant_sd": participant_sd,
                design.symbol_sd_name: symbol_sd, "symbol_column": column,
                "symbols": sorted(map(str, trials[column].unique())),
+               "random": full.random_formula,
+               "random_effects": full.random_effects().to_dict(orient="records"),
+               "structure": fits.structure(),
                "converged": bool(full.converged),
                "warnings": list(full.warnings)}
-    return replace(model, details=details)
+    return replace(model, details=details, participant_cov=participant_cov,
+                   symbol_cov=symbol_cov)
+
+
+def fitted_covariance(fit, group: str, columns: list[str]) -> np.ndarray:
+    """The covariance of a grouping factor's effects in a fit, over ``columns`` (the
+    intercept and the condition contrasts, in the design's order); an effect the fit has no
+    term for has variance 0."""
+    out = np.zeros((len(columns), len(columns)))
+    for term, sigma in zip(fit.terms, fit.covariances().values(), strict=True):
+        if term.group != group:
+            continue
+        index = [columns.index(c) for c in term.columns]
+        out[np.ix_(index, index)] = sigma.to_numpy()
+    return out

@@ -16,27 +16,31 @@ n`` over the template distances ``d``. The predicted accuracy of the typical par
 the draws: an integral over the sensing noise by Monte Carlo, with its standard error, never
 a sampled response.
 
-Participants differ as the observer's do: a simulated participant's temperature is ``T
-exp(ability_sd z)``, ``z ~ N(0, 1)``, and their accuracy of every cell follows from the same
-draws' distances at that temperature, tabulated over ``z`` (the model's ``ability`` table,
--6 to 6 in steps of 0.05). So a participant's condition effect varies with their ability as
-in a dry-run (for the shipped protocols the CRS effect on the log-odds is 0.95 at z = 0, 1.25
-at z = -2 and 0.66 at z = 2), a spread a random intercept alone leaves out. For reports and
-the fits' start, the summary SD is that of ``f(z)``, the mean over cells of ``logit
-P(correct | z)`` (Gauss-Hermite, 40 nodes). A ``participant_sd`` given instead makes
-participants a random intercept of that SD on the logit scale.
+Participants differ as the observer's do: a simulated participant's temperature in
+condition ``c`` is ``T exp(ability_sd z + benefit_sd s_c w / 2)``, ``z, w ~ N(0, 1)``,
+``s_c`` -1 on the pixels alone and +1 with the skeleton
+(:class:`~crs_study.session.responders.observer.PerceptualObserver`), and their accuracy of
+every cell follows from the same draws' distances at that temperature, tabulated over the
+log-temperature offset (the model's ``ability`` table, -3 to 3 in steps of 0.0125). So a
+participant's condition effect varies with their ability and their benefit as in a dry-run:
+a random slope that a random intercept alone leaves out. For reports and the fits' start,
+the summary covariance is that of ``(f_0, f_c - f_0)``, ``f_c`` the mean over the cells of
+condition ``c`` of ``logit P(correct | z, w)`` (Gauss-Hermite, 20 x 20 nodes). A
+``participant_sd`` given instead makes participants a random intercept of that SD on the
+logit scale (and ``participant_slope_sd`` a random slope).
 Timeouts (a response more than the protocol's limit after the offset) are left out: the
 observer's decision times are about 2 s against a 10 s limit.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.special import logit
 
+from crs_study.analysis.glmm_simulate import slope_covariance
 from crs_study.clock import VirtualClock
 from crs_study.device import open_device
 from crs_study.paths import resolve_protocol
@@ -45,7 +49,11 @@ from crs_study.power_analysis.design import PowerDesign, PowerError, symbol_keys
 from crs_study.power_analysis.model import GenerativeModel
 from crs_study.protocol import load_protocol
 from crs_study.session.responders.base import StimulusRecord
-from crs_study.session.responders.observer import ObserverOptions, PerceptualObserver
+from crs_study.session.responders.observer import (
+    ObserverOptions,
+    PerceptualObserver,
+    benefit_side,
+)
 from crs_study.session.runner import SETTLE_S
 from crs_study.session.trials import present, symbol_choices, trial_frames
 from crs_study.stimuli.strokes import Symbol
@@ -68,23 +76,44 @@ class ObserverPrediction:
     temperature_mm: float
     ability_sd: float
     lapse: float
+    benefit_sd: float = 0.0
+    benefit_sides: tuple[float, ...] = ()
 
     def p_correct(self, temperature: float) -> np.ndarray:
         """P(correct) per cell for a participant of ``temperature`` (mean over draws)."""
         return _choice_probability(self.distances, self.correct_choice, temperature,
                                    self.lapse).mean(axis=-1)
 
-    def participant_sd(self, nodes: int = 40) -> float:
-        """SD over participants of the mean cell log-odds (module docstring)."""
-        if self.ability_sd == 0:
-            return 0.0
-        z, weights = np.polynomial.hermite_e.hermegauss(nodes)
+    def logits_at(self, offset: float) -> np.ndarray:
+        """Log-odds per cell (L, D, C) at log-temperature offset ``offset``."""
+        return logit(np.clip(self.p_correct(self.temperature_mm * np.exp(offset)), 1e-6,
+                             1 - 1e-6))
+
+    def participant_covariance(self, nodes: int = 20) -> np.ndarray:
+        """The covariance over participants of ``(f_0, f_c - f_0)`` (module docstring),
+        (C, C), by Gauss-Hermite quadrature over ``z`` and ``w``."""
+        C = self.accuracy.shape[2]
+        if self.ability_sd == 0 and self.benefit_sd == 0:
+            return np.zeros((C, C))
+        x, weights = np.polynomial.hermite_e.hermegauss(nodes)
         weights = weights / weights.sum()
-        f = np.array([np.mean(logit(np.clip(self.p_correct(
-            self.temperature_mm * np.exp(self.ability_sd * zi)), 1e-9, 1 - 1e-9)))
-            for zi in z])
-        mean = float(weights @ f)
-        return float(np.sqrt(weights @ (f - mean) ** 2))
+        sides = np.asarray(self.benefit_sides or (0.0,) * C)
+        points, mass = [], []
+        for zi, wz in zip(x, weights, strict=True):
+            for wi, ww in zip(x if self.benefit_sd else [0.0], weights if self.benefit_sd
+                              else [1.0], strict=True):
+                offsets = self.ability_sd * zi + 0.5 * self.benefit_sd * sides * wi
+                f = np.array([self.logits_at(o)[..., c].mean() for c, o in
+                              enumerate(offsets)])
+                points.append(np.r_[f[0], f[1:] - f[0]])
+                mass.append(wz * ww)
+        points, mass = np.array(points), np.array(mass)
+        centred = points - mass @ points
+        return (centred * mass[:, None]).T @ centred
+
+    def participant_sd(self, nodes: int = 20) -> float:
+        """SD over participants of the reference condition's mean cell log-odds."""
+        return float(np.sqrt(self.participant_covariance(nodes)[0, 0]))
 
 
 def _choice_probability(distances: np.ndarray, correct: np.ndarray, temperature: float,
@@ -133,7 +162,8 @@ def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: A
     return ObserverPrediction(per_draw.mean(axis=-1),
                               per_draw.std(axis=-1, ddof=1) / np.sqrt(draws), distances,
                               correct, options.temperature_mm, options.ability_sd,
-                              options.lapse)
+                              options.lapse, options.benefit_sd,
+                              tuple(benefit_side(c) for c in conditions))
 
 
 def _cell_distances(task: tuple) -> np.ndarray:
@@ -181,8 +211,8 @@ def shown_stimulus(protocol: Any, layout: Any, symbol: Symbol, condition: str,
 
 
 def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: float | None = None,
-                        draws: int = DEFAULT_DRAWS, prediction: ObserverPrediction | None = None
-                        ) -> GenerativeModel:
+                        draws: int = DEFAULT_DRAWS, prediction: ObserverPrediction | None = None,
+                        participant_slope_sd: float | None = None) -> GenerativeModel:
     """The generating model of mode 2: ``logit`` of the predicted accuracy per (level,
     symbol, condition) in the design's condition order, and the participant SD (given, else
     the observer's calibration). ``details`` hold the accuracy per symbol as
@@ -196,17 +226,28 @@ def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: floa
     order = [list(protocol.conditions).index(c) for c in design.conditions]
     accuracy = prediction.accuracy[:, :, order]
     base = logit(np.clip(accuracy, 1e-6, 1 - 1e-6))
-    derived = prediction.participant_sd()
-    sd = derived if participant_sd is None else float(participant_sd)
+    sides = tuple(prediction.benefit_sides[k] for k in order) if prediction.benefit_sides \
+        else ()
+    ordered = replace(prediction, accuracy=accuracy, std_error=prediction.std_error[:, :, order],
+                      distances=prediction.distances[:, :, order],
+                      correct_choice=prediction.correct_choice[:, :, order],
+                      benefit_sides=sides)
+    derived = ordered.participant_covariance()
+    given = participant_sd is not None or participant_slope_sd is not None
     grid = ability = None
-    if participant_sd is None:
-        grid = np.round(np.arange(-6.0, 6.0 + 1e-9, 0.05), 10)
-        ability = np.stack([logit(np.clip(prediction.p_correct(
-            prediction.temperature_mm * np.exp(prediction.ability_sd * z)), 1e-6, 1 - 1e-6))
-            for z in grid])[..., order]
-    se = prediction.std_error[:, :, order]
+    if given:
+        sd = float(np.sqrt(derived[0, 0])) if participant_sd is None else float(participant_sd)
+        slopes = len(design.conditions) - 1
+        cov = slope_covariance(sd, [0.0 if participant_slope_sd is None
+                                    else float(participant_slope_sd)] * slopes)
+    else:
+        cov = derived
+        grid = np.round(np.arange(-3.0, 3.0 + 1e-9, 0.0125), 10)
+        ability = np.stack([ordered.logits_at(w) for w in grid])
+    se = ordered.std_error
     by_symbol = {c: dict(zip(map(str, design.symbols), accuracy[:, :, k].mean(axis=0).tolist(),
                              strict=True)) for k, c in enumerate(design.conditions)}
+    slope_sd = np.sqrt(np.clip(np.diag(derived)[1:], 0.0, None))
     details = {"draws": int(prediction.distances.shape[3]),
                "accuracy_by_condition": {c: float(a) for c, a in zip(
                    design.conditions, accuracy.mean(axis=(0, 1)), strict=True)},
@@ -217,11 +258,19 @@ def model_from_observer(design: PowerDesign, protocol: Any, participant_sd: floa
                **({"accuracy_by_digit": by_symbol} if design.symbol_column == "digit"
                   else {}),
                "accuracy_by_symbol": by_symbol,
-               "participant_sd_from_calibration": derived,
+               "participant_sd_from_calibration": float(np.sqrt(derived[0, 0])),
+               "participant_slope_sd_from_calibration": dict(zip(
+                   design.comparisons, slope_sd.tolist(), strict=True)),
                "participant_sd_given": participant_sd is not None,
-               "participants": ("the observer's: temperature T exp(ability_sd z), z ~ N(0, 1)"
-                                if participant_sd is None else
-                                f"a random intercept, SD {sd:g} (given)"),
+               "participant_slope_sd_given": participant_slope_sd is not None,
+               "participants": ("the observer's: temperature T exp(ability_sd z +- benefit_sd "
+                                "w / 2), z, w ~ N(0, 1)" if not given else
+                                f"random effects, intercept SD {np.sqrt(cov[0, 0]):g}, slope "
+                                f"SD {np.sqrt(cov[1, 1]):g} (given)"),
                "temperature_mm": prediction.temperature_mm,
-               "ability_sd": prediction.ability_sd, "lapse": prediction.lapse}
-    return GenerativeModel(base, sd, 0.0, "observer", details, ability, grid)
+               "ability_sd": prediction.ability_sd, "benefit_sd": prediction.benefit_sd,
+               "lapse": prediction.lapse}
+    return GenerativeModel(base, float(np.sqrt(cov[0, 0])), 0.0, "observer", details,
+                           ability, grid, participant_cov=cov,
+                           ability_sd=prediction.ability_sd, benefit_sd=prediction.benefit_sd,
+                           benefit_sides=sides or None)

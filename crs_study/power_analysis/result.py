@@ -17,6 +17,7 @@ untested           studies with no test of this comparison (its coefficient drop
 unconverged        studies whose fit ``fit_glmm`` flagged as not converged (p still used)
 failed             full_failed + reduced_failed + untested + unconverged
 boundary           studies with a variance estimated at 0 (a singular fit: legitimate)
+reduced_models     studies whose model the plan's rule reduced (a singular maximal fit)
 reference_fits     studies fitted by ``fit_glmm`` itself rather than the batched fits
 wrong_direction    significant studies whose estimate has the opposite sign of the model's
 mean_log_odds      mean estimated log odds ratio over the studies that have one
@@ -38,7 +39,14 @@ from crs_study import __version__
 from crs_study._files import os_errors, write_atomically
 from crs_study.power_analysis.design import PowerDesign, PowerError
 from crs_study.power_analysis.model import GenerativeModel
-from crs_study.power_analysis.study import FISHER, NONE, SEPARATED, WALD, TaskResult
+from crs_study.power_analysis.study import (
+    FISHER,
+    NONE,
+    SEPARATED,
+    WALD,
+    TaskResult,
+    recorded_parameters,
+)
 
 
 @dataclass(frozen=True)
@@ -126,6 +134,7 @@ class PowerResult:
                     "untested": untested, "unconverged": unconverged,
                     "failed": full_failed + reduced_failed + untested + unconverged,
                     "boundary": int(self.raw["boundary"][i].sum()),
+                    "reduced_models": int(self.raw["reduced"][i].sum()),
                     "reference_fits": int(self.raw["reference"][i].sum()),
                     "wrong_direction": int(wrong.sum()),
                     "mean_log_odds": float(np.nanmean(estimates)) if np.isfinite(
@@ -214,9 +223,7 @@ class PowerResult:
         """Per point and parameter: the mean estimate over the studies, its standard error
         and the number of studies with an estimate (``fit_glmm``'s ML estimates). The symbol
         intercept's SD is ``digit_sd`` for the digit set, ``symbol_sd`` for any other."""
-        names = (["Intercept"] + [f"condition[{c}]" for c in self.design.comparisons]
-                 + ["participant_sd"]
-                 + ([self.design.symbol_sd_name] if self.design.symbol_effect else []))
+        names = recorded_parameters(self.design)
         theta = self.raw["theta"]
         rows = []
         for i, (n, r) in enumerate(self.points):
@@ -294,8 +301,8 @@ def _first(n: np.ndarray, mask: np.ndarray) -> int | None:
 def merge(results: list[TaskResult]) -> dict[str, np.ndarray]:
     """The per-study arrays of the tasks, in study order (axis 1)."""
     ordered = sorted(results, key=lambda r: r.studies[0])
-    keys = ("p_value", "kind", "log_odds", "theta", "converged", "boundary", "reference",
-            "loglike", "loglike_reduced")
+    keys = ("p_value", "kind", "log_odds", "theta", "converged", "boundary", "reduced",
+            "reference", "loglike", "loglike_reduced")
     return {k: np.concatenate([getattr(r, k) for r in ordered], axis=1) for k in keys}
 
 

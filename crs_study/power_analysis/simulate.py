@@ -4,19 +4,26 @@ Every random number of a study comes from a stream of its own, a
 :class:`numpy.random.SeedSequence` with ``entropy = seed`` and a ``spawn_key`` naming what it
 draws, never the worker or the batch that runs it:
 
-* ``(study, 0)``: the symbols' random effects ``z_d`` (D standard normals, in the
+* ``(study, 0)``: the symbols' random intercepts ``z_d`` (D standard normals, in the
   design's order of symbols: digits, letters or a set file's symbols alike);
 * ``(study, 1, k)``: participant ``k`` (from 0): first ``z_k``, then the uniforms of their
-  trials, ``U[rep, level, symbol, condition]``, repetition-major.
+  trials, ``U[rep, level, symbol, condition]``, repetition-major;
+* ``(study, 2, k)``: participant ``k``'s slope draws ``w_k`` (C - 1 standard normals);
+* ``(study, 3)``: the symbols' slope draws (D x (C - 1) standard normals).
+
+A participant's effects are ``L (z_k, w_k)`` with ``L L'`` the model's covariance of
+(intercept, slopes) (:func:`~crs_study.analysis.glmm_simulate.psd_factor`: for a random
+intercept alone, ``L`` has ``participant_sd`` in its corner and nothing else, so studies
+without slopes are the ones drawn before slopes existed), likewise a symbol's.
 
 So a study with N participants is the first N participants of the same study with more,
 each participant's first r repetitions are the same whatever the largest repetition count
 asked (``Generator.random`` fills its array in order), and the result of a run is the same
 whichever backend and how many workers run it (the point and the worker take no part in a
-seed). Trial ``(rep, level, d, c)`` of participant ``k`` is correct when ``U < expit(base[l,
-d, c] + sigma_p z_k + sigma_d z_d)`` (with an ability table, ``ability(z_k)[l, d, c]`` in
-place of ``base + sigma_p z_k``: :meth:`~crs_study.power_analysis.model.GenerativeModel.
-participant_logits`); the cells' successes are summed over levels.
+seed). Trial ``(rep, level, d, c)`` of participant ``k`` is correct when ``U <
+expit(participant_logits(z_k, w_k)[l, d, c] + e_d[0] + e_d[c])`` (:meth:`~crs_study.
+power_analysis.model.GenerativeModel.participant_logits`; ``e_d`` the symbol's effects, its
+slope ``e_d[c]`` 0 for the reference); the cells' successes are summed over levels.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit
 
+from crs_study.analysis.glmm_simulate import psd_factor
 from crs_study.power_analysis.model import GenerativeModel
 
 
@@ -37,20 +45,19 @@ def simulate_studies(model: GenerativeModel, seed: int, studies: range | list[in
     """Cumulative successes ``(S, n_participants, repetitions, D, C)``: entry ``[s, k, r]``
     holds participant k's correct trials per (symbol, condition) cell in their first ``r + 1``
     repetitions (every level of the cell summed)."""
-    base = model.base                                         # (L, D, C)
-    L, D, C = base.shape
+    L, D, C = model.base.shape
+    symbol_factor = psd_factor(model.covariance("symbol"))
     out = np.empty((len(studies), n_participants, repetitions, D, C), dtype=np.int32)
     for i, study in enumerate(studies):
-        z_symbol = stream(seed, study, 0).standard_normal(D)
-        symbol_shift = model.digit_sd * z_symbol[None, :, None]
-        logit_study = base + symbol_shift
+        draws = np.column_stack([stream(seed, study, 0).standard_normal(D),
+                                 stream(seed, study, 3).standard_normal((D, C - 1))])
+        effects = draws @ symbol_factor.T                                   # (D, C)
+        symbol_shift = (effects[:, :1] + np.c_[np.zeros(D), effects[:, 1:]])[None]
         for k in range(n_participants):
             rng = stream(seed, study, 1, k)
             z = rng.standard_normal()
-            if model.ability is None:
-                p = expit(logit_study + model.participant_sd * z)
-            else:
-                p = expit(model.participant_logits(z) + symbol_shift)
+            w = stream(seed, study, 2, k).standard_normal(C - 1)
+            p = expit(model.participant_logits(z, w) + symbol_shift)
             hits = rng.random((repetitions, L, D, C)) < p[None]
             out[i, k] = np.cumsum(hits.sum(axis=1), axis=0)
     return out

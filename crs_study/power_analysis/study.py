@@ -34,12 +34,14 @@ from scipy import stats
 
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
+from crs_study.analysis.glmm_batch import BatchObjective, fit_batch, study_fit
+from crs_study.analysis.glmm_laplace import LaplaceLikelihood, TermRows
 from crs_study.analysis.glmm_result import P_FLOOR
+from crs_study.analysis.glmm_terms import RandomTerm, ThetaLayout, theta_of
 from crs_study.analysis.primary import fisher_comparisons, fit_primary
+from crs_study.analysis.structure import planned_terms, reduce_terms, reduction_reasons
 from crs_study.power_analysis.design import PowerDesign
-from crs_study.power_analysis.laplace import BatchLaplace, CellDesign
-from crs_study.power_analysis.maximise import fit_batch
-from crs_study.power_analysis.model import GenerativeModel
+from crs_study.power_analysis.model import GenerativeModel, fitted_covariance
 from crs_study.power_analysis.simulate import simulate_studies
 
 #: How each comparison of a study was tested (index = the code stored in ``kind``).
@@ -84,6 +86,7 @@ class TaskResult:
     theta: np.ndarray
     converged: np.ndarray
     boundary: np.ndarray
+    reduced: np.ndarray
     reference: np.ndarray
     loglike: np.ndarray
     loglike_reduced: np.ndarray
@@ -114,63 +117,205 @@ def run_task(task: PowerTask) -> TaskResult:
     return TaskResult(task.studies, seconds=time.process_time() - start, **out)
 
 
+def recorded_parameters(design: PowerDesign) -> list[str]:
+    """The estimates kept per study (``theta``): the fixed effects, then the SD of each
+    random effect (0 where the model fitted has none: a slope dropped by the plan's rule)."""
+    slopes = [f"[{c}]" for c in design.comparisons]
+    names = (["Intercept"] + [f"condition[{c}]" for c in design.comparisons]
+             + ["participant_sd"] + [f"participant_slope_sd{c}" for c in slopes])
+    if design.symbol_effect:
+        names += [design.symbol_sd_name] + [f"{design.symbol_column}_slope_sd{c}"
+                                            for c in slopes]
+    return names
+
+
 def outcomes(design: PowerDesign, shape: tuple[int, ...]) -> dict[str, np.ndarray]:
     """Empty outcome arrays of :class:`TaskResult`'s fields for ``shape`` (points, studies,
     or studies, or () for one study): no test, NaN numbers, flags off."""
     K = len(design.comparisons)
-    n_params = len(design.conditions) + 1 + int(design.symbol_effect)
+    n_params = len(recorded_parameters(design))
     return {"p_value": np.full(shape + (K,), np.nan),
             "kind": np.full(shape + (K,), NONE, dtype=np.int8),
             "log_odds": np.full(shape + (K,), np.nan),
             "theta": np.full(shape + (n_params,), np.nan),
             "converged": np.zeros(shape, dtype=bool), "boundary": np.zeros(shape, dtype=bool),
+            "reduced": np.zeros(shape, dtype=bool),
             "reference": np.zeros(shape, dtype=bool), "loglike": np.full(shape, np.nan),
             "loglike_reduced": np.full(shape + (K,), np.nan)}
+
+
+@dataclass(frozen=True)
+class _Cells:
+    """The rows the fits of one point share: every (participant, symbol, condition) cell."""
+
+    X: np.ndarray           # (n, C) treatment-coded design of each cell
+    trials: np.ndarray      # (n,)
+    participant: np.ndarray
+    symbol: np.ndarray
+    P: int
+    D: int
+    columns: tuple[str, ...]
+
+    @classmethod
+    def of(cls, design: PowerDesign, P: int, D: int, trials: np.ndarray) -> _Cells:
+        C = len(design.conditions)
+        p, d, c = (a.ravel() for a in np.meshgrid(np.arange(P), np.arange(D), np.arange(C),
+                                                  indexing="ij"))
+        X = design.fixed_design()[c]
+        columns = ("Intercept",) + tuple(f"condition[{k}]" for k in design.comparisons)
+        return cls(X, np.broadcast_to(trials, (P, D, C)).ravel().astype(float), p, d, P, D,
+                   columns)
+
+    def objective(self, terms: tuple[RandomTerm, ...], Y: np.ndarray,
+                  drop: int | None = None) -> BatchObjective:
+        """The batch objective of ``Y`` (S, P, D, C) under ``terms`` (fixed column ``drop``
+        left out: a reduced model)."""
+        rows = []
+        for term in terms:
+            codes, levels = ((self.participant, self.P) if term.group == "participant_id"
+                             else (self.symbol, self.D))
+            Z = self.X[:, [self.columns.index(c) for c in term.columns]]
+            rows.append(TermRows(codes, levels, Z))
+        X = self.X if drop is None else np.delete(self.X, drop, axis=1)
+        likelihood = LaplaceLikelihood(X, self.trials, Y.reshape(len(Y), -1), rows)
+        return BatchObjective(likelihood, ThetaLayout(X.shape[1], terms))
+
+
+def planned_power_terms(design: PowerDesign) -> tuple[RandomTerm, ...]:
+    """The terms the plan asks for on the design's data (every participant and symbol sees
+    every condition, so condition varies within both)."""
+    P, D, C = 2, len(design.symbols), len(design.conditions)
+    cells = cells_frame(design, np.ones((P, D, C)), np.ones((D, C)))
+    columns = {"participant": "participant_id", "symbol": design.symbol_column,
+               "digit": design.symbol_column}
+    terms, _ = planned_terms(design.random_spec, cells,
+                             [f"condition[{c}]" for c in design.comparisons], columns)
+    if not design.symbol_effect:      # a single symbol: fit_glmm drops that factor
+        terms = [t for t in terms if t.group == "participant_id"]
+    return tuple(terms)
+
+
+def _theta_start(terms, beta: np.ndarray, covariances: dict[str, np.ndarray],
+                 columns: tuple[str, ...]) -> np.ndarray:
+    """A start for ``terms``: ``beta`` and each term's part of the covariance given per
+    grouping column over ``columns`` (the Cholesky factor; the SDs of an uncorrelated term)."""
+    parts = [beta]
+    for term in terms:
+        index = [columns.index(c) for c in term.columns]
+        cov = covariances[term.group][np.ix_(index, index)]
+        if term.correlated and term.size > 1:
+            T = np.linalg.cholesky(cov + 1e-4 * np.eye(len(index)))
+        else:
+            T = np.diag(np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+        parts.append(theta_of(term, T))
+    return np.concatenate(parts)
+
+
+def _fitted_covariances(objective: BatchObjective, theta: np.ndarray,
+                        columns: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Each grouping column's covariance over ``columns`` at a study's fit (0 where the
+    fitted terms have no effect)."""
+    layout = objective.layout
+    out = {}
+    for term, sigma in zip(layout.terms, layout.covariances(theta), strict=True):
+        full = np.zeros((len(columns), len(columns)))
+        index = [columns.index(c) for c in term.columns]
+        full[np.ix_(index, index)] = sigma
+        out[term.group] = full
+    return out
 
 
 def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
                    repetitions: int, curvature: np.ndarray | None = None
                    ) -> dict[str, np.ndarray]:
     """Test studies ``Y`` (S, P, D, C) of one point as ``analyze`` would; arrays as in
-    :class:`TaskResult` (without the point axis), and ``curvature`` (S, n, n) the full
+    :class:`TaskResult` (without the point axis), and ``curvature`` (S, n, n) the planned
     model's last negative-Hessian approximation (zeros where none), which a next point may
-    pass back as its start."""
-    S = len(Y)
+    pass back as its start.
+
+    The plan's model first, for every study at once; a study whose fit calls for the plan's
+    reduction rule (:func:`~crs_study.analysis.structure.reduction_reasons`) moves on to the
+    next model the rule gives it (:func:`~crs_study.analysis.structure.reduce_terms`), with
+    the other studies bound for that model; then, per model finally used, the models without
+    each condition. A study the batched fits do not settle goes the reference path.
+    """
+    S, P, D, C = Y.shape
     K = len(design.comparisons)
     trials = design.cell_trials(repetitions)
-    cells = CellDesign(design.fixed_design(), trials, design.symbol_effect)
+    cells = _Cells.of(design, P, D, trials)
+    planned = planned_power_terms(design)
+    spec = design.random_spec
     out = outcomes(design, (S,))
-    n_params = cells.n_params
-    out["curvature"] = np.zeros((S, n_params, n_params))
+    size = ThetaLayout(C, planned).size
+    out["curvature"] = np.zeros((S, size, size))
     per_condition = Y.sum(axis=(1, 2))                                  # (S, C)
     possible = trials.sum(axis=0) * Y.shape[1]
     separated = ((per_condition == 0) | (per_condition == possible)).any(axis=1)
     fast = np.flatnonzero(~separated) if design.method == "laplace" else np.arange(0)
     settled = np.zeros(S, dtype=bool)
-    if len(fast):
-        full = fit_batch(BatchLaplace(cells, Y[fast]), np.tile(model.start(design),
-                                                               (len(fast), 1)),
-                         None if curvature is None else curvature[fast])
-        out["curvature"][fast] = full.curvature
-        needs = full.needs_reference.copy()
-        reduced_values = np.empty((len(fast), K))
+    beta = model.start(design)
+    covariances = {"participant_id": model.start_covariance("participant"),
+                   design.symbol_column: model.start_covariance("symbol")}
+    start = _theta_start(planned, beta, covariances, cells.columns)
+    queue: list[tuple[tuple[RandomTerm, ...], list[int], list[np.ndarray]]] = [
+        (planned, list(fast), [start] * len(fast))]
+    steps_taken: dict[int, set[str]] = {int(s): set() for s in fast}
+    final: dict[tuple[RandomTerm, ...], list[tuple[int, np.ndarray, float, bool]]] = {}
+    while queue:
+        terms, index, starts = queue.pop(0)
+        if not index:
+            continue
+        index_array = np.array(index)
+        objective = cells.objective(terms, Y[index_array])
+        warm = (curvature[index_array] if terms == planned and curvature is not None
+                else None)
+        fit = fit_batch(objective, np.array(starts), warm)
+        if terms == planned:
+            out["curvature"][index_array] = fit.curvature
+        following: dict[tuple[RandomTerm, ...], tuple[list[int], list[np.ndarray]]] = {}
+        for j, s in enumerate(index):
+            if fit.needs_reference[j]:
+                continue
+            summary = study_fit(fit, objective, j)
+            step = None
+            if reduction_reasons(summary) and spec.singular_fit == "reduce":
+                step = reduce_terms(spec, terms, summary, steps_taken[s])
+            if step is None:
+                final.setdefault(terms, []).append(
+                    (s, fit.theta[j], float(fit.value[j]), bool(fit.at_zero[j].any())))
+                continue
+            new_terms = tuple(step[0])
+            fitted = _fitted_covariances(objective, fit.theta[j], cells.columns)
+            group = following.setdefault(new_terms, ([], []))
+            group[0].append(s)
+            group[1].append(_theta_start(new_terms, fit.theta[j, :C], fitted, cells.columns))
+            out["reduced"][s] = True
+        queue += [(t, i, st) for t, (i, st) in following.items()]
+    constant = binomial_constant(Y, trials)
+    names = recorded_parameters(design)
+    for terms, studies in final.items():
+        index = np.array([s for s, *_ in studies])
+        theta = np.array([t for _, t, _, _ in studies])
+        value = np.array([v for _, _, v, _ in studies])
+        needs = np.zeros(len(index), dtype=bool)
+        reduced_values = np.empty((len(index), K))
+        objective = cells.objective(terms, Y[index])
         for j in range(K):
-            curvature = np.delete(np.delete(full.curvature, j + 1, axis=1), j + 1, axis=2)
-            reduced = fit_batch(BatchLaplace(cells.without(j + 1), Y[fast]),
-                                np.delete(full.theta, j + 1, axis=1), curvature)
+            reduced = fit_batch(cells.objective(terms, Y[index], drop=j + 1),
+                                np.delete(theta, j + 1, axis=1))
             needs |= reduced.needs_reference
             reduced_values[:, j] = reduced.value
-        stats_ = 2.0 * (full.value[:, None] - reduced_values)
-        constant = binomial_constant(Y[fast], trials)
-        ok = fast[~needs]
-        out["loglike"][ok] = (full.value + constant)[~needs]
-        out["loglike_reduced"][ok] = (reduced_values + constant[:, None])[~needs]
-        out["p_value"][ok] = lr_pvalue(stats_[~needs])
+        keep = ~needs
+        ok = index[keep]
+        statistic = 2.0 * (value[:, None] - reduced_values)
+        out["loglike"][ok] = (value + constant[index])[keep]
+        out["loglike_reduced"][ok] = (reduced_values + constant[index][:, None])[keep]
+        out["p_value"][ok] = lr_pvalue(statistic[keep])
         out["kind"][ok] = LR
-        out["log_odds"][ok] = full.theta[~needs, 1:K + 1]
-        out["theta"][ok] = full.theta[~needs]
+        out["log_odds"][ok] = theta[keep, 1:K + 1]
+        out["theta"][ok] = [_recorded(objective, t, names, design) for t in theta[keep]]
         out["converged"][ok] = True
-        out["boundary"][ok] = full.at_zero[~needs].any(axis=1)
+        out["boundary"][ok] = np.array([b for *_, b in studies])[keep]
         settled[ok] = True
     for s in np.flatnonzero(~settled):
         outcome = reference_test(design, Y[s], trials)
@@ -178,6 +323,21 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
             out[key][s] = value
         out["reference"][s] = True
     return out
+
+
+def _recorded(objective: BatchObjective, theta: np.ndarray, names: list[str],
+              design: PowerDesign) -> np.ndarray:
+    """One study's fixed effects and random-effect SDs in :func:`recorded_parameters`'
+    order."""
+    C = len(design.conditions)
+    covariances = _fitted_covariances(objective, theta,
+                                      ("Intercept",) + tuple(names[1:C]))
+    sds = []
+    for group in ("participant_id", design.symbol_column) if design.symbol_effect else (
+            "participant_id",):
+        cov = covariances.get(group, np.zeros((C, C)))
+        sds += np.sqrt(np.clip(np.diag(cov), 0.0, None)).tolist()
+    return np.r_[theta[:C], sds]
 
 
 def binomial_constant(Y: np.ndarray, trials: np.ndarray) -> np.ndarray:
@@ -234,7 +394,7 @@ def decide_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
     conditions = list(design.conditions)
     try:
         fits = fit_primary(trials, conditions, design.reference, design.random_effects,
-                           design.method, design.n_quadrature)
+                           design.method, design.n_quadrature, **design.model_options())
     except GlmmFitError:
         # primary_test's fallback: Fisher's exact test on the pooled 2 x 2 tables; the
         # function is primary.py's own, so the p is the one analyze reports
@@ -247,12 +407,14 @@ def decide_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
             out["log_odds"][j] = comparison.log_odds
         return out
     full = fits.full
-    theta = [float(full.params.get(c, np.nan)) for c in
-             ["Intercept"] + [f"condition[{c}]" for c in design.comparisons]]
+    columns = ["Intercept"] + [f"condition[{c}]" for c in design.comparisons]
+    theta = [float(full.params.get(c, np.nan)) for c in columns]
+    groups = ("participant_id", design.symbol_column) if design.symbol_effect else (
+        "participant_id",)
+    for group in groups:
+        theta += np.sqrt(np.clip(np.diag(fitted_covariance(full, group, columns)), 0.0,
+                                 None)).tolist()
     variances = full.variance_components
-    theta.append(float(np.sqrt(variances.get("participant_id", np.nan))))
-    if design.symbol_effect:
-        theta.append(float(np.sqrt(variances.get(design.symbol_column, np.nan))))
     converged = bool(full.converged)
     for j, test in enumerate(fits.tests):
         if test.test is None and test.column in full.params.index:
@@ -268,7 +430,8 @@ def decide_trials(design: PowerDesign, trials: pd.DataFrame) -> dict:
         out["theta"] = np.array(theta)
     out["loglike"] = full.separation.sup_loglike if full.separation else full.loglike
     out["converged"] = converged
-    out["boundary"] = bool((variances == 0).any())
+    out["boundary"] = bool((variances == 0).any() or full.is_singular)
+    out["reduced"] = len(fits.steps) > 1
     return out
 
 
