@@ -21,6 +21,46 @@ def format_p(p: float | None) -> str:
 
 
 def headline(results: dict) -> str:
+    """One line: the answer to the study's question (:func:`accuracy_headline`, or for an
+    adaptive study :func:`threshold_headline`)."""
+    thresholds = results.get("thresholds")
+    if thresholds and not thresholds.get("skipped", True) and thresholds.get("comparisons"):
+        return threshold_headline(results)
+    return accuracy_headline(results)
+
+
+def threshold_headline(results: dict) -> str:
+    """An adaptive study's line: each condition's threshold against the reference's (the
+    procedure's own estimates, paired by participant: ratio on a log scale, else the
+    difference), the paired test; then the accuracies, which the procedure steers towards
+    its target rate and so answer nothing on their own."""
+    thresholds = results["thresholds"]
+    parts = []
+    comparisons = thresholds["comparisons"]
+    by_condition = {}
+    for c in comparisons:          # the procedure's estimate first, the fit where it is alone
+        by_condition.setdefault(c["condition"], c) if c["method"] == "procedure" else None
+    for c in comparisons:
+        by_condition.setdefault(c["condition"], c)
+    column = thresholds["level_column"]
+    rate = f"{100 * thresholds['target_rate']:.3g} % correct"
+    for condition, c in by_condition.items():
+        if c["ratio"] is not None:
+            low, high = c["ratio_ci95"]
+            size = f"{c['ratio']:.3g} x {c['reference']} [{low:.3g}, {high:.3g}]"
+        else:
+            low, high = c["ci95"]
+            size = f"{c['mean_difference']:+.3g} vs {c['reference']} [{low:+.3g}, {high:+.3g}]"
+        parts.append(f"{condition} threshold {size} (paired t({c['df']}) = {c['t']:.3g}, "
+                     f"{format_p(c['pvalue'])}, {c['n_pairs']} participants)")
+    text = (f"{'; '.join(parts)}; thresholds: {column} at {rate} ({thresholds['procedure']} "
+            f"estimates, 95 % intervals)")
+    accuracy = ", ".join(f"{condition} {100 * row['accuracy']:.1f} %"
+                         for condition, row in results["conditions"].items())
+    return f"{text}; accuracy steered by the procedure: {accuracy}"
+
+
+def accuracy_headline(results: dict) -> str:
     """One line: each condition's accuracy with an interval that accounts for participants
     (``conditions.<c>.headline``: the mean of participant accuracies with the t interval
     across participants, or the pooled Wilson interval where that has no width, labelled),

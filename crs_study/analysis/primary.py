@@ -307,9 +307,9 @@ def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
 
 
 def _fit_by_rule(spec: RandomSpec, data, full_design, terms, method, n_quadrature, counts):
-    """The plan's model, reduced by its rule while the fit is singular, fails or does not
-    converge: ``(fit, terms, steps)``. A random intercept at variance 0 alone is kept (a
-    regular boundary); ``singular_fit = "keep"`` keeps any fit that could be computed."""
+    """The plan's model, reduced by its rule while the fit fails, does not converge or (with
+    ``singular_fit = "reduce"``) is singular: ``(fit, terms, steps)``. A random intercept at
+    variance 0 alone is a regular boundary, never a reason."""
     done: set[str] = set()
     steps = []
     while True:
@@ -319,9 +319,9 @@ def _fit_by_rule(spec: RandomSpec, data, full_design, terms, method, n_quadratur
                               counts), None
         except GlmmFitError as exc:
             fit, error = None, str(exc)
-        reasons = [f"the fit failed ({error})"] if fit is None else reduction_reasons(fit)
-        keep = fit is not None and (not reasons or spec.singular_fit == "keep")
-        following = None if keep else reduce_terms(spec, terms, fit, done)
+        reasons = ([f"the fit failed ({error})"] if fit is None
+                   else reduction_reasons(fit, spec.singular_fit == "reduce"))
+        following = reduce_terms(spec, terms, fit, done) if reasons else None
         if following is None:
             if fit is None:
                 raise GlmmFitError(error)

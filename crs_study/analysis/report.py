@@ -359,6 +359,15 @@ def run_analyses(data: StudyData) -> Analysis:
     if not thresholds.skipped:  # (results.json of fixed-level studies is as it was)
         results = {**{k: v for k, v in results.items() if k != "warnings"},
                    "thresholds": thresholds.to_dict(), "warnings": warnings}
+        if thresholds.comparisons:
+            # the procedure steers accuracy towards its target: the thresholds answer the
+            # study's question, the accuracy GLMM is secondary
+            for comparison in results["comparisons"]:
+                if comparison["primary"]:
+                    comparison["primary"] = False
+                    comparison["secondary_because"] = (
+                        "an adaptive procedure steers accuracy towards its target rate: "
+                        "the threshold comparison is the primary result")
     results["headline"] = headline(results)
     kinds = sorted(set(data.sources["kind"]))
     results["sources"] = {"kind": kinds[0] if len(kinds) == 1 else "mixed",

@@ -18,6 +18,10 @@ REFERENCES = (
     "proportion. Statist Sci 16:101.",
     "Bates D, Maechler M, Bolker B, Walker S (2015) Fitting linear mixed-effects models "
     "using lme4. J Stat Softw 67(1).",
+    "Barr DJ, Levy R, Scheepers C, Tily HJ (2013) Random effects structure for confirmatory "
+    "hypothesis testing: keep it maximal. J Mem Lang 68:255. Matuschek H, Kliegl R, Vasishth "
+    "S, Baayen H, Bates D (2017) Balancing Type I error and power in linear mixed models. "
+    "J Mem Lang 94:305.",
     "Fagerland MW, Lydersen S, Laake P (2013) The McNemar test for binary matched-pairs data: "
     "mid-p and asymptotic are better than exact conditional. BMC Med Res Methodol 13:91.",
     "Holm S (1979) A simple sequentially rejective multiple test procedure. Scand J Stat 6:65.",
@@ -67,7 +71,7 @@ def _table(frame: pd.DataFrame) -> list[list[str]]:
 
 def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
                  out: Path) -> list[tuple[str, object]]:
-    """The report as ``(kind, content)`` blocks: h1, h2, p, list, table, image."""
+    """The report as ``(kind, content)`` blocks: h1, h2, p, list, table, image, code."""
     plan = analysis.plan
     images = {p.stem: os.path.relpath(p, out) for p in charts}
     blocks: list[tuple[str, object]] = [("h1", f"Analysis: {plan.name}"),
@@ -105,9 +109,7 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
                ("table", _table(accuracy.between_participants))]
     if "accuracy" in images:
         blocks.append(("image", images["accuracy"]))
-    blocks += [("h2", "Primary test"), ("p", "Mixed-effects logistic regression "
-               f"(random effects: {', '.join(plan.primary.random_effects)}; "
-               f"{plan.primary.method}); odds ratio against `{results['reference']}`.")]
+    blocks += _primary_model_blocks(results, analysis)
     primary = analysis.primary.to_frame()
     if not primary.empty:
         blocks.append(("table", _table(primary[["condition", "reference", "estimate", "ci95",
@@ -124,11 +126,15 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
                 f"{_fmt(penalised['odds_ratio'])}, Wald interval "
                 f"{_fmt(penalised['ci95_wald'])}, Wald p {_fmt(penalised['p_wald'])}.")))
     effects = (results["primary"]["model"] or {}).get("random_effects") or {}
-    if effects:
+    profiled = {name: e for name, e in effects.items() if e.get("sd_ci95") is not None}
+    if profiled:
         blocks.append(("p", "Random intercepts (standard deviation on the logit scale, "
                             "profile-likelihood interval): " + "; ".join(
                                 f"{name} {_fmt(e['sd'])} {_fmt(e['sd_ci95'])}"
-                                for name, e in effects.items()) + "."))
+                                for name, e in profiled.items()) + "."))
+    if analysis.primary.fits is not None:
+        blocks += [("p", "The model as lme4's `summary(glmer(...))` prints it:"),
+                   ("code", analysis.primary.fits.full.summary())]
     if results["primary"]["omnibus"]:
         omnibus = results["primary"]["omnibus"]
         blocks.append(("p", f"Omnibus likelihood-ratio test of condition: chi2({omnibus['df']})"
@@ -195,6 +201,33 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
     return blocks
 
 
+def _primary_model_blocks(results: dict, analysis: Analysis) -> list[tuple[str, object]]:
+    """The primary test's heading: the model fitted, the one the plan asked for, and every
+    step of the plan's rule that led from one to the other."""
+    plan = analysis.plan
+    adaptive = results.get("thresholds") and not results["thresholds"].get("skipped", True)
+    title = "Accuracy model (secondary: the thresholds answer an adaptive study)" if \
+        adaptive else "Primary test"
+    model = (results["primary"]["model"] or {})
+    structure = model.get("structure")
+    fitted = model.get("random_formula", "none")
+    out: list[tuple[str, object]] = [("h2", title), ("p", (
+        f"Mixed-effects logistic regression `correct ~ condition + {fitted}` "
+        f"({plan.primary.method}); odds ratio against `{results['reference']}`, "
+        "likelihood-ratio test of condition with the random part as fitted."))]
+    if structure:
+        rule = (f"reduce ({', then '.join(structure['reduction'])})"
+                if structure["singular_fit"] == "reduce" else "keep the singular fit")
+        out.append(("p", f"Random structure stated by the plan: `{structure['structure']}`, "
+                         f"here `{structure['planned']}`; rule for a singular or failing fit: "
+                         f"{rule}."))
+        if structure["reduced"]:
+            out.append(("list", [f"`{step['random']}`: {step['action']}"
+                                 for step in structure["steps"] if step["action"]]
+                        + [f"`{structure['fitted']}`: fitted and used"]))
+    return out
+
+
 def render_markdown(blocks: list[tuple[str, object]]) -> str:
     lines: list[str] = []
     for kind, content in blocks:
@@ -214,6 +247,8 @@ def render_markdown(blocks: list[tuple[str, object]]) -> str:
             lines.append("")
         elif kind == "image":
             lines += [f"![{Path(str(content)).stem}]({content})", ""]
+        elif kind == "code":
+            lines += ["```", str(content), "```", ""]
     return "\n".join(lines)
 
 
@@ -236,6 +271,8 @@ def render_html(blocks: list[tuple[str, object]]) -> str:
                             for row in rows) + "</table>")
         elif kind == "image":
             body.append(f'<p><img src="{html.escape(str(content))}" alt=""></p>')
+        elif kind == "code":
+            body.append(f"<pre>{html.escape(str(content))}</pre>")
     style = ("body{font-family:sans-serif;max-width:60em;margin:auto}table{border-collapse:"
              "collapse}td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%}")
     return (f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>crs-study report"

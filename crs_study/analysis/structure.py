@@ -153,13 +153,15 @@ def planned_terms(spec: RandomSpec, data: pd.DataFrame, contrasts: Sequence[str]
     return terms, notes
 
 
-def reduction_reasons(fit) -> list[str]:
-    """Why a fit calls for the reduction rule: it did not converge, or a correlated term lost
-    rank, or a slope's variance is 0 (a random intercept at 0 alone is a regular boundary)."""
+def reduction_reasons(fit, singular: bool = True) -> list[str]:
+    """Why a fit calls for the reduction rule: it did not converge, or (``singular``: the
+    plan reduces singular fits) a correlated term lost rank or a slope's variance is 0 (a
+    random intercept at 0 alone is a regular boundary, never a reason)."""
     reasons = []
     if not fit.converged:
         reasons.append("the fit did not converge")
-    reasons += [face.text for face in fit.faces if face.involves_slope]
+    if singular:
+        reasons += [face.text for face in fit.faces if face.involves_slope]
     return reasons
 
 

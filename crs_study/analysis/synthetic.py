@@ -38,6 +38,8 @@ class SyntheticSpec:
     accuracy: dict[str, float] = field(
         default_factory=lambda: {"pixel-only": 0.503, "crs": 0.678})
     participant_sd: float = 0.5
+    #: the SD over participants of every non-reference condition's effect (logit scale)
+    participant_slope_sd: float = 0.0
     digit_sd: float = 0.3
     practice_trials: int = 2
     p_timeout: float = 0.01
@@ -59,8 +61,15 @@ def _logit(p: float) -> float:
 
 def simulate_trials(spec: SyntheticSpec, participant: int, rng: np.random.Generator,
                     digit_effects: np.ndarray) -> list[dict[str, object]]:
-    """One participant's session rows (practice first, then test trials in random order)."""
+    """One participant's session rows (practice first, then test trials in random order).
+
+    A participant's effect of each non-reference condition is drawn from a stream of their
+    own (``default_rng([seed, 2, participant])``), so a spec without slopes draws the
+    datasets it drew before slopes existed."""
     u = rng.normal(0.0, spec.participant_sd)
+    slope_rng = np.random.default_rng([spec.seed, 2, participant])
+    slopes = {c: (0.0 if k == 0 else float(slope_rng.normal(0.0, spec.participant_slope_sd)))
+              for k, c in enumerate(spec.accuracy)}
     plan = [(c, d, r) for c in spec.accuracy for d in range(len(spec.digits))
             for r in range(spec.repetitions)]
     order = rng.permutation(len(plan))
@@ -72,7 +81,7 @@ def simulate_trials(spec: SyntheticSpec, participant: int, rng: np.random.Genera
     items += [("test", *plan[k]) for k in order]
     n_digits = len(spec.digits)
     for index, (kind, condition, digit_pos, repetition) in enumerate(items):
-        eta = _logit(spec.accuracy[condition]) + u + digit_effects[digit_pos]
+        eta = _logit(spec.accuracy[condition]) + u + slopes[condition] + digit_effects[digit_pos]
         level = None
         if spec.level_column and spec.levels:
             level = float(spec.levels[rng.integers(len(spec.levels))])

@@ -278,7 +278,7 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
                 continue
             summary = study_fit(fit, objective, j)
             step = None
-            if reduction_reasons(summary) and spec.singular_fit == "reduce":
+            if reduction_reasons(summary, spec.singular_fit == "reduce"):
                 step = reduce_terms(spec, terms, summary, steps_taken[s])
             if step is None:
                 final.setdefault(terms, []).append(
