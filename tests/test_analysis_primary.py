@@ -43,9 +43,11 @@ def test_odds_ratio_interval_and_both_p_values():
     assert comparison.ci95[0] < true_or < comparison.ci95[1]
     assert comparison.estimate == pytest.approx(np.exp(comparison.log_odds))
     assert comparison.p_value == comparison.p_lr and comparison.p_wald < 1e-6
-    assert comparison.method.startswith("GLMM correct ~ condition + (1 | participant)")
-    assert result.model["variance_components"]["participant_id"] > 0
-    assert result.omnibus is None and not result.warnings
+    assert comparison.method.startswith(
+        "GLMM correct ~ condition + (1 + condition | participant)")
+    assert result.model["variance_components"]["participant_id:Intercept"] > 0
+    # the truth has no slope variance: the maximal fit is singular, kept, and said so
+    assert result.omnibus is None and all("singular" in w for w in result.warnings)
 
 
 def test_three_conditions_get_an_omnibus_test():
@@ -92,9 +94,13 @@ def test_a_failing_model_falls_back_to_fisher_with_a_warning(monkeypatch):
 def test_crossed_digit_effect_is_fitted_when_planned():
     trials = _trials(n_participants=8, n_per_cell=30, seed=4)
     result = primary_test(trials, ["pixel-only", "crs"], "pixel-only",
-                          random_effects=("participant", "digit"))
+                          random_effects=("participant", "digit"), structure="intercepts")
     assert set(result.model["variance_components"]) == {"participant_id", "digit"}
     assert "(1 | digit)" in result.comparisons[0].method
+    maximal = primary_test(trials, ["pixel-only", "crs"], "pixel-only",
+                           random_effects=("participant", "digit"))
+    assert "(1 + condition | participant) + (1 + condition | digit)" in \
+        maximal.comparisons[0].method
 
 
 def test_adaptive_quadrature_when_planned():
@@ -191,7 +197,8 @@ def test_odds_ratio_interval_is_the_profile_likelihood_one_checked_at_variance_z
             rows += [{"participant_id": f"p{p}", "condition": condition, "digit": i % 10,
                       "correct": float(i < k)} for i in range(20)]
     trials = pd.DataFrame(rows)
-    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
+    result = primary_test(trials, ["pixel-only", "crs"], "pixel-only",
+                          structure="intercepts")
     (comparison,) = result.comparisons
     assert result.model["variance_components"]["participant_id"] == 0.0
     y = trials["correct"].to_numpy()

@@ -94,10 +94,10 @@ def _plan(**primary):
     return AnalysisPlan.from_dict({"plan": {"name": "x"}, "primary": primary}, "p.toml")
 
 
-def test_the_plans_default_is_the_maximal_model_reduced_by_the_stated_rule():
+def test_the_plans_default_is_the_maximal_model_with_its_singular_fits_kept():
     primary = _plan().primary
     assert (primary.structure, primary.singular_fit, primary.reduction) == (
-        "maximal", "reduce", ("correlations", "slopes"))
+        "maximal", "keep", ("correlations", "slopes"))
     written = _plan(structure="(1 + condition | participant) + (1 | digit)").primary
     assert written.random_effects == ("participant", "digit")
 
@@ -142,7 +142,8 @@ def test_a_regular_maximal_fit_is_used_as_planned():
 def test_a_singular_fit_is_reduced_step_by_step_and_every_step_is_told():
     # no symbol slope in the truth: the symbols' term loses rank; the rule drops the
     # correlations, then the slope whose variance is smallest, until the fit is regular
-    fits = fit_primary(_cells(4), CONDITIONS, "pixel-only", ("participant", "digit"))
+    fits = fit_primary(_cells(4), CONDITIONS, "pixel-only", ("participant", "digit"),
+                       singular_fit="reduce")
     steps = fits.steps
     assert steps[0].formula == "(1 + condition | participant) + (1 + condition | digit)"
     assert steps[0].singular and "dropped the correlations" in steps[0].action
@@ -151,13 +152,13 @@ def test_a_singular_fit_is_reduced_step_by_step_and_every_step_is_told():
     assert not steps[-1].action and not steps[-1].singular
     assert fits.full.random_formula == steps[-1].formula
     assert "(1 + condition || participant)" in fits.full.random_formula
-    kept = fit_primary(_cells(4), CONDITIONS, "pixel-only", ("participant", "digit"),
-                       singular_fit="keep")
-    assert len(kept.steps) == 1 and kept.full.is_singular
+    kept = fit_primary(_cells(4), CONDITIONS, "pixel-only", ("participant", "digit"))
+    assert len(kept.steps) == 1 and kept.full.is_singular          # the default: keep
 
 
 def test_the_report_says_which_model_was_fitted_and_why():
-    result = primary_test(_cells(4), CONDITIONS, "pixel-only", ("participant", "digit"))
+    result = primary_test(_cells(4), CONDITIONS, "pixel-only", ("participant", "digit"),
+                          singular_fit="reduce")
     structure = result.model["structure"]
     assert structure["planned"] == "(1 + condition | participant) + (1 + condition | digit)"
     assert structure["reduced"] and structure["fitted"] != structure["planned"]

@@ -88,7 +88,7 @@ class PrimaryTest:
     random_effects: tuple[str, ...] = ("participant",)
     reference: str = ""                # the reference condition; "" = first of plan.conditions
     structure: str = "maximal"         # "maximal", "intercepts" or an lme4 random part
-    singular_fit: str = "reduce"       # or "keep"
+    singular_fit: str = "keep"         # or "reduce"
     reduction: tuple[str, ...] = REDUCTION_STEPS
 
     @property
@@ -246,7 +246,7 @@ def _primary(section: Section, conditions: tuple[str, ...]) -> PrimaryTest:
         raise section.fail("random_effects",
                            f"expected 'participant' among the random effects, got {list(effects)}")
     _one_name(section, "random_effects", effects, SYMBOL_EFFECTS)
-    singular_fit = section.string("singular_fit", "reduce", choices=SINGULAR_FIT_RULES)
+    singular_fit = section.string("singular_fit", "keep", choices=SINGULAR_FIT_RULES)
     reduction = _strings(section, "reduction", REDUCTION_STEPS, choices=REDUCTION_STEPS,
                          unique=True)
     try:

@@ -246,7 +246,7 @@ class PrimaryFits:
 def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
                 random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
                 n_quadrature: int = 25, *, structure: str = "maximal",
-                singular_fit: str = "reduce",
+                singular_fit: str = "keep",
                 reduction: tuple[str, ...] = REDUCTION_STEPS) -> PrimaryFits:
     """Fit the full model and, per condition, the model without it: the primary LR tests.
 
@@ -347,7 +347,7 @@ def design(trials: pd.DataFrame, conditions: list[str], reference: str) -> pd.Da
 def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                  random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
                  n_quadrature: int = 25, alpha: float = 0.05, *, structure: str = "maximal",
-                 singular_fit: str = "reduce",
+                 singular_fit: str = "keep",
                  reduction: tuple[str, ...] = REDUCTION_STEPS) -> PrimaryResult:
     """Fit the GLMM on the answered ``trials`` and compare each condition with ``reference``.
 

@@ -65,7 +65,7 @@ class PowerDesign:
     n_quadrature: int = 25
     alpha: float = 0.05
     structure: str = "maximal"
-    singular_fit: str = "reduce"
+    singular_fit: str = "keep"
     reduction: tuple[str, ...] = REDUCTION_STEPS
     protocol: str = ""
     plan: str = ""
