@@ -91,7 +91,7 @@ def test_cbpp_laplace_matches_mixedmodels_jl(cbpp_laplace):
     # -92.0266: its own evaluation differs by 3e-4 (see test_cbpp_laplace_matches_lme4).
     r = cbpp_laplace
     assert r.loglike == pytest.approx(-92.02628186840045, abs=1e-6)
-    problem, theta, _ = r._model
+    problem, theta = r._model.problem, r._model.theta
     model = problem.model
     model.loglik(theta, grad=False)                       # modes u at the optimum
     sigma = theta[-1]
@@ -354,7 +354,7 @@ def test_sd_profile_interval_on_cbpp(cbpp, cbpp_laplace):
     sd, low, high = table.loc["herd"]
     assert sd == pytest.approx(np.sqrt(cbpp_laplace.variance_components["herd"]))
     assert 0.2 < low < sd < high < 1.5
-    problem, theta_hat, _ = cbpp_laplace._model
+    problem, theta_hat = cbpp_laplace._model.problem, cbpp_laplace._model.theta
     from crs_study.analysis.glmm_fit import _minimise
 
     for end in (low, high):

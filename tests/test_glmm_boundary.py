@@ -29,7 +29,7 @@ def test_a_start_on_the_boundary_is_left_when_moving_inward_raises_the_likelihoo
     # The trap: the objective is even in sigma, so at sigma = 0 its gradient is exactly 0
     # and a first-order optimiser started (or clipped) there never moves (a bounded TNC
     # stayed at 0 here). The boundary check sees d l / dv > 0 and moves inward.
-    problem, theta_hat, _ = cbpp_fit._model
+    problem, theta_hat = cbpp_fit._model.problem, cbpp_fit._model.theta
     start = theta_hat.copy()
     start[-1] = 0.0
     assert problem.objective(start)[1][-1] == 0.0       # no first-order signal at sigma = 0
@@ -42,7 +42,7 @@ def test_a_start_on_the_boundary_is_left_when_moving_inward_raises_the_likelihoo
 
 def test_variance_slope_is_the_derivative_on_the_variance_scale(cbpp_fit):
     # (l(v = d) - l(0)) / d with the other parameters fixed, by plain differences of values
-    problem, theta_hat, _ = cbpp_fit._model
+    problem, theta_hat = cbpp_fit._model.problem, cbpp_fit._model.theta
     base = theta_hat.copy()
     base[-1] = 0.0
     slope = variance_slope(problem, base, 4)
@@ -64,7 +64,7 @@ def test_a_boundary_estimate_is_a_true_statement():
     (note,) = [w for w in fit.warnings if "estimated at 0" in w]
     slope = float(note.split("d loglik / d variance = ")[1].split(" ")[0])
     assert slope < 0
-    problem, theta, _ = fit._model
+    problem, theta = fit._model.problem, fit._model.theta
     inside = maximise(problem, np.r_[theta[:2], 0.2], {2: 0.2})
     assert inside.value < problem.objective(theta, grad=False)
     assert "no variation" not in note                    # the earlier, overstated wording
@@ -81,7 +81,7 @@ def test_profile_intervals_free_every_variance():
     fit = fit_glmm(data, "correct", "condition", ["participant", "digit"])
     assert fit.boundary == ("digit",)
     low, high = profile_conf_int(fit).loc["condition[T.c1]"]
-    problem, theta_hat, _ = fit._model
+    problem, theta_hat = fit._model.problem, fit._model.theta
     top = problem.objective(theta_hat, grad=False)
     cutoff = stats.chi2.ppf(0.95, 1)
     for end in (low, high):

@@ -109,7 +109,7 @@ def _delta(result: dict, fit: dict, model: str) -> float:
 def _at_lme4_estimates(result: dict, reference: dict) -> float:
     """Our Laplace log-likelihood at lme4's own estimates of the full model."""
     full = result["full"]
-    problem = full._model[0]
+    problem = full._model.problem
     lme4 = reference["full"]
     theta = np.r_[lme4["fixef"]["(Intercept)"], lme4["fixef"]["conditioncrs"],
                   [lme4["sd"][g.removesuffix("_id")] for g in full.variance_components.index]]
@@ -184,7 +184,7 @@ def _reference_intervals(name: str) -> tuple[str, dict]:
 
 def _refitted_drop(result: dict, index: int, value: float) -> float:
     """``2 (l_max - l_prof(value))``, the profile refitted from six starts of the variances."""
-    problem, theta_hat, _ = result["full"]._model
+    problem, theta_hat = result["full"]._model.problem, result["full"]._model.theta
     n_fixed, n_var = problem.n_fixed, len(theta_hat) - problem.n_fixed
     best = -np.inf
     for start in [np.r_[theta_hat[:n_fixed], np.full(n_var, s)] for s in (0.0, 0.05, 0.3, 1.0,
@@ -214,7 +214,7 @@ def test_profile_intervals_agree_with_lme4_or_glmmtmb(name):
     label, intervals = _reference_intervals(name)
     result = ours(name)
     assert intervals["condition"], f"{name}: no outside profile interval"
-    problem, theta_hat, _ = result["full"]._model
+    problem = result["full"]._model.problem
     column = list(result["full"].params.index).index(COLUMN)
     for mine, end in zip(result["condition_ci"], ("low", "high"), strict=True):
         _check_end(result, column, mine, intervals["condition"][end], (label, end))

@@ -170,7 +170,7 @@ def test_at_lme4s_estimates_our_likelihood_is_lme4s(name):
         if not fit:
             continue
         result = ours(name)[model]
-        problem, _, _ = result._model
+        problem = result._model.problem
         groups: dict[str, list[float]] = {}
         for label, value in zip(fit["theta_names"], fit["theta"], strict=True):
             groups.setdefault(label.split(".")[0], []).append(value)

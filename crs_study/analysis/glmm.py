@@ -535,27 +535,47 @@ def _profile_term(result: GlmmResult, term: str, level: float) -> tuple[float, f
     index = list(result.params.index).index(term)
     separation = result.separation
     if separation is not None and term in separation.coefficients:
-        return one_sided_limit(separation, list(result.params.index), result._model[1], term,
+        return one_sided_limit(separation, list(result.params.index), result._model.theta, term,
                                level)
     return profile_interval(result, index, level)
 
 
 def profile_sd_conf_int(result: GlmmResult, level: float = 0.95) -> pd.DataFrame:
-    """Profile-likelihood intervals of the random-intercept standard deviations.
+    """Profile-likelihood intervals of the random effects' standard deviations.
 
-    lme4's ``confint(method = "profile")`` rows ``.sig01, ...``: one row per grouping factor
+    lme4's ``confint(method = "profile")`` rows ``.sig01, ...``: one row per standard
+    deviation that is a parameter of the fit (a random intercept alone, or a column of an
+    uncorrelated term), indexed as ``variance_components`` (the group, or ``group:column``),
     with columns ``sd`` (the estimate), ``ci_low``, ``ci_high``. The lower end is 0 when the
-    profile at 0 lies within the cutoff (the boundary, see ``glmm_fit.profile_sd_interval``);
-    empty when the model has no random effect.
+    profile at 0 lies within the cutoff (the boundary, see ``glmm_fit.profile_sd_interval``).
+    A correlated term's SDs are functions of its Cholesky factor, not parameters of the fit:
+    they get no row. Empty when the model has no random effect.
     """
     _check_profilable(result)
     try:
-        rows = {g: (float(np.sqrt(v)), *profile_sd_interval(result, k, level))
-                for k, (g, v) in enumerate(result.variance_components.items())}
+        rows = {name: (float(np.sqrt(result.variance_components[name])),
+                       *profile_sd_interval(result, index, level))
+                for name, index in _sd_parameters(result)}
     except _NUMERICAL_ERRORS as exc:
         raise GlmmFitError(f"numerical failure while profiling the likelihood "
                            f"({type(exc).__name__}: {exc})") from exc
     return pd.DataFrame.from_dict(rows, orient="index", columns=["sd", "ci_low", "ci_high"])
+
+
+def _sd_parameters(result: GlmmResult) -> list[tuple[str, int]]:
+    """``(variance_components name, parameter index)`` of every standard deviation that is
+    a parameter of the fit."""
+    n_fixed = len(result.params)
+    if not result.terms:
+        return [(g, n_fixed + k) for k, g in enumerate(result.variance_components.index)]
+    out, start = [], n_fixed
+    for term in result.terms:
+        if not term.correlated or term.size == 1:
+            for j, column in enumerate(term.columns):
+                out.append((term.group if term.is_intercept else f"{term.group}:{column}",
+                            start + j))
+        start += term.n_theta
+    return out
 
 
 def _check_profilable(result: GlmmResult) -> None:

@@ -9,7 +9,7 @@ import pandas as pd
 from scipy import optimize, stats
 
 from crs_study.analysis.glmm_optimise import Optimum, boundary_failures, maximise
-from crs_study.analysis.glmm_result import BoundaryFace, GlmmResult
+from crs_study.analysis.glmm_result import BoundaryFace, FitState, GlmmResult
 from crs_study.analysis.glmm_terms import INTERCEPT, covariance, sd_and_correlation
 
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
@@ -89,9 +89,19 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
         n_quadrature=n_quadrature, converged=converged,
         n_function_evaluations=opt.evaluations, n_iterations=opt.iterations,
         max_abs_gradient=max_grad, response=response, fixed=fixed, groups=groups,
-        penalty=penalty, warnings=tuple(notes), _model=(problem, theta, tuple(at_zero)),
+        penalty=penalty, warnings=tuple(notes),
+        _model=FitState(problem, theta, tuple(at_zero), _full_curvature(information, free,
+                                                                       len(theta))),
         terms=terms, theta=tuple(float(t) for t in theta[n_fixed:]),
         faces=tuple(faces))
+
+
+def _full_curvature(information: np.ndarray, free: list[int], size: int) -> np.ndarray:
+    """The negative Hessian over the free parameters as a full matrix (identity for the held
+    ones), the start of a nearby fit's Newton iteration."""
+    out = np.eye(size)
+    out[np.ix_(free, free)] = information
+    return out
 
 
 def _variances(terms, theta: np.ndarray) -> pd.Series:
@@ -230,7 +240,7 @@ def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes,
         n_iterations=int(fit.fit_history["iteration"]), max_abs_gradient=float(np.max(np.abs(
             X.T @ (y - m / (1 + np.exp(-eta)))))), response=response, fixed=fixed,
         groups=groups, penalty=None, warnings=tuple(notes),
-        _model=None if problem is None else (problem, np.asarray(fit.params, float), ()))
+        _model=None if problem is None else FitState(problem, np.asarray(fit.params, float)))
 
 
 def profile_interval(result: GlmmResult, index: int, level: float) -> tuple[float, float]:
@@ -242,17 +252,17 @@ def profile_interval(result: GlmmResult, index: int, level: float) -> tuple[floa
     :func:`~.glmm_optimise.maximise` as the fit (Venzon & Moolgavkar 1988 in the plain
     bracketing form); the ends are found with Brent's method.
     """
-    problem, theta_hat, _ = result._model
+    problem, theta_hat = result._model.problem, result._model.theta
     se = float(result.bse.iloc[index]) if np.isfinite(result.bse.iloc[index]) else 1.0
-    drop = _profile_drop(problem, theta_hat, index, level)
+    drop = _profile_drop(problem, theta_hat, index, level, result._model.curvature)
     low = _profile_end(drop, theta_hat[index], -2.0 * se)
     high = _profile_end(drop, theta_hat[index], 2.0 * se)
     problem.objective(theta_hat)  # restore the warm start at the optimum
     return low, high
 
 
-def profile_sd_interval(result: GlmmResult, k: int, level: float) -> tuple[float, float]:
-    """Profile-likelihood interval of the ``k``-th random-intercept standard deviation.
+def profile_sd_interval(result: GlmmResult, index: int, level: float) -> tuple[float, float]:
+    """Profile-likelihood interval of the standard deviation at parameter ``index``.
 
     As lme4's ``confint(method = "profile")`` for ``.sig0k``: the ends are where ``2 (l_max -
     l_prof(sigma)) = chi2_1(level)``, every other parameter (other variances included)
@@ -261,9 +271,8 @@ def profile_sd_interval(result: GlmmResult, k: int, level: float) -> tuple[float
     0); the upper end is infinite when the profile never drops that far (a flat likelihood,
     e.g. two groups).
     """
-    problem, theta_hat, _ = result._model
-    index = problem.n_fixed + k
-    drop = _profile_drop(problem, theta_hat, index, level)
+    problem, theta_hat = result._model.problem, result._model.theta
+    drop = _profile_drop(problem, theta_hat, index, level, result._model.curvature)
     sigma = float(theta_hat[index])
     low = 0.0 if drop(0.0) <= 0.0 else float(optimize.brentq(drop, 0.0, sigma,
                                                               xtol=_END_TOLERANCE))
@@ -272,7 +281,8 @@ def profile_sd_interval(result: GlmmResult, k: int, level: float) -> tuple[float
     return low, high
 
 
-def _profile_drop(problem, theta_hat: np.ndarray, index: int, level: float):
+def _profile_drop(problem, theta_hat: np.ndarray, index: int, level: float,
+                  curvature: np.ndarray | None = None):
     """``b -> sqrt(2 (l_max - l_prof(b))) - sqrt(chi2_1(level))``: negative inside the
     interval. On this signed-root scale (lme4's ``zeta``) the profile is nearly linear, so
     Brent's method needs few points."""
@@ -297,7 +307,7 @@ def _profile_drop(problem, theta_hat: np.ndarray, index: int, level: float):
             start = start + (value - a) / (a - b) * (optima[a] - optima[b])
             start[problem.n_fixed:] = np.abs(start[problem.n_fixed:])
         start[index] = value
-        opt = maximise(problem, start, {index: value}, profile=True)
+        opt = maximise(problem, start, {index: value}, profile=True, curvature=curvature)
         optima[float(value)] = opt.theta
         known[float(value)] = float(np.sqrt(2.0 * max(top - opt.value, 0.0))) - target
         return known[float(value)]

@@ -26,6 +26,12 @@ solved through the Schur complement ``S = C - B' A^-1 B`` (Golub & Van Loan 2013
 Computations, sec. 3.2.10): ``log det H = sum_l log det A_l + log det S``. No dense ``q x q``
 work: the participants' blocks stay small whatever their number.
 
+**The data enter through sums only.** ``a_i = Lambda' z_i``, so every sum over rows is a
+product of the weights with a fixed sparse matrix of the design (scipy.sparse), the loadings
+applied to the small result: the score ``Lambda' Z' r``, ``H``'s blocks ``I + T' (sum_i w_i
+z_i z_i') T``, and, read the other way, ``eta = X beta + Z (Lambda u)`` and the quadratic forms
+``d_i = z_i' (Lambda H^-1 Lambda') z_i``. No array has more than one number per row and study.
+
 **The gradient** is exact and costs one more solve, whatever the number of parameters. For
 any parameter ``t``, by the implicit function theorem at ``g(u*) = dh/du = 0``::
 
@@ -51,6 +57,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.special import expit
 
 #: Penalised IRLS stops when no coordinate of u moves more than this.
@@ -80,11 +87,21 @@ class TermRows:
         return self.Z.shape[1]
 
 
-def scatter(values: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
-    """Sums of ``values`` (S, n, ...) into ``size`` bins per study by ``index`` (n, ...)."""
-    S = values.shape[0]
-    flat = (index[None] + (size * np.arange(S)).reshape((S,) + (1,) * index.ndim)).ravel()
-    return np.bincount(flat, values.ravel(), minlength=S * size).reshape(S, size)
+def _mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` over the last two axes (broadcast), the inner sum written out when it is
+    short: numpy's matmul calls BLAS once per tiny matrix, thousands of calls here."""
+    k = A.shape[-1]
+    if k > 3:
+        return A @ B
+    out = A[..., :, 0:1] * B[..., 0:1, :]
+    for j in range(1, k):
+        out = out + A[..., :, j:j + 1] * B[..., j:j + 1, :]
+    return out
+
+
+def _outer_contract(F: np.ndarray, E: np.ndarray) -> np.ndarray:
+    """``F @ E'`` over the last two axes for stacks of short, wide blocks (..., r, q)."""
+    return (F[..., :, None, :] * E[..., None, :, :]).sum(axis=-1)
 
 
 def small_inverse(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +120,35 @@ def small_inverse(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     L = np.linalg.cholesky(A)
     logdet = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
     return np.linalg.inv(A), logdet
+
+
+class _Sums:
+    """A fixed sparse map between rows and bins: ``to_bins(v)`` sums ``v`` (S, n) into the
+    bins, ``to_rows(b)`` reads bins (S, bins) back row by row (the transpose). Each output of
+    a study depends on that study's numbers alone, in a fixed order."""
+
+    def __init__(self, rows: np.ndarray, bins: np.ndarray, values: np.ndarray, n: int,
+                 size: int):
+        self.to_rows_matrix = sp.csr_matrix((values, (rows, bins)), shape=(n, size))
+        self.to_bins_matrix = self.to_rows_matrix.T.tocsr()
+        self.size = size
+
+    def to_bins(self, v: np.ndarray) -> np.ndarray:
+        return np.asarray(self.to_bins_matrix @ v.T).T
+
+    def to_rows(self, b: np.ndarray) -> np.ndarray:
+        return np.asarray(self.to_rows_matrix @ b.T).T
+
+
+def _outer_sums(n: int, left_pos: np.ndarray, left_z: np.ndarray, right_pos: np.ndarray,
+                right_z: np.ndarray, right_size: int, size: int) -> _Sums:
+    """The map of ``sum_i v_i z_ia z_ib`` into bins ``left_pos[i, a] * right_size +
+    right_pos[i, b]``."""
+    a, b = left_pos.shape[1], right_pos.shape[1]
+    rows = np.repeat(np.arange(n), a * b)
+    bins = (left_pos[:, :, None] * right_size + right_pos[:, None, :]).ravel()
+    values = (left_z[:, :, None] * right_z[:, None, :]).ravel()
+    return _Sums(rows, bins, values, n, size)
 
 
 class LaplaceLikelihood:
@@ -124,34 +170,33 @@ class LaplaceLikelihood:
             raise ValueError("the Laplace likelihood needs a random term")
         self.terms = terms
         self.large = int(np.argmax([t.levels * t.size for t in terms]))
-        big = terms[self.large]
         self.rest = [k for k in range(len(terms)) if k != self.large]
+        big = terms[self.large]
         self.n_large, self.r_large = big.levels, big.size
         self.q_large = big.levels * big.size
-        offsets, columns, position = [], [], 0
+        n = len(self.m)
+        self.rest_blocks = []        # (term index, slice of the rest positions)
+        positions, position = [], 0
         for k in self.rest:
             t = terms[k]
-            offsets.append(position)
-            columns.append(position + t.codes[:, None] * t.size + np.arange(t.size))
+            positions.append(position + t.codes[:, None] * t.size + np.arange(t.size))
+            self.rest_blocks.append((k, slice(position, position + t.levels * t.size)))
             position += t.levels * t.size
         self.q_rest = position
-        self.rest_offsets = offsets
-        n = len(self.m)
-        self.rest_cols = (np.concatenate(columns, axis=1) if columns
-                          else np.zeros((n, 0), dtype=np.intp))
-        self.rest_slices = []
-        start = 0
-        for k in self.rest:
-            self.rest_slices.append(slice(start, start + terms[k].size))
-            start += terms[k].size
-        rL = self.r_large
-        self.large_index = big.codes[:, None] * rL + np.arange(rL)               # (n, rL)
-        self.A_index = (big.codes[:, None, None] * rL * rL + np.arange(rL)[:, None] * rL
-                        + np.arange(rL)[None, :])                                 # (n, rL, rL)
-        qR = self.q_rest
-        self.B_index = (self.large_index[:, :, None] * qR + self.rest_cols[:, None, :])
-        self.C_index = self.rest_cols[:, :, None] * qR + self.rest_cols[:, None, :]
         self.q = self.q_large + self.q_rest
+        rL, nL, qR = self.r_large, self.n_large, self.q_rest
+        large_pos = big.codes[:, None] * rL + np.arange(rL)                  # (n, rL)
+        self.large_sums = _Sums(np.repeat(np.arange(n), rL), large_pos.ravel(),
+                                big.Z.ravel(), n, self.q_large)
+        self.A_sums = _outer_sums(n, big.codes[:, None] * rL + np.arange(rL), big.Z,
+                                  np.tile(np.arange(rL), (n, 1)), big.Z, rL, nL * rL * rL)
+        if qR:
+            rest_pos = np.concatenate(positions, axis=1)
+            rest_z = np.concatenate([terms[k].Z for k in self.rest], axis=1)
+            self.rest_sums = _Sums(np.repeat(np.arange(n), rest_pos.shape[1]),
+                                   rest_pos.ravel(), rest_z.ravel(), n, qR)
+            self.B_sums = _outer_sums(n, large_pos, big.Z, rest_pos, rest_z, qR, nL * rL * qR)
+            self.C_sums = _outer_sums(n, rest_pos, rest_z, rest_pos, rest_z, qR, qR * qR)
         self.u = np.zeros((len(self.Y), self.q))
 
     @property
@@ -167,43 +212,62 @@ class LaplaceLikelihood:
         return out
 
     # ------------------------------------------------------------------ pieces
-    def _alphas(self, loadings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """``alpha`` of each row: the large term's (S, n, rL) and the others' (S, n, cR)."""
-        big = self.terms[self.large]
-        aL = np.einsum("na,sab->snb", big.Z, loadings[self.large])
-        if not self.rest:
-            return aL, np.zeros(aL.shape[:2] + (0,))
-        aR = np.concatenate([np.einsum("na,sab->snb", self.terms[k].Z, loadings[k])
-                             for k in self.rest], axis=2)
-        return aL, aR
+    def _split(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A q-vector per study as (large part (S, nL, rL), rest part (S, qR))."""
+        return v[:, :self.q_large].reshape(len(v), self.n_large, self.r_large), \
+            v[:, self.q_large:]
 
-    def _rows(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Each row's random effects ``u`` at its levels: (S, n, rL) and (S, n, cR)."""
-        S = len(u)
-        uL = u[:, :self.q_large].reshape(S, self.n_large, self.r_large)
-        big = self.terms[self.large]
-        return uL[:, big.codes], u[:, self.q_large:][:, self.rest_cols]
+    def _rest_apply(self, M: np.ndarray, loadings, side: str, transpose: bool = False):
+        """``M`` with each rest term's block multiplied by its loading: on the right of the
+        last axis (``side = "right"``: ``M T``) or on the left of axis 1 (``"left"``:
+        ``T' M``, the transpose of each block's loading when ``transpose``)."""
+        out = np.empty_like(M) if side == "right" else np.empty(M.shape)
+        for k, cut in self.rest_blocks:
+            T = loadings[k]
+            t = self.terms[k]
+            if side == "right":
+                block = M[..., cut].reshape(M.shape[:-1] + (t.levels, t.size))
+                T_ = np.swapaxes(T, 1, 2) if transpose else T
+                T_ = T_.reshape((len(T),) + (1,) * (block.ndim - 3) + T.shape[1:])
+                out[..., cut] = _mm(block, T_).reshape(M.shape[:-1] + (-1,))
+            else:
+                block = M[:, cut].reshape((len(M), t.levels, t.size) + M.shape[2:])
+                T_ = np.swapaxes(T, 1, 2) if transpose else T
+                moved = np.moveaxis(block, 2, -1)                      # (S, Lk, ..., rk)
+                moved = _mm(moved, T_.reshape((len(T),) + (1,) * (moved.ndim - 3)
+                                              + (t.size, t.size)))
+                out[:, cut] = np.moveaxis(moved, -1, 2).reshape(out[:, cut].shape)
+        return out
 
-    def _eta(self, offset, aL, aR, u):
-        uL, uR = self._rows(u)
-        return offset + (aL * uL).sum(axis=2) + (aR * uR).sum(axis=2)
+    def _effects(self, u: np.ndarray, loadings) -> tuple[np.ndarray, np.ndarray]:
+        """``Lambda u`` in the design's space: (S, nL * rL) and (S, qR)."""
+        uL, uR = self._split(u)
+        bL = _mm(uL, np.swapaxes(loadings[self.large], 1, 2)).reshape(len(u), -1)
+        if not self.q_rest:
+            return bL, uR
+        return bL, self._rest_apply(uR, loadings, "right", transpose=True)
 
-    def _h(self, Y, offset, aL, aR, u) -> np.ndarray:
-        eta = self._eta(offset, aL, aR, u)
+    def _linear(self, offset, u, loadings) -> np.ndarray:
+        """``X beta + Z Lambda u`` per row (S, n)."""
+        bL, bR = self._effects(u, loadings)
+        eta = offset + self.large_sums.to_rows(bL)
+        return eta + self.rest_sums.to_rows(bR) if self.q_rest else eta
+
+    def _adjoint(self, v: np.ndarray, loadings) -> np.ndarray:
+        """``Lambda' Z' v`` (S, q) for row values ``v`` (S, n)."""
+        S = len(v)
+        gL = self.large_sums.to_bins(v).reshape(S, self.n_large, self.r_large)
+        gL = _mm(gL, loadings[self.large]).reshape(S, -1)
+        if not self.q_rest:
+            return gL
+        gR = self._rest_apply(self.rest_sums.to_bins(v), loadings, "right")
+        return np.concatenate([gL, gR], axis=1)
+
+    def _h(self, Y, offset, u, loadings) -> np.ndarray:
+        eta = self._linear(offset, u, loadings)
         return kernel(Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
 
-    def _factor(self, w, aL, aR, full: bool = False) -> _Factor:
-        return _Factor(self, w, aL, aR, full)
-
-    def _score(self, r, aL, aR, u) -> np.ndarray:
-        """``dh/du = sum_i r_i a_i - u`` (S, q)."""
-        gL = scatter(r[:, :, None] * aL, self.large_index, self.q_large)
-        if not self.rest:
-            return gL - u
-        gR = scatter(r[:, :, None] * aR, self.rest_cols, self.q_rest)
-        return np.concatenate([gL, gR], axis=1) - u
-
-    def modes(self, offset, aL, aR, u0, Y=None) -> np.ndarray:
+    def modes(self, offset, loadings, u0, Y=None) -> np.ndarray:
         """Penalised IRLS from ``u0``; each study stops when its step is below ``INNER_TOL``
         (frozen thereafter, so its answer never depends on its batch). A step longer than
         ``FULL_STEP`` in some coordinate is halved until ``h`` does not fall."""
@@ -213,21 +277,23 @@ class LaplaceLikelihood:
         for _ in range(INNER_MAXITER):
             if not len(active):
                 break
-            o, a_L, a_R, ua, y = offset[active], aL[active], aR[active], u[active], Y[active]
-            eta = self._eta(o, a_L, a_R, ua)
+            o, ua, y = offset[active], u[active], Y[active]
+            T = [L[active] for L in loadings]
+            eta = self._linear(o, ua, T)
             p = expit(eta)
             mp = self.m * p
-            factor = self._factor(mp * (1.0 - p), a_L, a_R)
-            step = factor.solve(self._score(y - mp, a_L, a_R, ua))
+            factor = _Factor(self, mp * (1.0 - p), T)
+            step = factor.solve(self._adjoint(y - mp, T) - ua)
             size = np.max(np.abs(step), axis=1)
             t = np.ones(len(active))
             long = np.flatnonzero(size > FULL_STEP)
             if len(long):
+                T_long = [L[long] for L in T]
                 current = kernel(y[long], self.m, eta[long]).sum(axis=1) - 0.5 * np.einsum(
                     "sq,sq->s", ua[long], ua[long])
                 for _ in range(31):
-                    value = self._h(y[long], o[long], a_L[long], a_R[long],
-                                    ua[long] + t[long, None] * step[long])
+                    value = self._h(y[long], o[long], ua[long] + t[long, None] * step[long],
+                                    T_long)
                     worse = ~(value >= current - 1e-12 * (1.0 + np.abs(current)))
                     if not worse.any():
                         break
@@ -242,67 +308,81 @@ class LaplaceLikelihood:
         """``(value (S,), d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` (the last two None when
         ``grad`` is false); updates the warm starts ``u``."""
         beta = np.asarray(beta, dtype=float)
-        offset = np.einsum("sp,np->sn", beta, self.X)   # per study: no batch-wide BLAS
-        aL, aR = self._alphas(loadings)
-        u = self.modes(offset, aL, aR, self.u)
+        loadings = [np.asarray(T, dtype=float) for T in loadings]
+        offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
+        u = self.modes(offset, loadings, self.u)
         bad = ~np.isfinite(u).all(axis=1)
         if bad.any():                       # a diverged start: retry those from 0
-            u[bad] = self.modes(offset[bad], aL[bad], aR[bad], np.zeros((bad.sum(), self.q)),
-                                self.Y[bad])
+            u[bad] = self.modes(offset[bad], [T[bad] for T in loadings],
+                                np.zeros((bad.sum(), self.q)), self.Y[bad])
         self.u = u
-        eta = self._eta(offset, aL, aR, u)
+        eta = self._linear(offset, u, loadings)
         p = expit(eta)
         w = self.m * p * (1.0 - p)
-        factor = self._factor(w, aL, aR, full=grad)
+        factor = _Factor(self, w, loadings, full=grad)
         value = (kernel(self.Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
                  - 0.5 * factor.logdet)
         if not grad:
             return value, None, None
-        return (value,) + self._gradient(u, p, w, aL, aR, factor)
+        return (value,) + self._gradient(u, p, w, loadings, factor)
 
-    def _gradient(self, u, p, w, aL, aR, factor: _Factor):
-        """The exact gradient (module docstring)."""
+    def _gradient(self, u, p, w, loadings, factor: _Factor):
+        """The exact gradient (module docstring), every sum over rows a sparse product."""
+        S = len(u)
         r = self.Y - self.m * p
-        hL, hR = factor.inverse_times_rows(aL, aR)                   # (H^-1 a_i) at row i
-        d = (aL * hL).sum(axis=2) + (aR * hR).sum(axis=2)
+        d = factor.row_quadratic_forms()                  # a_i' H^-1 a_i
         q = w * (1.0 - 2.0 * p) * d
-        v = self._score(q, aL, aR, np.zeros_like(u))                   # sum_i q_i a_i
-        s = factor.solve(v)
-        sL, sR = self._rows(s)
-        rho = r - 0.5 * q + 0.5 * w * ((aL * sL).sum(axis=2) + (aR * sR).sum(axis=2))
-        g_beta = np.einsum("sn,np->sp", rho, self.X)
-        uL, uR = self._rows(u)
+        s = factor.solve(self._adjoint(q, loadings))
+        sa = self._linear(np.zeros_like(q), s, loadings)   # a_i' s
+        rho = r - 0.5 * q + 0.5 * w * sa
+        g_beta = (self.X.T @ rho[:, :, None])[:, :, 0]
         grads: list[np.ndarray] = [None] * len(self.terms)
-        QL = rho[:, :, None] * uL - w[:, :, None] * hL - 0.5 * r[:, :, None] * sL
-        grads[self.large] = np.einsum("na,snb->sab", self.terms[self.large].Z, QL)
-        for k, cut in zip(self.rest, self.rest_slices, strict=True):
-            Qk = (rho[:, :, None] * uR[:, :, cut] - w[:, :, None] * hR[:, :, cut]
-                  - 0.5 * r[:, :, None] * sR[:, :, cut])
-            grads[k] = np.einsum("na,snb->sab", self.terms[k].Z, Qk)
+        wz = factor.weighted_inverse_blocks()              # sum_i w_i z_i (H^-1 a_i)_k
+        uL, uR = self._split(u)
+        sL, sR = self._split(s)
+        big = self.large_sums
+        rho_L = big.to_bins(rho).reshape(S, self.n_large, self.r_large)
+        r_L = big.to_bins(r).reshape(S, self.n_large, self.r_large)
+        grads[self.large] = (np.swapaxes(rho_L, 1, 2) @ uL - wz[self.large]
+                             - 0.5 * np.swapaxes(r_L, 1, 2) @ sL)
+        if self.q_rest:
+            rho_R, r_R = self.rest_sums.to_bins(rho), self.rest_sums.to_bins(r)
+            for k, cut in self.rest_blocks:
+                t = self.terms[k]
+
+                def blocks(v, t=t, cut=cut):
+                    return v[:, cut].reshape(S, t.levels, t.size)
+
+                grads[k] = (np.swapaxes(blocks(rho_R), 1, 2) @ blocks(uR) - wz[k]
+                            - 0.5 * np.swapaxes(blocks(r_R), 1, 2) @ blocks(sR))
         return g_beta, grads
 
 
 class _Factor:
     """``H = [[A, B], [B', C]]`` of each study at weights ``w`` (module docstring): solves,
-    ``log det H``, and (``full``) the entries of ``H^-1`` the gradient needs."""
+    ``log det H``, and (``full``) what the gradient needs of ``H^-1``."""
 
-    def __init__(self, lik: LaplaceLikelihood, w, aL, aR, full: bool):
-        self.lik = lik
+    def __init__(self, lik: LaplaceLikelihood, w, loadings, full: bool = False):
+        self.lik, self.loadings = lik, loadings
         S = len(w)
         rL, nL, qR = lik.r_large, lik.n_large, lik.q_rest
-        wa = w[:, :, None] * aL
-        A = scatter(wa[:, :, :, None] * aL[:, :, None, :], lik.A_index, nL * rL * rL)
-        A = A.reshape(S, nL, rL, rL) + np.eye(rL)
+        TL = loadings[lik.large][:, None]                                  # (S, 1, rL, rL)
+        TLt = np.swapaxes(TL, 2, 3)
+        self.WL = lik.A_sums.to_bins(w).reshape(S, nL, rL, rL)            # sum w z z'
+        A = _mm(_mm(TLt, self.WL), TL) + np.eye(rL)
         self.A_inv, logdet_A = small_inverse(A)
         self.logdet = logdet_A.sum(axis=1)
         self.E = None
         if qR == 0:
             return
-        B = scatter(wa[:, :, :, None] * aR[:, :, None, :], lik.B_index, nL * rL * qR)
-        B = B.reshape(S, nL, rL, qR)
-        C = scatter((w[:, :, None] * aR)[:, :, :, None] * aR[:, :, None, :], lik.C_index,
-                    qR * qR).reshape(S, qR, qR) + np.eye(qR)
-        self.E = self.A_inv @ B                                        # (S, nL, rL, qR)
+        self.WB = lik.B_sums.to_bins(w).reshape(S, nL, rL, qR)
+        self.BL = _mm(TLt, self.WB)                                       # T_L' sum w zL zR'
+        B = lik._rest_apply(self.BL.reshape(S, nL * rL, qR), loadings, "right").reshape(
+            S, nL, rL, qR)
+        self.WC = lik.C_sums.to_bins(w).reshape(S, qR, qR)
+        C = lik._rest_apply(lik._rest_apply(self.WC, loadings, "right"), loadings, "left")
+        C = C + np.eye(qR)
+        self.E = _mm(self.A_inv, B)                                        # (S, nL, rL, qR)
         schur = C - np.swapaxes(B.reshape(S, nL * rL, qR), 1, 2) @ self.E.reshape(
             S, nL * rL, qR)
         chol = np.linalg.cholesky(schur)
@@ -310,37 +390,69 @@ class _Factor:
             np.diagonal(chol, axis1=1, axis2=2)).sum(axis=1)
         self.schur = schur
         self.S_inv = np.linalg.inv(schur) if full else None
+        self.F = None if self.S_inv is None else (
+            self.E.reshape(S, nL * rL, qR) @ self.S_inv).reshape(S, nL, rL, qR)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``H^-1 b`` for ``b`` (S, q)."""
         lik = self.lik
         S = len(b)
-        bL = b[:, :lik.q_large].reshape(S, lik.n_large, lik.r_large)
+        bL, bR = lik._split(b)
         if self.E is None:
-            return (self.A_inv @ bL[..., None])[..., 0].reshape(S, -1)
-        bR = b[:, lik.q_large:]
+            return _mm(self.A_inv, bL[..., None])[..., 0].reshape(S, -1)
         rhs = bR - np.einsum("slar,sla->sr", self.E, bL)
         if self.S_inv is None:
             xR = np.linalg.solve(self.schur, rhs[..., None])[..., 0]
         else:
-            xR = np.einsum("srt,st->sr", self.S_inv, rhs)
-        xL = (self.A_inv @ bL[..., None])[..., 0] - np.einsum("slar,sr->sla", self.E, xR)
+            xR = (self.S_inv @ rhs[..., None])[..., 0]
+        xL = _mm(self.A_inv, bL[..., None])[..., 0] - (
+            self.E.reshape(S, -1, self.E.shape[-1]) @ xR[:, :, None]).reshape(bL.shape)
         return np.concatenate([xL.reshape(S, -1), xR], axis=1)
 
-    def inverse_times_rows(self, aL, aR) -> tuple[np.ndarray, np.ndarray]:
-        """``(H^-1 a_i)`` at row ``i``'s own positions: (S, n, rL) and (S, n, cR)."""
-        lik = self.lik
-        codes = lik.terms[lik.large].codes
+    def _P_LL(self) -> np.ndarray:
+        """The large term's diagonal blocks of ``H^-1``: ``A^-1 + E S^-1 E'``."""
         if self.E is None:
-            return np.einsum("snab,snb->sna", self.A_inv[:, codes], aL), aR
-        F = self.E @ self.S_inv[:, None]                              # E S^-1 (S, nL, rL, qR)
-        P_LL = self.A_inv + np.einsum("slar,slbr->slab", F, self.E)
-        rL = lik.r_large
-        cols = lik.rest_cols
-        F_rows = F[:, codes[:, None, None], np.arange(rL)[None, :, None], cols[:, None, :]]
-        S_rows = self.S_inv[:, cols[:, :, None], cols[:, None, :]]
-        hL = (np.einsum("snab,snb->sna", P_LL[:, codes], aL)
-              - np.einsum("snab,snb->sna", F_rows, aR))
-        hR = (np.einsum("snab,snb->sna", S_rows, aR)
-              - np.einsum("snab,sna->snb", F_rows, aL))
-        return hL, hR
+            return self.A_inv
+        return self.A_inv + _outer_contract(self.F, self.E)
+
+    def row_quadratic_forms(self) -> np.ndarray:
+        """``d_i = a_i' H^-1 a_i = z_i' (Lambda H^-1 Lambda') z_i`` for every row (S, n)."""
+        lik, loadings = self.lik, self.loadings
+        S = len(self.A_inv)
+        TL = loadings[lik.large][:, None]
+        K_LL = _mm(_mm(TL, self._P_LL()), np.swapaxes(TL, 2, 3))
+        d = lik.A_sums.to_rows(K_LL.reshape(S, -1))
+        if self.E is None:
+            return d
+        nL, rL, qR = lik.n_large, lik.r_large, lik.q_rest
+        K_LR = -lik._rest_apply(_mm(TL, self.F).reshape(S, nL * rL, qR), loadings, "right",
+                                transpose=True)
+        K_RR = lik._rest_apply(lik._rest_apply(self.S_inv, loadings, "right", transpose=True),
+                               loadings, "left", transpose=True)
+        return (d + 2.0 * lik.B_sums.to_rows(K_LR.reshape(S, -1))
+                + lik.C_sums.to_rows(K_RR.reshape(S, -1)))
+
+    def weighted_inverse_blocks(self) -> list[np.ndarray]:
+        """Per term ``k``: ``sum_i w_i z_ik (H^-1 a_i)_k'`` (S, r_k, r_k), the diagonal
+        blocks of ``W_z Lambda H^-1`` summed over the term's levels."""
+        lik, loadings = self.lik, self.loadings
+        S = len(self.A_inv)
+        TL = loadings[lik.large][:, None]
+        out: list[np.ndarray] = [None] * len(lik.terms)
+        large = _mm(_mm(self.WL, TL), self._P_LL()).sum(axis=1)
+        if self.E is None:
+            out[lik.large] = large
+            return out
+        nL, rL, qR = lik.n_large, lik.r_large, lik.q_rest
+        WBT = lik._rest_apply(self.WB.reshape(S, nL * rL, qR), loadings, "right").reshape(
+            S, nL, rL, qR)
+        out[lik.large] = large - _outer_contract(WBT, self.F).sum(axis=1)
+        # rest: W_RR T_R S^-1 + W_RL T_L P_LR, its diagonal blocks per term
+        M = (lik._rest_apply(self.WC, loadings, "right") @ self.S_inv
+             - np.swapaxes(self.BL.reshape(S, nL * rL, qR), 1, 2)
+             @ self.F.reshape(S, nL * rL, qR))
+        for k, cut in lik.rest_blocks:
+            t = lik.terms[k]
+            block = M[:, cut, cut].reshape(S, t.levels, t.size, t.levels, t.size)
+            out[k] = np.diagonal(block, axis1=1, axis2=3).sum(axis=-1)
+        return out

@@ -47,7 +47,7 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     g = np.where(free, g, 0.0)
     converged = np.zeros(S, dtype=bool)
     iterations = np.zeros(S, dtype=int)
-    N = None if N0 is None else N0.copy()
+    N = None if N0 is None else _held_out(N0.copy(), free)
     N_last = np.zeros((S, n, n))
     active = np.arange(S)
     sub = objective.subset(active)
@@ -94,6 +94,15 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     return objective.normalised(theta), value, converged, iterations, N_last
 
 
+def _held_out(N: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """``N`` with the held coordinates' rows and columns made the identity's."""
+    mask = free[:, :, None] & free[:, None, :]
+    N = np.where(mask, N, 0.0)
+    idx = np.arange(N.shape[1])
+    N[:, idx, idx] = np.where(free, N[:, idx, idx], 1.0)
+    return N
+
+
 def _negative_hessian(sub, theta, g, free) -> np.ndarray:
     """``-d2 l / dtheta2`` over the free coordinates by forward differences of the exact
     gradient (identity rows and columns for the held ones)."""
@@ -110,12 +119,7 @@ def _negative_hessian(sub, theta, g, free) -> np.ndarray:
         _, gj = sub.evaluate(shifted)
         H[:, :, j] = (gj - g) / h[:, None]
     sub.warm = warm
-    N = -0.5 * (H + np.swapaxes(H, 1, 2))
-    mask = free[:, :, None] & free[:, None, :]
-    N = np.where(mask, N, 0.0)
-    idx = np.arange(n)
-    N[:, idx, idx] = np.where(free, N[:, idx, idx], 1.0)
-    return N
+    return _held_out(-0.5 * (H + np.swapaxes(H, 1, 2)), free)
 
 
 def _solve(N: np.ndarray, g: np.ndarray, free: np.ndarray) -> np.ndarray:

@@ -175,19 +175,21 @@ class _Single:
 
 
 def local_fit(problem, start: np.ndarray, held: dict[int, float],
-              methods=_METHODS) -> Optimum:
+              methods=_METHODS, curvature: np.ndarray | None = None) -> Optimum:
     """One unconstrained local maximisation (theta of any sign; returned normalised).
 
     Newton's method (:func:`~.glmm_newton.newton`: the exact gradient, a differenced
-    Hessian) first; where it stops short of its gradient tolerance, scipy's TNC from the
-    start, then L-BFGS-B from TNC's end when the gradient there is not yet small.
+    Hessian, or ``curvature``, a negative Hessian known to be near, to start) first; where it
+    stops short of its gradient tolerance, scipy's TNC from the start, then L-BFGS-B from
+    TNC's end when the gradient there is not yet small.
     """
     single = _Single(problem)
     theta0 = np.asarray(start, float).copy()
     mask = np.zeros(len(theta0), dtype=bool)
     for i, value in held.items():
         theta0[i], mask[i] = value, True
-    theta, value, converged, iterations, _ = newton(single, theta0[None], mask[None])
+    theta, value, converged, iterations, _ = newton(
+        single, theta0[None], mask[None], None if curvature is None else curvature[None])
     if converged[0] and np.isfinite(value[0]):
         value = problem.objective(theta[0], grad=False)
         return Optimum(theta[0], float(value), [], single.calls + 1, int(iterations[0]), 0,
@@ -316,18 +318,19 @@ def _inward(problem, theta: np.ndarray, faces: list[Face], sigma: float) -> np.n
 
 
 def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
-             profile: bool = False) -> Optimum:
+             profile: bool = False, curvature: np.ndarray | None = None) -> Optimum:
     """The maximum of the objective over the parameters not ``held``, boundary checked.
 
     A local fit; then, for the blocks that ended near their boundary, the fit on the face
     (:func:`_faces_near`) and its slopes. All slopes <= 0 and the face's fit no lower: the
     boundary is the estimate. Some slope > 0: restarts inward (``RESTART_SIGMAS``), the best
     optimum kept, and the check repeated on it (at most ``_MAX_ROUNDS``). ``profile``: the
-    looser tolerances of a profile point (``_PROFILE_METHODS``).
+    looser tolerances of a profile point (``_PROFILE_METHODS``); ``curvature``, a negative
+    Hessian near ``start`` (the fit's, for its profile points), starts Newton's method.
     """
     held = dict(held or {})
     methods = _PROFILE_METHODS if profile else _METHODS
-    best = local_fit(problem, np.asarray(start, float), held, methods)
+    best = local_fit(problem, np.asarray(start, float), held, methods, curvature)
     evaluations, iterations, restarts = best.evaluations, best.iterations, 0
     for _ in range(_MAX_ROUNDS):
         near = _faces_near(problem, best.theta, held)

@@ -82,6 +82,19 @@ def wald_pvalues(z: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class FitState:
+    """What profiles and refits need of a fit: the objective (``problem``), the estimate
+    ``theta``, the parameters held on a boundary (``at_zero``) and the negative Hessian of
+    the objective there (``curvature``, full size, identity rows for the held parameters;
+    None when none was taken), a Newton start for nearby fits."""
+
+    problem: object
+    theta: np.ndarray
+    at_zero: tuple = ()
+    curvature: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class GlmmResult:
     """A binomial-logit mixed model fitted by maximum likelihood (lme4's ``glmer`` numbers).
 

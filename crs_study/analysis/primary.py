@@ -471,7 +471,9 @@ def _profile_odds(full, columns: list[str], level: float,
 
 
 def _random_effect_intervals(full, level: float, warnings: list[str]) -> dict:
-    """Per random intercept: variance, sd and the profile-likelihood interval of the sd."""
+    """Per random effect (the group, or ``group:column`` for a term of several): variance,
+    sd and the profile-likelihood interval of the sd where the sd is a parameter of the fit
+    (a correlated term's SDs are not: no interval, said so in ``ci_method``)."""
     if not len(full.variance_components):
         return {}
     try:
@@ -482,10 +484,14 @@ def _random_effect_intervals(full, level: float, warnings: list[str]) -> dict:
         table = None
     out = {}
     for group, variance in full.variance_components.items():
-        name = group.removesuffix("_id")
+        name = group.replace("_id", "", 1) if group.startswith("participant_id") else group
+        profiled = table is not None and group in table.index
         entry = {"variance": float(variance), "sd": float(np.sqrt(variance)),
-                 "sd_ci95": None, "ci_method": "profile likelihood (lme4 confint 'profile')"}
-        if table is not None:
+                 "sd_ci95": None,
+                 "ci_method": "profile likelihood (lme4 confint 'profile')" if profiled else
+                 "none: a correlated term's SD is not a parameter of the fit (its Cholesky "
+                 "factor is)"}
+        if profiled:
             low, high = (float(v) for v in table.loc[group, ["ci_low", "ci_high"]])
             entry["sd_ci95"] = [low, high if np.isfinite(high) else None]
             if not np.isfinite(high):
