@@ -136,3 +136,18 @@ def test_charts_of_tracks_and_fitted_functions(dry_run):
     assert ax.get_yscale() == "log" and len(ax.lines) >= 12
     ax = dry_run.plot("thresholds")
     assert ax.get_xscale() == "log"
+
+
+def test_an_adaptive_study_is_headlined_by_its_thresholds(dry_run):
+    """The procedure steers accuracy towards its target: the headline is the threshold
+    comparison, the accuracy GLMM a secondary result (in results.json and the report)."""
+    procedure = next(c for c in dry_run.thresholds.comparisons if c.method == "procedure")
+    headline = dry_run.headline
+    assert headline.startswith(f"crs threshold {procedure.ratio:.3g} x pixel-only")
+    assert f"paired t({procedure.n_pairs - 1})" in headline
+    assert "accuracy steered by the procedure" in headline and "GLMM" not in headline
+    glmm = [c for c in dry_run.to_dict()["comparisons"] if c.get("test") == "glmm"]
+    assert glmm and not any(c["primary"] for c in glmm)
+    assert all("adaptive procedure" in c["secondary_because"] for c in glmm)
+    report = dry_run.files.report.read_text()
+    assert "## Accuracy model (secondary: the thresholds answer an adaptive study)" in report

@@ -18,12 +18,38 @@ def pilot(tmp_path_factory):
 
 
 def test_the_pilots_model_is_analyzes_fit(pilot):
-    """The fixed effects and SDs that generate the studies are those of analyze's primary
-    GLMM on the pilot (same sessions, exclusions, plan)."""
+    """The fixed effects and the covariances of the random effects (intercepts and condition
+    slopes, the plan's maximal model) that generate the studies are those of analyze's
+    primary GLMM on the pilot (same sessions, exclusions, plan)."""
     model, variances = pilot_model_matching_analyze("digit_identification", pilot)
-    assert model.participant_sd == pytest.approx(np.sqrt(variances["participant_id"]))
-    assert model.digit_sd == pytest.approx(np.sqrt(variances["digit"]))
+    participant = model.covariance("participant")
+    assert model.participant_sd == pytest.approx(
+        np.sqrt(variances["participant_id:Intercept"]))
+    assert participant[1, 1] == pytest.approx(variances["participant_id:condition[crs]"])
+    digit = model.covariance("symbol")
+    assert model.digit_sd == pytest.approx(np.sqrt(variances["digit:Intercept"]))
+    assert digit[1, 1] == pytest.approx(variances["digit:condition[crs]"])
     assert model.source == "pilot" and model.details["n_participants"] == 8
+    assert model.details["random"] == \
+        "(1 + condition | participant) + (1 + condition | digit)"
+
+
+def test_a_null_pilot_whose_participants_differ_gives_that_slope_to_new_participants(tmp_path):
+    """A pilot with no condition effect but participants differing in it: the model carries
+    the pilot's slope, and studies drawn from it show the spread (and no effect)."""
+    spec = SyntheticSpec(n_participants=30, repetitions=4, participant_sd=0.4, digit_sd=0.2,
+                         participant_slope_sd=0.8, accuracy={"pixel-only": 0.6, "crs": 0.6},
+                         seed=32)
+    pilot = write_dataset(tmp_path / "null", spec)
+    model = model_from_pilot(design_from_protocol("digit_identification"), pilot)
+    slope = float(model.slope_sd("participant")[0])
+    assert 0.4 < slope < 1.3                                   # the pilot's estimate of 0.8
+    rng = np.random.default_rng(0)
+    logits = np.array([model.participant_logits(z, [w])[0, 0]
+                       for z, w in rng.standard_normal((4000, 2))])
+    effects = logits[:, 1] - logits[:, 0]                     # each new participant's effect
+    assert np.std(effects) == pytest.approx(slope, rel=0.05)
+    assert abs(np.mean(effects) - (model.base[0, 0, 1] - model.base[0, 0, 0])) < 0.05
 
 
 def test_the_effect_scale_shrinks_the_condition_effect_and_the_power(pilot):

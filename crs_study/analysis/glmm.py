@@ -121,7 +121,8 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     data : DataFrame with one row per trial (``response`` 0/1) or per binomial count.
     response : column of 0/1 outcomes, or of successes when ``trials`` is given.
     fixed : right-hand side of a patsy formula (e.g. ``"C(condition, Treatment('off'))"``),
-        or a design matrix (DataFrame, one column per coefficient, rows as ``data``).
+        or a design matrix (DataFrame, one column per coefficient, rows as ``data``; its
+        ``attrs["formula"]`` names it in the summary).
     groups : grouping factor(s) of random intercepts; several are crossed (lme4's ``(1 |
         g1) + (1 | g2)``). Give either ``groups`` or ``random``.
     random : the random part in lme4's notation, ``"(1 + condition | participant) + (1 |
@@ -181,7 +182,8 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
                      f"estimates are penalised by {penalty} (posterior mode), the "
                      f"likelihood-ratio test and the one-sided profile limits use the "
                      f"unpenalised likelihood and its supremum")
-    fixed_text = fixed if isinstance(fixed, str) else "<design matrix>"
+    fixed_text = fixed if isinstance(fixed, str) else fixed.attrs.get("formula",
+                                                                       "<design matrix>")
     groups_done = tuple(t.group for t in terms)
     try:
         if not kept and prior_sd is None:

@@ -295,8 +295,10 @@ def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
                                       error="coefficient dropped (no trials or aliased)"))
             continue
         try:
-            reduced = _fit(data, full_design.drop(columns=column), terms, full_design, method,
-                           n_quadrature, counts)
+            without = full_design.drop(columns=column)
+            without.attrs["formula"] = ("1" if without.shape[1] == 1 else
+                                        f"condition (without {column})")
+            reduced = _fit(data, without, terms, full_design, method, n_quadrature, counts)
         except GlmmFitError as exc:
             tests.append(LrComparison(condition, reference, column, full, error=str(exc)))
             continue
@@ -341,7 +343,9 @@ def design(trials: pd.DataFrame, conditions: list[str], reference: str) -> pd.Da
         if condition != reference:
             columns[f"condition[{condition}]"] = (trials["condition"] == condition).to_numpy(
                 dtype=float)
-    return pd.DataFrame(columns, index=trials.index)
+    frame = pd.DataFrame(columns, index=trials.index)
+    frame.attrs["formula"] = "condition"
+    return frame
 
 
 def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
@@ -439,7 +443,9 @@ def _omnibus(trials, conditions, reference, fits: PrimaryFits, n_quadrature: int
     counts = "n_trials" if "n_trials" in data.columns else None
     try:
         full_design = design(data, conditions, reference)
-        null = _fit(data, full_design[["Intercept"]], list(full.terms), full_design,
+        intercept = full_design[["Intercept"]].copy()
+        intercept.attrs["formula"] = "1"
+        null = _fit(data, intercept, list(full.terms), full_design,
                     fits.method, n_quadrature, counts)
     except GlmmFitError as exc:
         warnings.append(f"GLMM omnibus likelihood-ratio test not available: the model "
