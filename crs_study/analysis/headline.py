@@ -103,7 +103,10 @@ def accuracy_headline(results: dict) -> str:
             continue
         low, high = ("0" if v is None and k == 0 else "inf" if v is None else f"{v:.2f}"
                      for k, v in enumerate(c["ci95"]))
-        text += f"; {name}{who} {c['estimate']:.2f} [{low}, {high}], {format_p(c['p_value'])}"
+        how = (f" (parametric bootstrap, B = {c['bootstrap']['used']})"
+               if c.get("p_method") == "bootstrap" else "")
+        text += (f"; {name}{who} {c['estimate']:.2f} [{low}, {high}], "
+                 f"{format_p(c['p_value'])}{how}")
     if not glmm:
         text += "; no comparison of conditions (see warnings)"
     return text

@@ -26,6 +26,9 @@ from crs_study.errors import AnalysisError, PlanError
 from crs_study.paths import shipped_file
 
 TIMEOUT_POLICIES = ("exclude", "count_as_error")
+#: The primary p: the LR statistic against chi2, its parametric bootstrap, or the bootstrap
+#: below a number of participants (:mod:`crs_study.analysis.bootstrap`).
+P_VALUE_RULES = ("auto", "chi2", "bootstrap")
 GLMM_METHODS = ("laplace", "agq")
 #: The symbol's random intercept and per-symbol comparisons have two names, the same thing:
 #: ``symbol`` (any stimulus set) and ``digit``, as plans written for the digit set say (it
@@ -90,6 +93,9 @@ class PrimaryTest:
     structure: str = "maximal"         # "maximal", "intercepts" or an lme4 random part
     singular_fit: str = "keep"         # or "reduce"
     reduction: tuple[str, ...] = REDUCTION_STEPS
+    p_value: str = "auto"              # "chi2", "bootstrap" or "auto"
+    bootstrap_below: int = 20          # auto: the bootstrap with fewer participants
+    bootstrap_replicates: int = 1000
 
     @property
     def random_spec(self) -> RandomSpec:
@@ -102,6 +108,13 @@ class PrimaryTest:
         ``fit_primary`` that describe the random part."""
         return {"structure": self.structure, "singular_fit": self.singular_fit,
                 "reduction": self.reduction}
+
+    def test_options(self) -> dict:
+        """The keyword arguments of :func:`~crs_study.analysis.primary.primary_test` that
+        describe the test: the random part and the rule for the primary p."""
+        return {**self.model_options(), "p_value": self.p_value,
+                "bootstrap_below": self.bootstrap_below,
+                "bootstrap_replicates": self.bootstrap_replicates}
 
 
 @dataclass(frozen=True)
@@ -263,9 +276,13 @@ def _primary(section: Section, conditions: tuple[str, ...]) -> PrimaryTest:
     if reference and conditions and reference not in conditions:
         raise section.fail("reference",
                            f"expected one of plan.conditions {list(conditions)}, got {reference!r}")
+    p_value = section.string("p_value", "auto", choices=P_VALUE_RULES)
+    below = section.integer("bootstrap_below", 20, minimum=0, maximum=100_000)
+    replicates = section.integer("bootstrap_replicates", 1000, minimum=19, maximum=100_000)
     section.done()
     return PrimaryTest(outcome, test, method, n_quadrature, spec.effects, reference,
-                       spec.structure, spec.singular_fit, spec.reduction)
+                       spec.structure, spec.singular_fit, spec.reduction, p_value, below,
+                       replicates)
 
 
 def _exclusions(section: Section) -> Exclusions:

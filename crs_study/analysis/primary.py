@@ -28,6 +28,7 @@ a wrong request (an unknown method, ``n_quadrature`` out of range) raises
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -37,6 +38,7 @@ from scipy import stats
 
 from crs_study.analysis import glmm
 from crs_study.analysis.accuracy import floor_p, symbol_column_of
+from crs_study.analysis.bootstrap import StudyRows, bootstrap_lr
 from crs_study.analysis.glmm import GlmmFitError
 from crs_study.analysis.glmm_result import format_pvalue
 from crs_study.analysis.glmm_terms import structure_label
@@ -91,6 +93,8 @@ class Comparison:
     penalised: dict | None = None
     test: Literal["glmm", "fisher"] = "glmm"
     logistic_regression: bool = False
+    p_method: str = "chi2"       # which p is p_value: "chi2" (LR), "bootstrap", "wald"
+    bootstrap: dict | None = None   # BootstrapLR.to_dict() when the plan's p is the bootstrap
 
     def to_dict(self) -> dict:
         return {"condition": self.condition, "reference": self.reference,
@@ -100,7 +104,8 @@ class Comparison:
                 "p_value": self.p_value, "p_wald": self.p_wald, "p_lr": self.p_lr,
                 "log_odds": self.log_odds, "std_error": self.std_error,
                 "separated": self.separated, "penalised": self.penalised, "primary": True,
-                "test": self.test, "logistic_regression": self.logistic_regression}
+                "test": self.test, "logistic_regression": self.logistic_regression,
+                "p_method": self.p_method, "bootstrap": self.bootstrap}
 
 
 @dataclass(frozen=True)
@@ -230,6 +235,28 @@ class PrimaryFits:
     spec: RandomSpec = field(default_factory=RandomSpec)
     planned: tuple = ()
     steps: tuple[ModelStep, ...] = ()
+    data: pd.DataFrame | None = field(default=None, repr=False)     # the rows fitted
+    design: pd.DataFrame | None = field(default=None, repr=False)   # their full design
+
+    def bootstrap(self, test: LrComparison, replicates: int, seed: int,
+                  map_tasks=None):
+        """The parametric bootstrap of ``test`` (:mod:`crs_study.analysis.bootstrap`), or
+        None with the reason when it does not apply (no LR test, separation, a reduced
+        model whose random part differs from the full one's)."""
+        full = self.full
+        if test.test is None or test.reduced is None:
+            return None, "no likelihood-ratio test to calibrate"
+        if test.separated or full.separation is not None or test.reduced.separation:
+            return None, "separation: the LR test at the supremum keeps the chi2 reference"
+        if tuple(test.reduced.terms) != tuple(full.terms):
+            return None, "the model without the condition lost a random term"
+        counts = "n_trials" if "n_trials" in self.data.columns else None
+        rows = StudyRows.of(self.data, self.design, full.terms, "correct", counts)
+        result = bootstrap_lr(rows, test.column, test.test.statistic,
+                              np.r_[test.reduced.params.to_numpy(), test.reduced.theta],
+                              np.r_[full.params.to_numpy(), full.theta], replicates, seed,
+                              map_tasks)
+        return result, None
 
     def to_frame(self) -> pd.DataFrame:
         return pd.DataFrame([t.to_dict() for t in self.tests])
@@ -305,7 +332,7 @@ def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
         tests.append(LrComparison(condition, reference, column, full, reduced,
                                   _lrt(full, reduced)))
     return PrimaryFits(full, tuple(tests), method, tuple(notes), spec, tuple(planned),
-                       tuple(steps))
+                       tuple(steps), data, full_design)
 
 
 def _fit_by_rule(spec: RandomSpec, data, full_design, terms, method, n_quadrature, counts):
@@ -352,13 +379,21 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                  random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
                  n_quadrature: int = 25, alpha: float = 0.05, *, structure: str = "maximal",
                  singular_fit: str = "keep",
-                 reduction: tuple[str, ...] = REDUCTION_STEPS) -> PrimaryResult:
+                 reduction: tuple[str, ...] = REDUCTION_STEPS, p_value: str = "chi2",
+                 bootstrap_below: int = 20, bootstrap_replicates: int = 1000,
+                 seed: int = 20260101, map_tasks=None) -> PrimaryResult:
     """Fit the GLMM on the answered ``trials`` and compare each condition with ``reference``.
 
     ``conditions`` are those present in the data, ``reference`` among them. The fits and LR
     tests are :func:`fit_primary`'s (the plan's random part and its rule for a singular fit:
     ``structure``, ``singular_fit``, ``reduction``); this adds the profile intervals, the
     omnibus test and the model summary, with the structure planned, fitted and why.
+
+    ``p_value`` is the plan's rule for the primary p: ``chi2`` (the LR statistic against
+    chi2), ``bootstrap`` (its parametric bootstrap, ``bootstrap_replicates`` replicates,
+    seeded from ``seed``; :mod:`crs_study.analysis.bootstrap`) or ``auto``: the bootstrap with
+    fewer than ``bootstrap_below`` participants, where the chi2 reference is liberal.
+    ``map_tasks(function, tasks)`` runs the bootstrap's units of work (default: here).
     """
     warnings: list[str] = []
     if len(conditions) < 2 or reference not in conditions:
@@ -412,13 +447,51 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                 warnings.append(f"GLMM likelihood-ratio test of {condition!r}: {note}")
         comparisons.append(_comparison(test, label, odds, profile, wald[column],
                                        test.test.pvalue))
+    participants = int(full.n_groups.get("participant_id", 1))
+    rule = p_value if p_value != "auto" else (
+        "bootstrap" if participants < bootstrap_below else "chi2")
+    if rule == "bootstrap":
+        comparisons = _bootstrapped(fits, comparisons, bootstrap_replicates, seed, map_tasks,
+                                    warnings)
     omnibus = None
     if len(comparisons) > 1:
         omnibus = _omnibus(trials, conditions, reference, fits, n_quadrature, warnings)
     model = full.to_dict(level)
     model["random_effects"] = _random_effect_intervals(full, level, warnings)
     model["structure"] = fits.structure()
+    model["p_value_rule"] = {"rule": p_value, "bootstrap_below": bootstrap_below,
+                             "replicates": bootstrap_replicates, "participants": participants,
+                             "used": rule}
     return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings), fits)
+
+
+def _bootstrapped(fits: PrimaryFits, comparisons: list[Comparison], replicates: int,
+                  seed: int, map_tasks, warnings: list[str]) -> list[Comparison]:
+    """Each comparison's p made the parametric bootstrap's (the LR p kept as ``p_lr``)."""
+    out = []
+    by_condition = {t.condition: t for t in fits.tests}
+    for k, comparison in enumerate(comparisons):
+        test = by_condition.get(comparison.condition)
+        result, reason = (None, "not a GLMM comparison") if test is None or \
+            comparison.test != "glmm" else fits.bootstrap(
+                test, replicates, int(np.random.SeedSequence([seed, 7, k]).generate_state(1)[0]),
+                map_tasks)
+        if result is None:
+            warnings.append(f"GLMM: the plan's p is the parametric bootstrap, but for "
+                            f"{comparison.condition!r} the chi2 LR p is reported: {reason}")
+            out.append(comparison)
+            continue
+        if result.failed:
+            warnings.append(f"GLMM bootstrap of {comparison.condition!r}: {result.failed} of "
+                            f"{result.replicates} replicates could not be fitted and are left "
+                            f"out (p from {result.used})")
+        out.append(dataclasses.replace(
+            comparison, p_value=floor_p(result.pvalue), p_method="bootstrap",
+            bootstrap=result.to_dict(),
+            method=comparison.method.replace(
+                "odds ratio, LR test", f"odds ratio, LR test by parametric bootstrap "
+                                       f"(B = {result.used})")))
+    return out
 
 
 def _structure_warnings(fits: PrimaryFits) -> list[str]:
@@ -546,7 +619,7 @@ def _comparison(test: LrComparison, label: str, odds: pd.DataFrame,
         p_value=floor_p(p_wald if p_lr is None else p_lr), p_wald=floor_p(p_wald),
         p_lr=None if p_lr is None else floor_p(p_lr), log_odds=float(full.params[column]),
         std_error=float(full.bse[column]), ci_method=how, ci95_wald=wald_ci,
-        logistic_regression=full.method == "glm")
+        logistic_regression=full.method == "glm", p_method="wald" if p_lr is None else "chi2")
 
 
 def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, terms, random_design: pd.DataFrame,

@@ -229,7 +229,7 @@ def analyze(datasets: StudyData | DatasetPaths,
             plan: str | os.PathLike[str] | AnalysisPlan | None = None,
             out: str | os.PathLike[str] | None = None, *, write: bool = True,
             strict: bool = False, include_simulated: bool = False,
-            responders: Sequence[str] | None = None) -> Analysis:
+            responders: Sequence[str] | None = None, map_tasks=None) -> Analysis:
     """Analyse stored datasets as the analysis plan says; write the report when ``write``.
 
     Parameters
@@ -244,6 +244,8 @@ def analyze(datasets: StudyData | DatasetPaths,
         computes everything and writes nothing (:meth:`Analysis.write` writes later).
     strict, include_simulated, responders : how the datasets are loaded (see
         :func:`~crs_study.analysis.study_data.load_dataset`).
+    map_tasks : ``map_tasks(function, tasks)`` runs the units of work of the primary test's
+        parametric bootstrap (a process pool's or a Dask cluster's map; default: here).
 
     Returns
     -------
@@ -254,7 +256,7 @@ def analyze(datasets: StudyData | DatasetPaths,
     else:
         data = load_dataset(datasets, plan, strict=strict, include_simulated=include_simulated,
                             responders=responders)
-    analysis = run_analyses(data)
+    analysis = run_analyses(data, map_tasks)
     if write:
         analysis = replace(analysis, files=analysis.write(out))
     return analysis
@@ -292,8 +294,9 @@ def order_conditions(trials: pd.DataFrame, plan: AnalysisPlan) -> tuple[list[str
     return [reference, *ordered], reference, notes
 
 
-def run_analyses(data: StudyData) -> Analysis:
-    """Every analysis of the data's plan on its trials, as an :class:`Analysis` (unwritten)."""
+def run_analyses(data: StudyData, map_tasks=None) -> Analysis:
+    """Every analysis of the data's plan on its trials, as an :class:`Analysis` (unwritten);
+    ``map_tasks`` runs the bootstrap's units of work (:func:`analyze`)."""
     trials, plan = data.trials, data.plan
     warnings: list[str] = []
     conditions, reference, notes = order_conditions(trials, plan)
@@ -314,7 +317,8 @@ def run_analyses(data: StudyData) -> Analysis:
                             "infinite (separation); see the GLMM note on what was done")
     primary = primary_test(trials, conditions, reference, plan.primary.random_effects,
                            plan.primary.method, plan.primary.n_quadrature, alpha,
-                           **plan.primary.model_options())
+                           **plan.primary.test_options(), seed=plan.seed,
+                           map_tasks=map_tasks)
     warnings += primary.warnings
     secondary = secondary_tests(trials, accuracy.by_participant, conditions, reference,
                                 plan.secondary.tests, plan.secondary.correction, alpha)

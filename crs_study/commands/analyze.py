@@ -19,6 +19,7 @@ from crs_study.analysis import analyze
 from crs_study.analysis.reproduce import DEFAULT_RTOL, check_tolerance, read_results
 from crs_study.dataset import dataset_dir
 from crs_study.errors import AnalysisError
+from crs_study.power_analysis.backends import open_backend
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--check: relative tolerance of a number (default %(default)g)")
     parser.add_argument("--json", action="store_true",
                         help="print results.json on stdout instead of the headline")
+    parser.add_argument("--jobs", metavar="N", type=int, default=1,
+                        help="worker processes for the primary test's parametric bootstrap "
+                             "(default %(default)s: this process)")
     parser.add_argument("--strict", action="store_true",
                         help="a failed checksum or metadata check is an error, not a warning (an "
                              "interrupted session is analysed as it stands either way)")
@@ -61,9 +65,10 @@ def run(args: argparse.Namespace) -> int:
             raise AnalysisError("--check writes nothing: leave out --out")
         check_tolerance(args.check_rtol)
         earlier = read_results(args.check)  # before the work: a wrong path fails at once
-    result = analyze(args.datasets, args.plan, args.out, strict=args.strict,
-                     include_simulated=args.include_simulated, responders=args.responder,
-                     write=args.check is None)
+    with open_backend(args.jobs) as backend:   # a bad --jobs is a one-line error
+        result = analyze(args.datasets, args.plan, args.out, strict=args.strict,
+                         include_simulated=args.include_simulated, responders=args.responder,
+                         write=args.check is None, map_tasks=backend.map)
     for warning in result.warnings:
         loud = "TAMPERED" in warning or "tampering" in warning
         print(f"crs-study analyze: {'WARNING' if loud else 'warning'}: {warning}",

@@ -67,6 +67,8 @@ class PowerDesign:
     structure: str = "maximal"
     singular_fit: str = "keep"
     reduction: tuple[str, ...] = REDUCTION_STEPS
+    p_value: str = "chi2"
+    bootstrap_below: int = 20
     protocol: str = ""
     plan: str = ""
     protocol_path: str | None = None
@@ -105,6 +107,12 @@ class PowerDesign:
         """The keyword arguments of ``fit_primary`` that describe the random part."""
         return {"structure": self.structure, "singular_fit": self.singular_fit,
                 "reduction": self.reduction}
+
+    def bootstrapped(self, participants: int) -> bool:
+        """``analyze`` refers the LR statistic of a study of ``participants`` to its
+        parametric bootstrap (the plan's ``p_value`` rule), not to chi2."""
+        return self.p_value == "bootstrap" or (self.p_value == "auto"
+                                                and participants < self.bootstrap_below)
 
     @property
     def comparisons(self) -> tuple[str, ...]:
@@ -158,7 +166,8 @@ class PowerDesign:
                "digits": list(self.symbols), "levels": list(self.levels),
                "repetitions": self.repetitions, "random_effects": list(self.random_effects),
                "structure": self.structure, "singular_fit": self.singular_fit,
-               "reduction": list(self.reduction), "method": self.method,
+               "reduction": list(self.reduction), "p_value": self.p_value,
+               "bootstrap_below": self.bootstrap_below, "method": self.method,
                "n_quadrature": self.n_quadrature, "alpha": self.alpha,
                "symbols": list(self.symbols), "symbol_column": self.symbol_column,
                "noun": self.noun}
@@ -199,7 +208,8 @@ def design_from_protocol(protocol: Any, plan: Any = None) -> PowerDesign:
         random_effects=tuple(primary.random_effects), method=primary.method,
         n_quadrature=int(primary.n_quadrature), alpha=float(plan.alpha),
         structure=primary.structure, singular_fit=primary.singular_fit,
-        reduction=tuple(primary.reduction),
+        reduction=tuple(primary.reduction), p_value=primary.p_value,
+        bootstrap_below=int(primary.bootstrap_below),
         protocol=f"{protocol.study_id} {protocol.version}", plan=plan.name,
         protocol_path=str(Path(protocol.path)), exclusions=plan.exclusions,
         symbol_column=shown.column, noun=shown.noun, symbol_keys=symbol_keys(protocol))

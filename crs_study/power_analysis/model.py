@@ -145,6 +145,17 @@ class GenerativeModel:
                        self.ability + (base - self.base)[None],
                        details={**self.details, "effect_scale": effect_scale})
 
+    def without_effect(self, comparison: int) -> GenerativeModel:
+        """The null of one comparison: condition ``comparison + 1`` as the reference for the
+        typical participant and symbol (the other conditions as they are; how participants
+        and symbols differ in it, the slopes, as it is)."""
+        base = self.base.copy()
+        base[..., comparison + 1] = base[..., 0]
+        return replace(self, base=base,
+                       ability=None if self.ability is None else
+                       self.ability + (base - self.base)[None],
+                       details={**self.details, "null_of": comparison})
+
     def participant_logits(self, z: float, w: np.ndarray | None = None) -> np.ndarray:
         """The log-odds (L, D, C) of a participant of ability ``z`` and slope draws ``w``
         (C - 1 standard normals; None: zeros), typical symbols."""

@@ -16,6 +16,9 @@ reduced_failed     studies whose reduced model could not be fitted (the Wald p u
 untested           studies with no test of this comparison (its coefficient dropped)
 unconverged        studies whose fit ``fit_glmm`` flagged as not converged (p still used)
 failed             full_failed + reduced_failed + untested + unconverged
+test               the p of the point: the LR statistic against chi2, or where the plan's
+                   test is the parametric bootstrap, against the LR statistics of as many
+                   null studies of the point (the generating model without the effect)
 boundary           studies with a variance estimated at 0 (a singular fit: legitimate)
 reduced_models     studies whose model the plan's rule reduced (a singular maximal fit)
 reference_fits     studies fitted by ``fit_glmm`` itself rather than the batched fits
@@ -45,6 +48,8 @@ from crs_study.power_analysis.study import (
     SEPARATED,
     WALD,
     TaskResult,
+    calibrated_pvalues,
+    lr_statistic,
     recorded_parameters,
 )
 
@@ -100,9 +105,26 @@ class PowerResult:
     def n_studies(self) -> int:
         return int(self.raw["p_value"].shape[1])
 
+    def pvalues(self) -> np.ndarray:
+        """(point, study, comparison): the p ``analyze`` would report. Where the plan's test
+        is the parametric bootstrap (``design.bootstrapped``), a study tested by its
+        likelihood ratio gets the calibrated p of its statistic among the point's null
+        studies (:func:`~crs_study.power_analysis.study.calibrated_pvalues`); otherwise the
+        chi2 p (or the Wald, Fisher, supremum p its test gave)."""
+        p = self.raw["p_value"].copy()
+        null = self.raw.get("null_statistic")
+        for i, (n, _) in enumerate(self.points):
+            if null is None or not self.design.bootstrapped(n):
+                continue
+            for j in range(p.shape[2]):
+                statistic = lr_statistic(self.raw, i, j)
+                calibrated = calibrated_pvalues(statistic, null[i, :, j])
+                p[i, :, j] = np.where(np.isfinite(statistic), calibrated, p[i, :, j])
+        return p
+
     def significant(self) -> np.ndarray:
         """(point, study, comparison): the p ``analyze`` reports is below alpha."""
-        p = self.raw["p_value"]
+        p = self.pvalues()
         return np.isfinite(p) & (p < self.design.alpha)
 
     def to_frame(self) -> pd.DataFrame:
@@ -133,6 +155,8 @@ class PowerResult:
                     "full_failed": full_failed, "reduced_failed": reduced_failed,
                     "untested": untested, "unconverged": unconverged,
                     "failed": full_failed + reduced_failed + untested + unconverged,
+                    "test": ("LR, bootstrap-calibrated (null studies of the point)"
+                             if self.design.bootstrapped(n) else "LR, chi2"),
                     "boundary": int(self.raw["boundary"][i].sum()),
                     "reduced_models": int(self.raw["reduced"][i].sum()),
                     "reference_fits": int(self.raw["reference"][i].sum()),
@@ -302,8 +326,9 @@ def merge(results: list[TaskResult]) -> dict[str, np.ndarray]:
     """The per-study arrays of the tasks, in study order (axis 1)."""
     ordered = sorted(results, key=lambda r: r.studies[0])
     keys = ("p_value", "kind", "log_odds", "theta", "converged", "boundary", "reduced",
-            "reference", "loglike", "loglike_reduced")
-    return {k: np.concatenate([getattr(r, k) for r in ordered], axis=1) for k in keys}
+            "reference", "loglike", "loglike_reduced", "null_statistic")
+    return {k: np.concatenate([getattr(r, k) for r in ordered], axis=1) for k in keys
+            if getattr(ordered[0], k) is not None}
 
 
 def _plain(value):

@@ -91,17 +91,37 @@ class TaskResult:
     loglike: np.ndarray
     loglike_reduced: np.ndarray
     seconds: float
+    null_statistic: np.ndarray | None = None
 
 
 def run_task(task: PowerTask) -> TaskResult:
-    """Simulate the task's studies and test each at every point (module docstring)."""
+    """Simulate the task's studies and test each at every point (module docstring); where
+    the plan's test is the parametric bootstrap, the same number of null studies too, whose
+    LR statistics calibrate the test (:func:`calibrated_pvalues`)."""
     start = time.process_time()
     design, model = task.design, task.model
     studies = range(*task.studies)
-    cumulative = simulate_studies(model, task.seed, studies, max(task.participants),
-                                  max(task.repetitions))
-    points = task.points
+    out = _points(design, model, task.seed, studies, task.points)
+    points = [(n, r) for n, r in task.points if design.bootstrapped(n)]
+    K = len(design.comparisons)
+    out["null_statistic"] = np.full((len(task.points), len(studies), K), np.nan)
+    for j in range(K if points else 0):
+        null = _points(design, model.without_effect(j), null_seed(task.seed, j), studies,
+                       points)
+        for i, point in enumerate(points):
+            row = task.points.index(point)
+            out["null_statistic"][row, :, j] = lr_statistic(null, i, j)
+    return TaskResult(task.studies, seconds=time.process_time() - start, **out)
+
+
+def _points(design: PowerDesign, model: GenerativeModel, seed: int, studies: range,
+            points: list[tuple[int, int]]) -> dict[str, np.ndarray]:
+    """The outcome arrays of ``studies`` drawn from ``model`` at each point."""
     out = outcomes(design, (len(points), len(studies)))
+    if not points:
+        return out
+    cumulative = simulate_studies(model, seed, studies, max(n for n, _ in points),
+                                  max(r for _, r in points))
     previous: dict[int, tuple[int, np.ndarray]] = {}     # per repetitions: (N, curvature)
     for i, (n, r) in enumerate(points):
         Y = cumulative[:, :n, r - 1].astype(float)
@@ -114,7 +134,31 @@ def run_task(task: PowerTask) -> TaskResult:
         previous[r] = (n, point.pop("curvature"))
         for key, value in point.items():
             out[key][i] = value
-    return TaskResult(task.studies, seconds=time.process_time() - start, **out)
+    return out
+
+
+def null_seed(seed: int, comparison: int) -> int:
+    """The seed of the null studies that calibrate comparison ``comparison``: a stream
+    apart from the studies' own, the same on any backend."""
+    return int(np.random.SeedSequence([seed, 31, comparison]).generate_state(1)[0])
+
+
+def lr_statistic(out: dict[str, np.ndarray], point: int, comparison: int) -> np.ndarray:
+    """``2 (l_full - l_reduced)`` of every study of a point tested by its likelihood ratio
+    (NaN where the test was another one: separation, Wald, Fisher)."""
+    statistic = 2.0 * (out["loglike"][point] - out["loglike_reduced"][point, :, comparison])
+    lr = out["kind"][point, :, comparison] == LR
+    return np.where(lr, np.maximum(statistic, 0.0), np.nan)
+
+
+def calibrated_pvalues(statistic: np.ndarray, null: np.ndarray) -> np.ndarray:
+    """Each study's p against the null studies' LR statistics of its point: ``(1 + #{null
+    >= LR}) / (1 + M)``, ``M`` the null studies fitted (the bootstrap's p, its null drawn
+    once per point from the generating model rather than per study from its own fit)."""
+    null = np.sort(null[np.isfinite(null)])
+    M = len(null)
+    exceed = M - np.searchsorted(null, statistic - 1e-6, side="left")
+    return np.where(np.isfinite(statistic), (1.0 + exceed) / (1.0 + M), np.nan)
 
 
 def recorded_parameters(design: PowerDesign) -> list[str]:
