@@ -132,6 +132,8 @@ class BootstrapTask:
     full_start: np.ndarray
     seed: int
     replicates: tuple[int, int]
+    full_curvature: np.ndarray | None = None      # the observed fits' negative Hessians,
+    reduced_curvature: np.ndarray | None = None   # a start for the refits' Newton steps
 
 
 @dataclass(frozen=True)
@@ -184,10 +186,16 @@ def run_bootstrap_task(task: BootstrapTask) -> BootstrapChunk:
     replicates = range(*task.replicates)
     Y = simulate_null(rows, task.dropped, task.null_theta, task.seed, replicates)
     S = len(Y)
-    full = fit_batch(rows.objective(Y), np.tile(task.full_start, (S, 1)))
+
+    def tiled(matrix):
+        return None if matrix is None else np.tile(matrix, (S, 1, 1))
+
+    full = fit_batch(rows.objective(Y), np.tile(task.full_start, (S, 1)),
+                     tiled(task.full_curvature))
     drop_index = rows.columns.index(task.dropped)
     reduced = fit_batch(rows.objective(Y, task.dropped),
-                        np.tile(np.delete(task.full_start, drop_index), (S, 1)))
+                        np.tile(np.delete(task.full_start, drop_index), (S, 1)),
+                        tiled(task.reduced_curvature))
     statistics = 2.0 * (full.value - reduced.value)
     unsettled = np.flatnonzero(full.needs_reference | reduced.needs_reference)
     for s in unsettled:
@@ -213,19 +221,22 @@ def _reference_statistic(rows: StudyRows, y: np.ndarray, dropped: str) -> float:
 
 def bootstrap_lr(rows: StudyRows, dropped: str, statistic: float, null_theta: np.ndarray,
                  full_start: np.ndarray, replicates: int, seed: int,
-                 map_tasks: Callable | None = None) -> BootstrapLR:
+                 map_tasks: Callable | None = None,
+                 curvatures: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+                 ) -> BootstrapLR:
     """The bootstrap test of fixed column ``dropped`` (module docstring).
 
     ``statistic`` is the observed LR, ``null_theta`` the reduced fit's parameters (its fixed
     effects, then lme4's theta of ``rows.terms``), ``full_start`` the full fit's (the refits'
-    start). ``map_tasks(function, tasks)`` runs the units of work (default: here, in order).
+    start; ``curvatures``, the full and reduced fits' negative Hessians, start their Newton
+    steps). ``map_tasks(function, tasks)`` runs the units of work (default: here, in order).
     """
     if isinstance(replicates, bool) or not isinstance(replicates, int) or replicates < 1:
         raise ValueError(f"bootstrap replicates: expected a whole number >= 1, got "
                          f"{replicates!r}")
     tasks = [BootstrapTask(rows, dropped, np.asarray(null_theta, float),
                            np.asarray(full_start, float), seed,
-                           (start, min(start + REPLICATES_PER_TASK, replicates)))
+                           (start, min(start + REPLICATES_PER_TASK, replicates)), *curvatures)
              for start in range(0, replicates, REPLICATES_PER_TASK)]
     chunks = (map_tasks or _in_order)(run_bootstrap_task, tasks)
     values = np.concatenate([c.statistics for c in sorted(chunks,
@@ -244,3 +255,49 @@ def bootstrap_lr(rows: StudyRows, dropped: str, statistic: float, null_theta: np
 
 def _in_order(function, tasks):
     return [function(t) for t in tasks]
+
+
+@dataclass(frozen=True)
+class StudiesBootstrap:
+    """The bootstrap tests of many studies of one design: per study the observed LR
+    ``statistic``, the ``pvalue`` and the replicates ``used`` (NaN and 0 where the study's own
+    fits were not settled by the batched fits)."""
+
+    statistic: np.ndarray
+    pvalue: np.ndarray
+    used: np.ndarray
+
+
+def bootstrap_studies(rows: StudyRows, Y: np.ndarray, dropped: str, replicates: int,
+                      seed: int, start: np.ndarray) -> StudiesBootstrap:
+    """The parametric bootstrap test of fixed column ``dropped`` for each of the studies
+    ``Y`` (S, n) on the same rows, all fits batched: each study's full and reduced fit from
+    ``start``, then ``replicates`` datasets from each reduced fit, refitted together. What
+    ``analyze`` does to one study (:func:`bootstrap_lr`), for a simulation of its level;
+    replicate ``b`` of study ``s`` draws from ``replicate_stream(seed + s, b)``. A fit the
+    batch does not settle leaves its study (or replicate) out: the counts say so."""
+    S = len(Y)
+    drop = rows.columns.index(dropped)
+    full = fit_batch(rows.objective(Y), np.tile(start, (S, 1)))
+    reduced = fit_batch(rows.objective(Y, dropped), np.delete(full.theta, drop, axis=1))
+    statistic = np.maximum(2.0 * (full.value - reduced.value), 0.0)
+    settled = ~(full.needs_reference | reduced.needs_reference)
+    statistic = np.where(settled, statistic, np.nan)
+    studies = np.flatnonzero(settled)
+    draws = np.concatenate([simulate_null(rows, dropped, reduced.theta[s], seed + int(s),
+                                          range(replicates)) for s in studies])
+    owner = np.repeat(studies, replicates)
+    # each replicate starts from its study's fits, their curvature included
+    star_full = fit_batch(rows.objective(draws), full.theta[owner], full.curvature[owner])
+    star_reduced = fit_batch(rows.objective(draws, dropped), reduced.theta[owner],
+                             reduced.curvature[owner])
+    star = 2.0 * (star_full.value - star_reduced.value)
+    ok = ~(star_full.needs_reference | star_reduced.needs_reference)
+    pvalue = np.full(S, np.nan)
+    used = np.zeros(S, dtype=int)
+    for s in studies:
+        mine = (owner == s) & ok
+        used[s] = int(mine.sum())
+        exceed = int(np.sum(np.maximum(star[mine], 0.0) >= statistic[s] - 1e-6))
+        pvalue[s] = (1.0 + exceed) / (1.0 + used[s])
+    return StudiesBootstrap(statistic, pvalue, used)

@@ -62,6 +62,10 @@ from scipy.special import expit
 
 #: Penalised IRLS stops when no coordinate of u moves more than this.
 INNER_TOL = 1e-11
+#: A full Newton step shorter than this is the last one: Newton's method converges
+#: quadratically on this strongly concave function, so the next step would be of the order
+#: of its square, below ``INNER_TOL``.
+LAST_STEP = 3e-6
 INNER_MAXITER = 60
 #: Newton steps longer than this (in any coordinate of u) are checked for ascent first;
 #: shorter ones lie where Newton's method on this strongly concave function converges.
@@ -268,9 +272,10 @@ class LaplaceLikelihood:
         return kernel(Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
 
     def modes(self, offset, loadings, u0, Y=None) -> np.ndarray:
-        """Penalised IRLS from ``u0``; each study stops when its step is below ``INNER_TOL``
-        (frozen thereafter, so its answer never depends on its batch). A step longer than
-        ``FULL_STEP`` in some coordinate is halved until ``h`` does not fall."""
+        """Penalised IRLS from ``u0``; each study stops after a full step shorter than
+        ``LAST_STEP`` (or any step below ``INNER_TOL``), frozen thereafter, so its answer never
+        depends on its batch. A step longer than ``FULL_STEP`` in some coordinate is halved
+        until ``h`` does not fall."""
         Y = self.Y if Y is None else Y
         u = u0.copy()
         active = np.arange(len(u))
@@ -299,7 +304,7 @@ class LaplaceLikelihood:
                         break
                     t[long[worse]] *= 0.5
             u[active] = ua + t[:, None] * step
-            done = size * t < INNER_TOL
+            done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
             active = active[~done]
         return u
 

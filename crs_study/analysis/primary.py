@@ -255,7 +255,8 @@ class PrimaryFits:
         result = bootstrap_lr(rows, test.column, test.test.statistic,
                               np.r_[test.reduced.params.to_numpy(), test.reduced.theta],
                               np.r_[full.params.to_numpy(), full.theta], replicates, seed,
-                              map_tasks)
+                              map_tasks, (full._model.curvature,
+                                          test.reduced._model.curvature))
         return result, None
 
     def to_frame(self) -> pd.DataFrame:
