@@ -8,12 +8,12 @@ import struct
 
 import numpy as np
 import pytest
+from dic_synthetic import write_capture
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from crs_study.errors import MeasurementError
 from crs_study.quality.dic_import import read_fiducials, read_surface
-from dic_synthetic import write_capture
 
 
 def _columns(n: int = 30, seed: int = 1) -> dict[str, np.ndarray]:

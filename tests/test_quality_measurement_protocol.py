@@ -116,8 +116,9 @@ def test_a_name_that_is_not_shipped_is_refused():
 @given(st.integers(2, 40), st.integers(0, 2**32), st.sampled_from(["cell", "hull"]),
        st.sampled_from(["crs1d", "crs2d"]))
 def test_random_centres_fall_inside_the_region(n, seed, region, device):
-    from crs_study.geometry.layout import load_layout
     from scipy.spatial import Delaunay
+
+    from crs_study.geometry.layout import load_layout
 
     layout = load_layout(device)
     polygon = region_polygon(layout, region)

@@ -22,7 +22,7 @@ the measurement's noise (the pixel-only display's plateau over the highest pixel
 1's "pixel display") has no vertex: there x_r is the centroid of the points within three
 noise levels of the top, as the pixel-only theory takes the plateau's centre. The noise level
 is a robust estimate from the points themselves (the median absolute difference between each
-point and the plane through its nearest neighbours).
+point and the quadratic through its nearest neighbours).
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ from crs_study.stimuli.targets import Bump
 
 #: A quadrature node farther than this many point spacings from every point is a hole.
 GAP_SPACINGS = 2.5
-#: Neighbours of each point in the noise estimate.
-NOISE_NEIGHBOURS = 8
+#: Neighbours of each point in the noise estimate (along a profile, over a surface).
+NOISE_NEIGHBOURS = {True: 6, False: 12}
 #: Fewest measured points the support of a shape may hold.
 MIN_SUPPORT_POINTS = 10
 #: A top fits a quadratic when the fit misses by less than twice the noise plus this
@@ -135,24 +135,29 @@ class SampledSurface:
         return other
 
     def _noise(self) -> float:
-        """The measurement's noise: each point's height minus the plane (the line, on a
-        profile) fitted by least squares to its nearest neighbours, the median absolute
-        deviation of those residuals scaled to a standard deviation (1.4826) and for the fit's
-        own error. A smooth surface's slope leaves no residual, its curvature a nearly even
-        one that the median takes out."""
-        k = min(NOISE_NEIGHBOURS, len(self.heights) - 1)
+        """The measurement's noise: each point's height minus the quadratic fitted by least
+        squares to its nearest neighbours (a parabola along a profile), scaled by the fit's own
+        error at the point (sqrt(1 + h), h the variance factor of the fit's value there); the
+        median absolute deviation of those residuals, times 1.4826, a standard deviation. A
+        smooth surface's slope and curvature leave no residual, so the bump's top does not
+        pass for noise."""
+        k = min(NOISE_NEIGHBOURS[self.line], len(self.heights) - 1)
         index = self.tree.query(self._coords, k=k + 1)[1][:, 1:]
-        offsets = self._coords[index] - self._coords[:, None, :]
-        basis = np.concatenate([np.ones((*index.shape, 1)), offsets], axis=2)
+        d = self._coords[index] - self._coords[:, None, :]
+        terms = [np.ones(index.shape)]
+        terms += [d[..., 0], d[..., 0] ** 2] if self.line else \
+            [d[..., 0], d[..., 1], d[..., 0] ** 2, d[..., 0] * d[..., 1], d[..., 1] ** 2]
+        basis = np.stack(terms, axis=2)
         normal = np.einsum("nki,nkj->nij", basis, basis)
         rhs = np.einsum("nki,nk->ni", basis, self.heights[index])
-        try:
-            fitted = np.linalg.solve(normal, rhs[..., None])[:, 0, 0]
-        except np.linalg.LinAlgError:  # neighbours on a line: their mean
-            fitted = self.heights[index].mean(axis=1)
-        residual = self.heights - fitted
-        mad = float(np.median(np.abs(residual - np.median(residual))))
-        return 1.4826 * mad * math.sqrt(k / (k + 1))
+        usable = np.abs(np.linalg.det(normal)) > 1e-12 * np.abs(normal).max(axis=(1, 2)) ** \
+            basis.shape[2]
+        if not usable.any():
+            return 0.0
+        inverse = np.linalg.inv(normal[usable])
+        fitted = np.einsum("nj,nj->n", inverse[:, 0, :], rhs[usable])
+        residual = (self.heights[usable] - fitted) / np.sqrt(1.0 + inverse[:, 0, 0])
+        return 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
 
     def at(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Heights at ``points`` (n, 2) and which of them are holes (no point near)."""
