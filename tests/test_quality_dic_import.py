@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from crs_study.errors import MeasurementError
-from crs_study.quality.dic_import import read_fiducials, read_surface
+from crs_study.quality.dic_import import heights_above_reference, read_fiducials, read_surface
 
 
 def _columns(n: int = 30, seed: int = 1) -> dict[str, np.ndarray]:
@@ -172,3 +173,33 @@ def test_property_any_text_is_read_or_refused_in_one_line(tmp_path, text):
     else:
         assert capture.n_points >= 10 and np.isfinite(capture.x[capture.valid]).all()
         assert not math.isnan(capture.hole_fraction)
+
+
+FIXTURES = Path(__file__).parent / "fixtures" / "dic"
+
+
+def test_a_public_stereo_dic_export_of_a_buckling_surface():
+    """Real data (tests/fixtures/dic/README.md: a steel hollow section's face measured by
+    stereo DIC, stages 1 and 151, from the public repository GMNIA/viewdic): the exports read
+    as a lab's would (a '#' preamble with the units, columns id, x, y, z in mm), and the
+    reference subtracted at the loaded stage's points agrees with the displacement the
+    export tracks per point (its ids) to 0.06 mm in the median: the in-plane motion (about
+    1 mm) over the reference's gentle slopes."""
+    import pandas as pd
+
+    reference = read_surface(FIXTURES / "viewdic_VHPS_140_140_3_0001.csv")
+    loaded = read_surface(FIXTURES / "viewdic_VHPS_140_140_3_0151.csv")
+    assert (reference.format, reference.n_points, loaded.n_points) == ("plain", 4090, 4064)
+    assert reference.w is None and reference.hole_fraction == 0.0
+    heights = heights_above_reference(loaded, reference)
+    assert np.isnan(heights).mean() < 0.005  # only beyond the reference's hull
+    assert -6.0 < np.nanmin(heights) < -4.0 and 1.5 < np.nanmax(heights) < 3.5  # the bumps
+    before = pd.read_csv(FIXTURES / "viewdic_VHPS_140_140_3_0001.csv", comment="#")
+    after = pd.read_csv(FIXTURES / "viewdic_VHPS_140_140_3_0151.csv", comment="#")
+    tracked = after.merge(before, on="id", suffixes=("", "_ref"))
+    by_point = (tracked["z"] - tracked["z_ref"]).to_numpy()
+    ours = pd.Series(heights, index=after["id"]).loc[tracked["id"]].to_numpy()
+    keep = np.isfinite(ours)
+    assert np.median(np.abs(ours[keep] - by_point[keep])) < 0.1
+    with pytest.raises(MeasurementError, match="a reference capture with z"):
+        heights_above_reference(loaded, None)

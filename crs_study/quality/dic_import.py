@@ -365,6 +365,26 @@ def read_surface(path: str | Path, *, units: str = "mm") -> SurfaceCapture:
     return SurfaceCapture(source, kind, x, y, z, w, valid)
 
 
+def heights_above_reference(capture: SurfaceCapture, reference: SurfaceCapture | None
+                            ) -> np.ndarray:
+    """Each point's height above the reference capture (the display neutral), mm: the
+    export's out-of-plane displacement ``w`` where it has one (the DIC's reference image is
+    the neutral display); else its ``z`` minus the reference's ``z`` interpolated linearly
+    (:class:`scipy.interpolate.LinearNDInterpolator`) at the same point of the DIC's frame,
+    NaN outside the reference's points."""
+    if capture.w is not None:
+        return capture.w
+    if reference is None or reference.z is None:
+        raise MeasurementError(f"{capture.source}: no displacement column, so a reference "
+                               "capture with z (the display neutral) is needed to subtract; "
+                               "none was found")
+    from scipy.interpolate import LinearNDInterpolator
+
+    valid = reference.valid
+    base = LinearNDInterpolator(reference.xy()[valid], reference.z[valid])(capture.xy())
+    return capture.z - base
+
+
 def read_fiducials(path: str | Path, *, units: str = "mm") -> Fiducials:
     """Pixel fiducials: columns ``pixel``, ``x``, ``y`` (module docstring)."""
     path = Path(path)

@@ -36,6 +36,7 @@ from crs_study.quality.dic_import import (
     SUFFIXES,
     TEXT_SUFFIXES,
     SurfaceCapture,
+    heights_above_reference,
     read_fiducials,
     read_surface,
 )
@@ -163,7 +164,7 @@ def analyze_measurement(folder: str | Path, *, captures: str | Path | None = Non
             continue
         path = files[entry.capture]
         capture = read_surface(path, units=units)
-        heights = _heights(capture, references.get(entry.condition), path)
+        heights = heights_above_reference(capture, references.get(entry.condition))
         keep = capture.valid & np.isfinite(heights)
         xy = registration.to_display(capture.xy()[keep])
         heights = heights[keep] * registration.scale
@@ -199,23 +200,6 @@ def analyze_measurement(folder: str | Path, *, captures: str | Path | None = Non
 def _spacing(xy: np.ndarray) -> float:
     """The median distance from a point to its nearest neighbour (mm)."""
     return float(np.median(cKDTree(xy).query(xy, k=2)[0][:, 1]))
-
-
-def _heights(capture: SurfaceCapture, reference: SurfaceCapture | None, path: Path
-             ) -> np.ndarray:
-    """Heights above the reference: the export's displacement, else ``z`` minus the
-    reference's ``z`` interpolated at the same points of the DIC's frame."""
-    if capture.w is not None:
-        return capture.w
-    if reference is None or reference.z is None:
-        raise MeasurementError(f"{path}: no displacement column, so a reference capture "
-                               "with z (the display neutral) is needed to subtract; none "
-                               "was found")
-    from scipy.interpolate import LinearNDInterpolator
-
-    valid = reference.valid
-    base = LinearNDInterpolator(reference.xy()[valid], reference.z[valid])(capture.xy())
-    return capture.z - base
 
 
 def _measure(xy: np.ndarray, heights: np.ndarray, bump: Bump, entry: ManifestEntry,
