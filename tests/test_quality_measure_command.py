@@ -86,7 +86,7 @@ def test_end_of_input_at_a_prompt_pauses_the_measurement(tmp_path, capsys, monke
 @pytest.mark.parametrize(("argv", "message"), [
     (["quality", "analyze", "{tmp}/nowhere"], "no such measurement record"),
     (["quality", "measure", "{tmp}/none.toml", "--out", "{tmp}/m"],
-     "no such measurement protocol file"),
+     "cannot read the measurement protocol"),
     (["quality", "measure", "crs3d", "--out", "{tmp}/m"], "not a shipped measurement protocol"),
     (["quality", "measure", "crs1d", "--out", "{tmp}/m", "--device", "serial:///dev/null",
       "--capture", "synthetic"], "the stand-in reads the simulated device"),

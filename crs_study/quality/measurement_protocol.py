@@ -54,8 +54,8 @@ from typing import Literal
 
 import numpy as np
 
-from crs_study._toml import Section, parse_toml
-from crs_study._toml_lines import locate, one_line
+from crs_study._toml import Section, parse_toml, parse_toml_file
+from crs_study._toml_lines import locate
 from crs_study.display import MODELS
 from crs_study.errors import ConfigError, ProtocolError
 from crs_study.geometry.layout import BUILTIN_DEVICES, Layout, layout_from_dict, load_layout
@@ -171,18 +171,10 @@ def resolve_measurement_protocol(name_or_path: str | os.PathLike[str]) -> Path:
 
 def load_measurement_protocol(source: str | os.PathLike[str]) -> MeasurementProtocol:
     """Read and check a measurement protocol; every problem is a one-line ProtocolError."""
-    path = resolve_measurement_protocol(source)
-    try:
-        raw = path.read_bytes()
-        text = raw.decode("utf-8")
-    except FileNotFoundError:
-        raise ProtocolError(f"{path}: no such measurement protocol file") from None
-    except IsADirectoryError:
-        raise ProtocolError(f"{path}: expected a measurement protocol file, got a "
-                            "directory") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProtocolError(f"{path}: cannot read: {one_line(exc)}") from None
-    return measurement_protocol_from_text(text, str(path))
+    path = str(resolve_measurement_protocol(source))
+    return parse_toml_file(path, "measurement protocol",
+                           lambda data, where, text: _checked(data, where, text, None),
+                           ProtocolError)
 
 
 def measurement_protocol_from_text(text: str, source: str, *,
@@ -191,17 +183,25 @@ def measurement_protocol_from_text(text: str, source: str, *,
     text to check it against (a stored measurement's copy) instead of the file it names."""
     data = parse_toml(text, source, ProtocolError)
     try:
-        protocol = _from_dict(data, source, text)
+        return _checked(data, source, text, device_text)
+    except ConfigError as exc:
+        raise locate(exc, source, text) from None
+
+
+def _checked(data: dict, source: str, text: str, device_text: str | None
+             ) -> MeasurementProtocol:
+    """The protocol of parsed ``data``, checked on its device (a problem of the device file
+    is named as a problem of the protocol's ``device`` key)."""
+    protocol = _from_dict(data, source, text)
+    try:
         if device_text is None:
             layout = protocol.layout()
         else:
             layout = layout_from_dict(parse_toml(device_text, protocol.device, ProtocolError),
                                       source=protocol.device)
-        _check_on_device(protocol, layout, Section(data, source, "", ProtocolError, text=text))
     except ConfigError as exc:
-        error = locate(exc, source, text)
-        raise (error if isinstance(error, ProtocolError) else ProtocolError(str(error))) \
-            from None
+        raise ProtocolError(str(exc), source=source, key_path="device") from None
+    _check_on_device(protocol, layout, Section(data, source, "", ProtocolError, text=text))
     return protocol
 
 
