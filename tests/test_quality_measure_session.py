@@ -99,9 +99,11 @@ def test_ctrl_c_pauses_safely_and_a_torn_tail_is_cut(tmp_path):
     assert record.interruptions[-1]["Cause"] == "signal" and record.clock == "real"
     with open(out / "manifest.tsv", "ab") as handle:  # a kill in the middle of an append
         handle.write(b"2\tshape-0002\tsha")
+    resumed = []
     run = run_measurement(MeasurementSpec(protocol, out, "sim://", "prompt"),
-                          prompt=lambda message: None)
+                          prompt=resumed.append)
     assert run.status == "complete" and run.captures_completed == 8
+    assert resumed[0].startswith("resuming at shape-0002 in block pixel-only: remove the")
     assert len(read_manifest(out / "manifest.tsv", 7)) == 8
     assert list((out / "sourcedata").glob("beh-torn-*.bin"))  # the cut bytes kept
 

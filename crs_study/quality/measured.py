@@ -17,12 +17,18 @@ one line; below it holes take the nearest point's height.
 
 The peak x_r is found to a fraction of the point spacing by a local fit: the highest measured
 point within l/2 + d/2 of X_i, then the vertex of a least-squares quadratic over the points
-within :func:`window_radius` of it (refitted once about the vertex). A top that is flat to
-the measurement's noise (the pixel-only display's plateau over the highest pixel's cell, Eq.
-1's "pixel display") has no vertex: there x_r is the centroid of the points within three
-noise levels of the top, as the pixel-only theory takes the plateau's centre. The noise level
+within :func:`window_radius` of it (refitted once about the vertex), when the quadratic fits
+them to the noise. A top it does not fit has no vertex to find: a plateau (the pixel-only
+display's, over the highest pixel's cell: Eq. 1's "pixel display"), a kink (the linear
+connection's top at a pixel) or a ridge (a tent of fabric along a beam). There x_r is the
+centroid of the summit, the points within three noise levels (and :data:`TOP_FRACTION` of
+the height) of the top, as the pixel-only theory takes the plateau's centre. The noise level
 is a robust estimate from the points themselves (the median absolute difference between each
 point and the quadratic through its nearest neighbours).
+
+A summit is found against the highest point, which noise lifts, so a noisy summit is not the
+noise-free one; the model is therefore read with the measurement's noise added
+(:meth:`SampledSurface.with_heights`), and the two are compared estimator for estimator.
 """
 
 from __future__ import annotations
@@ -62,7 +68,7 @@ class ShapeMeasure:
     D_P: float  # |x_r - X_i| / l
     D_S: float  # Eq. 2 (1D) or Eq. 6 (2D)
     peak_mm: tuple[float, float]  # x_r (y_r)
-    peak_fit: str  # "quadratic" or "plateau"
+    peak_fit: str  # "quadratic" or "summit"
     holes: float  # fraction of the support (by quadrature weight) without data
     points: int  # measured points in the support
 

@@ -250,8 +250,11 @@ def run_measurement(spec: MeasurementSpec, *, prompt: Prompt | None = None,
         store.release()
 
 
-def _run(spec, protocol, layout, plan, device_text, expected, store, kind, rig, clock_kind,
-         prompt, progress, device_options) -> MeasurementRun:
+def _run(spec: MeasurementSpec, protocol: MeasurementProtocol, layout: Layout,
+         plan: tuple[PlannedCapture, ...], device_text: str, expected: dict,
+         store: SessionStore, kind: str, rig: SyntheticDic | None, clock_kind: str,
+         prompt: Prompt | None, progress: Progress | None,
+         device_options: dict[str, object]) -> MeasurementRun:
     paths = store.paths
     stored = MeasurementRecord.read(paths.sidecar) if paths.sidecar.exists() else None
     if stored is not None:
@@ -309,6 +312,11 @@ def _run(spec, protocol, layout, plan, device_text, expected, store, kind, rig, 
             device.neutral()
             clock.sleep(protocol.timing.settle_s)
             origin = clock.now() - resume_at
+            if first and plan[first].kind == "shape" and kind != "synthetic":
+                condition = plan[first].condition  # resumed inside a block: set it up again
+                prompt(f"resuming at {plan[first].name} in block {condition}: "
+                       f"{BLOCK_PROMPTS.get(condition, 'set the display up')}; press Enter "
+                       "when ready")
             for k in range(first, len(plan)):
                 capture = plan[k]
                 if capture.kind == "reference" and kind != "synthetic":
@@ -352,8 +360,9 @@ def _run(spec, protocol, layout, plan, device_text, expected, store, kind, rig, 
     return MeasurementRun(status, spec.out, len(plan), state["done"], run, missing, message)
 
 
-def _record(spec, protocol, device_text, expected, stored, kind, clock_kind, planned, first
-            ) -> MeasurementRecord:
+def _record(spec: MeasurementSpec, protocol: MeasurementProtocol, device_text: str,
+            expected: dict, stored: MeasurementRecord | None, kind: str, clock_kind: str,
+            planned: int, first: int) -> MeasurementRecord:
     if stored is None:
         return MeasurementRecord(
             protocol_name=protocol.name, protocol_text=protocol.text,
@@ -376,8 +385,9 @@ def _record(spec, protocol, device_text, expected, stored, kind, clock_kind, pla
 
 
 def _show(capture: PlannedCapture, device: Device, clock: Clock, origin: float,
-          renderers: dict, protocol: MeasurementProtocol, kind: str, rig: SyntheticDic | None,
-          prompt: Prompt | None, out: Path, layout: Layout) -> tuple[dict, str]:
+          renderers: dict[str, Renderer], protocol: MeasurementProtocol, kind: str,
+          rig: SyntheticDic | None, prompt: Prompt | None, out: Path, layout: Layout
+          ) -> tuple[dict, str]:
     """Show one capture and hold it for its window; its manifest row and frame-log line."""
     if capture.kind == "reference":
         setpoints, clamped = layout.neutral_setpoints(), ()
