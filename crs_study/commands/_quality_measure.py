@@ -28,7 +28,13 @@ from collections import Counter
 from pathlib import Path
 
 from crs_study.commands import HelpFormatter, add_device_options, device_options
-from crs_study.errors import MeasurementError
+from crs_study.device.calibration import write_calibrated_copy
+from crs_study.errors import DeviceFileError, MeasurementError
+from crs_study.quality.manifest import DERIVATIVES
+from crs_study.quality.measured_analysis import analyze_measurement, load_measurement
+from crs_study.quality.measured_report import write_report
+from crs_study.quality.measured_result import MeasuredQuality
+from crs_study.session.measurement import MeasurementSpec, run_measurement
 
 #: ``crs-study quality``'s actions: name -> one line of help.
 ACTIONS = {
@@ -93,8 +99,6 @@ def _prompt(message: str) -> None:
 
 
 def _measure(args: argparse.Namespace) -> int:
-    from crs_study.session.measurement import MeasurementSpec, run_measurement
-
     capture = args.capture or ("synthetic" if args.device.startswith("sim://") else "prompt")
     spec = MeasurementSpec(args.protocol, args.out, args.device, capture, args.clock)
     progress = None if args.json else (lambda line: print(line, file=sys.stderr))
@@ -123,17 +127,14 @@ def _measure(args: argparse.Namespace) -> int:
     return 0
 
 
-def _analysis(folder: Path, captures, fiducials, units: str, out: Path | None):
-    from crs_study.quality.manifest import DERIVATIVES
-    from crs_study.quality.measured_analysis import analyze_measurement
-    from crs_study.quality.measured_report import write_report
-
+def _analysis(folder: Path, captures: Path | None, fiducials: Path | None, units: str,
+              out: Path | None) -> tuple[MeasuredQuality, dict[str, Path]]:
     result = analyze_measurement(folder, captures=captures, fiducials=fiducials, units=units)
     files = write_report(result, out if out is not None else folder / DERIVATIVES)
     return result, files
 
 
-def _summary(result, files: dict[str, Path]) -> None:
+def _summary(result: MeasuredQuality, files: dict[str, Path]) -> None:
     print(result.headline())
     reg = result.registration
     print(f"registration: {reg.mode}, {len(reg.pixels)} fiducials, {reg.rms_mm:.3f} mm RMS "
@@ -157,12 +158,9 @@ def _analyze(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_calibration(folder: Path, result, destination: Path, overwrite: bool) -> str:
+def _write_calibration(folder: Path, result: MeasuredQuality, destination: Path,
+                       overwrite: bool) -> str:
     """A copy of the measured device file with the named servos' endpoints corrected."""
-    from crs_study.device.calibration import write_calibrated_copy
-    from crs_study.errors import DeviceFileError
-    from crs_study.quality.measured_analysis import load_measurement
-
     record, _, layout = load_measurement(folder)
     endpoints = result.residual_map.corrected_endpoints(layout)
     if not endpoints:

@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from crs_study._files import make_dirs, write_atomically
 from crs_study.quality.criteria import THEORY, theory
-from crs_study.quality.measured_result import MeasuredQuality
+
+if TYPE_CHECKING:  # the result's plot methods call these charts: no import at run time
+    from crs_study.quality.measured_result import MeasuredQuality
 
 _STYLE = {"crs": ("tab:blue", "x"), "pixel-only": ("tab:red", "o")}
 _EQUATIONS = {"1d": {"D_P": "Eq. 1", "D_S": "Eq. 2"},

@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from crs_study.quality import measured_report
 from crs_study.quality.criteria import theory
 from crs_study.quality.registration import Registration
 from crs_study.quality.residual_map import ResidualMap
@@ -215,15 +216,11 @@ class MeasuredQuality:
 
     def plot(self, ax=None):
         """The Fig. 2d style chart (:func:`crs_study.quality.measured_report.plot_measured`)."""
-        from crs_study.quality.measured_report import plot_measured
-
-        return plot_measured(self, ax)
+        return measured_report.plot_measured(self, ax)
 
     def plot_residual_map(self, ax=None):
         """:func:`crs_study.quality.measured_report.plot_residual_map`."""
-        from crs_study.quality.measured_report import plot_residual_map
-
-        return plot_residual_map(self, ax)
+        return measured_report.plot_residual_map(self, ax)
 
 
 def mean_interval(values: np.ndarray, confidence: float, resamples: int,

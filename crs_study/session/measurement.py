@@ -56,6 +56,7 @@ from crs_study.quality.manifest import (
     MeasurementRecord,
     format_setpoints,
 )
+from crs_study.quality.measured_analysis import find_capture
 from crs_study.quality.measurement_protocol import (
     MeasurementProtocol,
     PlannedCapture,
@@ -210,8 +211,6 @@ def _now() -> str:
 
 def missing_captures(folder: Path, plan: tuple[PlannedCapture, ...]) -> tuple[str, ...]:
     """The shapes of ``plan`` without an export in ``folder/captures`` yet."""
-    from crs_study.quality.measured_analysis import find_capture
-
     captures = folder / CAPTURES
     return tuple(c.name for c in plan if c.kind == "shape"
                  and find_capture(captures, c.name) is None)
