@@ -24,6 +24,10 @@ load_dataset       the trials of stored datasets as the analysis sees them
 analyze            every analysis of the plan (:class:`Analysis`; the report on request)
 power              participants needed: the plan's primary test on simulated studies
                    (:class:`PowerResult`)
+run_measurement    a measurement protocol's waveforms shown for DIC captures, begun or
+                   resumed (:class:`MeasurementRun`)
+analyze_measurement  a measurement's DIC captures: D_P and D_S against the model and the
+                   paper, the residual map (:class:`MeasuredQuality`)
 =================  ========================================================================
 
 The package is one folder per stage of the pipeline, and a stage imports only the stages
@@ -33,7 +37,7 @@ listed before it (checked: ``[tool.importlinter]`` in pyproject.toml):
 ``stimuli``    the bump of Eq. 7, digit strokes, a digit's path over time
 ``display``    display models: setpoints to the surface the skin meets
 ``rendering``  a target to setpoints per condition; the one cache of rendered frames
-``quality``    the paper's display-quality criteria, mechanics limits
+``quality``    the paper's display-quality criteria, mechanics limits, surface measurements
 ``device``     the LSC-24 wire, the serial device and the simulated one
 ``dataset``    the stored BIDS dataset: schema, session sidecar, paths, durable writes
 ``consent``    consent forms, the register, the gate, withdrawal
@@ -69,6 +73,8 @@ API = {
     "load_dataset": "crs_study.analysis.study_data",
     "analyze": "crs_study.analysis.report",
     "power": "crs_study.power_analysis.api",
+    "run_measurement": "crs_study.session.measurement",
+    "analyze_measurement": "crs_study.quality.measured_analysis",
     # what they return
     "Protocol": "crs_study.protocol.model",
     "TrialPlan": "crs_study.protocol.plan",
@@ -78,6 +84,9 @@ API = {
     "StudyData": "crs_study.analysis.study_data",
     "Analysis": "crs_study.analysis.report",
     "PowerResult": "crs_study.power_analysis.result",
+    "MeasurementSpec": "crs_study.session.measurement",
+    "MeasurementRun": "crs_study.session.measurement",
+    "MeasuredQuality": "crs_study.quality.measured_result",
 }
 
 __all__ = ["CrsStudyError", "__version__", *API]

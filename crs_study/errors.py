@@ -17,6 +17,7 @@ prints such errors as one line and exits non-zero (``--debug`` shows the traceba
     ├── SessionError           runner and session state (locks, completed sessions, resume)
     ├── DatasetError           stored dataset is missing, malformed or tampered with
     ├── AnalysisError          an analysis cannot be carried out
+    ├── MeasurementError       a surface measurement cannot be read, registered or compared
     └── ConsentError           consent missing, mismatched, malformed; withdrawal problems
 """
 
@@ -112,6 +113,11 @@ class DatasetError(CrsStudyError):
 
 class AnalysisError(CrsStudyError):
     """An analysis cannot be carried out on the data given."""
+
+
+class MeasurementError(CrsStudyError):
+    """A surface measurement (a DIC export, its fiducials, a measurement folder) cannot be
+    read, registered to the display or compared with the model."""
 
 
 class ConsentError(CrsStudyError):

@@ -25,7 +25,8 @@ from crs_study.errors import SessionError
 
 API = ["load_protocol", "make_plan", "validate", "dry_run", "run_session", "load_dataset",
        "analyze", "power", "Protocol", "TrialPlan", "ProtocolSummary", "DryRunResult",
-       "SessionResult", "StudyData", "Analysis", "PowerResult"]
+       "SessionResult", "StudyData", "Analysis", "PowerResult", "run_measurement",
+       "analyze_measurement", "MeasurementSpec", "MeasurementRun", "MeasuredQuality"]
 
 
 def _cli(*argv: str) -> tuple[int, str]:

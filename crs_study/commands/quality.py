@@ -13,6 +13,10 @@ collapsing beam) are listed with the reason.
 median time per surface against its error versus the FE reference on CRS bumps (crs1d,
 crs2d), as a table and a chart (speed_accuracy.png, speed_accuracy.md in --out); which model
 to use for what is in :mod:`crs_study.benchmarks.display`.
+
+The device as measured: ``crs-study quality measure PROTOCOL --out MEAS`` shows a measurement
+protocol's target waveforms for DIC captures, and ``crs-study quality analyze MEAS`` compares
+the captures' D_P and D_S with the model's (``crs-study quality measure --help``).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from crs_study.benchmarks.display import (
     plot_speed_accuracy,
     speed_accuracy_rows,
 )
+from crs_study.commands import _quality_measure
 from crs_study.display import MODELS
 from crs_study.errors import CrsStudyError, DisplayModelError
 from crs_study.geometry.layout import device_file_path, load_layout
@@ -86,10 +91,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--cache-dir", type=Path, default=None,
                        help="cache folder (default $XDG_CACHE_HOME/crs-study/quality)")
     group.add_argument("--no-cache", action="store_true", help="recompute every point")
+    actions = parser.add_subparsers(dest="action", metavar="ACTION")
+    _quality_measure.add_actions(actions)
 
 
 @os_errors(CrsStudyError)  # an unwritable --out or --cache-dir: one line, not a traceback
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "action", None):  # measure, analyze: the device as measured
+        return _quality_measure.run(args)
     args.models = args.models or list(DEFAULT_MODELS)
     args.d_over_l = args.d_over_l or list(DEFAULT_D_OVER_L)
     if args.speed_accuracy:

@@ -163,10 +163,12 @@ class _Evaluator:
     """Per-(model, layout, l) machinery: renderer, quadrature templates, peak search."""
 
     def __init__(self, model: DisplayModel, layout: Layout, lattice: LatticeName, l: float,
-                 height: float, condition: str, resolution: int) -> None:
+                 height: float, condition: str | None, resolution: int) -> None:
         self.model, self.layout, self.lattice = model, layout, lattice
         self.l, self.height, self.d = l, height, layout.pitch_mm
-        self.renderer = Renderer(layout, condition, policy="error", cap_feed=False)
+        # None: surfaces come from given setpoints alone (:meth:`shown`), nothing is rendered
+        self.renderer = (None if condition is None else
+                         Renderer(layout, condition, policy="error", cap_feed=False))
         self.resolution = resolution
         self.peak_xy = getattr(model, "peak_xy", None)
         if lattice != "1d":
@@ -192,6 +194,12 @@ class _Evaluator:
         nodes = (mids[:, None] + halves[:, None] * x).ravel()
         return np.column_stack([nodes, np.zeros_like(nodes)]), (halves[:, None] * w).ravel()
 
+    def support(self, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nodes and weights of int_S over the support |x - X| <= l/2 of a bump at ``centre``."""
+        if self.lattice == "1d":
+            return self._segment_rule(float(centre[0]))
+        return centre + self.offsets, self.weights
+
     def __call__(self, origin: np.ndarray, x: np.ndarray) -> tuple[float, float]:
         """(|x_r - X| / l, shape distortion) for a bump at X = origin + x."""
         centre = origin + x
@@ -200,10 +208,12 @@ class _Evaluator:
             setpoints = self.renderer.render(bump).setpoints
         except RenderError as exc:
             raise DisplayModelError(f"quality at d/l = {self.d / self.l:.4g}: {exc}") from None
-        if self.lattice == "1d":
-            points, weights = self._segment_rule(float(centre[0]))
-        else:
-            points, weights = centre + self.offsets, self.weights
+        return self.shown(bump, setpoints)
+
+    def shown(self, bump: Bump, setpoints: np.ndarray) -> tuple[float, float]:
+        """(|x_r - X| / l, shape distortion) of the surface ``setpoints`` give for ``bump``."""
+        centre = np.asarray(bump.centre_mm, dtype=float)
+        points, weights = self.support(centre)
         grid = None if self.peak_xy is not None else self._coarse_grid(centre)
         evaluate = points if grid is None else np.concatenate([points, grid])
         values = self.model.surface(setpoints, evaluate)
@@ -421,3 +431,24 @@ def hull_distortion(model: str, layout: Layout, *, samples: int = 300, seed: int
                         float(v[:, 1].mean()), len(v), {"D_P": float(se[0]), "D_S": float(se[1])},
                         layout.name)
     return result, refused
+
+
+def support_rule(layout: Layout, bump: Bump, resolution: int = 12
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes (n, 2) and weights of int_S over the support of ``bump`` on ``layout``: the rule
+    :func:`distortion` integrates Eqs. 2 and 6 with (module docstring), for a measured surface
+    to be integrated alike (:mod:`crs_study.quality.measured`)."""
+    evaluator = _Evaluator(get_model("nearest", layout), layout, lattice_of(layout),
+                           bump.diameter_mm, bump.height_mm, None, resolution)
+    return evaluator.support(np.asarray(bump.centre_mm, dtype=float))
+
+
+def shape_distortion(model: DisplayModel, bump: Bump, setpoints: np.ndarray, *,
+                     resolution: int = 12) -> tuple[float, float]:
+    """The two terms of the expectations of Eqs. 1, 2 (1D) or 5, 6 (2D) for one shape shown:
+    (|x_r - X| / l, sqrt(int_S (phi - psi)^2 / int_S phi^2)), psi the surface ``model`` gives
+    for ``setpoints`` (as a session sent them, feed cap included), phi the ``bump`` (Eq. 7)
+    and x_r psi's peak, found as :func:`distortion` finds it."""
+    evaluator = _Evaluator(model, model.layout, lattice_of(model.layout), bump.diameter_mm,
+                           bump.height_mm, None, resolution)
+    return evaluator.shown(bump, np.asarray(setpoints, dtype=float))

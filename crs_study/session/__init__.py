@@ -7,6 +7,8 @@
 * :mod:`~crs_study.session.state`: the mutable state of a run and its sidecar writes;
 * :mod:`~crs_study.session.prompts`: what the experimenter and the participant are told;
 * :mod:`~crs_study.session.dry_runs`: many simulated participants (:func:`dry_run`);
+* :mod:`~crs_study.session.measurement`: a measurement of the display's surface (DIC
+  captures of target waveforms, :func:`~crs_study.session.measurement.run_measurement`);
 * :mod:`~crs_study.session.responders`: who answers (keypad, script, simulated observers).
 """
 
