@@ -274,8 +274,9 @@ def bootstrap_studies(rows: StudyRows, Y: np.ndarray, dropped: str, replicates: 
     ``Y`` (S, n) on the same rows, all fits batched: each study's full and reduced fit from
     ``start``, then ``replicates`` datasets from each reduced fit, refitted together. What
     ``analyze`` does to one study (:func:`bootstrap_lr`), for a simulation of its level;
-    replicate ``b`` of study ``s`` draws from ``replicate_stream(seed + s, b)``. A fit the
-    batch does not settle leaves its study (or replicate) out: the counts say so."""
+    replicate ``b`` of study ``s`` draws from ``replicate_stream(seed + s, b)``. A replicate
+    the batch does not settle is refitted by ``fit_glmm``; a study whose own fits it does
+    not settle is left out (NaN): the counts say so."""
     S = len(Y)
     drop = rows.columns.index(dropped)
     full = fit_batch(rows.objective(Y), np.tile(start, (S, 1)))
@@ -292,7 +293,9 @@ def bootstrap_studies(rows: StudyRows, Y: np.ndarray, dropped: str, replicates: 
     star_reduced = fit_batch(rows.objective(draws, dropped), reduced.theta[owner],
                              reduced.curvature[owner])
     star = 2.0 * (star_full.value - star_reduced.value)
-    ok = ~(star_full.needs_reference | star_reduced.needs_reference)
+    for b in np.flatnonzero(star_full.needs_reference | star_reduced.needs_reference):
+        star[b] = _reference_statistic(rows, draws[b], dropped)
+    ok = np.isfinite(star)
     pvalue = np.full(S, np.nan)
     used = np.zeros(S, dtype=int)
     for s in studies:

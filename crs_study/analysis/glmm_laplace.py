@@ -127,21 +127,36 @@ def small_inverse(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Sums:
-    """A fixed sparse map between rows and bins: ``to_bins(v)`` sums ``v`` (S, n) into the
-    bins, ``to_rows(b)`` reads bins (S, bins) back row by row (the transpose). Each output of
-    a study depends on that study's numbers alone, in a fixed order."""
+    """A fixed sparse map between rows and bins, ``k`` entries a row: ``to_bins(v)`` sums
+    ``v`` (S, n) into the bins, ``to_rows(b)`` reads bins (S, bins) back row by row (the
+    transpose). Each output of a study depends on that study's numbers alone, in a fixed
+    order. Rows are read by a gather (every row has its ``k`` entries); bins are filled by
+    ``np.bincount`` for a single study and by a sparse product for many (scipy's call
+    overhead is what one study's sums cost)."""
 
     def __init__(self, rows: np.ndarray, bins: np.ndarray, values: np.ndarray, n: int,
                  size: int):
-        self.to_rows_matrix = sp.csr_matrix((values, (rows, bins)), shape=(n, size))
-        self.to_bins_matrix = self.to_rows_matrix.T.tocsr()
+        k = len(rows) // n
+        order = np.argsort(rows, kind="stable")
+        self.row_bins = bins[order].reshape(n, k)
+        self.row_values = values[order].reshape(n, k)
+        self.flat_rows, self.flat_bins = rows[order], bins[order]
+        self.flat_values = values[order]
+        self.to_bins_matrix = sp.csr_matrix((values, (bins, rows)), shape=(size, n))
         self.size = size
 
     def to_bins(self, v: np.ndarray) -> np.ndarray:
+        if len(v) == 1:
+            return np.bincount(self.flat_bins, v[0, self.flat_rows] * self.flat_values,
+                               minlength=self.size)[None]
         return np.asarray(self.to_bins_matrix @ v.T).T
 
     def to_rows(self, b: np.ndarray) -> np.ndarray:
-        return np.asarray(self.to_rows_matrix @ b.T).T
+        gathered = b[:, self.row_bins]                  # (S, n, k); summed in a fixed order
+        out = gathered[..., 0] * self.row_values[:, 0]
+        for j in range(1, self.row_bins.shape[1]):
+            out += gathered[..., j] * self.row_values[:, j]
+        return out
 
 
 def _outer_sums(n: int, left_pos: np.ndarray, left_z: np.ndarray, right_pos: np.ndarray,
