@@ -21,7 +21,7 @@ from crs_study.power_analysis.fidelity import run_full
 from crs_study.power_analysis.model import GenerativeModel, model_from_pilot
 from crs_study.power_analysis.observer import DEFAULT_DRAWS, model_from_observer, predict
 from crs_study.power_analysis.result import PowerResult, merge
-from crs_study.power_analysis.study import PowerTask, run_task
+from crs_study.power_analysis.study import PowerTask, run_null_task, run_task
 
 #: Studies per unit of work: fixed (never derived from the number of workers), so the
 #: batches, and with them every number, are the same on any backend.
@@ -106,15 +106,22 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
             notes.append("fidelity full: every study is dry-runs of the protocol by the "
                          "simulated observer, analysed as analyze does; the model shown is "
                          "the observer's prediction, for comparison")
+            if any(design.bootstrapped(n) for n in participants):
+                null = _tasks(design, generating, seed, participants, reps, studies)
+                results = backend.map(run_null_task, null, None, weight=lambda t: t.n_studies)
+                raw["null_statistic"] = merge(results)["null_statistic"]
+                raw["cpu_seconds"] += sum(r.seconds for r in results)
+                notes.append("fidelity full: below bootstrap_below participants a study's LR "
+                             "is referred to as many null studies drawn from the observer's "
+                             "prediction without the effect (the bootstrap's reference, once "
+                             "a point)")
         else:
             generating = model if model is not None else _generating_model(
                 design, protocol, pilot, effect_scale, participant_sd, participant_slope_sd,
                 draws, backend, notify)
             if model is not None and effect_scale != 1.0:
                 generating = generating.scaled(effect_scale)
-            tasks = [PowerTask(design, generating, seed, participants, reps,
-                               (start, min(start + STUDIES_PER_TASK, studies)))
-                     for start in range(0, studies, STUDIES_PER_TASK)]
+            tasks = _tasks(design, generating, seed, participants, reps, studies)
             results = backend.map(run_task, tasks, progress, weight=lambda t: t.n_studies)
             raw = merge(results)
             raw["cpu_seconds"] = sum(r.seconds for r in results)
@@ -129,6 +136,13 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
                        fidelity=fidelity, backend=where,
                        seconds=time.perf_counter() - started, cpu_seconds=cpu,
                        notes=tuple(notes))
+
+
+def _tasks(design, model, seed, participants, repetitions, studies) -> list[PowerTask]:
+    """The studies cut into tasks of ``STUDIES_PER_TASK``."""
+    return [PowerTask(design, model, seed, participants, repetitions,
+                      (start, min(start + STUDIES_PER_TASK, studies)))
+            for start in range(0, studies, STUDIES_PER_TASK)]
 
 
 def _checked(participants, repetitions, studies, seed, target, fidelity, jobs, effect_scale,

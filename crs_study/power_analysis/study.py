@@ -5,22 +5,27 @@ and a range of study numbers) to a small :class:`TaskResult`; the backends map i
 process pool or a Dask cluster (:mod:`crs_study.power_analysis.backends`, STYLE.md point 18).
 
 Each simulated study is tested as ``analyze`` tests a dataset
-(:func:`crs_study.analysis.primary.primary_test`): the full GLMM ``correct ~ condition +
-(1 | participant) [+ (1 | symbol)]`` (the symbol's intercept grouped by the design's
-symbol column, ``digit`` for the digit set) and, per non-reference condition, the model without it;
-the likelihood-ratio p of each comparison; a separated condition tested at the supremum; a
-reduced model that cannot be fitted: the Wald p; a full model that cannot be fitted: Fisher's
-exact test on the pooled table. A study's outcome records which of these it was (``KINDS``).
+(:func:`crs_study.analysis.primary.primary_test`): the plan's random structure (maximal by
+default: ``correct ~ condition + (1 + condition | participant) + (1 + condition |
+symbol)``), reduced by the plan's rule where a fit fails or is singular, and per
+non-reference condition the model without it; the likelihood-ratio statistic of each
+comparison; a separated condition tested at the supremum; a reduced model that cannot be
+fitted: the Wald p; a full model that cannot be fitted: Fisher's exact test on the pooled
+table. A study's outcome records which of these it was (``KINDS``).
 
-Two paths give those fits. The fast path (:mod:`crs_study.power_analysis.maximise`) fits all studies
-of a point at once, from the generating parameters, to the maximum ``fit_glmm`` finds (its
-boundary rule included); a study it does not settle (a condition at 0 % or 100 %, where
-``fit_glmm`` tests at the supremum; a Newton iteration that stalls; a boundary where
-``fit_glmm`` would restart from interior points; a plan with adaptive quadrature) goes the
-reference path: :func:`crs_study.analysis.primary.fit_primary` itself on the study's cells.
-The p-value of the fast path is :func:`crs_study.analysis.glmm.lrt`'s: ``2 (l_full -
-l_reduced)``, differences below 1e-6 taken as 0, against chi2(1), floored at the smallest
-positive float.
+Where the plan's p is the parametric bootstrap (``design.bootstrapped(n)``), a study's LR
+statistic is referred to the LR statistics of as many null studies of its point, drawn from
+the generating model without the comparison's effect (:func:`calibrated_pvalues`): the
+bootstrap's reference distribution computed once per point, not per study.
+
+Two paths give the fits. The batched path (:func:`crs_study.analysis.glmm_batch.fit_batch`)
+fits all studies of a point at once, from the generating parameters, to the maximum
+``fit_glmm`` finds (its boundary rule included); a study it does not settle (a condition at
+0 % or 100 %, where ``fit_glmm`` tests at the supremum; a Newton iteration that stalls; a
+plan with adaptive quadrature) goes the reference path:
+:func:`crs_study.analysis.primary.fit_primary` itself on the study's cells. The chi2 p is
+:func:`crs_study.analysis.glmm.lrt`'s: ``2 (l_full - l_reduced)``, differences below 1e-6
+taken as 0, against chi2(1), floored at the smallest positive float.
 """
 
 from __future__ import annotations
@@ -102,15 +107,33 @@ def run_task(task: PowerTask) -> TaskResult:
     design, model = task.design, task.model
     studies = range(*task.studies)
     out = _points(design, model, task.seed, studies, task.points)
+    out["null_statistic"] = null_statistics(task)
+    return TaskResult(task.studies, seconds=time.process_time() - start, **out)
+
+
+def null_statistics(task: PowerTask) -> np.ndarray:
+    """(point, study, comparison): the LR statistics of the task's null studies where the
+    plan's test is the bootstrap (NaN elsewhere); null study ``s`` of comparison ``j`` is
+    drawn from ``model.without_effect(j)`` with :func:`null_seed`."""
+    design, model = task.design, task.model
+    studies = range(*task.studies)
     points = [(n, r) for n, r in task.points if design.bootstrapped(n)]
     K = len(design.comparisons)
-    out["null_statistic"] = np.full((len(task.points), len(studies), K), np.nan)
+    statistic = np.full((len(task.points), len(studies), K), np.nan)
     for j in range(K if points else 0):
         null = _points(design, model.without_effect(j), null_seed(task.seed, j), studies,
                        points)
         for i, point in enumerate(points):
-            row = task.points.index(point)
-            out["null_statistic"][row, :, j] = lr_statistic(null, i, j)
+            statistic[task.points.index(point), :, j] = lr_statistic(null, i, j)
+    return statistic
+
+
+def run_null_task(task: PowerTask) -> TaskResult:
+    """Only the null studies of a task (mode 3 calibrates its dry-runs with them)."""
+    start = time.process_time()
+    shape = (len(task.points), task.n_studies)
+    out = outcomes(task.design, shape)
+    out["null_statistic"] = null_statistics(task)
     return TaskResult(task.studies, seconds=time.process_time() - start, **out)
 
 
