@@ -75,6 +75,10 @@ class BatchObjective:
         return self.layout.normalised(theta)
 
     @property
+    def diagonal(self) -> np.ndarray:
+        return self.layout.diagonal
+
+    @property
     def warm(self) -> np.ndarray:
         return self.likelihood.u
 

@@ -26,6 +26,8 @@ MAX_ITERATIONS = 40
 REFRESH_EVERY = 4
 #: Longest step in any coordinate (log-odds or SD units) in one iteration.
 MAX_STEP = 1.0
+#: Largest share of its size a diagonal loading may lose in one step (never its sign).
+TO_ZERO = 0.9
 
 
 def newton(objective, theta0: np.ndarray, held: np.ndarray,
@@ -43,6 +45,7 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     theta = theta0.copy()
     S, n = theta.shape
     free = ~held
+    diagonal = getattr(objective, "diagonal", None)
     value, g = objective.evaluate(theta)
     g = np.where(free, g, 0.0)
     converged = np.zeros(S, dtype=bool)
@@ -76,6 +79,8 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
                 N[rows] = _negative_hessian(sub.subset(rows), th[rows], ga[rows],
                                             free[active][rows])
         step = _solve(N, ga, free[active])
+        if diagonal is not None:
+            step = _short_of_zero(step, th, diagonal)
         th_new, v_new, g_new, ok = _line_search(sub, th, v, step)
         g_new = np.where(free[active], g_new, 0.0)
         N = _bfgs(N, th_new - th, ga - g_new, ok)
@@ -133,6 +138,21 @@ def _solve(N: np.ndarray, g: np.ndarray, free: np.ndarray) -> np.ndarray:
     step = np.where(free, np.einsum("sij,sj->si", V, np.einsum("sji,sj->si", V, g) / lam), 0.0)
     longest = np.max(np.abs(step), axis=1, keepdims=True)
     return step * np.minimum(1.0, MAX_STEP / np.maximum(longest, 1e-300))
+
+
+def _short_of_zero(step: np.ndarray, theta: np.ndarray, diagonal: np.ndarray) -> np.ndarray:
+    """``step`` shortened so that no diagonal loading loses more than ``TO_ZERO`` of its size
+    or changes sign (the interior-point "fraction to the boundary" rule: Nocedal & Wright
+    2006, eq. 16.66). The likelihood is even in a column's sign, so a diagonal that crosses
+    0 lands on the mirror image of the same model, and at 0 itself its gradient vanishes:
+    crossing costs iterations and gains nothing. A boundary optimum is still approached
+    geometrically, and the boundary is decided on its face."""
+    th, st = theta[:, diagonal], step[:, diagonal]
+    toward = (th != 0.0) & (th * st < 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        room = np.where(toward, TO_ZERO * np.abs(th) / np.abs(st), np.inf)
+    t = np.minimum(1.0, room.min(axis=1, initial=np.inf))
+    return step * t[:, None]
 
 
 def _bfgs(N: np.ndarray, s: np.ndarray, y: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -101,6 +101,7 @@ class Optimum:
     iterations: int = 0
     restarts: int = 0
     message: str = ""
+    settled: bool = True     # False: a local fit stopped short near a face, not yet decided
 
     @property
     def at_zero(self) -> dict[int, float]:
@@ -173,15 +174,27 @@ class _Single:
     def normalised(self, theta: np.ndarray) -> np.ndarray:
         return normalise(self.problem, theta[0])[None]
 
+    @property
+    def diagonal(self) -> np.ndarray:
+        layout = getattr(self.problem.model, "layout", None)
+        if layout is not None:
+            return layout.diagonal
+        return np.arange(self.problem.n_fixed + self.problem.model.n_variance) >= \
+            self.problem.n_fixed            # a single intercept's SD
+
 
 def local_fit(problem, start: np.ndarray, held: dict[int, float],
-              methods=_METHODS, curvature: np.ndarray | None = None) -> Optimum:
+              methods=_METHODS, curvature: np.ndarray | None = None,
+              stop_near_face: bool = False) -> Optimum:
     """One unconstrained local maximisation (theta of any sign; returned normalised).
 
     Newton's method (:func:`~.glmm_newton.newton`: the exact gradient, a differenced
     Hessian, or ``curvature``, a negative Hessian known to be near, to start) first; where it
     stops short of its gradient tolerance, scipy's TNC from the start, then L-BFGS-B from
-    TNC's end when the gradient there is not yet small.
+    TNC's end when the gradient there is not yet small (:func:`_scipy_fit`). With
+    ``stop_near_face`` a Newton end near a boundary is returned unsettled instead: near a
+    face Newton's method crawls (``l ~ a s^2 + b s^4``), and the caller decides on the face,
+    where the problem is regular, before falling back.
     """
     single = _Single(problem)
     theta0 = np.asarray(start, float).copy()
@@ -194,9 +207,19 @@ def local_fit(problem, start: np.ndarray, held: dict[int, float],
         value = problem.objective(theta[0], grad=False)
         return Optimum(theta[0], float(value), [], single.calls + 1, int(iterations[0]), 0,
                        "Newton: gradient below tolerance")
+    if stop_near_face and np.isfinite(value[0]) and _faces_near(problem, theta[0], held):
+        value = problem.objective(theta[0], grad=False)
+        return Optimum(theta[0], float(value), [], single.calls + 1, int(iterations[0]), 0,
+                       "Newton: stopped near a boundary", settled=False)
+    fit = _scipy_fit(problem, start, held, methods)
+    fit.evaluations += single.calls
+    return fit
+
+
+def _scipy_fit(problem, start: np.ndarray, held: dict[int, float], methods) -> Optimum:
+    """scipy's minimisers in turn from ``start`` (the held parameters fixed)."""
     counted = _Counted(problem, held, len(start))
-    counted.calls = single.calls
-    x = start[counted.mask]
+    x = np.asarray(start, float)[counted.mask]
     iterations, message = 0, "no free parameter"
     if len(x):
         for method, options in methods:
@@ -254,11 +277,16 @@ def rank_slope(problem, theta: np.ndarray, face: Face) -> Face:
     return Face(face.block, face.held, d, float(values[-1]), null @ vectors[:, -1], null)
 
 
-def _faces_near(problem, theta: np.ndarray, held: dict[int, float]) -> list[Face]:
-    """The blocks whose covariance is within ``NEAR_ZERO`` (SD scale) of losing rank."""
+def _faces_near(problem, theta: np.ndarray, held: dict[int, float],
+                on: list[Face] = ()) -> list[Face]:
+    """The blocks whose covariance is within ``NEAR_ZERO`` (SD scale) of losing rank, or,
+    for a block already on a face of ``on``, of losing more rank than that face."""
     faces = []
+    depth = {face.block: face.deficiency for face in on}
     for block in blocks_of(problem):
-        if any(i in held for i in block.indices):
+        if block not in depth and any(i in held for i in block.indices):
+            continue
+        if block in depth and not block.matrix:
             continue
         if not block.matrix:
             if abs(theta[block.indices[0]]) < NEAR_ZERO:
@@ -268,7 +296,7 @@ def _faces_near(problem, theta: np.ndarray, held: dict[int, float]) -> list[Face
         T = loading(term, theta[list(block.indices)])
         sds = np.sqrt(np.clip(np.linalg.eigvalsh(T @ T.T), 0.0, None))
         d = int(np.sum(sds < NEAR_ZERO))
-        if d:
+        if d > depth.get(block, 0):
             r = term.size
             faces.append(Face(block, tuple(i for i, (_, col) in zip(block.indices, term.entries,
                                                                    strict=True)
@@ -330,24 +358,37 @@ def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
     """
     held = dict(held or {})
     methods = _PROFILE_METHODS if profile else _METHODS
-    best = local_fit(problem, np.asarray(start, float), held, methods, curvature)
+    best = local_fit(problem, np.asarray(start, float), held, methods, curvature,
+                     stop_near_face=True)
     evaluations, iterations, restarts = best.evaluations, best.iterations, 0
     for _ in range(_MAX_ROUNDS):
-        near = _faces_near(problem, best.theta, held)
+        # the faces ``best`` already sits on stay held; a fit on them may end near others
+        fixed = {**held, **dict.fromkeys(best.at_zero, 0.0)}
+        near = _faces_near(problem, best.theta, fixed, best.faces)
         if not near:
             break
         on_face = {i: 0.0 for face in near for i in face.held}
         boundary = local_fit(problem, _on_face(problem, best.theta, near),
-                             {**held, **on_face}, methods)
+                             {**fixed, **on_face}, methods)
         evaluations += boundary.evaluations
         iterations += boundary.iterations
-        faces = _slopes(problem, boundary.theta, near)
+        deeper = {face.block for face in near}
+        faces = _slopes(problem, boundary.theta,
+                        [face for face in best.faces if face.block not in deeper] + near)
         inward = [face for face in faces if face.slope > SLOPE_TOLERANCE]
         tolerance = 1e-9 * (1.0 + abs(best.value))
+        if not inward and boundary.value >= best.value - tolerance:
+            boundary.faces = faces
+            best = boundary
+            continue
+        if not best.settled:     # the interior end is higher or the face rises: finish it
+            finished = _scipy_fit(problem, best.theta, fixed, methods)
+            finished.faces = _slopes(problem, finished.theta, best.faces)
+            evaluations += finished.evaluations
+            iterations += finished.iterations
+            best = finished
+            continue
         if not inward:
-            if boundary.value >= best.value - tolerance:
-                boundary.faces = faces
-                best = boundary
             break
         if best.value > boundary.value + tolerance:
             break        # a small interior SD, higher than the boundary: a true estimate

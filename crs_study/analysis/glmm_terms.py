@@ -274,6 +274,14 @@ class ThetaLayout:
     def n_theta(self) -> int:
         return self.size - self.n_fixed
 
+    @property
+    def diagonal(self) -> np.ndarray:
+        """(size,) True where the parameter is a diagonal entry of some ``T_k``."""
+        out = np.zeros(self.size, dtype=bool)
+        for term, cut in zip(self.terms, self.slices, strict=True):
+            out[cut] = [row == col for row, col in term.entries]
+        return out
+
     def loadings(self, theta: np.ndarray) -> list[np.ndarray]:
         """``T_k`` (S, r_k, r_k) for parameter vectors ``theta`` (S, size)."""
         return [loading(t, theta[:, s]) for t, s in zip(self.terms, self.slices, strict=True)]
