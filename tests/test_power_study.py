@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from crs_study.analysis import primary
+from crs_study.analysis import primary, primary_fit
 from crs_study.analysis.glmm import GlmmFitError, fit_glmm, lrt
 from crs_study.power_analysis import PowerDesign, design_from_protocol, model_from_parameters
 from crs_study.power_analysis.simulate import simulate_studies
@@ -85,14 +85,14 @@ def test_a_reduced_model_that_cannot_be_fitted_is_the_wald_p_as_in_analyze(desig
     model = model_from_parameters(design, {"pixel-only": 0.5, "crs": 0.6},
                                   participant_sd=0.3)
     Y = simulate_studies(model, 2, range(1), 3, 2)[0, :, -1].astype(float)
-    real = primary._fit
+    real = primary_fit.fit_model
 
     def reduced_fails(data, design_matrix, *args, **kwargs):
         if design_matrix.shape[1] == 1:
             raise GlmmFitError("numerical failure (test)")
         return real(data, design_matrix, *args, **kwargs)
 
-    monkeypatch.setattr(primary, "_fit", reduced_fails)
+    monkeypatch.setattr(primary_fit, "fit_model", reduced_fails)
     expected = _analyze_p(design, Y, 2)
     assert expected.p_lr is None and expected.p_wald is not None
     out = decide_trials(design, cells_frame(design, Y, design.cell_trials(2)))

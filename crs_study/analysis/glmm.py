@@ -34,21 +34,31 @@ Where maximum likelihood fails the fit still returns, with a sentence in ``warni
 from __future__ import annotations
 
 import dataclasses
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 from scipy import stats
-from scipy.special import gammaln
 
 from crs_study.analysis.glmm_core import (
     MAX_QUADRATURE,
-    BinomialData,
     CrossedTerms,
     NoRandom,
     SingleFactor,
+)
+from crs_study.analysis.glmm_data import (
+    check_arguments,
+    drop_aliased,
+    drop_unused_levels,
+    fixed_design,
+    group_codes,
+    pool,
+    random_terms,
+    response_arrays,
+    row_codes,
+    term_designs,
+    unpooled,
 )
 from crs_study.analysis.glmm_fit import fit_glm, optimise, profile_interval, profile_sd_interval
 from crs_study.analysis.glmm_result import P_FLOOR, GlmmResult, LrtResult, format_pvalue
@@ -58,7 +68,7 @@ from crs_study.analysis.glmm_separation import (
     separated_rows,
     separation_direction,
 )
-from crs_study.analysis.glmm_terms import RandomTerm, parse_random, structure_label
+from crs_study.analysis.glmm_terms import RandomTerm, structure_label
 from crs_study.errors import AnalysisError
 
 __all__ = ["fit_glmm", "lrt", "profile_conf_int", "profile_sd_conf_int", "GlmmResult",
@@ -153,21 +163,21 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     if random is not None and (groups if isinstance(groups, str) else list(groups)):
         raise AnalysisError("give the random effects either as groups= (random intercepts) or "
                             "as random= (any terms), not both")
-    terms = (_random_terms(data, random, random_design) if random is not None else
+    terms = (random_terms(data, random, random_design) if random is not None else
              [RandomTerm(g) for g in ([groups] if isinstance(groups, str) else list(groups))])
     group_list = [t.group for t in terms]
-    _check_arguments(data, response, trials, group_list, method, n_quadrature)
-    data = _drop_unused_levels(data, fixed, notes)
-    X, names = _design(data, fixed)
-    X, names = _drop_aliased(X, names, notes)
-    y, m, user_constant = _response(data, response, trials)
-    codes, kept = _group_codes(data, terms, notes)
-    Z, kept = _term_designs(data, kept, random_design, notes)
+    check_arguments(data, response, trials, group_list, method, n_quadrature)
+    data = drop_unused_levels(data, fixed, notes)
+    X, names = fixed_design(data, fixed)
+    X, names = drop_aliased(X, names, notes)
+    y, m, user_constant = response_arrays(data, response, trials)
+    codes, kept = group_codes(data, terms, notes)
+    Z, kept = term_designs(data, kept, random_design, notes)
     single_intercept = len(kept) == 1 and kept[0].is_intercept
     if method == "agq" and kept and not single_intercept:
         raise AnalysisError(f"adaptive quadrature needs a single random intercept (as lme4's "
                             f"nAGQ > 1); got {structure_label(kept)}: use method='laplace'")
-    direction = separation_direction(X, y, m, _row_codes)
+    direction = separation_direction(X, y, m, row_codes)
     separated = [] if direction is None else [
         n for n, d in zip(names, direction, strict=True) if d != 0]
     prior_sd = None
@@ -187,12 +197,12 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     groups_done = tuple(t.group for t in terms)
     try:
         if not kept and prior_sd is None:
-            problem = _Problem(NoRandom(_pool(X, y, m, [], [])), names, (), None,
+            problem = _Problem(NoRandom(pool(X, y, m, [], [])), names, (), None,
                                user_constant)
             return fit_glm(X, y, m, names, user_constant, len(data), response, fixed_text,
                            groups_done, notes, problem)
-        binomial = (_pool(X, y, m, codes, Z) if aggregate else
-                    _unpooled(X, y, m, codes, Z))
+        binomial = (pool(X, y, m, codes, Z) if aggregate else
+                    unpooled(X, y, m, codes, Z))
         if not kept:
             model = NoRandom(binomial)
         elif single_intercept:
@@ -216,228 +226,6 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     except _NUMERICAL_ERRORS as exc:
         raise GlmmFitError(f"numerical failure while maximising the likelihood "
                            f"({type(exc).__name__}: {exc})") from exc
-
-
-def _random_terms(data: pd.DataFrame, random, random_design) -> list[RandomTerm]:
-    """The terms of ``random`` (lme4 text, or RandomTerm objects), their columns checked."""
-    if isinstance(random, str):
-        return [RandomTerm(group, tuple(_patsy_columns(data, design)), correlated, design)
-                for design, group, correlated in parse_random(random)]
-    terms = list(random)
-    for term in terms:
-        if not isinstance(term, RandomTerm):
-            raise AnalysisError(f"random= takes lme4 text or RandomTerm objects, got "
-                                f"{type(term).__name__}")
-        if term.design is None and not term.is_intercept:
-            if random_design is None:
-                raise AnalysisError(f"random term {term.label()} names design columns "
-                                    f"{list(term.columns)!r}: give them as random_design=")
-            missing = [c for c in term.columns if c not in random_design.columns]
-            if missing:
-                raise AnalysisError(f"random term {term.label()}: column(s) {missing!r} are "
-                                    f"not in random_design {list(random_design.columns)!r}")
-    return terms
-
-
-def _patsy_columns(data: pd.DataFrame, design: str) -> list[str]:
-    return list(_patsy_design(data, design).columns)
-
-
-def _patsy_design(data: pd.DataFrame, formula: str,
-                  what: str = "random-effects formula") -> pd.DataFrame:
-    import patsy
-
-    try:
-        return patsy.dmatrix(formula, data, NA_action="raise", return_type="dataframe")
-    except patsy.PatsyError as exc:
-        message = str(exc).splitlines()[0]
-        raise AnalysisError(f"{what} {formula!r}: {message}") from None
-
-
-# ----------------------------------------------------------------------------- preparation
-def _check_arguments(data, response, trials, group_list, method, n_quadrature) -> None:
-    if not isinstance(data, pd.DataFrame):
-        raise AnalysisError(f"fit_glmm expects a pandas DataFrame, got {type(data).__name__}")
-    for role, col in [("response", response), ("trials", trials)] + [
-            ("group", g) for g in group_list]:
-        if col is not None and col not in data.columns:
-            raise AnalysisError(f"{role} column {col!r} is not in the data; columns: "
-                                f"{list(data.columns)!r}")
-    if method not in ("laplace", "agq"):
-        raise AnalysisError(f"method must be 'laplace' or 'agq', got {method!r}")
-    if (isinstance(n_quadrature, bool) or not isinstance(n_quadrature, int | np.integer)
-            or not 1 <= n_quadrature <= MAX_QUADRATURE):
-        raise AnalysisError(f"n_quadrature must be an integer in 1..{MAX_QUADRATURE}, "
-                            f"got {n_quadrature!r}")
-    if len(data) == 0:
-        raise AnalysisError("no rows to fit: the data frame is empty")
-
-
-def _drop_unused_levels(data: pd.DataFrame, fixed, notes: list[str]) -> pd.DataFrame:
-    """Remove categories without rows from categorical columns named in the formula."""
-    if not isinstance(fixed, str):
-        return data
-    tokens = set(re.findall(r"[A-Za-z_][A-Za-z0-9_.]*", fixed))
-    out = data
-    for col in data.columns:
-        if col in tokens and isinstance(data[col].dtype, pd.CategoricalDtype):
-            present = set(data[col].dropna().unique())
-            unused = [c for c in data[col].cat.categories if c not in present]
-            if unused:
-                out = out.copy() if out is data else out
-                out[col] = out[col].cat.remove_unused_categories()
-                notes.append(f"level(s) {unused!r} of {col!r} have no trials; dropped from the "
-                             f"model")
-    return out
-
-
-def _design(data: pd.DataFrame, fixed) -> tuple[np.ndarray, list[str]]:
-    if isinstance(fixed, pd.DataFrame):
-        if not fixed.index.equals(data.index):
-            raise AnalysisError(f"the design matrix's rows must be the data's (same index): "
-                                f"{len(fixed)} rows against {len(data)}, or another order")
-        X = fixed.to_numpy(dtype=float)
-        names = [str(c) for c in fixed.columns]
-    elif isinstance(fixed, str):
-        if "~" in fixed:
-            raise AnalysisError(f"fixed is the right-hand side of a formula (e.g. 'condition'), "
-                                f"got {fixed!r}; give the response as response=")
-        design = _patsy_design(data, fixed, "fixed-effects formula")
-        X = design.to_numpy(dtype=float)
-        names = list(design.columns)
-    else:
-        raise AnalysisError(f"fixed must be a formula string or a DataFrame, got "
-                            f"{type(fixed).__name__}")
-    if not np.all(np.isfinite(X)):
-        raise AnalysisError("the fixed-effects design has missing or infinite values")
-    return X, names
-
-
-def _drop_aliased(X: np.ndarray, names: list[str], notes: list[str]):
-    """Drop design columns that are zero or linear combinations of others (lme4 does too)."""
-    from scipy.linalg import qr
-
-    if X.shape[1] == 0:
-        raise AnalysisError("the fixed-effects design has no columns")
-    _, R, piv = qr(X, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(R))
-    rank = int(np.sum(diag > max(X.shape) * np.finfo(float).eps * diag[0])) if diag[0] else 0
-    if rank == X.shape[1]:
-        return X, names
-    keep = np.sort(piv[:rank])
-    dropped = [names[i] for i in sorted(piv[rank:])]
-    notes.append(f"fixed-effect column(s) {dropped!r} are empty or aliased with others "
-                 f"(a condition without trials?); dropped")
-    return X[:, keep], [names[i] for i in keep]
-
-
-def _response(data: pd.DataFrame, response: str, trials: str | None):
-    """Successes, trials and the binomial constant ``sum log C(trials, successes)``."""
-    y = pd.to_numeric(data[response], errors="coerce").to_numpy(dtype=float)
-    bad = ~np.isfinite(y)
-    if bad.any():
-        first = data[response].to_numpy()[bad][0]
-        raise AnalysisError(f"response {response!r} has {int(bad.sum())} missing or non-numeric "
-                            f"value(s), e.g. {first!r}")
-    if trials is None:
-        if not np.all((y == 0) | (y == 1)):
-            raise AnalysisError(f"response {response!r} must be 0/1 per trial (or give trials=), "
-                                f"got {y[(y != 0) & (y != 1)][0]!r}")
-        return y, np.ones_like(y), 0.0
-    m = pd.to_numeric(data[trials], errors="coerce").to_numpy(dtype=float)
-    if not np.all(np.isfinite(m)) or np.any(m < 0) or np.any(m != np.round(m)):
-        raise AnalysisError(f"trials {trials!r} must be non-negative integers")
-    if np.any(y < 0) or np.any(y > m) or np.any(y != np.round(y)):
-        raise AnalysisError(f"response {response!r} must be integers between 0 and {trials!r}")
-    constant = float(np.sum(gammaln(m + 1) - gammaln(y + 1) - gammaln(m - y + 1)))
-    return y, m, constant
-
-
-def _group_codes(data: pd.DataFrame, terms: list[RandomTerm], notes: list[str]):
-    """The level codes of each term's grouping factor; a factor of one level is dropped."""
-    codes, kept = [], []
-    for term in terms:
-        g = term.group
-        if data[g].isna().any():
-            raise AnalysisError(f"group column {g!r} has {int(data[g].isna().sum())} missing "
-                                f"value(s)")
-        c, levels = pd.factorize(data[g], sort=True)
-        if len(levels) < 2:
-            shown = term.shown_group()  # as the report names it: participant
-            what = "random intercept" if term.is_intercept else f"random term {term.label()}"
-            notes.append(f"grouping factor {shown!r} has a single level ({levels[0]!r}): its "
-                         f"variance is not estimable; the {what} was dropped")
-            continue
-        codes.append(c.astype(np.intp))
-        kept.append(term)
-    if terms and not kept:
-        notes.append("no random effect left: fitted a fixed-effects logistic regression")
-    return codes, kept
-
-
-def _term_designs(data: pd.DataFrame, terms: list[RandomTerm], random_design,
-                  notes: list[str]) -> tuple[tuple[np.ndarray, ...], list[RandomTerm]]:
-    """Each term's design ``Z`` (n, r); a column with no nonzero entry (a condition without
-    trials) is dropped from its term, with a note."""
-    Z, kept = [], []
-    for term in terms:
-        if term.is_intercept and term.design is None:
-            Z.append(np.ones((len(data), 1)))
-            kept.append(term)
-            continue
-        frame = (_patsy_design(data, term.design) if term.design is not None
-                 else random_design.loc[data.index, list(term.columns)])
-        z = frame.to_numpy(dtype=float)
-        if not np.all(np.isfinite(z)):
-            raise AnalysisError(f"random term {term.label()}: its design has missing or "
-                                f"infinite values")
-        empty = [c for c, col in zip(term.columns, z.T, strict=True) if not np.any(col)]
-        for column in empty:
-            notes.append(f"random term {term.label()}: column {column!r} is zero on every "
-                         f"row; dropped from the term")
-            term = term.without(column)
-        z = z[:, [i for i, c in enumerate(frame.columns) if c not in empty]]
-        Z.append(z)
-        kept.append(term)
-    return tuple(Z), kept
-
-
-def _row_codes(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index of each row's distinct value (rows of a 2-D array) and one row per distinct value.
-
-    Column-wise hashed factorisation (``pandas.factorize``, sorted codes) combined in mixed
-    radix: much faster than ``np.unique(axis=0)``, which sorts rows as opaque byte strings,
-    or ``np.unique`` per column; the distinct rows come in sorted key order, as ``np.unique``
-    gives them, so the pooled rows do not depend on the order of the data.
-    """
-    key = np.zeros(len(columns), dtype=np.int64)
-    for col in columns.T:
-        inverse, uniques = pd.factorize(col, sort=True)
-        key = key * len(uniques) + inverse
-    inverse, uniques = pd.factorize(key, sort=True)
-    first = np.empty(len(uniques), dtype=np.intp)
-    first[inverse[::-1]] = np.arange(len(key) - 1, -1, -1)
-    return inverse.astype(np.intp), columns[first]
-
-
-def _pool(X, y, m, codes, Z) -> BinomialData:
-    """Sum successes and trials over rows with equal group levels, design row and random
-    designs."""
-    k = len(codes)
-    widths = [z.shape[1] for z in Z]
-    inverse, unique = _row_codes(np.column_stack([*(c.astype(float) for c in codes), X,
-                                                  *Z]))
-    p = X.shape[1]
-    ends = k + p + np.cumsum(widths, dtype=int)
-    pooled_Z = tuple(unique[:, e - w:e] for e, w in zip(ends, widths, strict=True))
-    return BinomialData(unique[:, k:k + p], np.bincount(inverse, y), np.bincount(inverse, m),
-                        tuple(unique[:, i].astype(np.intp) for i in range(k)),
-                        tuple(int(c.max()) + 1 for c in codes), pooled_Z or None)
-
-
-def _unpooled(X, y, m, codes, Z) -> BinomialData:
-    return BinomialData(X, y, m, tuple(codes), tuple(int(c.max()) + 1 for c in codes),
-                        tuple(Z) or None)
 
 
 def _supremum(data, response, trials, terms, random_design, method, n_quadrature, X, names,

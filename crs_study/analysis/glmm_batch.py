@@ -79,6 +79,11 @@ class BatchObjective:
         return self.layout.diagonal
 
     @property
+    def capped(self) -> np.ndarray:
+        """The loading entries (within ``THETA_CAP``)."""
+        return np.arange(self.layout.n_fixed + self.layout.n_theta) >= self.layout.n_fixed
+
+    @property
     def warm(self) -> np.ndarray:
         return self.likelihood.u
 

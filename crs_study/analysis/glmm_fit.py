@@ -198,21 +198,31 @@ def _hessian(problem, theta: np.ndarray, free: list[int]) -> np.ndarray:
 
 def _fixed_covariance(information: np.ndarray, n_fixed: int, notes: list[str]) -> np.ndarray:
     """``inverse(information)[beta, beta]`` (lme4 calc.vcov.hess), with honest fallbacks."""
-    try:
-        np.linalg.cholesky(information)
-        return np.linalg.inv(information)[:n_fixed, :n_fixed]
-    except np.linalg.LinAlgError:
-        pass
-    block = information[:n_fixed, :n_fixed]
-    try:
-        np.linalg.cholesky(block)
+    whole = _positive_definite_inverse(information)
+    if whole is not None:
+        return whole[:n_fixed, :n_fixed]
+    block = _positive_definite_inverse(information[:n_fixed, :n_fixed])
+    if block is not None:
         notes.append("the information matrix of all parameters is not positive definite; "
                      "standard errors treat the variance(s) as known")
-        return np.linalg.inv(block)
+        return block
+    notes.append("the information matrix of the fixed effects is singular; standard errors "
+                 "are not available (NaN)")
+    return np.full((n_fixed, n_fixed), np.nan)
+
+
+def _positive_definite_inverse(matrix: np.ndarray) -> np.ndarray | None:
+    """The inverse of a positive-definite ``matrix``, or None when it is not one, or is so
+    near singular that its computed inverse has a diagonal entry <= 0 or not finite."""
+    try:
+        np.linalg.cholesky(matrix)
+        inverse = np.linalg.inv(matrix)
     except np.linalg.LinAlgError:
-        notes.append("the information matrix of the fixed effects is singular; standard errors "
-                     "are not available (NaN)")
-        return np.full((n_fixed, n_fixed), np.nan)
+        return None
+    diagonal = np.diag(inverse)
+    if not np.all(np.isfinite(inverse)) or np.any(diagonal <= 0):
+        return None
+    return inverse
 
 
 def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes,

@@ -28,6 +28,14 @@ REFRESH_EVERY = 4
 MAX_STEP = 1.0
 #: Largest share of its size a diagonal loading may lose in one step (never its sign).
 TO_ZERO = 0.9
+#: Largest size of any entry of a loading ``T_k`` (SD units on the logit scale). Where a
+#: term's random effects are separated (a level whose responses are all correct or all
+#: wrong, with few levels) the likelihood rises without bound as its SD grows; the supremum
+#: lies at infinity, approached ever more slowly (an optimiser crawls there for thousands of
+#: evaluations). An SD of 10 logits spans probabilities from 1e-9 to 1 - 1e-9 across two
+#: SDs: no human difference is near it, the largest of the lme4 corpora is 2.2. A fit that
+#: reaches it says so (:func:`at_cap`).
+THETA_CAP = 10.0
 
 
 def newton(objective, theta0: np.ndarray, held: np.ndarray,
@@ -42,10 +50,12 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     Returns ``(theta, value, converged, iterations, N)`` with ``N`` each study's last
     matrix; ``objective.warm`` holds the conditional modes at ``theta``.
     """
-    theta = theta0.copy()
-    S, n = theta.shape
+    S, n = theta0.shape
     free = ~held
     diagonal = getattr(objective, "diagonal", None)
+    capped = getattr(objective, "capped", None)   # (n,) True for the loading entries
+    theta = theta0.copy() if capped is None else np.where(
+        capped, np.clip(theta0, -THETA_CAP, THETA_CAP), theta0)
     value, g = objective.evaluate(theta)
     g = np.where(free, g, 0.0)
     converged = np.zeros(S, dtype=bool)
@@ -56,6 +66,8 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     sub = objective.subset(active)
     for iteration in range(MAX_ITERATIONS):
         th, v, ga = theta[active], value[active], g[active]
+        if capped is not None:     # at the cap, a gradient pushing outward is satisfied
+            ga = np.where(capped & (np.abs(th) >= THETA_CAP) & (th * ga > 0), 0.0, ga)
         done = np.max(np.abs(ga), axis=1) < GRADIENT_TOL
         bad = ~np.isfinite(v) | ~np.isfinite(ga).all(axis=1)
         converged[active[done & ~bad]] = True
@@ -81,6 +93,8 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
         step = _solve(N, ga, free[active])
         if diagonal is not None:
             step = _short_of_zero(step, th, diagonal)
+        if capped is not None:
+            step = np.where(capped, np.clip(th + step, -THETA_CAP, THETA_CAP) - th, step)
         th_new, v_new, g_new, ok = _line_search(sub, th, v, step)
         g_new = np.where(free[active], g_new, 0.0)
         N = _bfgs(N, th_new - th, ga - g_new, ok)

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
-from crs_study.analysis.glmm_newton import newton
+from crs_study.analysis.glmm_newton import THETA_CAP, newton
 from crs_study.analysis.glmm_terms import Block, loading, rank_deficient_loading, theta_of
 
 #: A sigma below this after a local fit is compared with the boundary fit (sigma = 0).
@@ -175,6 +175,12 @@ class _Single:
         return normalise(self.problem, theta[0])[None]
 
     @property
+    def capped(self) -> np.ndarray:
+        """The loading entries (every parameter after the fixed effects)."""
+        return np.arange(self.problem.n_fixed + self.problem.model.n_variance) >= \
+            self.problem.n_fixed
+
+    @property
     def diagonal(self) -> np.ndarray:
         layout = getattr(self.problem.model, "layout", None)
         if layout is not None:
@@ -217,13 +223,17 @@ def local_fit(problem, start: np.ndarray, held: dict[int, float],
 
 
 def _scipy_fit(problem, start: np.ndarray, held: dict[int, float], methods) -> Optimum:
-    """scipy's minimisers in turn from ``start`` (the held parameters fixed)."""
+    """scipy's minimisers in turn from ``start`` (the held parameters fixed), every loading
+    entry within ``THETA_CAP``."""
     counted = _Counted(problem, held, len(start))
-    x = np.asarray(start, float)[counted.mask]
+    x = np.clip(np.asarray(start, float), *_box(problem, len(start)))[counted.mask]
+    low, high = (bound[counted.mask] for bound in _box(problem, len(start)))
+    bounds = optimize.Bounds(low, high)
     iterations, message = 0, "no free parameter"
     if len(x):
         for method, options in methods:
-            res = optimize.minimize(counted, x, jac=True, method=method, options=options)
+            res = optimize.minimize(counted, x, jac=True, method=method, options=options,
+                                    bounds=bounds)
             x, iterations, message = res.x, iterations + int(res.nit), str(res.message)
             _, g = counted(x)
             if np.max(np.abs(g)) < _LOCAL_GRADIENT:
@@ -231,6 +241,19 @@ def _scipy_fit(problem, start: np.ndarray, held: dict[int, float], methods) -> O
     theta = normalise(problem, counted.full(x))
     value = problem.objective(theta, grad=False)
     return Optimum(theta, float(value), [], counted.calls + 1, iterations, 0, message)
+
+
+def _box(problem, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The parameters' bounds: the fixed effects free, every loading entry within
+    ``THETA_CAP``."""
+    high = np.full(size, np.inf)
+    high[problem.n_fixed:] = THETA_CAP
+    return -high, high
+
+
+def at_cap(theta: np.ndarray, n_fixed: int) -> np.ndarray:
+    """Indices of the loading entries at ``THETA_CAP`` (within a millionth of it)."""
+    return n_fixed + np.flatnonzero(np.abs(theta[n_fixed:]) >= THETA_CAP * (1.0 - 1e-6))
 
 
 def variance_slope(problem, theta: np.ndarray, index: int) -> float:

@@ -212,9 +212,12 @@ class GlmmResult:
 
     @property
     def boundary(self) -> tuple[str, ...]:
-        """Grouping factors whose random intercept, a term of its own, was estimated at 0."""
-        return tuple(g for g, v in self.variance_components.items()
-                     if v == 0.0 and ":" not in g)
+        """Grouping factors whose every variance (a random intercept alone, or all of a
+        term's intercept and slopes) was estimated at 0: the term drops out of the model."""
+        variances: dict[str, list[float]] = {}
+        for name, value in self.variance_components.items():
+            variances.setdefault(name.split(":", 1)[0], []).append(float(value))
+        return tuple(g for g, values in variances.items() if all(v == 0.0 for v in values))
 
     def conf_int(self, level: float = 0.95) -> pd.DataFrame:
         """Wald intervals ``estimate -/+ z_{(1+level)/2} * std_error`` (log-odds)."""
@@ -223,10 +226,13 @@ class GlmmResult:
                              "ci_high": self.params + z * self.bse})
 
     def odds_ratios(self, level: float = 0.95) -> pd.DataFrame:
-        """Odds ratios ``exp(estimate)`` with the exponentiated Wald interval."""
+        """Odds ratios ``exp(estimate)`` with the exponentiated Wald interval (an end beyond
+        a float's range, from a huge standard error, is infinite)."""
         ci = self.conf_int(level)
-        return pd.DataFrame({"odds_ratio": np.exp(self.params),
-                             "ci_low": np.exp(ci["ci_low"]), "ci_high": np.exp(ci["ci_high"])})
+        with np.errstate(over="ignore"):
+            return pd.DataFrame({"odds_ratio": np.exp(self.params),
+                                 "ci_low": np.exp(ci["ci_low"]),
+                                 "ci_high": np.exp(ci["ci_high"])})
 
     def to_frame(self, level: float = 0.95) -> pd.DataFrame:
         """One row per coefficient; the columns are documented in the module docstring."""

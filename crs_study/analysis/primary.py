@@ -37,26 +37,19 @@ import pandas as pd
 from scipy import stats
 
 from crs_study.analysis import glmm
-from crs_study.analysis.accuracy import floor_p, symbol_column_of
-from crs_study.analysis.bootstrap import StudyRows, bootstrap_lr
+from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
 from crs_study.analysis.glmm_result import format_pvalue
 from crs_study.analysis.glmm_terms import structure_label
 from crs_study.analysis.jsonable import json_text
-from crs_study.analysis.structure import (
-    REDUCTION_STEPS,
-    ModelStep,
-    RandomSpec,
-    planned_terms,
-    reduce_terms,
-    reduction_reasons,
+from crs_study.analysis.primary_fit import (  # the fits, re-exported: primary's API
+    LrComparison,
+    PrimaryFits,
+    design,
+    fit_model,
+    fit_primary,
 )
-from crs_study.errors import AnalysisError
-
-#: Random intercept (as a plan names it) -> its grouping column; the symbol's intercept
-#: (``SYMBOL_EFFECTS``) groups by the trials' symbol column, whatever it is called.
-GROUP_COLUMNS = {"participant": "participant_id"}
-SYMBOL_EFFECTS = ("symbol", "digit")
+from crs_study.analysis.structure import REDUCTION_STEPS
 
 
 @dataclass(frozen=True)
@@ -168,221 +161,14 @@ class PrimaryResult:
         return json_text(self.to_dict())
 
 
-@dataclass(frozen=True)
-class LrComparison:
-    """The likelihood-ratio test of one condition against the reference (no profiles).
-
-    ``log_odds`` / ``odds_ratio``: the ML estimate, None when it is infinite (``separated``)
-    or the coefficient was dropped; ``test`` is None when the reduced model could not be
-    fitted (``error`` says why) or the coefficient was dropped.
-    """
-
-    condition: str
-    reference: str
-    column: str
-    full: object = field(repr=False)
-    reduced: object = field(default=None, repr=False)
-    test: object = None
-    error: str | None = None
-
-    @property
-    def separated(self) -> bool:
-        sep = self.full.separation
-        return sep is not None and self.column in sep.coefficients
-
-    @property
-    def log_odds(self) -> float | None:
-        if self.column not in self.full.params.index or self.separated:
-            return None
-        return float(self.full.params[self.column])
-
-    @property
-    def odds_ratio(self) -> float | None:
-        return None if self.log_odds is None else float(np.exp(self.log_odds))
-
-    @property
-    def p_value(self) -> float | None:
-        return None if self.test is None else floor_p(self.test.pvalue)
-
-    def to_dict(self) -> dict:
-        test = self.test
-        return {"condition": self.condition, "reference": self.reference,
-                "log_odds": self.log_odds, "odds_ratio": self.odds_ratio,
-                "separated": self.separated, "p_value": self.p_value,
-                "statistic": None if test is None else test.statistic,
-                "df": None if test is None else test.df,
-                "distribution": None if test is None else test.distribution,
-                "loglike_full": None if test is None else test.loglike_full,
-                "loglike_reduced": None if test is None else test.loglike_reduced,
-                "converged": bool(self.full.converged and (
-                    self.reduced is None or self.reduced.converged)),
-                "error": self.error}
-
-
-@dataclass(frozen=True)
-class PrimaryFits:
-    """The full model and one likelihood-ratio test per non-reference condition.
-
-    ``spec`` is the plan's random part, ``planned`` the terms it asked for on these data,
-    ``steps`` every model the reduction rule fitted (:class:`~.structure.ModelStep`), the one
-    used last.
-    """
-
-    full: object = field(repr=False)
-    tests: tuple[LrComparison, ...]
-    method: str
-    warnings: tuple[str, ...] = ()
-    spec: RandomSpec = field(default_factory=RandomSpec)
-    planned: tuple = ()
-    steps: tuple[ModelStep, ...] = ()
-    data: pd.DataFrame | None = field(default=None, repr=False)     # the rows fitted
-    design: pd.DataFrame | None = field(default=None, repr=False)   # their full design
-
-    def bootstrap(self, test: LrComparison, replicates: int, seed: int,
-                  map_tasks=None):
-        """The parametric bootstrap of ``test`` (:mod:`crs_study.analysis.bootstrap`), or
-        None with the reason when it does not apply (no LR test, separation, a reduced
-        model whose random part differs from the full one's)."""
-        full = self.full
-        if test.test is None or test.reduced is None:
-            return None, "no likelihood-ratio test to calibrate"
-        if test.separated or full.separation is not None or test.reduced.separation:
-            return None, "separation: the LR test at the supremum keeps the chi2 reference"
-        if tuple(test.reduced.terms) != tuple(full.terms):
-            return None, "the model without the condition lost a random term"
-        counts = "n_trials" if "n_trials" in self.data.columns else None
-        rows = StudyRows.of(self.data, self.design, full.terms, "correct", counts)
-        result = bootstrap_lr(rows, test.column, test.test.statistic,
-                              np.r_[test.reduced.params.to_numpy(), test.reduced.theta],
-                              np.r_[full.params.to_numpy(), full.theta], replicates, seed,
-                              map_tasks, (full._model.curvature,
-                                          test.reduced._model.curvature))
-        return result, None
-
-    def to_frame(self) -> pd.DataFrame:
-        return pd.DataFrame([t.to_dict() for t in self.tests])
-
-    def structure(self) -> dict:
-        """What the plan asked for, what was fitted and why (``results.json``'s
-        ``primary.model.structure``)."""
-        return {**self.spec.to_dict(), "planned": structure_label(self.planned),
-                "fitted": self.full.random_formula,
-                "reduced": len(self.steps) > 1,
-                "steps": [step.to_dict() for step in self.steps]}
-
-
-def fit_primary(trials: pd.DataFrame, conditions: list[str], reference: str,
-                random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
-                n_quadrature: int = 25, *, structure: str = "maximal",
-                singular_fit: str = "keep",
-                reduction: tuple[str, ...] = REDUCTION_STEPS) -> PrimaryFits:
-    """Fit the full model and, per condition, the model without it: the primary LR tests.
-
-    No profiles, no files, no report: the unit of work of a power simulation (the same fits
-    and tests :func:`primary_test` reports). ``trials`` has ``correct`` (0/1 per row, or the
-    number correct when an ``n_trials`` column gives the trials of each row: the aggregated
-    form, same likelihood), ``condition``, ``participant_id`` and the symbol shown
-    (``digit`` or ``symbol``); rows with ``correct`` missing are left out. ``conditions`` must
-    hold ``reference`` and another condition.
-
-    The random part is the plan's (:mod:`crs_study.analysis.structure`): ``random_effects``
-    the grouping factors, ``structure`` (``maximal``: a random slope of condition by each
-    factor it varies within; ``intercepts``; or lme4 text), and for a singular or failing
-    fit ``singular_fit`` and ``reduction``, applied step by step and recorded in ``steps``.
-    The model without a condition keeps the random part finally used (Barr et al. 2013: the
-    slopes stay in the null model of the test). A failure of every model the rule allows
-    raises :class:`GlmmFitError`; of a reduced fit, that test's ``error``. A separated
-    condition (ML odds ratio infinite) is tested at the supremum of the likelihood
-    (:mod:`crs_study.analysis.glmm_separation`).
-    """
-    if len(conditions) < 2 or reference not in conditions:
-        raise AnalysisError(f"the primary test needs the reference {reference!r} and another "
-                            f"condition, got {conditions!r}")
-    spec = RandomSpec(tuple(random_effects), structure, singular_fit, tuple(reduction))
-    symbol = symbol_column_of(trials)
-    columns = ["correct", "condition", "participant_id", symbol]
-    columns += ["n_trials"] if "n_trials" in trials.columns else []
-    data = trials.loc[trials["correct"].notna(), columns].reset_index(drop=True)
-    data = data.loc[data["condition"].isin(conditions)].reset_index(drop=True)
-    counts = "n_trials" if "n_trials" in data.columns else None
-    full_design = design(data, conditions, reference)
-    group_columns = {name: symbol if name in SYMBOL_EFFECTS else GROUP_COLUMNS[name]
-                     for name in (*GROUP_COLUMNS, *SYMBOL_EFFECTS)}
-    planned, notes = planned_terms(spec, data, list(full_design.columns[1:]), group_columns)
-    if method == "agq" and not (len(planned) == 1 and planned[0].is_intercept):
-        notes.append(f"adaptive quadrature needs a single random intercept; the plan's model "
-                     f"{structure_label(planned)} is fitted with the Laplace approximation instead")
-        method = "laplace"
-    full, terms, steps = _fit_by_rule(spec, data, full_design, planned, method, n_quadrature,
-                                      counts)
-    tests = []
-    for column in full_design.columns[1:]:
-        condition = column[len("condition["):-1]
-        if column not in full.params.index:
-            tests.append(LrComparison(condition, reference, column, full,
-                                      error="coefficient dropped (no trials or aliased)"))
-            continue
-        try:
-            without = full_design.drop(columns=column)
-            without.attrs["formula"] = ("1" if without.shape[1] == 1 else
-                                        f"condition (without {column})")
-            reduced = _fit(data, without, terms, full_design, method, n_quadrature, counts)
-        except GlmmFitError as exc:
-            tests.append(LrComparison(condition, reference, column, full, error=str(exc)))
-            continue
-        tests.append(LrComparison(condition, reference, column, full, reduced,
-                                  _lrt(full, reduced)))
-    return PrimaryFits(full, tuple(tests), method, tuple(notes), spec, tuple(planned),
-                       tuple(steps), data, full_design)
-
-
-def _fit_by_rule(spec: RandomSpec, data, full_design, terms, method, n_quadrature, counts):
-    """The plan's model, reduced by its rule while the fit fails, does not converge or (with
-    ``singular_fit = "reduce"``) is singular: ``(fit, terms, steps)``. A random intercept at
-    variance 0 alone is a regular boundary, never a reason."""
-    done: set[str] = set()
-    steps = []
-    while True:
-        label = structure_label(terms)
-        try:
-            fit, error = _fit(data, full_design, terms, full_design, method, n_quadrature,
-                              counts), None
-        except GlmmFitError as exc:
-            fit, error = None, str(exc)
-        reasons = ([f"the fit failed ({error})"] if fit is None
-                   else reduction_reasons(fit, spec.singular_fit == "reduce"))
-        following = reduce_terms(spec, terms, fit, done) if reasons else None
-        if following is None:
-            if fit is None:
-                raise GlmmFitError(error)
-            steps.append(ModelStep(label, fit.loglike, bool(fit.converged), fit.singular))
-            return fit, terms, steps
-        terms, action = following
-        steps.append(ModelStep(label, None if fit is None else fit.loglike,
-                               bool(fit is not None and fit.converged),
-                               () if fit is None else fit.singular,
-                               f"{'; '.join(reasons)}: {action}", error))
-
-
-def design(trials: pd.DataFrame, conditions: list[str], reference: str) -> pd.DataFrame:
-    """Treatment-coded design: ``Intercept`` and one ``condition[c]`` column per other one."""
-    columns = {"Intercept": np.ones(len(trials))}
-    for condition in conditions:
-        if condition != reference:
-            columns[f"condition[{condition}]"] = (trials["condition"] == condition).to_numpy(
-                dtype=float)
-    frame = pd.DataFrame(columns, index=trials.index)
-    frame.attrs["formula"] = "condition"
-    return frame
-
-
 def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
                  random_effects: tuple[str, ...] = ("participant",), method: str = "laplace",
                  n_quadrature: int = 25, alpha: float = 0.05, *, structure: str = "maximal",
                  singular_fit: str = "keep",
                  reduction: tuple[str, ...] = REDUCTION_STEPS, p_value: str = "chi2",
                  bootstrap_below: int = 20, bootstrap_replicates: int = 1000,
-                 seed: int = 20260101, map_tasks=None) -> PrimaryResult:
+                 bootstrap_stop_after: int = 0, seed: int = 20260101,
+                 map_tasks=None) -> PrimaryResult:
     """Fit the GLMM on the answered ``trials`` and compare each condition with ``reference``.
 
     ``conditions`` are those present in the data, ``reference`` among them. The fits and LR
@@ -392,8 +178,10 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
 
     ``p_value`` is the plan's rule for the primary p: ``chi2`` (the LR statistic against
     chi2), ``bootstrap`` (its parametric bootstrap, ``bootstrap_replicates`` replicates,
-    seeded from ``seed``; :mod:`crs_study.analysis.bootstrap`) or ``auto``: the bootstrap with
-    fewer than ``bootstrap_below`` participants, where the chi2 reference is liberal.
+    seeded from ``seed``, stopping early once ``bootstrap_stop_after`` replicates reached the
+    observed statistic when that is > 0; :mod:`crs_study.analysis.bootstrap`) or ``auto``:
+    the bootstrap with fewer than ``bootstrap_below`` participants, where the chi2 reference
+    is liberal.
     ``map_tasks(function, tasks)`` runs the bootstrap's units of work (default: here).
     """
     warnings: list[str] = []
@@ -417,10 +205,10 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
     warnings += [f"GLMM: {w}" for w in full.warnings]
     seen = set(full.warnings)
     for group in full.boundary:
-        warnings.append(f"GLMM: with the {group.removesuffix('_id')} variance at 0 the odds "
+        warnings.append(f"GLMM: with every {group.removesuffix('_id')} variance at 0 the odds "
                         "ratios and Wald intervals are those of the logistic regression without "
-                        "that random intercept (the same model at variance 0); the profile "
-                        "intervals let that variance move inward at other odds ratios")
+                        "that random term (the same model at variance 0); the profile "
+                        "intervals let those variances move inward at other odds ratios")
     level = 1.0 - alpha
     odds = full.odds_ratios(level)
     wald = full.pvalues
@@ -453,7 +241,7 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
         "bootstrap" if participants < bootstrap_below else "chi2")
     if rule == "bootstrap":
         comparisons = _bootstrapped(fits, comparisons, bootstrap_replicates, seed, map_tasks,
-                                    warnings)
+                                    warnings, bootstrap_stop_after)
     omnibus = None
     if len(comparisons) > 1:
         omnibus = _omnibus(trials, conditions, reference, fits, n_quadrature, warnings)
@@ -461,13 +249,15 @@ def primary_test(trials: pd.DataFrame, conditions: list[str], reference: str,
     model["random_effects"] = _random_effect_intervals(full, level, warnings)
     model["structure"] = fits.structure()
     model["p_value_rule"] = {"rule": p_value, "bootstrap_below": bootstrap_below,
-                             "replicates": bootstrap_replicates, "participants": participants,
+                             "replicates": bootstrap_replicates,
+                             "stop_after": bootstrap_stop_after, "participants": participants,
                              "used": rule}
     return PrimaryResult(tuple(comparisons), omnibus, model, tuple(warnings), fits)
 
 
 def _bootstrapped(fits: PrimaryFits, comparisons: list[Comparison], replicates: int,
-                  seed: int, map_tasks, warnings: list[str]) -> list[Comparison]:
+                  seed: int, map_tasks, warnings: list[str],
+                  stop_after: int = 0) -> list[Comparison]:
     """Each comparison's p made the parametric bootstrap's (the LR p kept as ``p_lr``)."""
     out = []
     by_condition = {t.condition: t for t in fits.tests}
@@ -476,7 +266,7 @@ def _bootstrapped(fits: PrimaryFits, comparisons: list[Comparison], replicates: 
         result, reason = (None, "not a GLMM comparison") if test is None or \
             comparison.test != "glmm" else fits.bootstrap(
                 test, replicates, int(np.random.SeedSequence([seed, 7, k]).generate_state(1)[0]),
-                map_tasks)
+                map_tasks, stop_after)
         if result is None:
             warnings.append(f"GLMM: the plan's p is the parametric bootstrap, but for "
                             f"{comparison.condition!r} the chi2 LR p is reported: {reason}")
@@ -484,14 +274,14 @@ def _bootstrapped(fits: PrimaryFits, comparisons: list[Comparison], replicates: 
             continue
         if result.failed:
             warnings.append(f"GLMM bootstrap of {comparison.condition!r}: {result.failed} of "
-                            f"{result.replicates} replicates could not be fitted and are left "
-                            f"out (p from {result.used})")
+                            f"{result.used + result.failed} replicates drawn could not be "
+                            f"fitted and are left out (p from {result.used})")
         out.append(dataclasses.replace(
             comparison, p_value=floor_p(result.pvalue), p_method="bootstrap",
             bootstrap=result.to_dict(),
             method=comparison.method.replace(
-                "odds ratio, LR test", f"odds ratio, LR test by parametric bootstrap "
-                                       f"(B = {result.used})")))
+                "odds ratio, LR test", f"odds ratio, LR test by "
+                                       f"{result.describe()}")))
     return out
 
 
@@ -519,13 +309,13 @@ def _omnibus(trials, conditions, reference, fits: PrimaryFits, n_quadrature: int
         full_design = design(data, conditions, reference)
         intercept = full_design[["Intercept"]].copy()
         intercept.attrs["formula"] = "1"
-        null = _fit(data, intercept, list(full.terms), full_design,
+        null = fit_model(data, intercept, list(full.terms), full_design,
                     fits.method, n_quadrature, counts)
     except GlmmFitError as exc:
         warnings.append(f"GLMM omnibus likelihood-ratio test not available: the model "
                         f"without condition could not be fitted ({exc})")
         return None
-    test = _lrt(full, null)
+    test = glmm.lrt(full, null)
     return {"method": "likelihood-ratio test of condition", "statistic": float(test.statistic),
             "df": int(test.df), "p_value": floor_p(test.pvalue)}
 
@@ -621,17 +411,6 @@ def _comparison(test: LrComparison, label: str, odds: pd.DataFrame,
         p_lr=None if p_lr is None else floor_p(p_lr), log_odds=float(full.params[column]),
         std_error=float(full.bse[column]), ci_method=how, ci95_wald=wald_ci,
         logistic_regression=full.method == "glm", p_method="wald" if p_lr is None else "chi2")
-
-
-def _fit(data: pd.DataFrame, design_matrix: pd.DataFrame, terms, random_design: pd.DataFrame,
-         method: str, n_quadrature: int, trials: str | None = None):
-    return glmm.fit_glmm(data, "correct", design_matrix, random=terms,
-                         random_design=random_design, trials=trials, method=method,
-                         n_quadrature=n_quadrature)
-
-
-def _lrt(full, reduced):
-    return glmm.lrt(full, reduced)
 
 
 def _method_label(model) -> str:

@@ -43,7 +43,11 @@ import pandas as pd
 from crs_study.analysis.glmm import fit_glmm, profile_conf_int
 from crs_study.analysis.glmm_reference import load_cbpp
 from crs_study.analysis.glmm_simulate import simulate_cells, simulate_trials, slope_covariance
+from crs_study.analysis.load import load_datasets
+from crs_study.analysis.plan import default_plan_path
 from crs_study.analysis.primary import fit_primary
+from crs_study.analysis.report import analyze
+from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
 from crs_study.benchmarks import Figure, median_seconds
 
 AREA = "glmm"
@@ -257,11 +261,6 @@ def _orientation(repeat: int, quick: bool) -> list[Figure]:
 def _analyze_large(quick: bool) -> Figure:
     """``analyze`` of 100 participants x 400 trials (a synthetic dataset whose participants
     differ in the condition effect), the shipped plan's maximal model."""
-    from crs_study.analysis.load import load_datasets
-    from crs_study.analysis.plan import default_plan_path
-    from crs_study.analysis.report import analyze
-    from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
-
     participants = 30 if quick else 100
     with tempfile.TemporaryDirectory() as folder:
         root = write_dataset(Path(folder) / "ds", SyntheticSpec(

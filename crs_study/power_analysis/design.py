@@ -11,7 +11,7 @@ The symbol factor is named as the data name it: ``symbol_column`` is the dataset
 protocol's set (``digit`` for the digit set, ``symbol`` for any other,
 :attr:`crs_study.stimuli.symbol_set.StimulusSet.column`), which is what ``analyze`` groups the
 symbol's random intercept by, whatever the plan calls that intercept (``digit`` or ``symbol``,
-:data:`crs_study.analysis.primary.SYMBOL_EFFECTS`).
+:data:`crs_study.analysis.primary_fit.SYMBOL_EFFECTS`).
 """
 
 from __future__ import annotations

@@ -29,9 +29,11 @@ slope ``e_d[c]`` 0 for the reference); the cells' successes are summed over leve
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 from scipy.special import expit
 
 from crs_study.analysis.glmm_simulate import psd_factor
+from crs_study.power_analysis.design import PowerDesign
 from crs_study.power_analysis.model import GenerativeModel
 
 
@@ -60,4 +62,29 @@ def simulate_studies(model: GenerativeModel, seed: int, studies: range | list[in
             p = expit(model.participant_logits(z, w) + symbol_shift)
             hits = rng.random((repetitions, L, D, C)) < p[None]
             out[i, k] = np.cumsum(hits.sum(axis=1), axis=0)
+    return out
+
+
+def cells_frame(design: PowerDesign, Y: np.ndarray, trials: np.ndarray) -> pd.DataFrame:
+    """One study's cells (P, D, C) as the aggregated trial table ``fit_primary`` takes: the
+    symbol shown in the design's symbol column (``digit`` for the digit set, ``symbol`` for
+    any other), as a dataset of the protocol names it."""
+    P, D, C = Y.shape
+    p, d, c = np.meshgrid(np.arange(P), np.arange(D), np.arange(C), indexing="ij")
+    width = max(2, len(str(P)))
+    return pd.DataFrame({
+        "participant_id": [f"sim{k + 1:0{width}d}" for k in p.ravel()],
+        design.symbol_column: _as_array(design.symbols)[d.ravel()],
+        "condition": np.asarray(design.conditions, dtype=object)[c.ravel()],
+        "correct": Y.ravel().astype(float),
+        "n_trials": np.broadcast_to(trials, (P, D, C)).ravel().astype(float)})
+
+
+def _as_array(symbols: tuple) -> np.ndarray:
+    """The symbols as a column: integers (the digit set) as integers, others as objects
+    (never numpy's fixed-width strings, and never a label turned into a number)."""
+    if all(isinstance(s, int) and not isinstance(s, bool) for s in symbols):
+        return np.asarray(symbols)
+    out = np.empty(len(symbols), dtype=object)
+    out[:] = list(symbols)
     return out

@@ -47,7 +47,7 @@ from crs_study.analysis.primary import fisher_comparisons, fit_primary
 from crs_study.analysis.structure import planned_terms, reduce_terms, reduction_reasons
 from crs_study.power_analysis.design import PowerDesign
 from crs_study.power_analysis.model import GenerativeModel, fitted_covariance
-from crs_study.power_analysis.simulate import simulate_studies
+from crs_study.power_analysis.simulate import cells_frame, simulate_studies
 
 #: How each comparison of a study was tested (index = the code stored in ``kind``).
 KINDS = ("lr", "separated", "wald", "fisher", "none")
@@ -420,31 +420,6 @@ def lr_pvalue(statistic: np.ndarray) -> np.ndarray:
     dropped: statistic below 1e-6 (optimiser precision) is 0, chi2(1), floored."""
     statistic = np.where(statistic > 1e-6, statistic, 0.0)
     return np.maximum(stats.chi2.sf(statistic, 1), P_FLOOR)
-
-
-def cells_frame(design: PowerDesign, Y: np.ndarray, trials: np.ndarray) -> pd.DataFrame:
-    """One study's cells (P, D, C) as the aggregated trial table ``fit_primary`` takes: the
-    symbol shown in the design's symbol column (``digit`` for the digit set, ``symbol`` for
-    any other), as a dataset of the protocol names it."""
-    P, D, C = Y.shape
-    p, d, c = np.meshgrid(np.arange(P), np.arange(D), np.arange(C), indexing="ij")
-    width = max(2, len(str(P)))
-    return pd.DataFrame({
-        "participant_id": [f"sim{k + 1:0{width}d}" for k in p.ravel()],
-        design.symbol_column: _as_array(design.symbols)[d.ravel()],
-        "condition": np.asarray(design.conditions, dtype=object)[c.ravel()],
-        "correct": Y.ravel().astype(float),
-        "n_trials": np.broadcast_to(trials, (P, D, C)).ravel().astype(float)})
-
-
-def _as_array(symbols: tuple) -> np.ndarray:
-    """The symbols as a column: integers (the digit set) as integers, others as objects
-    (never numpy's fixed-width strings, and never a label turned into a number)."""
-    if all(isinstance(s, int) and not isinstance(s, bool) for s in symbols):
-        return np.asarray(symbols)
-    out = np.empty(len(symbols), dtype=object)
-    out[:] = list(symbols)
-    return out
 
 
 def reference_test(design: PowerDesign, Y: np.ndarray, trials: np.ndarray) -> dict:
