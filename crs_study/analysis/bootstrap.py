@@ -18,6 +18,15 @@ sec. 4.2):
 4. ``p = (1 + #{LR* >= LR}) / (1 + B)``, with the Monte Carlo error of the count as its
    Clopper-Pearson interval.
 
+When ``stop_after = h`` (the plan's ``bootstrap_stop_after``) the replicates are drawn in
+order and the test stops as soon as ``h`` of them have reached the observed statistic, at
+replicate ``L``: ``p = h / L`` (Besag & Clifford 1991, "Sequential Monte Carlo p-values",
+Biometrika 78(2):301-304; a valid p-value, exactly as the fixed-B one). A study far from
+significance is settled after a few dozen refits instead of ``B``; a small p still draws all
+``B`` and is then the fixed-B formula above. The answer depends only on the replicates'
+statistics in their order, never on how many were computed beyond the stopping point, so it
+is the same on any backend.
+
 The fits are the batched ones of :mod:`crs_study.analysis.glmm_batch` (hundreds of datasets in
 one pass); a replicate they do not settle is refitted by ``fit_glmm`` itself, and one that
 cannot be fitted at all is counted in ``failed`` and left out of ``B``, never silently.
@@ -43,14 +52,19 @@ from crs_study.analysis.glmm_terms import RandomTerm, ThetaLayout, loading
 
 #: Replicates per unit of work: fixed, so the units (and every number) are the same on any
 #: backend.
-REPLICATES_PER_TASK = 100
+REPLICATES_PER_TASK = 50
+#: Units of work in the first round of a sequential test (two cores' worth); each later round
+#: doubles, so a test that stops early computes at most about twice what it needed.
+FIRST_ROUND = 2
 
 
 @dataclass(frozen=True)
 class BootstrapLR:
     """The bootstrap test of one condition: ``statistic`` the observed LR, ``replicates``
-    the B asked for, ``used`` those fitted (B minus ``failed``), ``exceed`` how many reached
-    the observed statistic, ``pvalue`` and its Monte Carlo interval ``ci95``."""
+    the B asked for, ``used`` those fitted up to where the test stopped (``failed`` the
+    others drawn), ``exceed`` how many reached the observed statistic, ``pvalue`` and its
+    Monte Carlo interval ``ci95``; ``stop_after`` the sequential rule's h (0: none) and
+    ``stopped`` whether it ended the test before B."""
 
     statistic: float
     replicates: int
@@ -61,13 +75,23 @@ class BootstrapLR:
     ci95: tuple[float, float]
     seed: int
     reference_fits: int = 0
+    stop_after: int = 0
+    stopped: bool = False
+
+    def describe(self) -> str:
+        """The method in a few words, for the headline and the report."""
+        if self.stopped:
+            return (f"parametric bootstrap, stopped at {self.used} replicates once "
+                    f"{self.exceed} reached the observed LR")
+        return f"parametric bootstrap, B = {self.used}"
 
     def to_dict(self) -> dict:
         return {"method": "parametric bootstrap of the LR statistic", "statistic":
                 self.statistic, "replicates": self.replicates, "used": self.used,
                 "failed": self.failed, "exceed": self.exceed, "p_value": self.pvalue,
                 "p_value_ci95": list(self.ci95), "seed": self.seed,
-                "reference_fits": self.reference_fits}
+                "reference_fits": self.reference_fits, "stop_after": self.stop_after,
+                "stopped_early": self.stopped}
 
 
 @dataclass(frozen=True)
@@ -222,35 +246,66 @@ def _reference_statistic(rows: StudyRows, y: np.ndarray, dropped: str) -> float:
 def bootstrap_lr(rows: StudyRows, dropped: str, statistic: float, null_theta: np.ndarray,
                  full_start: np.ndarray, replicates: int, seed: int,
                  map_tasks: Callable | None = None,
-                 curvatures: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
-                 ) -> BootstrapLR:
+                 curvatures: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
+                 stop_after: int = 0) -> BootstrapLR:
     """The bootstrap test of fixed column ``dropped`` (module docstring).
 
     ``statistic`` is the observed LR, ``null_theta`` the reduced fit's parameters (its fixed
     effects, then lme4's theta of ``rows.terms``), ``full_start`` the full fit's (the refits'
     start; ``curvatures``, the full and reduced fits' negative Hessians, start their Newton
     steps). ``map_tasks(function, tasks)`` runs the units of work (default: here, in order).
+    ``stop_after`` > 0: Besag and Clifford's sequential test, stopping once that many
+    replicates reached ``statistic``.
     """
     if isinstance(replicates, bool) or not isinstance(replicates, int) or replicates < 1:
         raise ValueError(f"bootstrap replicates: expected a whole number >= 1, got "
                          f"{replicates!r}")
+    if isinstance(stop_after, bool) or not isinstance(stop_after, int) or stop_after < 0:
+        raise ValueError(f"bootstrap stop_after: expected a whole number >= 0, got "
+                         f"{stop_after!r}")
+    starts = list(range(0, replicates, REPLICATES_PER_TASK))
     tasks = [BootstrapTask(rows, dropped, np.asarray(null_theta, float),
                            np.asarray(full_start, float), seed,
                            (start, min(start + REPLICATES_PER_TASK, replicates)), *curvatures)
-             for start in range(0, replicates, REPLICATES_PER_TASK)]
-    chunks = (map_tasks or _in_order)(run_bootstrap_task, tasks)
-    values = np.concatenate([c.statistics for c in sorted(chunks,
-                                                           key=lambda c: c.replicates[0])])
-    fitted = values[np.isfinite(values)]
-    used, failed = len(fitted), int(len(values) - len(fitted))
-    # differences below the optimiser's precision are ties with the observed statistic
-    exceed = int(np.sum(fitted >= statistic - 1e-6))
+             for start in starts]
+    run = map_tasks or _in_order
+    chunks: list[BootstrapChunk] = []
+    width = FIRST_ROUND if stop_after else len(tasks)
+    while len(chunks) < len(tasks):
+        chunks += run(run_bootstrap_task, tasks[len(chunks):len(chunks) + width])
+        chunks.sort(key=lambda c: c.replicates[0])   # whatever order the map returned
+        width *= 2
+        values = np.concatenate([c.statistics for c in chunks])
+        outcome = sequential_count(values, statistic, stop_after)
+        if outcome is not None:
+            break
+    else:
+        outcome = sequential_count(values, statistic, 0)
+    drawn, used, exceed, stopped = outcome
     ci = stats.binomtest(exceed, used).proportion_ci(0.95, method="exact") if used else None
-    return BootstrapLR(float(statistic), replicates, used, failed, exceed,
-                       (1.0 + exceed) / (1.0 + used),
+    pvalue = exceed / used if stopped else (1.0 + exceed) / (1.0 + used)
+    return BootstrapLR(float(statistic), replicates, used, drawn - used, exceed, pvalue,
                        (float("nan"), float("nan")) if ci is None else
                        (float(ci.low), float(ci.high)), seed,
-                       sum(c.reference_fits for c in chunks))
+                       sum(c.reference_fits for c in chunks), stop_after, stopped)
+
+
+def sequential_count(values: np.ndarray, statistic: float,
+                     stop_after: int) -> tuple[int, int, int, bool] | None:
+    """``(drawn, used, exceed, stopped)`` of replicate statistics ``values`` (NaN: a failed
+    refit) in their order: with ``stop_after`` > 0, up to the replicate at which that many
+    have reached ``statistic`` (None while fewer have); with 0, all of them. A difference
+    below the optimiser's precision is a tie with the observed statistic."""
+    fitted = np.isfinite(values)
+    reached = fitted & (np.nan_to_num(values, nan=-np.inf) >= statistic - 1e-6)
+    if stop_after:
+        count = np.cumsum(reached)
+        hits = np.flatnonzero(count >= stop_after)
+        if not len(hits):
+            return None
+        drawn = int(hits[0]) + 1
+        return drawn, int(fitted[:drawn].sum()), stop_after, True
+    return len(values), int(fitted.sum()), int(reached.sum()), False
 
 
 def _in_order(function, tasks):

@@ -103,13 +103,21 @@ def accuracy_headline(results: dict) -> str:
             continue
         low, high = ("0" if v is None and k == 0 else "inf" if v is None else f"{v:.2f}"
                      for k, v in enumerate(c["ci95"]))
-        how = (f" (parametric bootstrap, B = {c['bootstrap']['used']})"
+        how = (f" ({_bootstrap_text(c['bootstrap'])})"
                if c.get("p_method") == "bootstrap" else "")
         text += (f"; {name}{who} {c['estimate']:.2f} [{low}, {high}], "
                  f"{format_p(c['p_value'])}{how}")
     if not glmm:
         text += "; no comparison of conditions (see warnings)"
     return text
+
+
+def _bootstrap_text(bootstrap: dict) -> str:
+    """How a bootstrap p was reached: all B replicates, or Besag and Clifford's early stop."""
+    if bootstrap.get("stopped_early"):
+        return (f"parametric bootstrap, {bootstrap['exceed']} of {bootstrap['used']} "
+                f"replicates reached the observed LR")
+    return f"parametric bootstrap, B = {bootstrap['used']}"
 
 
 def _separated_text(c: dict, level: str) -> str:

@@ -96,6 +96,7 @@ class PrimaryTest:
     p_value: str = "auto"              # "chi2", "bootstrap" or "auto"
     bootstrap_below: int = 20          # auto: the bootstrap with fewer participants
     bootstrap_replicates: int = 1000
+    bootstrap_stop_after: int = 20     # sequential: stop once this many reached the LR
 
     @property
     def random_spec(self) -> RandomSpec:
@@ -114,7 +115,8 @@ class PrimaryTest:
         describe the test: the random part and the rule for the primary p."""
         return {**self.model_options(), "p_value": self.p_value,
                 "bootstrap_below": self.bootstrap_below,
-                "bootstrap_replicates": self.bootstrap_replicates}
+                "bootstrap_replicates": self.bootstrap_replicates,
+                "bootstrap_stop_after": self.bootstrap_stop_after}
 
 
 @dataclass(frozen=True)
@@ -279,10 +281,11 @@ def _primary(section: Section, conditions: tuple[str, ...]) -> PrimaryTest:
     p_value = section.string("p_value", "auto", choices=P_VALUE_RULES)
     below = section.integer("bootstrap_below", 20, minimum=0, maximum=100_000)
     replicates = section.integer("bootstrap_replicates", 1000, minimum=19, maximum=100_000)
+    stop_after = section.integer("bootstrap_stop_after", 20, minimum=0, maximum=replicates)
     section.done()
     return PrimaryTest(outcome, test, method, n_quadrature, spec.effects, reference,
                        spec.structure, spec.singular_fit, spec.reduction, p_value, below,
-                       replicates)
+                       replicates, stop_after)
 
 
 def _exclusions(section: Section) -> Exclusions:

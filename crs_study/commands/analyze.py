@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 from crs_study._files import os_errors
@@ -39,9 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--check: relative tolerance of a number (default %(default)g)")
     parser.add_argument("--json", action="store_true",
                         help="print results.json on stdout instead of the headline")
-    parser.add_argument("--jobs", metavar="N", type=int, default=1,
+    parser.add_argument("--jobs", metavar="N", type=int, default=os.cpu_count() or 1,
                         help="worker processes for the primary test's parametric bootstrap "
-                             "(default %(default)s: this process)")
+                             "(default: every core, %(default)s here; 1: this process)")
     parser.add_argument("--strict", action="store_true",
                         help="a failed checksum or metadata check is an error, not a warning (an "
                              "interrupted session is analysed as it stands either way)")

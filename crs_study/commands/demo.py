@@ -20,6 +20,7 @@ from crs_study.analysis import analyze
 from crs_study.commands.run import stderr_progress
 from crs_study.errors import DatasetError, SessionError
 from crs_study.paths import DEFAULT_PROTOCOL
+from crs_study.power_analysis.backends import open_backend
 from crs_study.protocol import emit_warnings, load_protocol
 from crs_study.session import dry_run
 
@@ -35,7 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--responder", default="observer", metavar="observer|random",
                         help="simulated participant")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="J",
-                        help="worker processes")
+                        help="worker processes (the dry-run's sessions and the primary test's "
+                             "bootstrap)")
     parser.add_argument("--json", action="store_true",
                         help="print a JSON summary on stdout and no progress")
 
@@ -62,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     emit_warnings(protocol)  # odd but legal values of a --protocol given
     rehearsal = dry_run(protocol, args.participants, out, jobs=args.jobs,
                         responder=args.responder, progress=stderr_progress(not args.json))
-    analysis = analyze(out)  # the report in the dataset's derivatives
+    with open_backend(args.jobs) as backend:   # the bootstrap's replicates on every job
+        analysis = analyze(out, map_tasks=backend.map)  # the report in the derivatives
     summary: dict = {"dataset": os.fspath(out), "participants": len(rehearsal),
                      "trials": rehearsal.trials, "headline": analysis.headline,
                      "report": os.fspath(analysis.report_path),
