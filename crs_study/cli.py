@@ -49,6 +49,8 @@ COMMANDS: dict[str, str] = {
             "headline",
     "init": "copy the shipped protocols, analysis plans and consent forms into a folder to edit",
     "validate": "check a protocol and print its plan (trials, duration, frames, wire use)",
+    "lock": "lock a protocol's analysis plan before the first participant (a file to "
+            "publish)",
     "run": "run or resume a participant session on a device",
     "dry-run": "rehearse a protocol: simulated device, simulated participants, virtual clock",
     "analyze": "analyse datasets: accuracy, GLMM, secondary tests, confusions, speed-accuracy, "

@@ -95,10 +95,10 @@ TEXT_COLUMNS = ("trial_type", "condition", "responder")
 REQUIRED_COLUMNS = ("trial_type", "condition", "correct", "response")
 EXCLUSION_REASONS = ("practice", "device_fault", "timeout", "anticipation", "slow")
 #: Sidecar keys each session's row of :attr:`LoadedData.sessions` holds (as the sidecar has
-#: them), besides ``Protocol``.
+#: them), besides ``Protocol`` and ``PlanLock`` (full texts).
 SESSION_SUMMARY_KEYS = ("Status", "Seed", "SoftwareVersion", "StartTime", "EndTime",
                         "ConsentFormVersion", "DeviceURL", "Responder", "Clock", "ProtocolPath",
-                        "TrialsSha256")
+                        "TrialsSha256", "ProtocolSha256", "PlanLockSha256")
 
 
 @dataclass(frozen=True)
@@ -350,6 +350,7 @@ def _read_session(paths: SessionPaths, dataset: str, file_number: int
                "file": str(tsv), "n_rows": len(raw),
                **{k: recorded.get(k) for k in SESSION_SUMMARY_KEYS}}
     summary["Protocol"] = recorded.get("Protocol")
+    summary["PlanLock"] = recorded.get("PlanLock")
     summary["_sha256"] = sha256_bytes(data)   # for the copy check; popped by load_datasets
     return raw, summary, problems, notes
 

@@ -47,6 +47,7 @@ from crs_study.analysis.confusion import Confusions, analyse_confusions
 from crs_study.analysis.headline import headline
 from crs_study.analysis.jsonable import to_jsonable
 from crs_study.analysis.plan import AnalysisPlan
+from crs_study.analysis.plan_lock import LockCheck, check_plan_lock
 from crs_study.analysis.primary import PrimaryResult, primary_test
 from crs_study.analysis.psychometric import PsychometricResult, analyse_psychometric
 from crs_study.analysis.report_text import write_report
@@ -62,6 +63,7 @@ from crs_study.analysis.speed_accuracy import SpeedAccuracyResult, analyse_speed
 from crs_study.analysis.study_data import DatasetPaths, StudyData, load_dataset
 from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
 from crs_study.dataset.bids import DERIVATIVES, derivatives_dir
+from crs_study.dataset.lock_file import PlanLock
 from crs_study.dataset.outputs import OutputsRecord, participants_by_dataset
 from crs_study.errors import AnalysisError, DatasetError
 from crs_study.paths import recorded_path
@@ -112,6 +114,8 @@ class Analysis:
     thresholds : ThresholdResult or None
         Adaptive sessions' thresholds per participant and condition and their paired
         comparison (else ``skipped``).
+    plan_lock : LockCheck or None
+        The plan analysed against its lock (:mod:`crs_study.analysis.plan_lock`).
     """
 
     data: StudyData
@@ -126,6 +130,7 @@ class Analysis:
     content: dict = field(repr=False)  # results.json's, but ``charts``: see to_dict()
     files: ReportFiles | None = None
     thresholds: ThresholdResult | None = None
+    plan_lock: LockCheck | None = None
 
     @property
     def plan(self) -> AnalysisPlan:
@@ -229,7 +234,8 @@ def analyze(datasets: StudyData | DatasetPaths,
             plan: str | os.PathLike[str] | AnalysisPlan | None = None,
             out: str | os.PathLike[str] | None = None, *, write: bool = True,
             strict: bool = False, include_simulated: bool = False,
-            responders: Sequence[str] | None = None, map_tasks=None) -> Analysis:
+            responders: Sequence[str] | None = None, map_tasks=None,
+            lock: str | os.PathLike[str] | PlanLock | None = None) -> Analysis:
     """Analyse stored datasets as the analysis plan says; write the report when ``write``.
 
     Parameters
@@ -246,17 +252,21 @@ def analyze(datasets: StudyData | DatasetPaths,
         :func:`~crs_study.analysis.study_data.load_dataset`).
     map_tasks : ``map_tasks(function, tasks)`` runs the units of work of the primary test's
         parametric bootstrap (a process pool's or a Dask cluster's map; default: here).
+    lock : a plan lock file (or :class:`~crs_study.protocol.lock.PlanLock`) to check the plan
+        against (default: the latest lock the sessions recorded; :mod:`.plan_lock`).
 
     Returns
     -------
     Analysis
     """
+    if lock is not None and not isinstance(lock, PlanLock):
+        lock = PlanLock.read(lock)
     if isinstance(datasets, StudyData):
         data = datasets if plan is None else datasets.with_plan(plan)
     else:
         data = load_dataset(datasets, plan, strict=strict, include_simulated=include_simulated,
                             responders=responders)
-    analysis = run_analyses(data, map_tasks)
+    analysis = run_analyses(data, map_tasks, lock)
     if write:
         analysis = replace(analysis, files=analysis.write(out))
     return analysis
@@ -294,11 +304,14 @@ def order_conditions(trials: pd.DataFrame, plan: AnalysisPlan) -> tuple[list[str
     return [reference, *ordered], reference, notes
 
 
-def run_analyses(data: StudyData, map_tasks=None) -> Analysis:
+def run_analyses(data: StudyData, map_tasks=None, lock: PlanLock | None = None) -> Analysis:
     """Every analysis of the data's plan on its trials, as an :class:`Analysis` (unwritten);
-    ``map_tasks`` runs the bootstrap's units of work (:func:`analyze`)."""
+    ``map_tasks`` runs the bootstrap's units of work, ``lock`` is the plan lock to check
+    against (:func:`analyze`)."""
     trials, plan = data.trials, data.plan
-    warnings: list[str] = []
+    plan_lock = check_plan_lock(plan, data.sessions, lock)
+    warnings: list[str] = [f"the analysis deviates from the locked plan: {d}"
+                           for d in plan_lock.deviations]
     conditions, reference, notes = order_conditions(trials, plan)
     warnings += notes
     chance = chance_level(trials, plan.chance)
@@ -382,7 +395,8 @@ def run_analyses(data: StudyData, map_tasks=None) -> Analysis:
     plan_file = data.plan_path
     results["plan"] = {"name": plan.name,
                        "path": None if plan_file is None else recorded_path(plan_file),
-                       "sha256": None if plan_file is None else sha256_file(plan_file)}
+                       "sha256": None if plan_file is None else sha256_file(plan_file),
+                       "lock": plan_lock.to_dict()}
     results["datasets"] = [{"path": str(d.resolve()), "name": name} for d, name in
                            zip(data.datasets, pd.unique(data.all_trials["dataset"]),
                                strict=False)]
@@ -395,7 +409,7 @@ def run_analyses(data: StudyData, map_tasks=None) -> Analysis:
                                    f"{', '.join(non_finite[:5])}")
     return Analysis(data, accuracy, primary, secondary, Confusions(confusions), speed,
                     psychometric, results["headline"], tuple(results["warnings"]), results,
-                    thresholds=thresholds)
+                    thresholds=thresholds, plan_lock=plan_lock)
 
 
 def draw_charts(analysis: Analysis, folder: Path) -> list[Path]:

@@ -76,6 +76,8 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
     images = {p.stem: os.path.relpath(p, out) for p in charts}
     blocks: list[tuple[str, object]] = [("h1", f"Analysis: {plan.name}"),
                                         ("p", f"**{results['headline']}**")]
+    if analysis.plan_lock is not None:
+        blocks.append(("p", analysis.plan_lock.sentence()))
     if results["warnings"]:
         blocks += [("h2", f"Warnings ({len(results['warnings'])})"),
                    ("list", results["warnings"])]

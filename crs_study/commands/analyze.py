@@ -6,6 +6,10 @@ analysis/digit_identification.toml. See analysis/README.md.
 
 --check RESULTS reanalyses and compares with an earlier results.json instead of writing:
 "the same numbers" (exit 0) or every value that differs (exit 1).
+
+When the protocol was locked before its first participant (crs-study lock), the plan is
+checked against the lock the sessions recorded (or --lock FILE, a published lock): the output
+says "plan locked on DATE, unchanged" or lists every deviation, which are also warnings.
 """
 
 from __future__ import annotations
@@ -33,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="DIR", default=None,
                         help="output directory (default: DATASET/derivatives/crs-study)"
                              "%(default).0s")
+    parser.add_argument("--lock", metavar="FILE", default=None,
+                        help="check the plan against this plan lock (default: the lock the "
+                             "sessions recorded; crs-study lock writes one)")
     parser.add_argument("--check", metavar="RESULTS", default=None,
                         help="compare with an earlier results.json instead of writing: exit 0 "
                              "when every number agrees, 1 when one differs%(default).0s")
@@ -69,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     with open_backend(args.jobs) as backend:   # a bad --jobs is a one-line error
         result = analyze(args.datasets, args.plan, args.out, strict=args.strict,
                          include_simulated=args.include_simulated, responders=args.responder,
-                         write=args.check is None, map_tasks=backend.map)
+                         write=args.check is None, map_tasks=backend.map, lock=args.lock)
     for warning in result.warnings:
         loud = "TAMPERED" in warning or "tampering" in warning
         print(f"crs-study analyze: {'WARNING' if loud else 'warning'}: {warning}",
@@ -82,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         print(result.to_json(), end="")  # results.json as written
         return 0
     print(result.headline)
+    print(result.plan_lock.sentence())
     print(f"report:  {result.report_path}")
     print(f"results: {result.results_path}")
     return 0

@@ -15,7 +15,9 @@ for trials drawn by older software). Two are written only when not empty: ``Inte
 by older software, has none) and ``AdaptiveStateSha256`` (only adaptive protocols have it,
 read as None when absent: the fingerprint of the procedures' state after ``TrialsCompleted``
 trials, :meth:`crs_study.adaptive.AdaptiveRun.fingerprint`; a resume replays the recorded
-responses and must reach it).
+responses and must reach it). ``PlanLock`` and ``PlanLockSha256`` are written only for a
+session begun while its protocol was locked (:mod:`crs_study.protocol.lock`): the lock's text
+and the sha256 of its bytes.
 
 The JSON keys are BIDS-style CamelCase; entries of ``Resumes`` have ``Time``, ``AtTrial``,
 ``DeviceURL``, ``SoftwareVersion``; entries of ``Faults`` ``trial``, ``time``, ``message``
@@ -42,11 +44,13 @@ ClockKind = Literal["real", "virtual"]
 STATUSES: tuple[str, ...] = ("running", "interrupted", "complete")
 CLOCKS: tuple[str, ...] = ("real", "virtual")
 #: Keys a sidecar written by older software may lack (read as None).
-OPTIONAL_KEYS = frozenset({"StimulusSha256", "AdaptiveStateSha256"})
+OPTIONAL_KEYS = frozenset({"StimulusSha256", "AdaptiveStateSha256", "PlanLock",
+                           "PlanLockSha256"})
 #: Keys written only when not empty, read as ``()`` (or None, when optional) when absent
 #: (sessions never interrupted, fixed protocols, and every sidecar older software wrote, have
 #: none).
-WHEN_PRESENT_KEYS = frozenset({"Interruptions", "AdaptiveStateSha256"})
+WHEN_PRESENT_KEYS = frozenset({"Interruptions", "AdaptiveStateSha256", "PlanLock",
+                               "PlanLockSha256"})
 #: Why a session stopped before its end (:class:`Interruption`): the experimenter's pause key,
 #: a signal (SIGINT is Ctrl-C), a device fault, the participant's consent withdrawn, another
 #: error (a full disk), or a crash found on resume (killed, power cut: the sidecar still said
@@ -301,6 +305,8 @@ class SessionMetadata(_Record):
     faults: tuple[Fault, ...] = ()
     interruptions: tuple[Interruption, ...] = ()
     adaptive_state_sha256: str | None = None
+    plan_lock: str | None = None
+    plan_lock_sha256: str | None = None
 
     _KEYS = (
         ("TaskName", "task_name", _label),
@@ -333,6 +339,10 @@ class SessionMetadata(_Record):
         ("TrialsSha256", "trials_sha256", _or_none(_sha256)),  # the _beh.tsv bytes, last write
         # the adaptive procedures' state after TrialsCompleted trials (adaptive protocols)
         ("AdaptiveStateSha256", "adaptive_state_sha256", _or_none(_sha256)),
+        # the plan lock present when the session began (crs_study.protocol.lock): its text
+        # and the sha256 of its bytes (sessions of a protocol never locked have neither)
+        ("PlanLock", "plan_lock", _or_none(_text)),
+        ("PlanLockSha256", "plan_lock_sha256", _or_none(_sha256)),
         ("Resumes", "resumes", _entries(Resume, "Resumes")),  # one per resume
         ("Faults", "faults", _entries(Fault, "Faults")),     # device faults during trials
         ("Interruptions", "interruptions",                   # why it stopped, when it did

@@ -16,6 +16,7 @@ from crs_study.dataset.folder import Dataset, dataset_dir, is_simulated_label
 from crs_study.errors import SessionError
 from crs_study.paths import resolve_protocol
 from crs_study.protocol import Protocol, load_protocol
+from crs_study.protocol.lock import current_lock
 from crs_study.session.runner import dataset_task, run_session
 from crs_study.session.spec import DryRunResult, Progress, SessionResult, SessionSpec
 
@@ -119,9 +120,10 @@ def dry_run(protocol: str | os.PathLike[str] | Protocol, participants: int,
     # a shipped protocol's name, or a path (each session loads it); an object is settled now
     protocol = load_protocol(protocol) if isinstance(protocol, Protocol) else \
         resolve_protocol(protocol)
-    shown = protocol.symbol_set if isinstance(protocol, Protocol) else \
-        load_protocol(protocol, check_device=False).symbol_set  # its task names the files
-    Dataset(out, task=dataset_task(shown)).ensure()
+    loaded = protocol if isinstance(protocol, Protocol) else \
+        load_protocol(protocol, check_device=False)
+    current_lock(loaded)  # a lock it no longer matches: refused before the folder is made
+    Dataset(out, task=dataset_task(loaded.symbol_set)).ensure()  # its task names the files
     specs = [SessionSpec(protocol, label, Path(out), device_url, 1, responder,
                          "virtual", i, durable=durable) for i, label in enumerate(labels)]
     results: list[SessionResult] = []

@@ -46,6 +46,7 @@ from crs_study.consent import read_form
 from crs_study.consent.gate import ConsentGate, needs_consent
 from crs_study.dataset import schema
 from crs_study.dataset.folder import Dataset
+from crs_study.dataset.lock_file import PlanLock
 from crs_study.dataset.session_metadata import (
     Fault,
     Interruption,
@@ -59,6 +60,7 @@ from crs_study.errors import ConsentError, DatasetError, DeviceError, SessionErr
 from crs_study.geometry.layout import Layout, device_file_path
 from crs_study.paths import recorded_path
 from crs_study.protocol.loader import load_protocol
+from crs_study.protocol.lock import current_lock
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.protocol.plan import TrialPlan, make_plan
 from crs_study.rendering.feed_cap import WireSlack
@@ -215,6 +217,8 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
                            protocol.consent_form_version,
                            read_form(consent_form_path(protocol)))
         gate.check()
+    # a lock the protocol or its plan no longer match is refused before anything is written
+    lock = current_lock(protocol)
     # The order of arrival is taken under the dataset lock: two runners adding participants
     # at once would otherwise both read the same count and share a counterbalance index.
     counterbalance = dataset.register_participant(spec.participant, spec.counterbalance)
@@ -260,7 +264,7 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
         run = rebuild(protocol, plan, rows, stored, paths.tsv, paths.sidecar)
         first = next_to_play(plan, rows, run)  # len(rows) unless a staircase skipped trials
         metadata = _metadata(spec, protocol, plan, device_text, expected, stored, clock_kind,
-                             responder.name, n_trials, first, began)
+                             responder.name, n_trials, first, began, lock)
         clock: Clock = VirtualClock(start=-SETTLE_S) if clock_kind == "virtual" else RealClock()
         options = dict(device_options or {})
         if spec.device_url.startswith("sim://"):  # injected faults: once per session
@@ -372,10 +376,12 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
 def _metadata(spec: SessionSpec, protocol: Protocol, plan: TrialPlan, device_text: str,
               expected: Fingerprints, stored: SessionMetadata | None, clock_kind: str,
               responder_name: str, n_trials: int, first: int,
-              began: int | None) -> SessionMetadata:
+              began: int | None, lock: PlanLock | None = None) -> SessionMetadata:
     """The sidecar of a session beginning now, or resumed now from ``stored`` at trial
     ``first`` (the plan index of the next trial to play: the number of rows stored, unless a
-    staircase skipped trials); ``began`` is the trial the previous run noted as begun."""
+    staircase skipped trials); ``began`` is the trial the previous run noted as begun.
+    ``lock`` is the protocol's plan lock now; a resumed session keeps the one it began under
+    (none when it began before the lock)."""
     resumes: tuple[Resume, ...] = ()
     faults: tuple[Fault, ...] = ()
     interruptions: tuple[Interruption, ...] = ()
@@ -427,4 +433,8 @@ def _metadata(spec: SessionSpec, protocol: Protocol, plan: TrialPlan, device_tex
         resumes=resumes,
         faults=faults,
         interruptions=interruptions,
+        plan_lock=(stored.plan_lock if stored is not None else
+                   None if lock is None else lock.to_json()),
+        plan_lock_sha256=(stored.plan_lock_sha256 if stored is not None else
+                          None if lock is None else lock.sha256),
     )
