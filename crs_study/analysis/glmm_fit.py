@@ -8,7 +8,8 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
-from crs_study.analysis.glmm_optimise import Optimum, boundary_failures, maximise
+from crs_study.analysis.glmm_newton import THETA_CAP
+from crs_study.analysis.glmm_optimise import Optimum, at_cap, boundary_failures, maximise
 from crs_study.analysis.glmm_result import BoundaryFace, FitState, GlmmResult
 from crs_study.analysis.glmm_terms import INTERCEPT, covariance, sd_and_correlation
 
@@ -75,7 +76,14 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     if not converged:
         notes.append(f"the optimiser did not converge (max |gradient| {max_grad:.3g}, "
                      f"{opt.message}); estimates may be unreliable")
-    converged = converged and not failed
+    capped = at_cap(theta, n_fixed) if layout is not None else ()
+    if len(capped):
+        notes.append(f"{len(capped)} loading(s) of the random effects' Cholesky factor reached "
+                     f"the cap of {THETA_CAP:g} (an SD of {THETA_CAP:g} or more on the logit "
+                     "scale) with the likelihood still rising: the data do not bound that "
+                     "variance (a condition near 0 or 100 % correct for some groups); the fit "
+                     "is treated as not converged")
+    converged = converged and not failed and not len(capped)
     cov = _fixed_covariance(information, n_fixed, notes)
     names = problem.names
     loglike = float(problem.model.loglik(theta, grad=False)) + problem.user_constant
