@@ -215,9 +215,7 @@ def test_calibration_pixel_only_clearly_below_crs_near_the_paper(protocol, recor
     assert 0.38 < pixel < 0.62 and 0.56 < crs < 0.80
     # Errors come from uncertain decisions, which are slower (speed-accuracy has a slope).
     assert np.median(decision[False]) > np.median(decision[True])
-    # Budget: a trial of ~54 frames may cost ~0.3 ms a frame in all; the observer's share
-    # with warm caches is a fraction of that.
-    assert per_trial_ms < 5.0
+    # (its speed, per_trial_ms, is printed: crs-study bench simulated measures it)
 
 
 def test_a_model_that_cannot_be_built_fails_the_run_not_the_frame(protocol, monkeypatch):

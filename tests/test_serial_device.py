@@ -198,7 +198,9 @@ def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout2d, b
             reports.append(device.send(np.full(37, 0.1 * (k + 1))))
             time.sleep(0.004)
         assert any(r.merged for r in reports)
-        assert max(r.latency_s for r in reports) <= 2 * FRAME_S + 0.01
+        # merged, not queued: 12 queued frames would wait ~12 frame times; the margin
+        # allows a machine several times oversubscribed
+        assert max(r.latency_s for r in reports) <= 4 * FRAME_S + 0.1
         last_wanted = device.pulse_map.to_pulses(np.full(37, 1.2))
         assert device.wait_sent(1.0)
     moves = pair[0].moves()

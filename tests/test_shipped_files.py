@@ -121,7 +121,7 @@ def test_a_referenced_file_is_found_beside_the_protocol_then_above_it(tmp_path, 
 def test_copy_defaults_copies_once_and_never_overwrites(tmp_path):
     target = tmp_path / "study"
     copied = paths.copy_defaults(target)
-    assert all(item.written for item in copied) and len(copied) == 14
+    assert all(item.written for item in copied) and len(copied) == 15
     for folder in paths.SHIPPED_FOLDERS:
         for source in (paths.data_dir() / folder).iterdir():
             assert (target / folder / source.name).read_bytes() == source.read_bytes()
@@ -144,13 +144,13 @@ def test_init_then_use_the_copies_from_another_folder(tmp_path, monkeypatch, cap
     assert main(["init", "study"]) == 0
     out = capsys.readouterr().out
     assert "copied  study/protocols/pilot.toml" in out
-    assert out.splitlines()[-1] == ("init: 14 of 14 files copied into study; edit them, then "
+    assert out.splitlines()[-1] == ("init: 15 of 15 files copied into study; edit them, then "
                                     "check one with: crs-study validate "
                                     "study/protocols/pilot.toml")
     assert main(["validate", "study/protocols/pilot.toml", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["protocol"] == "study/protocols/pilot.toml"
     assert main(["init", "study"]) == 0
-    assert capsys.readouterr().out.splitlines()[-1].startswith("init: 0 of 14 files copied")
+    assert capsys.readouterr().out.splitlines()[-1].startswith("init: 0 of 15 files copied")
 
 
 def test_commands_take_a_shipped_protocol_by_name_from_any_folder(tmp_path, monkeypatch,
