@@ -18,6 +18,7 @@ from pathlib import Path
 
 from crs_study.errors import CrsStudyError
 from crs_study.power_analysis import PowerError, power
+from crs_study.power_analysis.api import check_options
 from crs_study.power_analysis.backends import check_address
 
 
@@ -146,6 +147,9 @@ def run(args: argparse.Namespace) -> int:
         "jobs": _number(args.jobs, "--jobs", int, 1),
         "draws": _number(args.draws, "--draws", int, 2),
     }
+    check_options(args.participants, args.repetitions, options["studies"], options["seed"],
+                  options["target"], args.fidelity, options["jobs"], options["effect_scale"],
+                  options["participant_sd"], options["participant_slope_sd"], options["draws"])
     out = Path(args.out) if args.out else Path(f"power_{Path(args.protocol).stem}")
     if out.exists() and not out.is_dir():
         raise PowerError(f"--out: {out} is a file, not a folder")

@@ -79,8 +79,8 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
     (common random numbers, :mod:`crs_study.power_analysis.simulate`), so the curve rises smoothly.
     """
     started, cpu_started = time.perf_counter(), time.process_time()
-    checks = _checked(participants, repetitions, studies, seed, target, fidelity, jobs,
-                      effect_scale, participant_sd, participant_slope_sd, draws)
+    checks = check_options(participants, repetitions, studies, seed, target, fidelity, jobs,
+                           effect_scale, participant_sd, participant_slope_sd, draws)
     participants, repetitions_given, studies = checks
     design = design_from_protocol(protocol, plan)   # a protocol or plan error names its file
     reps = repetitions_given or (design.repetitions,)
@@ -153,9 +153,11 @@ def _tasks(design, model, seed, participants, repetitions, studies) -> list[Powe
 MAX_STUDIES, MAX_DRAWS, MAX_JOBS = 100_000, 10_000, 64
 
 
-def _checked(participants, repetitions, studies, seed, target, fidelity, jobs, effect_scale,
-             participant_sd, participant_slope_sd=None, draws=None):
-    """Every option checked before anything runs (one line naming the option)."""
+def check_options(participants, repetitions, studies, seed, target, fidelity, jobs,
+                  effect_scale, participant_sd, participant_slope_sd=None, draws=None):
+    """Every option of :func:`power` checked before anything runs (one line naming the
+    option); the participant counts, the repetitions (None: the protocol's) and the studies
+    as :func:`power` takes them. The command line calls it before it looks at ``--out``."""
     import math
 
     for option, value, most in (("--studies", studies, MAX_STUDIES), ("--jobs", jobs, MAX_JOBS),

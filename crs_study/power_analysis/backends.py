@@ -162,18 +162,21 @@ def check_address(address: object) -> tuple[str, int]:
     if not isinstance(address, str) or "://" not in address:
         raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
                          f"tcp://HOST:8786, got {address!r}")
+    if not address.isprintable():  # a control character would break the one-line error
+        raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
+                         f"tcp://HOST:8786, got {address!r}")
     try:
         protocol, location = parse_address(address, strict=True)
         host, port = parse_host_port(location)
     except (ValueError, TypeError) as exc:
-        raise PowerError(f"--scheduler {address}: not a scheduler address ({exc}); expected "
-                         "tcp://HOST:PORT, such as tcp://127.0.0.1:8786") from None
+        raise PowerError(f"--scheduler {address}: not a scheduler address ({exc!s:.200}); "
+                         "expected tcp://HOST:PORT, such as tcp://127.0.0.1:8786") from None
     if protocol != "tcp":
         why = ("it needs certificates: pass a distributed.Client made with them from Python"
                if protocol == "tls" else "a Dask scheduler listens on tcp://")
         raise PowerError(f"--scheduler {address}: {protocol}:// is not supported here ({why}); "
                          "expected tcp://HOST:PORT")
-    if not host or not 1 <= port <= 65535:
+    if not host or " " in host or not 1 <= port <= 65535:
         raise PowerError(f"--scheduler {address}: expected tcp://HOST:PORT with a host and "
                          f"a port from 1 to 65535, got host {host!r} and port {port!r}")
     return host, port
