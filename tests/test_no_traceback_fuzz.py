@@ -23,6 +23,7 @@ import re
 import shutil
 import signal
 import tomllib
+import warnings
 from pathlib import Path
 
 import pytest
@@ -74,7 +75,9 @@ def timed(call):
 def cli(argv: list[str]) -> tuple[int, str]:
     """``crs-study ARGV`` in this process: (exit code, stderr); stdout is dropped."""
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), \
+            warnings.catch_warnings():
+        warnings.simplefilter("default")  # shown as the command shows them, not raised
         try:
             code = timed(lambda: main(argv))
         except SystemExit as exit_:  # argparse's refusal of an option

@@ -203,6 +203,7 @@ class Register:
         of the line), so the cut never reopens the gate.
         """
         path = self.path if path is None else path
+        self._check_outside_datasets()
         try:
             data = path.read_bytes() if path.is_file() else b""
         except OSError as exc:

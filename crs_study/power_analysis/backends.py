@@ -159,10 +159,8 @@ def check_address(address: object) -> tuple[str, int]:
     """
     from distributed.comm.addressing import parse_address, parse_host_port
 
-    if not isinstance(address, str) or "://" not in address:
-        raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
-                         f"tcp://HOST:8786, got {address!r}")
-    if not address.isprintable():  # a control character would break the one-line error
+    # (a control character would break the one-line error)
+    if not isinstance(address, str) or "://" not in address or not address.isprintable():
         raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
                          f"tcp://HOST:8786, got {address!r}")
     try:
