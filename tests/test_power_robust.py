@@ -96,6 +96,33 @@ def test_sigkill_of_power_with_two_jobs_leaves_no_worker_and_a_rerun_gives_the_c
 
 
 @pytest.mark.timeout(1200)
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+def test_a_busy_pool_worker_dies_with_its_killed_parent(tmp_path):
+    """The mechanism, where a tiny power run cannot show it: a worker in the middle of a
+    long task (an idle one ends anyway, on the closed queue) dies with its parent at once
+    instead of running its task to the end for nobody."""
+    script = ("import time\n"
+              "from crs_study.power_analysis.backends import open_backend\n"
+              "with open_backend(jobs=2) as backend:\n"
+              "    backend.map(time.sleep, [120, 120])\n")
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        workers = wait_for(lambda: (lambda d: d if len(d) >= 2 else None)(
+            descendants(parent.pid)), 300, "two workers started")
+        time.sleep(3)                             # the sleeps begin (a task per worker)
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(timeout=30)
+        wait_for(lambda: not [w for w in workers if Path(f"/proc/{w}").exists() and
+                              Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0]
+                              != "Z"], 20, "the busy workers gone (not after their 120 s)")
+    finally:
+        for pid in descendants(parent.pid) | {parent.pid}:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
 def test_sigkill_of_power_on_a_dask_cluster_leaves_no_client_and_a_rerun_gives_the_curve(
         tmp_path, uninterrupted):
     from distributed import Client, LocalCluster
