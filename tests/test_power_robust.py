@@ -57,6 +57,23 @@ def descendants(pid: int) -> set[int]:
     return found
 
 
+def alive(pid: int) -> bool:
+    """``pid`` runs (a zombie, or a process gone, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def kill_all(pids) -> None:
+    """SIGKILL what the test started and is still there (a failed test leaves nothing)."""
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 def wait_for(condition, seconds: float, what: str):
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
@@ -78,17 +95,10 @@ def test_sigkill_of_power_with_two_jobs_leaves_no_worker_and_a_rerun_gives_the_c
             descendants(child.pid)), 120, "two workers started")
         os.kill(child.pid, signal.SIGKILL)
         child.wait(timeout=30)
-        left = wait_for(lambda: not descendants(child.pid) and
-                        not [w for w in workers if Path(f"/proc/{w}").exists()
-                             and "Z" != Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1]
-                             .split()[0]], 30, "every worker (and the resource tracker) gone")
-        assert left
+        wait_for(lambda: not descendants(child.pid) and not any(map(alive, workers)), 30,
+                 "every worker (and the resource tracker) gone")
     finally:
-        for pid in descendants(child.pid) | {child.pid}:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+        kill_all(descendants(child.pid) | {child.pid} | set(locals().get("workers", ())))
     again = subprocess.run(command(tmp_path / "again", "--jobs", "2"), capture_output=True,
                            text=True, timeout=600)
     assert again.returncode == 0, again.stderr
@@ -112,15 +122,10 @@ def test_a_busy_pool_worker_dies_with_its_killed_parent(tmp_path):
         time.sleep(3)                             # the sleeps begin (a task per worker)
         os.kill(parent.pid, signal.SIGKILL)
         parent.wait(timeout=30)
-        wait_for(lambda: not [w for w in workers if Path(f"/proc/{w}").exists() and
-                              Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0]
-                              != "Z"], 20, "the busy workers gone (not after their 120 s)")
+        wait_for(lambda: not any(map(alive, workers)), 20,
+                 "the busy workers gone (not after their 120 s)")
     finally:
-        for pid in descendants(parent.pid) | {parent.pid}:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+        kill_all(descendants(parent.pid) | {parent.pid} | set(locals().get("workers", ())))
 
 
 def test_sigkill_of_power_on_a_dask_cluster_leaves_no_client_and_a_rerun_gives_the_curve(
