@@ -173,3 +173,16 @@ def append_durably(path: str | Path, data: bytes, *, create: bool = False, sync:
         os.close(fd)
     if create:
         fsync_dir(path.parent)
+
+
+def cut_tail(path: str | Path, data: bytes, keep: int, backup: str | Path, *,
+             mode: int | None = None) -> None:
+    """Truncate ``path`` (whose bytes are ``data``) to ``keep`` bytes, saving the rest in
+    ``backup`` first (with ``mode``, as :func:`write_atomically`): the cut bytes are durable
+    in their backup before the file is truncated, and the truncation is fsynced, so a crash
+    at any point keeps every byte somewhere."""
+    write_atomically(backup, data[keep:], mode=mode)
+    with open(path, "r+b") as handle:
+        handle.truncate(keep)
+        handle.flush()
+        os.fsync(handle.fileno())

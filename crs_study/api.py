@@ -227,7 +227,9 @@ def run_session(protocol: ProtocolSource, participant: str, out: str | os.PathLi
     clock : ``real``, ``virtual`` or ``auto`` (virtual for ``sim://`` with a simulated
         responder).
     counterbalance : the counterbalance index (default: the order of arrival).
-    consent_register : the consent register (a real device needs a consent record).
+    consent_register : the consent register: a person's label needs a consent record on
+        every device, ``sim://`` included (only a ``sim...`` label with a simulated
+        responder on ``sim://`` needs none).
     progress : called with one line of progress at a time.
 
     Returns

@@ -152,6 +152,15 @@ class CopiedFile:
     written: bool  # False: an identical file was there already
 
 
+def _refuse_link(path: Path) -> None:
+    """A symbolic link where ``init`` would write is refused: the copy would land wherever it
+    points (another lab's folder, a system file), not in the folder the user named."""
+    if path.is_symlink():
+        raise ConfigError(f"{path}: is a symbolic link (to {os.readlink(path)}); init writes "
+                          "only into the folder it is given: nothing was copied (remove the "
+                          "link, or give the folder it points to)")
+
+
 def copy_defaults(directory: str | Path) -> list[CopiedFile]:
     """Copy the shipped protocols, analysis plans and consent forms into ``directory``.
 
@@ -166,10 +175,12 @@ def copy_defaults(directory: str | Path) -> list[CopiedFile]:
     plan: list[tuple[Path, bytes, bool]] = []
     clashes = []
     for folder in SHIPPED_FOLDERS:
+        _refuse_link(directory / folder)
         for source in sorted((data_dir() / folder).iterdir()):
             if not source.is_file():
                 continue
             target = directory / folder / source.name
+            _refuse_link(target)
             data = source.read_bytes()
             with os_errors(ConfigError, "read", target):
                 same = target.is_file() and target.read_bytes() == data

@@ -1,4 +1,5 @@
-"""Signals that end a command as Ctrl-C does: SIGTERM (a kill) and SIGHUP (a closed terminal).
+"""Signals that end a command as Ctrl-C does: SIGTERM (a kill) and SIGHUP (a closed terminal),
+and the parent-death signal that ends a worker process with the command that started it.
 
 Python turns SIGINT (Ctrl-C) into :class:`KeyboardInterrupt`, so ``finally`` blocks and context
 managers run: a device goes to its neutral pose and releases its ports, a session pauses
@@ -14,8 +15,12 @@ nothing (the signals keep whatever handling they had).
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import os
 import signal
+import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -73,3 +78,39 @@ def deferred() -> Iterator[None]:
         yield
     if caught:
         raise KeyboardInterrupt if caught[0] == signal.SIGINT else SignalInterrupt(caught[0])
+
+
+#: How often a worker's watchdog looks whether its parent is still alive (s).
+WATCHDOG_S = 0.5
+
+
+def die_with_parent(parent: int) -> None:
+    """A worker's initializer: the worker ends when the process that started it does.
+
+    On Linux the kernel sends SIGKILL to the worker when its parent dies
+    (``prctl(PR_SET_PDEATHSIG)``, through ctypes); elsewhere, and should that call fail, a
+    daemon thread checks every :data:`WATCHDOG_S` whether the parent is still the worker's
+    parent (an orphan is adopted by another process) and kills the worker otherwise. So a
+    SIGKILL of ``crs-study dry-run --jobs N`` leaves no worker writing into the dataset or
+    holding its stdout open (a ``| tee`` ends; a session cut so resumes on the next run),
+    and one of ``crs-study power --jobs N`` no worker computing for nobody.
+    """
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):
+            pass  # the watchdog below still ends the worker
+    if os.getppid() != parent:  # the parent died before the call above took effect
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(WATCHDOG_S)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+#: prctl option: the signal a process gets when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1

@@ -164,8 +164,9 @@ def test_gate_refuses_mismatched_version_and_admits_match(tmp_path):
     with pytest.raises(ConsentError, match="form version '1.0', the protocol needs version '2.0'"):
         consent.require_consent(tmp_path, "p1", "2.0")
     assert consent.require_consent(tmp_path, "p1", "1.0").participant == "p1"
-    # consent on the new form admits the new version
-    register.record(consent.read_form(write_form(tmp_path / "v2.md", "2.0")), "AB", "p1")
+    # consent on the new form (a renewal, said so) admits the new version
+    register.record(consent.read_form(write_form(tmp_path / "v2.md", "2.0")), "AB", "p1",
+                    renew=True)
     assert consent.require_consent(tmp_path, "p1", "2.0").form_version == "2.0"
 
 

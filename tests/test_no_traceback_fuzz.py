@@ -3,13 +3,15 @@ numeric options, end in exit 0 (a value that happens to be valid) or exit 2 with
 line on stderr naming the file, key or option; never a traceback, never a hang (each case
 runs under a time bound).
 
-The kinds: a protocol, a device file, a strokes file, an analysis plan, a dataset's trial TSV
-and JSON sidecar, the consent register, the numeric options. The values are the ones that
-broke a first day (issue 14): subnormal and huge floats (1e-310, 1e-320, 1e308), integers
-beyond int64, 256-character and longer strings, nesting deeper than Python's recursion limit,
-and their neighbours (NaN, infinities, empty strings, NUL). Hypothesis draws which key gets
-which value; a key's value is replaced on its line, in its table, so the rest of the file
-stays valid.
+The kinds: a protocol and its ``[adaptive]`` tables, a device file, a strokes file, a
+stimulus-set file, an analysis plan, a dataset's trial TSV and JSON sidecar (and a dataset
+that is a symbolic link loop), the consent register, a live recording replayed by
+``live-send``, the numeric options of every command (power and live included) and Dask
+``--scheduler`` addresses. The values are the ones that broke a first day: subnormal and huge
+floats (1e-310, 1e-320, 1e308), integers beyond int64, 256-character and longer strings,
+nesting deeper than Python's recursion limit, and their neighbours (NaN, infinities, empty
+strings, NUL). Hypothesis draws which key gets which value; a key's value is replaced on its
+line, in its table, so the rest of the file stays valid.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import re
 import shutil
 import signal
 import tomllib
+import warnings
 from pathlib import Path
 
 import pytest
@@ -33,6 +36,8 @@ from crs_study.paths import shipped_file
 
 #: The longest a single case may take (a hang is a failure, not a stuck suite).
 CASE_LIMIT_S = 30
+#: An --out that cannot be made (a folder in /proc): power refuses it before any work.
+UNWRITABLE = "/proc/crs-fuzz/out"
 SETTINGS = settings(max_examples=25, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.function_scoped_fixture,
                                            HealthCheck.too_slow])
@@ -70,7 +75,9 @@ def timed(call):
 def cli(argv: list[str]) -> tuple[int, str]:
     """``crs-study ARGV`` in this process: (exit code, stderr); stdout is dropped."""
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), \
+            warnings.catch_warnings():
+        warnings.simplefilter("default")  # shown as the command shows them, not raised
         try:
             code = timed(lambda: main(argv))
         except SystemExit as exit_:  # argparse's refusal of an option
@@ -256,7 +263,7 @@ def test_sidecar_values(dataset, tmp_path, key, value):
 
 
 @pytest.mark.parametrize("case", ["cell 1e308", "cell big int", "Protocol a number",
-                                  "deep sidecar", "symlink loop"])
+                                  "deep sidecar", "symlink loop", "dataset a symlink loop"])
 def test_the_issues_dataset_cases_from_the_command_line(dataset, tmp_path, case):
     root = tmp_path / "ds"
     shutil.copytree(dataset, root)
@@ -273,9 +280,12 @@ def test_the_issues_dataset_cases_from_the_command_line(dataset, tmp_path, case)
         sidecar.write_text(json.dumps(data))
     elif case == "deep sidecar":
         sidecar.write_text(deep("[", "]", 100_000))
-    else:
+    elif case == "symlink loop":
         tsv.unlink()
         tsv.symlink_to(tsv.name)  # a link to itself
+    else:
+        root = tmp_path / "loop"
+        root.symlink_to(root.name)  # the dataset given is a link to itself
     code, err = cli(["analyze", str(root), "--out", str(tmp_path / "out")])
     assert_clean(code, err, case)
     if case.startswith("cell"):
@@ -328,7 +338,19 @@ OPTIONS = [
     (["device", "monitor", "--port", "loop://", "--seconds", "0.1"], "--baud"),
     (["device", "boards", "--layout", "crs1d", "--quiet", "--seconds", "0.1"], "--baud"),
     (["device", "boards", "--layout", "crs1d", "--quiet"], "--seconds"),
-    (["power", "pilot", "--participants", "2:4:2", "--out", "{tmp}/w"], "--studies"),
+    # power: a valid value ends at --out, which cannot be made (tried before any work)
+    *[(["power", "pilot", "--studies", "2", "--participants", "2", "--out", UNWRITABLE], name)
+      for name in ("--participants", "--repetitions", "--studies", "--jobs", "--draws",
+                   "--target", "--seed", "--effect-scale", "--participant-sd",
+                   "--participant-slope-sd")],
+    # live: a session of 0.3 s on the simulated device when the value is valid
+    *[(["live", "--device", "sim://", "--listen", "127.0.0.1:0", "--no-view", "--seconds",
+        "0.3"], name)
+      for name in ("--diameter-mm", "--max-height-mm", "--area-margin-mm", "--silence-s",
+                   "--move-ms", "--max-packets", "--seconds")],
+    # live-send: a short hold to a port nobody listens on when the value is valid
+    *[(["live-send", "--hold", "--seconds", "0.2", "--to", "127.0.0.1:9"], name)
+      for name in ("--rate", "--seconds", "--jitter-mm", "--repeat", "--press-mm", "--seed")],
 ]
 
 
@@ -341,3 +363,123 @@ def test_numeric_options(tmp_path, monkeypatch, option, value):
     argv, name = option
     argv = [a.replace("{tmp}", str(folder)) for a in argv] + [f"{name}={value}"]
     assert_clean(*cli(argv), argv)
+
+
+# --- [adaptive] tables, stimulus-set files ---------------------------------------------------
+
+ADAPTIVE = shipped_file("protocols/digit_size_adaptive.toml").read_text(encoding="utf-8")
+LETTERS = shipped_file("letters.toml").read_text(encoding="utf-8")
+LETTER_PROTOCOL = shipped_file("protocols/letter_identification.toml").read_text(
+    encoding="utf-8").replace('set = "letters"', 'set = "set.toml"', 1)
+
+
+def load_clean_protocol(path: Path, case: object) -> None:
+    """The protocol loads, or its error is one line naming the file (the loader that
+    validate and dry-run run first, without the device checks of every level)."""
+    from crs_study.protocol import load_protocol
+
+    try:
+        timed(lambda: load_protocol(path, check_device=False))
+    except CrsStudyError as error:
+        assert "\n" not in str(error) and path.name in str(error), (case, error)
+
+
+@SETTINGS
+@given(line=st.sampled_from([v for v in value_lines(ADAPTIVE) if v[1].startswith("adaptive")]),
+       value=TOML_VALUES)
+def test_adaptive_table_values(tmp_path, line, value):
+    folder = fresh(tmp_path, "ad")
+    (folder / "p.toml").write_text(replaced(ADAPTIVE, line[0], value), encoding="utf-8")
+    load_clean_protocol(folder / "p.toml", (line, value))
+
+
+@pytest.mark.parametrize("value", ['"0.6"', "[0.6]", "{a = 0.6}", "true"])
+def test_width_to_height_of_a_wrong_type_is_one_line_from_validate(tmp_path, value):
+    text = re.sub(r"(?m)^width_to_height = .*$", f"width_to_height = {value}", ADAPTIVE)
+    (tmp_path / "p.toml").write_text(text, encoding="utf-8")
+    code, err = cli(["validate", str(tmp_path / "p.toml")])
+    assert_clean(code, err, value)
+    assert code == 2 and "adaptive.width_to_height: expected a number" in err, err
+
+
+@SETTINGS
+@given(line=st.sampled_from(value_lines(LETTERS)), value=TOML_VALUES)
+def test_stimulus_set_file_values(tmp_path, line, value):
+    folder = fresh(tmp_path, "set")
+    (folder / "set.toml").write_text(replaced(LETTERS, line[0], value), encoding="utf-8")
+    (folder / "p.toml").write_text(LETTER_PROTOCOL, encoding="utf-8")
+    load_clean_protocol(folder / "p.toml", (line, value))
+
+
+# --- a live recording replayed by live-send ---------------------------------------------------
+
+HEADER = {"format": "crs-study live recording", "version": 1, "layout": "crs2d",
+          "condition": "crs", "device": "sim://", "listen": "127.0.0.1:5005",
+          "started": "2026-01-01T00:00:00+00:00", "config": {}}
+PACKET_VALUES = st.one_of(
+    st.sampled_from([1e308, -1e308, 1e-320, 10**30, -1, 0, 1e9, "x", None, True, [], {},
+                     "nan", 5.0]),
+    st.integers(50, 900).map(lambda d: json.loads(deep("[", "]", d))),
+)
+#: live-send --replay of a corrupted recording still crashes (x of 1e308: OverflowError; a
+#: deep line: RecursionError; a time of 1e308: OverflowError); the fix belongs to the live
+#: link, being made apart. Strict: once it lands these pass, and the mark must go.
+REPLAY_NOT_YET_SAFE = pytest.mark.xfail(
+    raises=(AssertionError, TimeoutError, OverflowError, RecursionError), strict=True,
+    reason="live-send --replay of a corrupted recording")
+
+
+def packet(at: float, **values) -> str:
+    fields = {"t": at, "read": at, "from": "127.0.0.1:1", "status": "accepted", "stream": 1,
+              "seq": int(at * 100), "sender_time": at, "x": 0.0, "y": 0.0, "z": 1.0, **values}
+    return json.dumps({"packet": fields})
+
+
+@REPLAY_NOT_YET_SAFE
+@settings(max_examples=30, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(key=st.sampled_from(["t", "x", "y", "z"]), value=PACKET_VALUES,
+       row=st.integers(0, 2))
+def test_live_recording_values(tmp_path, key, value, row):
+    folder = fresh(tmp_path, "rec")
+    lines = [json.dumps(HEADER)] + [packet(0.01 * k, **({key: value} if k == row else {}))
+                                    for k in range(3)]
+    (folder / "r.jsonl").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert_clean(*cli(["live-send", "--replay", str(folder / "r.jsonl"), "--to",
+                       "127.0.0.1:9"]), (key, value, row))
+
+
+@pytest.mark.parametrize("line", ["not json", pytest.param(deep("[", "]", 100_000),
+                                                          marks=REPLAY_NOT_YET_SAFE),
+                                  "5", "{}", '{"packet": 5}', "\x00"])
+def test_live_recording_lines(tmp_path, line):
+    lines = [json.dumps(HEADER), packet(0.0), line, packet(0.01)]
+    (tmp_path / "r.jsonl").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert_clean(*cli(["live-send", "--replay", str(tmp_path / "r.jsonl"), "--to",
+                       "127.0.0.1:9"]), line[:40])
+
+
+# --- Dask scheduler addresses -----------------------------------------------------------------
+
+ADDRESSES = st.one_of(
+    st.sampled_from(["", "tcp://", "tcp://:1", "tcp://h:0", "tcp://h:-1", "tcp://h:99999",
+                     "tcp://[::1", "tcp://a:b", "tls://127.0.0.1:1", "ucx://127.0.0.1:1",
+                     "inproc://x", "http://127.0.0.1:1", "/tmp/scheduler", "\x00",
+                     "tcp://" + "a" * 300 + ":1", "tcp://127.0.0.1:1" + "0" * 300,
+                     "tcp://h:1e308", "tcp://h:99999999999999999999"]),
+    st.text(max_size=40).map(lambda text: "tcp://" + text),
+)
+
+
+@settings(max_examples=40, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(address=ADDRESSES)
+def test_scheduler_addresses(tmp_path, monkeypatch, address):
+    from crs_study.power_analysis import backends
+
+    monkeypatch.setattr(backends, "CONNECT_TIMEOUT", 1.0)  # an address that parses: 1 s
+    folder = fresh(tmp_path, "s")
+    code, err = cli(["power", "pilot", "--studies", "2", "--participants", "2",
+                     "--scheduler", address, "--out", str(folder / "never")])
+    assert_clean(code, err, address)
+    assert code == 2 and not (folder / "never").exists(), (address, err)

@@ -171,3 +171,22 @@ def test_commands_take_a_shipped_protocol_by_name_from_any_folder(tmp_path, monk
     assert main(["consent", "record", "--form", "consent_form", "--experimenter", "AB",
                  "--participant", "p1", "--register", str(register)]) == 0
     assert "participant p1, form version 1.0" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("link", ["protocols", "consent/consent_form.md"])
+def test_init_refuses_to_write_through_a_symbolic_link(tmp_path, link):
+    """A ``protocols`` folder (or a file) that is a link elsewhere: the copy would land there."""
+    import subprocess
+    import sys
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    target = tmp_path / "study" / link
+    target.parent.mkdir(parents=True)
+    target.symlink_to(elsewhere if link == "protocols" else elsewhere / "form.md")
+    done = subprocess.run([sys.executable, "-m", "crs_study", "init", str(tmp_path / "study")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert f"{target}: is a symbolic link" in done.stderr
+    assert list(elsewhere.iterdir()) == []
+    assert sorted(p.name for p in (tmp_path / "study").iterdir()) == [link.split("/")[0]]

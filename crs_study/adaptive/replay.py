@@ -8,23 +8,64 @@ the fingerprint of the rebuilt state (:meth:`AdaptiveRun.fingerprint`) must equa
 the sidecar recorded after the same number of trials.
 
 A timed-out trial (no response) counts as an error: the digit was not identified in time.
+
+The columns a row derives from the state after its response (:data:`DERIVED`: the
+procedure's estimate, its interval, the reversal and their count) are derived data, so they
+are checked by the same replay (:func:`disagreement`): a stored value that is not the
+replayed one was forged or written by other software, even when its file's sha256 was
+recomputed to match.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterable
+import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from crs_study.adaptive.quest_plus import QuestPlusTrack
 from crs_study.adaptive.spec import AdaptiveSpec
 from crs_study.adaptive.staircase import Staircase, TrialUpdate
+from crs_study.dataset.schema import ADAPTIVE_COLUMNS
 from crs_study.errors import SessionError
 
 Track = Staircase | QuestPlusTrack
 #: Stored and chosen levels may differ by this much (the file keeps 6 decimals).
 LEVEL_TOLERANCE = 1e-6
+#: The columns of a row derived from its track's state after the response.
+DERIVED = tuple(ADAPTIVE_COLUMNS)
+#: Stored and replayed derived values may differ by this much: the file keeps 6 decimals, so
+#: a rounding is worth 5e-7, and a last-bit difference of QUEST+'s posterior sums on another
+#: machine may move one rounding by a unit of the sixth decimal.
+DERIVED_TOLERANCE = 2e-6
+
+
+def derived_values(update: TrialUpdate) -> dict[str, float | int]:
+    """The :data:`DERIVED` columns of the row of ``update`` (NaN estimates: none yet)."""
+    return dict(zip(DERIVED, (update.estimate, update.ci_low, update.ci_high,
+                              int(update.reversal), update.reversals), strict=True))
+
+
+def disagreement(update: TrialUpdate, stored: Mapping[str, object]) -> str | None:
+    """Which stored derived value is not the replayed one, in words (None when all agree).
+
+    ``stored`` maps columns to the row's values, as text (``n/a`` for none) or numbers (NaN
+    for none); a column it lacks is not compared."""
+    for column, replayed in derived_values(update).items():
+        if column not in stored:
+            continue
+        value = stored[column]
+        try:
+            number = math.nan if value in ("n/a", None) else float(value)
+        except (TypeError, ValueError):
+            number = None
+        if number is not None and (math.isnan(number) and math.isnan(replayed)
+                                   or abs(number - replayed) <= DERIVED_TOLERANCE):
+            continue
+        return (f"{column} {value!r} stored, but replaying the recorded levels and responses "
+                f"gives {replayed!r}")
+    return None
 
 
 def make_track(spec: AdaptiveSpec, n_choices: int) -> Track:
@@ -67,8 +108,10 @@ class AdaptiveRun:
         """Record the outcome of the trial just shown in ``block`` (None counts as wrong)."""
         return self.track(block).update(bool(correct))
 
-    def replay(self, recorded: Iterable[RecordedTrial]) -> None:
-        """Feed stored test trials to their tracks, checking each stored level."""
+    def replay(self, recorded: Iterable[RecordedTrial]) -> list[TrialUpdate]:
+        """Feed stored test trials to their tracks, checking each stored level; what each
+        did to its track (for :func:`disagreement`)."""
+        updates = []
         for row in recorded:
             track = self.track(row.block)
             if track.finished:
@@ -82,7 +125,8 @@ class AdaptiveRun:
                     f"responses the {self.spec.procedure} chooses {chosen!r}; the session was "
                     "recorded by other software or the file was altered: start another "
                     "--session")
-            track.update(bool(row.correct))
+            updates.append(track.update(bool(row.correct)))
+        return updates
 
     def state(self) -> dict:
         """The settings and every track that has had a trial: a track is created when it is

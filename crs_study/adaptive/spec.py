@@ -197,6 +197,11 @@ class AdaptiveSpec:
         if self.practice_level is not None:
             _fail("adaptive.practice_level", self._level_problem(self.practice_level))
             object.__setattr__(self, "practice_level", float(self.practice_level))
+        if self.width_to_height is not None:  # a number now: the stimulus is sized by it next
+            _fail("adaptive.width_to_height", number_problem(
+                self.width_to_height, minimum=WIDTH_TO_HEIGHT_RANGE[0],
+                maximum=WIDTH_TO_HEIGHT_RANGE[1]))
+            object.__setattr__(self, "width_to_height", float(self.width_to_height))
         self.grid()  # distinct levels
         if self.staircase is not None:
             self._check_staircase()
@@ -345,6 +350,21 @@ class AdaptiveSpec:
     def shown_levels(self) -> tuple[float, ...]:
         """Every level a session can show, ascending: the grid and the practice level."""
         return tuple(sorted(set(self.grid()) | {round_level(self.practice)}))
+
+
+def spec_from_table(table: dict) -> AdaptiveSpec:
+    """The :class:`AdaptiveSpec` of an ``[adaptive]`` table as a session's recorded protocol
+    text holds it (checked when the session ran; the analysis replays its tracks with it).
+    Raises :class:`ProtocolError`, ``KeyError`` or ``TypeError`` for a table that is not one.
+    """
+    stair, quest = table.get("staircase"), table.get("quest_plus")
+    return AdaptiveSpec(
+        table["parameter"], table["procedure"], table["trials"], table["min"], table["max"],
+        table["scale"], table["levels"], target_rate=table.get("target_rate"),
+        practice_level=table.get("practice_level"),
+        width_to_height=table.get("width_to_height"),
+        staircase=None if stair is None else StaircaseSpec(**stair),
+        quest_plus=None if quest is None else QuestPlusSpec(**quest))
 
 
 #: The keys of a protocol's ``[adaptive]`` table and its sub-tables (the protocol model's

@@ -39,7 +39,8 @@ missing, unreadable or invalid sidecar leaves its trials unchecked (a warning, o
 Checks on every session: the sidecar exists and names the same participant, session and task;
 ``TrialsSha256`` equals the sha256 of the ``_beh.tsv`` bytes, ``ProtocolSha256`` and
 ``DeviceFileSha256`` those of the recorded texts; ``TrialsCompleted`` equals the number of
-rows; ``correct`` agrees with ``response`` equal to the symbol shown. The sessions of every
+rows; ``correct`` agrees with ``response`` equal to the symbol shown; an adaptive session's
+estimates agree with its replayed tracks (:mod:`.adaptive_replay`). The sessions of every
 task are found; one analysis takes one task (one stimulus set): datasets holding several
 are a one-line error unless ``task`` chooses one. A failed check means the data were edited
 after the session (or a bug): a warning by default, a :class:`DatasetError` with ``strict``.
@@ -73,6 +74,7 @@ import numpy as np
 import pandas as pd
 
 from crs_study._files import not_a_regular_file, sha256_bytes
+from crs_study.analysis.adaptive_replay import replay_adaptive
 from crs_study.analysis.plan import Exclusions
 from crs_study.dataset import WITHDRAWAL_JOURNAL, SessionMetadata, SessionPaths, find_sessions
 from crs_study.dataset.evidence import UnreadableSession, missing_sessions, read_trial_file
@@ -168,7 +170,9 @@ def load_datasets(paths: list[str | Path] | str | Path, exclusions: Exclusions |
         raise DatasetError(f"no readable session in {', '.join(map(str, paths))}: "
                            f"{warnings[0] if warnings else 'none found'}")
     trials, problems = _typed(pd.concat(frames, ignore_index=True), files)
-    warnings += _raise_if_strict(problems, strict)
+    trials, replayed = replay_adaptive(trials, sessions, files)  # derived columns checked
+    warnings += _raise_if_strict(problems + replayed, strict)
+    trials = trials.drop(columns=["_file", "_row"])
     several = len(paths) > 1
     trials["participant_id"] = (trials["dataset"] + "/" + trials["participant"]) if several \
         else trials["participant"]
@@ -267,7 +271,10 @@ def _dataset_name(path: Path) -> str:
         name = json.loads(description.read_text(encoding="utf-8")).get("Name")
     except (OSError, ValueError, AttributeError, RecursionError):
         name = None
-    return str(name) if name else path.resolve().name
+    try:  # a symbolic link loop cannot resolve: named as given, and _sessions_of refuses it
+        return str(name) if name else path.resolve().name
+    except (OSError, RuntimeError):
+        return path.name
 
 
 def _sessions_of(root: Path, task: str | None = None) -> list[SessionPaths]:
@@ -469,7 +476,7 @@ def _typed(raw: pd.DataFrame, files: list[Path]) -> tuple[pd.DataFrame, list[str
                         f"({int(mask.sum())} such row(s) in the file; possible tampering); "
                         f"'correct' recomputed from response and {symbol}")
     out.loc[disagree, "correct"] = recomputed[disagree]
-    return out.drop(columns=["_file", "_row"]), problems
+    return out, problems
 
 
 def _numbers(values: pd.Series, column: str, where) -> pd.Series:
@@ -479,14 +486,11 @@ def _numbers(values: pd.Series, column: str, where) -> pd.Series:
         numbers = pd.to_numeric(values, errors="coerce").astype(float)
     bad = (numbers.isna() & values.notna()) | np.isinf(numbers)
     if bad.any():
+        value = values[bad].iloc[0]  # a numpy scalar as the Python value it holds
+        value = value.item() if isinstance(value, np.generic) else value
         raise DatasetError(f"{where(bad)}: column {column!r}: expected a finite number or "
-                           f"{MISSING!r}, got {_plain(values[bad].iloc[0])!r}")
+                           f"{MISSING!r}, got {value!r}")
     return numbers
-
-
-def _plain(value):
-    """A numpy scalar as the Python value it holds (for messages)."""
-    return value.item() if isinstance(value, np.generic) else value
 
 
 def _order_columns(trials: pd.DataFrame) -> pd.DataFrame:

@@ -43,7 +43,8 @@ def run(quick: bool) -> list[Figure]:
     walls, sessions, frames = [], [], 0
     for k in range(repeat + 1):  # the first run warms the stimulus cache, not timed
         with tempfile.TemporaryDirectory(prefix="crs-bench-runner-") as tmp:
-            spec = SessionSpec(protocol, f"bench{k:02d}", Path(tmp), "sim://", 1, responder,
+            # a simulated participant's label (sim...): it needs no consent record
+            spec = SessionSpec(protocol, f"simbench{k:02d}", Path(tmp), "sim://", 1, responder,
                                "virtual", 0, durable=False)
             start = time.perf_counter()
             result = run_session(spec)

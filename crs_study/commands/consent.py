@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import asdict
 
 from crs_study import consent
@@ -39,6 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="initials of the experimenter taking consent")
     record.add_argument("--name", default=None,
                         help="the participant's name, kept in the register only (optional)")
+    record.add_argument("--renew", action="store_true",
+                        help="the participant consented before: this record replaces that "
+                        "one (a new form version, a corrected name); the first is kept in "
+                        "the register and `list` shows it (without --renew a second record "
+                        "for a label is refused)")
 
     listing = add("list", "list consent records (names hidden unless --show-names)")
     listing.add_argument("--json", action="store_true", help="one JSON object per line")
@@ -66,6 +72,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="dataset whose interrupted withdrawal to finish (repeatable)")
 
 
+def _line(record: consent.ConsentRecord, args: argparse.Namespace) -> str:
+    name = f"  {record.name}" if args.show_names and record.name else ""
+    return f"form {record.form_version:8s} {record.time}  {record.experimenter}{name}"
+
+
 def _print_plan(plan: consent.DatasetWithdrawal, verb: str = "will") -> None:
     """The list of what a withdrawal removes, printed before it acts (or instead, dry run)."""
     lines = plan.lines()
@@ -78,11 +89,18 @@ def _print_plan(plan: consent.DatasetWithdrawal, verb: str = "will") -> None:
 @os_errors(ConsentError)  # disk full, permission denied, a file where a folder should be: one line
 def run(args: argparse.Namespace) -> int:
     register = consent.Register(args.register)
+    if args.action != "recover" and register.directory.is_dir():
+        for message in register.repair():  # a torn last line, set aside and said
+            print(f"crs-study consent: repaired: {message}", file=sys.stderr, flush=True)
     if args.action == "record":
         form = consent.read_form(resolve_consent_form(args.form))
-        record = register.record(form, args.experimenter, args.participant, args.name)
+        record = register.record(form, args.experimenter, args.participant, args.name,
+                                 renew=args.renew)
+        renewed = f" (renews the record of {record.earlier[-1].time})" if record.earlier \
+            else ""
         print(f"consent recorded: participant {record.participant}, form version "
-              f"{record.form_version}, {record.time}, experimenter {record.experimenter}")
+              f"{record.form_version}, {record.time}, experimenter {record.experimenter}"
+              f"{renewed}")
         return 0
     if args.action == "list":
         folder = register.directory
@@ -90,18 +108,21 @@ def run(args: argparse.Namespace) -> int:
             what = "is a file, not a folder" if folder.exists() else "no such folder"
             raise ConsentError(f"--consent-register {folder}: {what}; expected the consent "
                                "register's folder (the one `consent record` wrote)")
-        records = register.records()
+        records = register.records(past_unreadable=True)  # each unreadable line: a warning
         for record in records.values():
             row = asdict(record)
-            if not args.show_names:
-                row.pop("name")
+            for past in row["earlier"]:  # each a record of its own, without these two
+                del past["earlier"], past["withdrawn_at"]
+            for shown in (row, *row["earlier"]):
+                if not args.show_names:
+                    del shown["name"]
             row["status"] = record.status
             if args.json:
                 print(json.dumps(row, sort_keys=True))
-            else:
-                name = f"  {record.name}" if args.show_names and record.name else ""
-                print(f"{record.participant:12s} {record.status:10s} form {record.form_version:8s}"
-                      f" {record.time}  {record.experimenter}{name}")
+                continue
+            for past in record.earlier:  # the history first, oldest first
+                print(f"{record.participant:12s} {'renewed':10s} {_line(past, args)}")
+            print(f"{record.participant:12s} {record.status:10s} {_line(record, args)}")
         if not records and not args.json:
             print(f"no consent records in {register.directory}")
         return 0

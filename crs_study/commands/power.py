@@ -12,11 +12,14 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 from crs_study.errors import CrsStudyError
 from crs_study.power_analysis import PowerError, power
+from crs_study.power_analysis.api import check_options
+from crs_study.power_analysis.backends import check_address
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,6 +116,20 @@ class ProgressBar:
         self.stream.flush()
 
 
+def _check_writable(out: Path) -> None:
+    """``out`` can be made and written: a folder made and removed at once in the nearest
+    folder that exists (the realest test: permissions, read-only or virtual file systems)."""
+    parent = out if out.is_dir() else next((p for p in out.absolute().parents if p.exists()),
+                                           None)
+    if parent is None or not parent.is_dir():
+        raise PowerError(f"--out: {out} cannot be made ({parent} is not a folder)")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".crs-power-", dir=parent))
+    except OSError as exc:
+        raise PowerError(f"--out: cannot write in {parent} ({exc.strerror or exc}); "
+                         "nothing was computed") from None
+
+
 def _say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
@@ -130,11 +147,17 @@ def run(args: argparse.Namespace) -> int:
         "jobs": _number(args.jobs, "--jobs", int, 1),
         "draws": _number(args.draws, "--draws", int, 2),
     }
+    check_options(args.participants, args.repetitions, options["studies"], options["seed"],
+                  options["target"], args.fidelity, options["jobs"], options["effect_scale"],
+                  options["participant_sd"], options["participant_slope_sd"], options["draws"])
     out = Path(args.out) if args.out else Path(f"power_{Path(args.protocol).stem}")
     if out.exists() and not out.is_dir():
         raise PowerError(f"--out: {out} is a file, not a folder")
     if args.pilot is not None and not Path(args.pilot).is_dir():
         raise PowerError(f"--pilot: {args.pilot} is not a dataset folder")
+    if args.scheduler is not None:
+        check_address(args.scheduler)
+    _check_writable(out)  # before the curve is computed, not after
     progress = None if args.json else ProgressBar("studies")
     started = time.perf_counter()
     try:

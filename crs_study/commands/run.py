@@ -3,8 +3,9 @@
 Every trial is stored durably before the next begins. After an interruption (Ctrl-C, a power
 cut, a device fault) run the same command again: the session resumes at the next unfinished
 trial of the same plan. A completed session is never overwritten: pass --session N for
-another session. Sessions on a real device (not sim://) need a consent record first
-(crs-study consent record).
+another session. A session under a person's label needs a consent record first (crs-study
+consent record) on every device, sim:// included; only a simulated participant (a sim...
+label answered by a simulated responder on sim://) needs none.
 """
 
 from __future__ import annotations

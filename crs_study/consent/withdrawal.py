@@ -286,7 +286,8 @@ def withdraw(participant: str, datasets: Iterable[str | Path],
     register is marked withdrawn (the session stops at its next trial boundary) and the
     withdrawal waits up to ``wait_s`` seconds for it, else is refused with the data left
     (module docstring). Refused, with nothing changed, when the participant is neither in
-    the register nor in any dataset (a mistyped label). Safe to run again after an
+    the register nor in any dataset (a mistyped label; an unreadable register line might
+    be theirs, so then it proceeds, each such line a warning). Safe to run again after an
     interruption.
     """
     check_label(participant)
@@ -295,7 +296,8 @@ def withdraw(participant: str, datasets: Iterable[str | Path],
     for dataset in datasets:
         _check_dataset(dataset)
     pending = {d: pending_withdrawal(d) for d in datasets}
-    if (not any(event["participant"] == participant for event in register.events())
+    events, unreadable = register.scan()  # past unreadable lines: a withdrawal always works
+    if (not unreadable and not any(event["participant"] == participant for event in events)
             and not any(j and j["participant"] == participant for j in pending.values())
             and all(plan_withdrawal(d, participant).empty for d in datasets)):
         where = ", ".join(map(str, datasets)) or "no dataset given"

@@ -31,7 +31,6 @@ import csv
 import fcntl
 import gzip
 import hashlib
-import os
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -41,6 +40,7 @@ from typing import Any, TextIO
 
 from crs_study._files import (
     append_durably,
+    cut_tail,
     fsync_path,
     make_dirs,
     os_errors,
@@ -377,11 +377,7 @@ class SessionStore:
         backup = self.paths.torn_backup(what, stamp)
         with os_errors(DatasetError, "cut the torn tail of", path):
             make_dirs(self.paths.source_dir)
-            write_atomically(backup, data[keep:])
-            with open(path, "r+b") as handle:
-                handle.truncate(keep)
-                handle.flush()
-                os.fsync(handle.fileno())
+            cut_tail(path, data, keep, backup)
 
     # --- writing ---
     def _append(self, path: Path, data: bytes, create: bool = False) -> None:

@@ -22,6 +22,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from crs_study.power_analysis.design import PowerError
+from crs_study.signals import die_with_parent
 
 #: Progress callback: (units of work done, units in all, seconds elapsed).
 Progress = Callable[[int, int, float], None]
@@ -52,8 +53,10 @@ class Backend:
             from concurrent.futures import ProcessPoolExecutor
 
             self._stack.enter_context(single_threaded_blas())
+            # a SIGKILL of this process ends the workers too (the parent-death signal)
             self.pool = self._stack.enter_context(ProcessPoolExecutor(
-                max_workers=self.jobs, mp_context=multiprocessing.get_context("spawn")))
+                max_workers=self.jobs, mp_context=multiprocessing.get_context("spawn"),
+                initializer=die_with_parent, initargs=(os.getpid(),)))
         return self
 
     def __exit__(self, *exc_info: object) -> None:
@@ -77,10 +80,20 @@ class Backend:
                 progress(done, total, time.perf_counter() - start)
         return results
 
+    def runs_here(self, tasks: Sequence[Any]) -> bool:
+        """Whether :meth:`map` runs ``tasks`` in this process (no scheduler, and no pool or a
+        single task)."""
+        return self.client is None and (self.pool is None or len(tasks) <= 1)
+
+    def cpu_elsewhere(self, tasks: Sequence[Any], seconds: Sequence[float]) -> float:
+        """The CPU seconds ``tasks`` took outside this process, given each one's own
+        ``seconds``: none when they ran here, where this process's CPU time holds them."""
+        return 0.0 if self.runs_here(tasks) else float(sum(seconds))
+
     def _completed(self, function, tasks) -> Iterator[tuple[int, Any]]:
         if self.client is not None:
             yield from _dask(self.client, function, tasks)
-        elif self.pool is not None and len(tasks) > 1:
+        elif not self.runs_here(tasks):
             yield from _pool(self.pool, function, tasks)
         else:
             for index, task in enumerate(tasks):
@@ -134,6 +147,39 @@ def _pool(pool, function, tasks) -> Iterator[tuple[int, Any]]:
         raise
 
 
+def check_address(address: object) -> tuple[str, int]:
+    """``(host, port)`` of a ``tcp://HOST:PORT`` scheduler address, or a one-line
+    :class:`PowerError` naming ``--scheduler``, before any connection is tried.
+
+    Only plain TCP: a ``tls://`` scheduler needs certificates (a ``distributed.Security``)
+    that the command line does not take, ``ucx://`` a transport library, and ``inproc://``
+    lives in another process's memory; handing those to ``Client`` ended in an uncaught
+    error, or in a 20 s stall and a traceback from the half-made client's ``__del__``.
+    (A ``Client`` made in Python, with its security, is taken as it is.)
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    # (a control character would break the one-line error)
+    if not isinstance(address, str) or "://" not in address or not address.isprintable():
+        raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
+                         f"tcp://HOST:8786, got {address!r}")
+    try:
+        protocol, location = parse_address(address, strict=True)
+        host, port = parse_host_port(location)
+    except (ValueError, TypeError) as exc:
+        raise PowerError(f"--scheduler {address}: not a scheduler address ({exc!s:.200}); "
+                         "expected tcp://HOST:PORT, such as tcp://127.0.0.1:8786") from None
+    if protocol != "tcp":
+        why = ("it needs certificates: pass a distributed.Client made with them from Python"
+               if protocol == "tls" else "a Dask scheduler listens on tcp://")
+        raise PowerError(f"--scheduler {address}: {protocol}:// is not supported here ({why}); "
+                         "expected tcp://HOST:PORT")
+    if not host or " " in host or not 1 <= port <= 65535:
+        raise PowerError(f"--scheduler {address}: expected tcp://HOST:PORT with a host and "
+                         f"a port from 1 to 65535, got host {host!r} and port {port!r}")
+    return host, port
+
+
 def connect(scheduler: Any, timeout: float | None = None):
     """``(client, owned)``: a :class:`distributed.Client` for ``scheduler`` (an address, or a
     client taken as it is); an unreachable address is a :class:`PowerError` naming
@@ -144,9 +190,7 @@ def connect(scheduler: Any, timeout: float | None = None):
         raise PowerError(f"--scheduler needs the dask[distributed] packages ({exc})") from None
     if isinstance(scheduler, Client):
         return scheduler, False
-    if not isinstance(scheduler, str) or "://" not in scheduler:
-        raise PowerError(f"--scheduler: expected a Dask scheduler address such as "
-                         f"tcp://HOST:8786, got {scheduler!r}")
+    check_address(scheduler)
     try:
         return Client(scheduler, timeout=CONNECT_TIMEOUT if timeout is None else timeout,
                       set_as_default=False), True

@@ -253,10 +253,16 @@ def _test_trials_per_cell(protocol: Any) -> int:
 _RANGE = re.compile(r"^\s*(\d+)\s*(?::\s*(\d+)\s*(?::\s*(\d+)\s*)?)?$")
 
 
+#: The most participants (per simulated study) and repetitions power takes: far beyond any
+#: study of this design, and a larger value is a typo that would run for days.
+MAX_VALUES = {"--participants": 1000, "--repetitions": 100}
+
+
 def parse_range(text: str | int | list | tuple, option: str, minimum: int) -> tuple[int, ...]:
     """``"4:40:4"`` (start:stop:step, stop included), ``"3:10"`` (step 1), ``"12"`` or
-    ``"4,8,16"`` (items of either form) as sorted distinct whole numbers >= ``minimum``; a
-    list of integers is taken as it is. Errors name ``option``."""
+    ``"4,8,16"`` (items of either form) as sorted distinct whole numbers from ``minimum`` to
+    :data:`MAX_VALUES` of ``option``; a list of integers is taken as it is. Errors name
+    ``option``."""
     if isinstance(text, int | np.integer) and not isinstance(text, bool):
         values = [int(text)]
     elif isinstance(text, list | tuple):
@@ -277,6 +283,9 @@ def parse_range(text: str | int | list | tuple, option: str, minimum: int) -> tu
             if step < 1 or stop < start:
                 raise PowerError(f"{option}: expected A:B:STEP with A <= B and STEP >= 1, "
                                  f"got {item.strip()!r}")
+            if len(range(start, stop + 1, step)) > 200:  # counted before it is made
+                raise PowerError(f"{option}: at most 200 values, got "
+                                 f"{len(range(start, stop + 1, step))} in {item.strip()!r}")
             values += list(range(start, stop + 1, step))
     else:
         raise PowerError(f"{option}: expected a range such as 4:40:4, got {text!r}")
@@ -285,6 +294,9 @@ def parse_range(text: str | int | list | tuple, option: str, minimum: int) -> tu
         what = {"--participants": "at least 2 participants (the participant variance needs "
                                   "two)"}.get(option, f"values of at least {minimum}")
         raise PowerError(f"{option}: expected {what}, got {low}")
+    most = MAX_VALUES.get(option)
+    if most is not None and max(values) > most:
+        raise PowerError(f"{option}: expected at most {most}, got {max(values)}")
     if len(set(values)) > 200:
         raise PowerError(f"{option}: at most 200 values, got {len(set(values))}")
     return tuple(sorted(set(values)))

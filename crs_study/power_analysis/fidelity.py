@@ -72,5 +72,5 @@ def run_full(design: PowerDesign, seed: int, participants: tuple[int, ...], stud
     tasks = [FidelityTask(design, seed, s, participants) for s in range(studies)]
     results = backend.map(run_study, tasks, progress)
     raw = merge(results)
-    raw["cpu_seconds"] = sum(r.seconds for r in results)
+    raw["cpu_seconds"] = backend.cpu_elsewhere(tasks, [r.seconds for r in results])
     return raw

@@ -9,7 +9,9 @@ nor stored, so a session's rows are the plan's trials minus the skipped ones, in
 :func:`rebuild` makes the tracks of a stored session by replaying its rows in plan order:
 every stored level must be the one the replayed track chooses, every trial missing from the
 file must be one its finished track skips, and after the sidecar's ``TrialsCompleted`` rows
-the state's fingerprint must be the sidecar's ``AdaptiveStateSha256``. Anything else is a
+the state's fingerprint must be the sidecar's ``AdaptiveStateSha256``, and each row's
+derived columns (the estimate, its interval, the reversals) the replayed ones (a forged
+estimate with a recomputed ``TrialsSha256`` is refused here). Anything else is a
 one-line :class:`~crs_study.errors.SessionError`: the file is not what this software and
 protocol would have written.
 """
@@ -20,6 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from crs_study.adaptive import AdaptiveRun, RecordedTrial, TrialUpdate
+from crs_study.adaptive.replay import derived_values, disagreement
 from crs_study.dataset.schema import ADAPTIVE_COLUMNS
 from crs_study.dataset.session_metadata import SessionMetadata
 from crs_study.errors import SessionError
@@ -63,9 +66,7 @@ def row_fields(update: TrialUpdate | None) -> dict[str, object]:
     """The adaptive columns of a row (None for a practice trial, written n/a)."""
     if update is None:
         return dict.fromkeys(ADAPTIVE_COLUMNS)
-    return {"adaptive_estimate": update.estimate, "adaptive_ci_low": update.ci_low,
-            "adaptive_ci_high": update.ci_high, "adaptive_reversal": int(update.reversal),
-            "adaptive_reversals": update.reversals}
+    return derived_values(update)
 
 
 def _correct(row: dict[str, str]) -> bool | None:
@@ -111,8 +112,13 @@ def rebuild(protocol: Protocol, plan: TrialPlan, rows: list[dict[str, str]],
             except (KeyError, ValueError):
                 raise SessionError(f"{tsv}: row {k + 1} has no {column} level "
                                    f"({row.get(column)!r})") from None
-            run.replay([RecordedTrial(trial.block, level, _correct(row),
-                                      f"{tsv}: row {k + 1}")])
+            [update] = run.replay([RecordedTrial(trial.block, level, _correct(row),
+                                                 f"{tsv}: row {k + 1}")])
+            forged = disagreement(update, row)
+            if forged is not None:
+                raise SessionError(f"{tsv}: row {k + 1}: {forged}; the session was recorded "
+                                   "by other software or the file was altered: start another "
+                                   "--session")
         done += 1
         if done == checked_at:
             _check_fingerprint(run, stored, sidecar)

@@ -2,13 +2,8 @@
 
 from __future__ import annotations
 
-import ctypes
 import multiprocessing
 import os
-import signal
-import sys
-import threading
-import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -19,6 +14,7 @@ from crs_study.protocol import Protocol, load_protocol
 from crs_study.protocol.lock import current_lock
 from crs_study.session.runner import dataset_task, run_session
 from crs_study.session.spec import DryRunResult, Progress, SessionResult, SessionSpec
+from crs_study.signals import die_with_parent
 
 #: The most simulated participants one dry-run takes (a study of this many sessions is
 #: already hours of machine time; a larger number is a typo, and 2**31 labels exhaust memory).
@@ -46,39 +42,6 @@ def simulated_labels(n: int, prefix: str = "sim") -> list[str]:
     return [f"{prefix}{i:0{width}d}" for i in range(1, n + 1)]
 
 
-#: How often a worker's watchdog looks whether its parent is still alive (s).
-WATCHDOG_S = 0.5
-
-
-def _die_with_parent(parent: int) -> None:
-    """A worker's initializer: the worker ends when the dry-run that started it does.
-
-    On Linux the kernel sends SIGKILL to the worker when its parent dies
-    (``prctl(PR_SET_PDEATHSIG)``, through ctypes); elsewhere, and should that call fail, a
-    daemon thread checks every :data:`WATCHDOG_S` whether the parent is still the worker's
-    parent (an orphan is adopted by another process) and kills the worker otherwise. So a
-    SIGKILL of ``crs-study dry-run --jobs N`` leaves no worker writing into the dataset or
-    holding its stdout open (a ``| tee`` ends). A session cut so resumes on the next run.
-    """
-    if sys.platform.startswith("linux"):
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-        except (OSError, AttributeError):
-            pass  # the watchdog below still ends the worker
-    if os.getppid() != parent:  # the parent died before the call above took effect
-        os.kill(os.getpid(), signal.SIGKILL)
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(WATCHDOG_S)
-        os.kill(os.getpid(), signal.SIGKILL)
-
-    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
-
-
-#: prctl option: the signal a process gets when its parent dies (linux/prctl.h).
-PR_SET_PDEATHSIG = 1
 
 
 def _dry_run_one(spec: SessionSpec) -> SessionResult:
@@ -141,7 +104,7 @@ def dry_run(protocol: str | os.PathLike[str] | Protocol, participants: int,
     else:
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max_workers=min(jobs, len(specs)), mp_context=context,
-                                 initializer=_die_with_parent,
+                                 initializer=die_with_parent,
                                  initargs=(os.getpid(),)) as pool:
             futures = [pool.submit(_dry_run_one, spec) for spec in specs]
             try:

@@ -1,0 +1,17 @@
+"""Bench area ``runner`` runs to its figure as ``crs-study bench runner --quick`` (a real
+process, the consent gate included: its participants are simulated ones)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+
+def test_bench_runner_quick_runs_to_its_figure(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "crs_study", "bench", "runner", "--quick"],
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr and "consent" not in done.stderr
+    lines = [line for line in done.stdout.splitlines() if "dry-run session s per wall s" in line]
+    assert len(lines) == 1, done.stdout
+    assert ("ok" in lines[0]) != ("MISSED" in lines[0])  # reported, never asserted
