@@ -58,6 +58,7 @@ from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.quality.mechanics import StimulusLimits, layout_delta, stimulus_limits
 from crs_study.rendering.frames import render_frames
+from crs_study.rendering.conditions import get_condition
 from crs_study.rendering.render import Renderer
 from crs_study.stimuli.stimulus import (
     Stimulus,
@@ -246,7 +247,7 @@ def _device_checks(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layo
                         f"{layout.name!r} with a {layout.lattice!r} lattice")]
     limits = stimulus_limits(layout, Bump((0.0, 0.0), spec.bump_diameter_mm,
                                           spec.bump_height_mm))
-    beams = [c for c in conditions if c != "pixel-only"]
+    beams = [c for c in conditions if get_condition(c).drives_beams]
     curvature = _curvature(spec, limits) if beams else None
     if curvature is not None and curvature.severity == "error":
         return [curvature]
@@ -368,7 +369,7 @@ def _rendered(condition: str, layout: Layout, stimuli: list[Stimulus], spec: Sti
                            {"condition": condition, shown.column: stim.symbol})
         if layout.boundary_actuators:
             peak_feed = max(peak_feed, float(frames[:, layout.n_pixels:].max()))
-    if condition == "pixel-only":
+    if not get_condition(condition).drives_beams:
         return Finding("ok", "conditions.names", f"{condition}: every frame within travel",
                        {"condition": condition})
     return Finding("ok", "conditions.names", f"{condition}: every frame within travel "
