@@ -21,8 +21,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from crs_study.errors import ProtocolError, ProtocolProblems
 from crs_study.protocol import Protocol, TrialPlan, load_protocol
 from crs_study.protocol import make_plan as plan_of
+from crs_study.protocol.problems import protocol_problems
 from crs_study.protocol.summary import (  # noqa: F401  (re-exported: the API's names)
     SUMMARY_COLUMNS,
     ProtocolSummary,
@@ -49,11 +51,19 @@ def validate(protocol: ProtocolSource, *, participant: str = "example", session:
     of ``participant``: trials, blocks and their orders, expected duration, frames, wire use.
 
     Raises :class:`~crs_study.errors.ProtocolError` (one line: file, line, key, value) for
-    the first problem.
+    a protocol with one problem, and :class:`~crs_study.errors.ProtocolProblems` (one line
+    each) listing every problem one reading finds
+    (:func:`~crs_study.protocol.problems.protocol_problems`) when there are more.
     """
-    protocol = load_protocol(protocol)
-    plan = plan_of(protocol, participant, session, counterbalance)
-    return summarise(protocol, plan, participant, session, counterbalance)
+    try:
+        checked = load_protocol(protocol)
+    except ProtocolError as first:
+        problems = protocol_problems(protocol)
+        if len(problems) > 1:
+            raise ProtocolProblems(problems) from None
+        raise first from None
+    plan = plan_of(checked, participant, session, counterbalance)
+    return summarise(checked, plan, participant, session, counterbalance)
 
 
 def run_session(protocol: ProtocolSource, participant: str, out: str | os.PathLike[str], *,

@@ -1,21 +1,28 @@
 """Check a protocol strictly and print its plan: trials, expected duration, frames, wire use.
 
 Every key is checked (unknown keys, types, ranges: one-line errors naming file, line, key and
-value), then the stimulus against the device: inside the display, within the pixels' travel
-and the CRS limits, the frame rate within the wire. Wire use is reported two ways: full
-frames (every channel of every controller in every frame, the bound the check uses) and
-changed-only frames (channels whose pulse width changes on the rendered frames, first frame
-from neutral excluded from the busiest; :func:`crs_study.device.schedule.wire_plan`).
-A protocol with ``[levels]`` also gets its levels and, per level, the trials of each condition
-and the frames per trial; frames and wire use are then over every (symbol, level) stimulus.
+value; every error one reading can find is listed, one a line:
+:mod:`crs_study.protocol.problems`), then the stimulus against the device: inside the
+display, within the pixels' travel and the CRS limits, the frame rate within the wire. Wire
+use is reported two ways: full frames (every channel of every controller in every frame, the
+bound the check uses) and changed-only frames (channels whose pulse width changes on the
+rendered frames, first frame from neutral excluded from the busiest;
+:func:`crs_study.device.schedule.wire_plan`). A protocol with ``[levels]`` also gets its
+levels and, per level, the trials of each condition and the frames per trial; frames and wire
+use are then over every (symbol, level) stimulus.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from crs_study.adaptive.spec import AdaptiveSpec
 from crs_study.api import ProtocolSummary, validate
+from crs_study.errors import ProtocolProblems
+
+#: The exit status of an invalid protocol (the command line's one for a known error).
+EXIT_INVALID = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,8 +37,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    summary = validate(args.protocol, participant=args.participant, session=args.session,
-                       counterbalance=args.counterbalance)  # a path, or a shipped name
+    try:
+        summary = validate(args.protocol, participant=args.participant, session=args.session,
+                           counterbalance=args.counterbalance)  # a path, or a shipped name
+    except ProtocolProblems as problems:  # every one found, one line each
+        for problem in problems.problems:
+            print(f"crs-study validate: error: {problem}", file=sys.stderr)
+        print(f"crs-study validate: {len(problems.problems)} errors in {problems.source}",
+              file=sys.stderr)
+        return EXIT_INVALID
     if args.json:
         print(summary.to_json(trials=args.list))
         return 0
