@@ -69,6 +69,7 @@ def test_screen_layout_keys_break_and_pause_in_tmux(tmp_path):
         match = re.search(r"Break: rest 0:0(\d) left", later)
         assert (match and int(match.group(1)) < left) or "Break over" in later, later
         term.send("Space")
+        term.send("Space")  # twice: one Space alone does not cut a break's rest short
         term.wait_for("trial 2/4")
         term.wait_for("ANSWER NOW")
         term.send("Escape")  # alone: the pause key

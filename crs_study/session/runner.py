@@ -20,15 +20,18 @@ stops it at the next trial boundary, display neutral, session interrupted, one l
 how to withdraw the data); only a simulated participant (a ``sim...`` label, a simulated
 responder, ``sim://``) skips it (:mod:`crs_study.consent.gate`).
 
-Failures: Ctrl-C (or the keypad's quit key, or SIGTERM) is a safe pause: the display goes
-neutral, the session is marked ``interrupted`` and the run returns status ``interrupted``
-(exit 130). A :class:`~crs_study.errors.DeviceError` during a trial (a board that stops
-answering the heartbeat included) marks the session interrupted, records the fault in the
-sidecar, moves to neutral and is raised again as one line; the trial is rerun on resume and
-its row then says ``device_fault = 1``. Every interruption's cause is recorded in the
-sidecar's ``Interruptions`` (pause key, signal, device fault, consent withdrawn, another
-error, or a crash found on resume: the sidecar still said ``running``); a trial an
-interruption cut after its stimulus began is rerun with ``rerun = 1`` in its row.
+Pauses: the keypad's ``p`` pauses in place (display neutral, the trial under way played again
+with ``rerun = 1``, the session goes on when the experimenter presses Space).
+
+Failures: Ctrl-C (or the keypad's quit key, SIGTERM, or SIGHUP: the terminal closed) is a
+safe pause: the display goes neutral, the session is marked ``interrupted`` and the run
+returns status ``interrupted`` (exit 130). A :class:`~crs_study.errors.DeviceError` during a
+trial (a board that stops answering the heartbeat included) marks the session interrupted,
+records the fault in the sidecar, moves to neutral and is raised again as one line; the trial
+is rerun on resume and its row then says ``device_fault = 1``. Every interruption's cause is
+recorded in the sidecar's ``Interruptions`` (pause key, signal, device fault, consent
+withdrawn, another error, or a crash found on resume: the sidecar still said ``running``); a
+trial an interruption cut after its stimulus began is rerun with ``rerun = 1`` in its row.
 
 Resume: the sidecar, the trial file and the frame log must agree beyond a torn last line
 (:meth:`~crs_study.dataset.SessionStore.check_resumable`); any other disagreement is a
@@ -62,7 +65,8 @@ from crs_study.rendering.feed_cap import WireSlack
 from crs_study.session.adaptive import choose, next_to_play, rebuild
 from crs_study.session.prompts import resume_prompt
 from crs_study.session.responders import Responder, make_responder
-from crs_study.session.responders.keypad import PauseRequested
+from crs_study.session.responders.base import PauseInPlace
+from crs_study.session.responders.keypad import PauseRequested, TerminalClosed
 from crs_study.session.resume import (
     Fingerprints,
     check_frames,
@@ -364,9 +368,13 @@ def play_trials(run: Run, progress: Progress | None = None) -> str:
     except KeyboardInterrupt as interrupt:
         if isinstance(interrupt, PauseRequested):
             record_interruption(state, "pause-key", "the keypad's pause key")
+        elif isinstance(interrupt, TerminalClosed):
+            record_interruption(state, "signal", "the keypad's terminal was closed")
         else:
             name = describe(interrupt)
-            record_interruption(state, "signal", "SIGINT (Ctrl-C)" if name == "Ctrl-C" else name)
+            record_interruption(state, "signal", {"Ctrl-C": "SIGINT (Ctrl-C)",
+                                                  "SIGHUP": "SIGHUP (the terminal was closed)"
+                                                  }.get(name, name))
         return "interrupted"
     except ConsentError as error:
         record_interruption(state, "consent-withdrawn", str(error))
@@ -431,9 +439,21 @@ def _play(run: Run, progress: Progress | None) -> None:
             if progress:
                 progress(f"sub-{spec.participant} ses-{spec.session}: trial "
                          f"{k + 1}/{o.n_trials}")
-            state.in_trial = True
-            run_trial(state, device, responder, clock, run.origin, run.frames, trial)
+            while True:
+                state.in_trial = True
+                try:
+                    run_trial(state, device, responder, clock, run.origin, run.frames, trial)
+                    break
+                except PauseInPlace:  # the display is neutral; the trial is played again
+                    state.in_trial = False
+                    if state.started is not None:
+                        state.cut.add(state.started)
+                        state.started = None
+                    responder.pause(clock)
+                    # its prompt and break were before the pause: played again without them
+                    trial = replace(trial, prompt_before=None, break_before=False)
             state.in_trial = False
+        responder.end_session()
 
 
 def close_session(run: Run, status: str, wall_start: float) -> SessionResult:
