@@ -101,5 +101,5 @@ def test_the_experimenter_view_split_to_a_log(tmp_path):
     assert re.search(r"^\d\d:\d\d:\d\d participant p01  session 1  block 1/2  trial 1/4  "
                      r"pixel-only$", text, re.M), text
     assert re.search(r"^\d\d:\d\d:\d\d experimenter: Pixel-only block: .* -- Space or Enter "
-                     r"continues, q pauses$", text, re.M), text
+                     r"continues, p pauses, q ends$", text, re.M), text
     assert "state: ANSWER NOW" in text and "state: Paused" in text
