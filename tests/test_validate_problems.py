@@ -69,12 +69,17 @@ def test_one_run_lists_every_error_each_as_the_file_with_it_alone_says(tmp_path)
     assert listed[0] == str(first.value)
 
 
-def test_a_consequence_of_a_repair_is_not_listed(tmp_path):
-    """Dropping the bad digit leaves two digits for three keys: not a second error."""
+@pytest.mark.parametrize("digits, key", [
+    pytest.param("[1, 4, 77]", "stimulus.digits[2]", id="two-for-three-keys"),
+    pytest.param('["a", 4]', "stimulus.digits[0]", id="one-left"),
+])
+def test_a_consequence_of_a_repair_is_not_listed(tmp_path, digits, key):
+    """Dropping the bad digit leaves fewer digits than keys (or one digit alone): no second
+    error."""
     path = _with(tiny_protocol(tmp_path), "digits.toml",
-                 [("digits = [1, 4, 7]", "digits = [1, 4, 77]")])
+                 [("digits = [1, 4, 7]", f"digits = {digits}")])
     problems = protocol_problems(path)
-    assert [p.key_path for p in problems] == ["stimulus.digits[2]"]
+    assert [p.key_path for p in problems] == [key]
 
 
 def test_one_error_stays_a_plain_protocol_error_and_a_valid_file_has_none(tmp_path):

@@ -13,7 +13,7 @@ fails.
 
 A repair can cause an error of its own (a list of symbols with one dropped no longer matches
 the response keys). An error that names a repaired key, in its key path or in its message
-(every message names the keys it concerns), or the value of an element dropped, is such a
+(every message names the keys it concerns), or a string element dropped, is such a
 consequence and is not reported; the repairs go on. The first problem listed is always the
 one loading the file raises.
 """
@@ -124,14 +124,16 @@ def _lookup(data: Any, parts: list[str | int]) -> tuple[bool, Any]:
 
 def _repair(data: dict, error: ProtocolError, reference: dict, dropped: list[str]) -> bool:
     """Change ``data`` so that reading it again gets past ``error``; False when it cannot.
-    The ``repr`` of an array element dropped is added to ``dropped``."""
+    The ``repr`` of a string element dropped from an array is added to ``dropped``."""
     parts = _parts(error.key_path)
     found, parent = _lookup(data, parts[:-1])
     if not found or not isinstance(parent, dict | list):
         return False
     key = parts[-1]
     if isinstance(key, int):  # a bad element of an array: without it
-        dropped.append(repr(parent.pop(key)))
+        value = parent.pop(key)
+        if isinstance(value, str):  # quoted, it names what it belongs to (a prompt's key)
+            dropped.append(repr(value))
         return True
     if error.reason.startswith("unknown key"):
         value = parent.pop(key, None)
@@ -158,7 +160,7 @@ def _follows_from(error: ProtocolError, repaired: list[str], dropped: list[str])
         return True
     for key in repaired:
         base = _INDEX.sub(r"\g<base>", key)
-        if error.key_path is not None and (error.key_path == key or
+        if error.key_path is not None and (error.key_path in (key, base) or
                                            error.key_path.startswith(base + "[")):
             return True
         if re.search(rf"(?<![\w.]){re.escape(base)}(?![\w])", error.reason):
