@@ -9,6 +9,7 @@ prints such errors as one line and exits non-zero (``--debug`` shows the traceba
     ├── ConfigError            a device file, protocol or analysis plan is malformed
     │   ├── DeviceFileError    device (layout) TOML files
     │   ├── ProtocolError      protocol TOML files
+    │   │   └── ProtocolProblems   every problem one reading of a protocol found
     │   └── PlanError          analysis plan TOML files
     ├── DisplayModelError      a display model cannot produce a surface
     │   └── CollapseError      the compressed beam collapses (Eq. 4 / critical load)
@@ -81,6 +82,28 @@ class DeviceFileError(ConfigError):
 
 class ProtocolError(ConfigError):
     """A protocol file is malformed or asks for something the device cannot do."""
+
+
+class ProtocolProblems(ProtocolError):
+    """Several problems of one protocol, found in one reading
+    (:func:`crs_study.protocol.problems.protocol_problems`).
+
+    ``problems`` holds each as a :class:`ProtocolError`, the first being the one loading the
+    protocol raises (whose reason, file, line and key this error carries); the message is
+    theirs, one a line.
+    """
+
+    def __init__(self, problems: tuple[ProtocolError, ...] | list[ProtocolError]) -> None:
+        self.problems = tuple(problems)
+        first = self.problems[0]
+        super().__init__(first.reason, source=first.source, line=first.line,
+                         key_path=first.key_path, shown_path=first.shown_path)
+
+    def __str__(self) -> str:
+        return "\n".join(str(p) for p in self.problems)
+
+    def __reduce__(self):
+        return (self.__class__, (self.problems,))
 
 
 class PlanError(ConfigError):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from crs_study.clock import VirtualClock
-from crs_study.errors import ConfigError
+from crs_study.errors import ConfigError, RenderError
 from crs_study.paths import shipped_file
 from crs_study.protocol import load_protocol
 from crs_study.rendering.frames import render_frames
@@ -75,7 +75,8 @@ def test_model_per_condition(protocol):
     observer = PerceptualObserver(protocol.layout(), protocol, 1)
     assert observer.model_name("pixel-only") == "linear"
     assert observer.model_name("crs") == "beam"
-    assert observer.model_name("some-new-crs") == "beam"
+    with pytest.raises(RenderError, match=r"unknown condition .some-new-crs."):
+        observer.model_name("some-new-crs")
 
 
 def test_linear_model_as_a_matrix_equals_the_model(protocol, rng):

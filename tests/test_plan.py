@@ -160,7 +160,8 @@ def test_williams_square_is_balanced():
 def test_latin_with_three_registered_conditions(full, monkeypatch):
     from crs_study.rendering import render
 
-    monkeypatch.setitem(render.CONDITIONS, "crs-b", render.render_crs)
+    monkeypatch.setitem(render.CONDITIONS, "crs-b",
+                        replace(render.CONDITIONS["crs"], name="crs-b"))
     protocol = with_design(replace(full, conditions=("pixel-only", "crs", "crs-b")),
                            counterbalancing="latin")
     orders = [block_order(protocol, k) for k in range(6)]
@@ -187,7 +188,8 @@ def test_block_orders_repeat_with_the_counterbalance_cycle(full, scheme, orderin
 def test_block_orders_of_three_conditions_latin(full, monkeypatch):
     from crs_study.rendering import render
 
-    monkeypatch.setitem(render.CONDITIONS, "crs-b", render.render_crs)
+    monkeypatch.setitem(render.CONDITIONS, "crs-b",
+                        replace(render.CONDITIONS["crs"], name="crs-b"))
     protocol = with_design(replace(full, conditions=("pixel-only", "crs", "crs-b")),
                            counterbalancing="latin")
     assert counterbalance_cycle(protocol) == 6  # 2n rows for odd n (Williams 1949)

@@ -11,6 +11,7 @@ from crs_study.errors import CollapseError, RenderError
 from crs_study.rendering.render import (
     CONDITIONS,
     BeamGeometry,
+    Condition,
     Renderer,
     Rendering,
     register_condition,
@@ -148,7 +149,8 @@ def test_registered_condition_is_used_and_limited(layout2d):
     def everything_up(layout, target, geometry=None):
         return np.full(layout.n_actuators, 10.0)
 
-    register_condition("test-everything-up", everything_up)
+    register_condition(Condition("test-everything-up", everything_up, drives_beams=True,
+                                 display_model="beam"))
     try:
         renderer = Renderer(layout2d, "test-everything-up", cap_feed=False)  # clipping only
         result = renderer.render(Bump((0.0, 0.0), 90.0, 1.0))

@@ -21,7 +21,13 @@ from crs_study.display.beam import CompressedBeams
 from crs_study.errors import RenderError
 from crs_study.protocol import load_protocol
 from crs_study.rendering.feed_cap import WireSlack
-from crs_study.rendering.render import CONDITIONS, BeamGeometry, Renderer, split_feed
+from crs_study.rendering.render import (
+    CONDITIONS,
+    BeamGeometry,
+    Condition,
+    Renderer,
+    split_feed,
+)
 from crs_study.stimuli.stimulus import make_stimulus
 from crs_study.stimuli.targets import Bump
 
@@ -45,7 +51,7 @@ def renderer_before(layout, condition: str, bump: Bump) -> tuple[np.ndarray, tup
     if layout.lattice == "line" and bump.centre_mm[1] != float(layout.pixel_xy[0, 1]):
         bump = bump.moved_to((bump.centre_mm[0], float(layout.pixel_xy[0, 1])))
     geometry = BeamGeometry(layout)
-    raw = CONDITIONS[condition](layout, bump, geometry)
+    raw = CONDITIONS[condition].render(layout, bump, geometry)
     upper = np.array([a.calibration.travel_mm for a in layout.actuators])
     clipped = np.clip(raw, 0.0, upper)
     bad = np.flatnonzero(np.abs(clipped - raw) > 1e-12)
@@ -75,7 +81,7 @@ def general_path(renderer: Renderer, bump: Bump):
     """The renderer's general path (condition function, then limit) for the same bump."""
     if renderer._line_y is not None:
         bump = bump.moved_to((bump.centre_mm[0], renderer._line_y))
-    return renderer.limit(CONDITIONS[renderer.condition](renderer.layout, bump,
+    return renderer.limit(CONDITIONS[renderer.condition].render(renderer.layout, bump,
                                                          renderer._geometry))
 
 
@@ -126,9 +132,10 @@ def test_a_bump_subclass_or_a_registered_condition_takes_the_general_path(layout
 
     def traced(layout, target, geometry=None):
         calls.append(target)
-        return CONDITIONS["crs"](layout, target, geometry)
+        return CONDITIONS["crs"].render(layout, target, geometry)
 
-    CONDITIONS["test-traced"] = traced
+    CONDITIONS["test-traced"] = Condition("test-traced", traced, drives_beams=True,
+                                          display_model="beam")
     try:
         Renderer(layout2d, "test-traced").render(Bump((0.0, 0.0), 90.0, 5.0))
     finally:

@@ -132,7 +132,7 @@ def test_respond_at_never_goes_back():
 
 
 def test_keypad_refuses_pause_key_as_answer():
-    with pytest.raises(ConfigError, match="response key 'q' is also the pause key"):
+    with pytest.raises(ConfigError, match="response key 'q' is also a pause key"):
         KeypadResponder(keys={"q": 1})
 
 

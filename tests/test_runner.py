@@ -18,7 +18,7 @@ from crs_study.errors import ConsentError, CrsStudyError, DeviceError, SessionEr
 from crs_study.protocol import load_protocol
 from crs_study.protocol.plan import make_plan
 from crs_study.session.dry_runs import dry_run, simulated_labels
-from crs_study.session.responders.base import Responder, Response
+from crs_study.session.responders.base import PauseInPlace, Responder, Response
 from crs_study.session.responders.random import RandomResponder
 from crs_study.session.runner import run_session, seed_check
 from crs_study.session.spec import SessionSpec
@@ -636,3 +636,48 @@ def test_participants_arriving_together_get_their_own_counterbalance(tmp_path, d
     result = run_session(spec)
     assert Dataset(spec.dataset).participants() == {"other": 0, "sim02": 1}
     assert json.loads(result.sidecar.read_text())["Counterbalance"] == 1
+
+
+class PausesInPlace(Recorder):
+    """Pauses in place (the keypad's p) once while trial 1 waits for its answer and once
+    during trial 3's stimulus (at its third frame); counts the pauses."""
+
+    def __init__(self, seed):
+        super().__init__(seed)
+        self.pauses, self.polls, self.asked = 0, 0, set()
+
+    def begin_trial(self, trial, onset_time, clock):
+        self.current, self.polls = trial.index, 0
+
+    def poll(self):
+        self.polls += 1
+        if self.current == 3 and self.polls == 3 and 3 not in self.asked:
+            self.asked.add(3)
+            raise PauseInPlace("p")
+
+    def pause(self, clock):
+        self.pauses += 1
+
+    def respond(self, trial, stimulus, clock, time_limit_s):
+        if trial.index == 1 and 1 not in self.asked:
+            self.asked.add(1)
+            raise PauseInPlace("p")
+        return super().respond(trial, stimulus, clock, time_limit_s)
+
+
+def test_a_pause_in_place_plays_the_trial_again_and_goes_on(tmp_path, devices):
+    protocol = tiny_protocol(tmp_path)
+    responder = PausesInPlace(seed=5)
+    result = run_session(spec_for(tmp_path, protocol), responder=responder)
+    assert result.status == "complete" and responder.pauses == 2
+    rows = read_rows(result.tsv)
+    assert [int(r["trial_index"]) for r in rows] == list(range(8))  # nothing lost or doubled
+    assert [r["rerun"] for r in rows] == ["0", "1", "0", "1", "0", "0", "0", "0"]
+    # paused during a stimulus: the display went neutral before the pause, at once
+    # (its first two frames, then neutral, then the same stimulus from its first frame)
+    sent = devices[0][0].sent
+    flat = [bool(np.array_equal(s, devices[0][0].layout.neutral_setpoints())) for s in sent]
+    cut = [i for i in range(3, len(sent) - 1) if flat[i] and flat[i - 3]
+           and not flat[i - 1] and not flat[i - 2]]
+    assert len(cut) == 1 and np.array_equal(sent[cut[0] + 1], sent[cut[0] - 2])
+    assert len(responder.prompts) == 2  # a trial played again repeats no block prompt

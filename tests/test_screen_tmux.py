@@ -69,6 +69,7 @@ def test_screen_layout_keys_break_and_pause_in_tmux(tmp_path):
         match = re.search(r"Break: rest 0:0(\d) left", later)
         assert (match and int(match.group(1)) < left) or "Break over" in later, later
         term.send("Space")
+        term.send("Space")  # twice: one Space alone does not cut a break's rest short
         term.wait_for("trial 2/4")
         term.wait_for("ANSWER NOW")
         term.send("Escape")  # alone: the pause key
@@ -100,5 +101,5 @@ def test_the_experimenter_view_split_to_a_log(tmp_path):
     assert re.search(r"^\d\d:\d\d:\d\d participant p01  session 1  block 1/2  trial 1/4  "
                      r"pixel-only$", text, re.M), text
     assert re.search(r"^\d\d:\d\d:\d\d experimenter: Pixel-only block: .* -- Space or Enter "
-                     r"continues, q pauses$", text, re.M), text
+                     r"continues, p pauses, q ends$", text, re.M), text
     assert "state: ANSWER NOW" in text and "state: Paused" in text

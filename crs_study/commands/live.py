@@ -28,6 +28,7 @@ from crs_study.errors import DeviceError
 from crs_study.geometry.layout import load_layout
 from crs_study.live.session import LiveConfig, LiveSession
 from crs_study.live.view import TerminalView, screen
+from crs_study.rendering.conditions import CONDITIONS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sim://[?options] or serial:///dev/ttyUSB0,/dev/ttyUSB1")
     parser.add_argument("--layout", default="crs2d", metavar="NAME|FILE",
                         help="device file: crs2d, crs1d or a path")
-    parser.add_argument("--condition", default="crs", choices=("crs", "pixel-only"),
-                        help="how the bump is rendered")
+    parser.add_argument("--condition", default="crs", choices=tuple(CONDITIONS),
+                        help="how the bump is rendered (a registered display condition)")
     shape = parser.add_argument_group("the bump and the area")
     shape.add_argument("--diameter-mm", type=float, default=90.0,
                        help="bump diameter (Eq. 7; the paper's 90 mm)")

@@ -1,10 +1,12 @@
 """Can the device show this protocol? Every check of a protocol against its device, once.
 
 :func:`check_feasibility` returns a :class:`Feasibility`: one :class:`Finding` per check
-(severity ``"ok"``, or ``"error"`` for the first check that fails, after which nothing more is
-checked), each with the protocol key it concerns, a one-line message and the numbers behind
+(severity ``"ok"``, or ``"error"`` for each check that fails; a check that needs a failed one
+passed is not run: rendering needs the stimulus inside the display, within travel and
+curvature), each with the protocol key it concerns, a one-line message and the numbers behind
 it. :func:`check_on_device` is what loading a protocol runs: the lines of the checks passed,
-or the first failure as a :class:`~crs_study.errors.ProtocolError` at the key's line.
+or the first failure as a :class:`~crs_study.errors.ProtocolError` at the key's line
+(:func:`crs_study.protocol.problems.protocol_problems` lists them all).
 
 The checks, in the order a failure is reported:
 
@@ -57,6 +59,7 @@ from crs_study.errors import (
 from crs_study.geometry.layout import Layout
 from crs_study.protocol.model import Protocol, consent_form_path
 from crs_study.quality.mechanics import StimulusLimits, layout_delta, stimulus_limits
+from crs_study.rendering.conditions import get_condition
 from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
 from crs_study.stimuli.stimulus import (
@@ -154,8 +157,9 @@ def check_on_device(protocol: Protocol) -> tuple[str, ...]:
 
 
 def check_feasibility(protocol: Protocol, layout: Layout | None = None) -> Feasibility:
-    """Every check of the module docstring, in order, until one fails (never raises for a
-    failed check). ``layout`` replaces the protocol's device (``device check --layout``)."""
+    """Every check of the module docstring, in order; every failure is a finding (never
+    raises for a failed check). ``layout`` replaces the protocol's device (``device check
+    --layout``)."""
     findings = _findings(protocol, layout)
     located = tuple(f if f.key_path is None else
                     Finding(f.severity, f.key_path, f.message, f.values,
@@ -173,9 +177,7 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
                      f"{len(layout.beams)} beams, {layout.n_actuators} actuators",
                      {"pixels": layout.n_pixels, "beams": len(layout.beams),
                       "actuators": layout.n_actuators})]
-    found.append(_consent(protocol))
-    if found[-1].severity == "error":
-        return found
+    found.append(_consent(protocol))  # the device checks run whatever the form says
     levels = protocol.levels
     if levels is None:
         return found + _spec_findings(protocol.stimulus, protocol.conditions, layout, True)
@@ -183,11 +185,11 @@ def _findings(protocol: Protocol, layout: Layout | None) -> list[Finding]:
     for i, value in enumerate(levels.values):
         checked = _spec_findings(protocol.stimulus_at(value), protocol.conditions, layout,
                                  sized=not levels.varies_size)
-        if checked[-1].severity == "error":
-            inner = checked[-1]
+        failed = [f for f in checked if f.severity == "error"]
+        if failed:  # the first level that fails, with every check failing there
             return found + [Finding("error", level_key(protocol, i, value),
                                     f"at {levels.parameter} = {value:g}: "
-                                    + inner.describe(), inner.values)]
+                                    + inner.describe(), inner.values) for inner in failed]
         per_level.append(checked)
     # lines shared by all levels are kept once, the others are prefixed with their level
     shared = set.intersection(*({f.message for f in lines} for lines in per_level))
@@ -228,8 +230,8 @@ def _consent(protocol: Protocol) -> Finding:
 
 def _spec_findings(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layout,
                    sized: bool) -> list[Finding]:
-    """The device checks of one stimulus spec: the passed ones, or the checks up to the
-    first failure (the last finding)."""
+    """The device checks of one stimulus spec: the passed ones, or every check that failed
+    (the checks that need them passed are not run)."""
     try:
         return _device_checks(spec, conditions, layout, sized)
     except ConfigError as exc:  # a symbol without strokes, a stimulus too slow to draw
@@ -246,26 +248,25 @@ def _device_checks(spec: StimulusSpec, conditions: tuple[str, ...], layout: Layo
                         f"{layout.name!r} with a {layout.lattice!r} lattice")]
     limits = stimulus_limits(layout, Bump((0.0, 0.0), spec.bump_diameter_mm,
                                           spec.bump_height_mm))
-    beams = [c for c in conditions if c != "pixel-only"]
+    beams = [c for c in conditions if get_condition(c).drives_beams]
     curvature = _curvature(spec, limits) if beams else None
-    if curvature is not None and curvature.severity == "error":
-        return [curvature]
     stimuli = [stimulus_for(spec, layout.pitch_mm, placement_centre(spec, layout), d)
                for d in spec.symbols]
     first = [_inside(spec, layout, stimuli, sized), _height(spec, limits), _wire(spec, layout)]
-    failed = [f for f in first if f.severity == "error"]
-    if failed:
-        return failed[:1]
     found = [first[1], first[2], first[0]]
     if curvature is not None:
         found.append(curvature)
         delta = collapse_delta(layout)
-        if delta < 1.0:
-            return [Finding("error", "conditions.names", f"the beams collapse on this device "
-                            f"(Eq. 4: Delta = {delta:.2f} < 1); got conditions {beams!r}",
-                            {"delta": delta})]
-        found.append(Finding("ok", "conditions.names",
+        found.append(Finding("error", "conditions.names", f"the beams collapse on this device "
+                             f"(Eq. 4: Delta = {delta:.2f} < 1); got conditions {beams!r}",
+                             {"delta": delta}) if delta < 1.0 else
+                     Finding("ok", "conditions.names",
                              f"no collapse: Delta = {delta:.2f} >= 1 (Eq. 4)", {"delta": delta}))
+    # each check above stands alone: every one that fails is reported, in the order of the
+    # module docstring; rendering needs them all passed
+    failed = [f for f in found[3:4] + first + found[4:] if f.severity == "error"]
+    if failed:
+        return failed
     for condition in conditions:
         rendered = _rendered(condition, layout, stimuli, spec)
         if rendered.severity == "error":
@@ -368,7 +369,7 @@ def _rendered(condition: str, layout: Layout, stimuli: list[Stimulus], spec: Sti
                            {"condition": condition, shown.column: stim.symbol})
         if layout.boundary_actuators:
             peak_feed = max(peak_feed, float(frames[:, layout.n_pixels:].max()))
-    if condition == "pixel-only":
+    if not get_condition(condition).drives_beams:
         return Finding("ok", "conditions.names", f"{condition}: every frame within travel",
                        {"condition": condition})
     return Finding("ok", "conditions.names", f"{condition}: every frame within travel "

@@ -267,8 +267,8 @@ class ResponseSpec:
             _fail("responses.keys", f"a key appears twice in {list(keys)!r}")
         paused = sorted(set(keys) & PAUSE_KEYS)
         if paused:
-            _fail("responses.keys", f"{paused[0]!r} pauses the session at the keypad (q, Q and "
-                  f"Escape do); choose another key, got {list(keys)!r}")
+            _fail("responses.keys", f"{paused[0]!r} pauses the session at the keypad (p pauses; "
+                  f"q, Q and Escape end it); choose another key, got {list(keys)!r}")
         limit = self.time_limit_s
         if limit is not None:
             _fail("responses.time_limit_s", number_problem(limit, minimum=0.0,

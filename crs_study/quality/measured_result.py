@@ -34,6 +34,7 @@ from crs_study.quality import measured_report
 from crs_study.quality.criteria import theory
 from crs_study.quality.registration import Registration
 from crs_study.quality.residual_map import ResidualMap
+from crs_study.rendering.conditions import get_condition
 
 VERDICTS = ("as predicted", "inconclusive", "differs")  # from best to worst
 #: How many of a condition's shapes its verdict names.
@@ -255,9 +256,10 @@ def verdict_of(difference: Interval, tolerance: float) -> str:
 def paper_lines(lattice: str, condition: str, model: str, d_over_l: float
                 ) -> tuple[float | None, float | None]:
     """The paper's D_P and D_S at ``d_over_l`` for a condition shown by ``model``: the
-    pixel-only lines (the linear connection's D_S in 1D when the model is ``linear``);
-    none for the CRS, which the paper measured rather than drew."""
-    if condition != "pixel-only":
+    pixel-only lines for a condition on the pixels alone (the linear connection's D_S in 1D
+    when the model is ``linear``); none for a condition that drives the beams (the CRS),
+    which the paper measured rather than drew."""
+    if get_condition(condition).drives_beams:
         return None, None
     dp = theory(lattice, "nearest", "D_P", d_over_l)
     ds = theory(lattice, "linear" if model == "linear" and lattice == "1d" else "nearest",

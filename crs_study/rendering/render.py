@@ -4,7 +4,8 @@ Setpoint vectors follow :class:`~crs_study.geometry.Layout` actuator order: pixe
 base (mm), then for each beam the length fed into the display by its start and end boundary
 servos (mm, >= 0).
 
-Conditions are strategies registered by name (:data:`CONDITIONS`):
+Conditions are :class:`~crs_study.rendering.conditions.Condition` objects registered by name
+(:data:`CONDITIONS`); each carries its strategy. The two shipped:
 
 ``pixel-only``
     pixel heights sampled from the target, every boundary servo at neutral (0 mm).
@@ -50,7 +51,6 @@ is ever passed on silently.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -60,6 +60,12 @@ from crs_study.display.beam import CompressedBeams
 from crs_study.errors import RenderError
 from crs_study.geometry.layout import Layout
 from crs_study.rendering.bump_path import BumpPath
+from crs_study.rendering.conditions import (  # noqa: F401  (CONDITIONS: re-exported)
+    CONDITIONS,
+    Condition,
+    get_condition,
+    register_condition,
+)
 from crs_study.rendering.feed_cap import DEFAULT_WIRE, FeedCap, WireSlack
 from crs_study.stimuli.targets import Bump, arc_excess
 
@@ -127,17 +133,13 @@ def render_crs(layout: Layout, target: Bump, geometry: BeamGeometry | None = Non
     return setpoints
 
 
-#: Registered conditions: name -> function(layout, target, geometry) -> raw setpoints.
-CONDITIONS: dict[str, Callable[[Layout, Bump, BeamGeometry | None], np.ndarray]] = {
-    "pixel-only": render_pixel_only,
-    "crs": render_crs,
-}
-
-
-def register_condition(name: str,
-                       func: Callable[[Layout, Bump, BeamGeometry | None], np.ndarray]) -> None:
-    """Add a condition strategy (e.g. an optimised CRS) under ``name``."""
-    CONDITIONS[name] = func
+register_condition(Condition(
+    "pixel-only", render_pixel_only, drives_beams=False, display_model="linear",
+    fast_path=True, description="the pixels alone under the fabric sewn to their tips"))
+register_condition(Condition(
+    "crs", render_crs, drives_beams=True, display_model="beam", fast_path=True,
+    description="the continuity reinforcement skeleton: compressed beams guided by the "
+                "pixels"))
 
 
 class Renderer:
@@ -146,22 +148,19 @@ class Renderer:
     ``wire``: what the boards may hold instead of a setpoint (whole-us pulses, the write
     policy's dead-band), which the feed cap leaves room for (:mod:`~crs_study.rendering.
     feed_cap`); ``None``: the setpoints reach the beams exactly (the cap is then the longest
-    stable shape itself). A :class:`Bump` under a built-in condition takes the fast path of
-    :mod:`~crs_study.rendering.bump_path` (the same setpoints within 1e-10 mm).
+    stable shape itself). A :class:`Bump` under a condition with a ``fast_path`` takes the
+    fast path of :mod:`~crs_study.rendering.bump_path` (the same setpoints within 1e-10 mm).
     """
 
     def __init__(self, layout: Layout, condition: str, policy: ClampPolicy = "clip",
                  cap_feed: bool = True, wire: WireSlack | None = DEFAULT_WIRE) -> None:
-        if condition not in CONDITIONS:
-            raise RenderError(
-                f"unknown condition {condition!r}; known: {', '.join(sorted(CONDITIONS))}"
-            )
+        meaning = get_condition(condition)
         if policy not in ("clip", "error"):
             raise RenderError(f"unknown clamp policy {policy!r}; known: clip, error")
         self.layout = layout
         self.condition = condition
         self.policy = policy
-        self._func = CONDITIONS[condition]
+        self._func = meaning.render
         self._geometry = BeamGeometry(layout)
         self._upper = np.array([a.calibration.travel_mm for a in layout.actuators])
         self.cap_feed = cap_feed
@@ -169,8 +168,7 @@ class Renderer:
         self._cap = FeedCap(layout, self.wire) if cap_feed and layout.beams else None
         # A line of pixels shows the 1D counterpart of Eq. 7: the profile in x alone
         self._line_y = float(layout.pixel_xy[0, 1]) if layout.lattice == "line" else None
-        fast = {render_crs: True, render_pixel_only: False}.get(self._func)
-        self._bump = None if fast is None else BumpPath(layout, crs=fast)
+        self._bump = BumpPath(layout, crs=meaning.drives_beams) if meaning.fast_path else None
         n = layout.n_pixels
         self._pixel_upper = float(self._upper[:n].min()) if n else 0.0
         self._feed_upper = float(self._upper[n:].min()) if layout.n_actuators > n else 0.0

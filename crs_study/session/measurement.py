@@ -65,6 +65,7 @@ from crs_study.quality.measurement_protocol import (
     plan_captures,
     plan_sha256,
 )
+from crs_study.rendering.conditions import get_condition
 from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.render import Renderer
 from crs_study.session.runner import simulated_url
@@ -78,9 +79,6 @@ Progress = Callable[[str], None]
 
 FRAME_COLUMNS = ("sent_at", "commanded_at", "wire_done_at", "bytes", "channels",
                  "merged")
-BLOCK_PROMPTS = {"crs": "mount the skeleton (beams and boundary servos) for the CRS block",
-                 "pixel-only": "remove the skeleton: the pixel-only block shows the pixels and "
-                               "the fabric alone"}
 
 
 class MeasurementPaths(SessionPaths):
@@ -314,13 +312,13 @@ def _run(spec: MeasurementSpec, protocol: MeasurementProtocol, layout: Layout,
             if first and plan[first].kind == "shape" and kind != "synthetic":
                 condition = plan[first].condition  # resumed inside a block: set it up again
                 prompt(f"resuming at {plan[first].name} in block {condition}: "
-                       f"{BLOCK_PROMPTS.get(condition, 'set the display up')}; press Enter "
+                       f"{get_condition(condition).setup_prompt}; press Enter "
                        "when ready")
             for k in range(first, len(plan)):
                 capture = plan[k]
                 if capture.kind == "reference" and kind != "synthetic":
                     prompt(f"block {capture.condition}: "
-                           f"{BLOCK_PROMPTS.get(capture.condition, 'set the display up')}; "
+                           f"{get_condition(capture.condition).setup_prompt}; "
                            "press Enter when ready")
                 if progress:
                     progress(f"{capture.name} ({k + 1}/{len(plan)}): {capture.condition}"

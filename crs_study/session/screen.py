@@ -105,6 +105,7 @@ class TerminalScreen:
         self.experimenter = experimenter
         self.state = ScreenState()
         self._drawn: dict[int, list[str]] = {}
+        self._gone: set[int] = set()  # streams that could not be written (a closed terminal)
 
     def show(self, **changes: object) -> ScreenState:
         """Set the fields named in ``changes`` (those of :class:`ScreenState`) and redraw."""
@@ -119,26 +120,36 @@ class TerminalScreen:
     def clear(self) -> None:
         """Start from an empty terminal (a file is left alone)."""
         for stream in (self.participant, self.experimenter):
-            if stream is not None and _isatty(stream):
-                stream.write("\x1b[2J" + _HOME)
-                stream.flush()
+            if stream is not None and _isatty(stream) and id(stream) not in self._gone:
+                try:
+                    stream.write("\x1b[2J" + _HOME)
+                    stream.flush()
+                except OSError:
+                    self._gone.add(id(stream))
         self._drawn.clear()
 
     def _draw(self, stream: TextIO, view, stamp: bool = False) -> None:
+        if id(stream) in self._gone:
+            return
         lines = view(self.state, _width(stream))
         before = self._drawn.get(id(stream))
         if lines == before:
             return
         self._drawn[id(stream)] = lines
-        if _isatty(stream):
-            stream.write(_HOME + "".join(line + _CLEAR_LINE + "\r\n" for line in lines)
-                         + _CLEAR_BELOW)
-        else:
-            old = set(before or ())
-            prefix = time.strftime("%H:%M:%S ") if stamp else ""
-            stream.write("".join(f"{prefix}{line}\n" for line in lines
-                                 if line.strip() and line not in old))
-        stream.flush()
+        try:
+            if _isatty(stream):
+                stream.write(_HOME + "".join(line + _CLEAR_LINE + "\r\n" for line in lines)
+                             + _CLEAR_BELOW)
+            else:
+                old = set(before or ())
+                prefix = time.strftime("%H:%M:%S ") if stamp else ""
+                stream.write("".join(f"{prefix}{line}\n" for line in lines
+                                     if line.strip() and line not in old))
+            stream.flush()
+        except OSError:
+            # the terminal is gone (closed: EIO), or the log's disk: nobody to show it to,
+            # and what stops the session (SIGHUP, the keypad's end of input) says why
+            self._gone.add(id(stream))
 
 
 def _isatty(stream: TextIO) -> bool:

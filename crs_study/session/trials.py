@@ -11,7 +11,9 @@ One trial (all times on the session's :class:`~crs_study.clock.Clock`):
    at the offset, the end of the last frame's period (``onset + n / f``), the display returns
    to the neutral (flat) pose;
 3. the response (:class:`~crs_study.session.responders.base.Responder`), with the protocol's
-   time limit from stimulus offset;
+   time limit from stimulus offset (a pause in place during the stimulus or the response,
+   :class:`~crs_study.session.responders.base.PauseInPlace`, leaves the trial unstored: the
+   runner plays it again);
 4. the heartbeat, asked right after the stimulus and checked after the response
    (:meth:`~crs_study.device.Device.heartbeat_ask`): every board must answer, else
    the trial is not stored (a :class:`~crs_study.errors.DeviceError`: the session stops
@@ -32,6 +34,7 @@ renderer of each condition and the frame log's text of each stimulus.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,7 +51,7 @@ from crs_study.rendering.frames import render_frames
 from crs_study.rendering.render import Renderer
 from crs_study.session.adaptive import is_adaptive, row_fields
 from crs_study.session.prompts import BREAK_PROMPT
-from crs_study.session.responders.base import Responder, StimulusRecord
+from crs_study.session.responders.base import PauseInPlace, Responder, StimulusRecord
 from crs_study.session.state import SessionState, save
 from crs_study.signals import deferred
 from crs_study.stimuli.stimulus import make_stimulus
@@ -136,8 +139,11 @@ class Shown:
 
 
 def present(device: Device, clock: Clock, frame_times: np.ndarray, frames: np.ndarray,
-            period: float) -> Shown:
-    """Command the frames at ``onset + frame_times[k]``, then neutral at the offset."""
+            period: float, poll: Callable[[], None] | None = None) -> Shown:
+    """Command the frames at ``onset + frame_times[k]``, then neutral at the offset.
+
+    ``poll`` is called before each frame (the keypad's q, Escape and p act during the
+    stimulus): whatever it raises, the display goes neutral first."""
     n = len(frame_times)
     displayed = np.empty_like(frames)
     reports = []
@@ -151,6 +157,12 @@ def present(device: Device, clock: Clock, frame_times: np.ndarray, frames: np.nd
             displayed[i - 1] = device.displayed_setpoints(now)
         if now - due > period:
             late += 1
+        if poll is not None:
+            try:
+                poll()
+            except BaseException:
+                device.neutral()  # flat before anything else is done
+                raise
         reports.append(device.send(frames[i]))
     offset = onset + float(frame_times[-1]) + period  # end of the last frame's period
     clock.sleep_until(offset)
@@ -209,12 +221,16 @@ def run_trial(state: SessionState, device: Device, responder: Responder, clock: 
     responder.begin_trial(trial, clock.now(), clock)
     state.store.mark_started(trial.index)
     state.started = trial.index
-    shown = present(device, clock, frame_times, setpoints, period)
+    shown = present(device, clock, frame_times, setpoints, period, responder.poll)
     asked = device.heartbeat_ask()  # after the last frame; answered while the person responds
     onset, offset, reports = shown.onset, shown.offset, shown.reports
     record = StimulusRecord(state.layout, trial.condition, frame_times + period, shown.displayed,
                             symbol_choices(protocol), onset, offset)
-    response = responder.respond(trial, record, clock, protocol.time_limit_s)
+    try:
+        response = responder.respond(trial, record, clock, protocol.time_limit_s)
+    except PauseInPlace:
+        device.heartbeat_check(asked)  # the answer taken, so the next trial's is its own
+        raise
     duration = offset - onset
     rt = float(response.response_time_s)
     correct = None if response.symbol is None else int(response.symbol == trial.symbol)

@@ -7,10 +7,13 @@ needs, so no other module knows which symbols they are:
   answer), with a :class:`~crs_study.stimuli.strokes.Glyph` (strokes in a unit box) for each
   symbol that has strokes;
 * ``keys``: each symbol's default response key at the keypad (a single printable character,
-  never a pause key: q, Q, Escape);
+  never a pause key: p, P, q, Q, Escape);
 * ``task``, ``title``, ``description``, ``instructions``: the BIDS task label of its datasets
   (``task-<task>_beh.tsv``), what the dataset is called, the sidecar's ``TaskDescription``
   and the participant's ``Instructions``;
+* ``screens``: the rest of what the participant reads at the keypad
+  (:class:`~crs_study.stimuli.screens.ScreenTexts`, English unless the set file's
+  ``[set.screens]`` translates it);
 * ``noun``: one symbol in words (``"letter"``), for messages and column descriptions;
 * ``column``: the dataset column that holds the symbol shown. Every set read from a set file
   uses ``symbol``; the digit set keeps ``digit``, the name every dataset recorded before
@@ -21,7 +24,8 @@ needs, so no other module knows which symbols they are:
 * :attr:`~StimulusSet.chance_rate`: 1 / the number of symbols (guessing among all of them).
 
 A set file (TOML, ``format = 2``; the shipped ``crs_study/data/letters.toml`` documents it)
-holds a ``[set]`` table (name, noun, task, title, description, instructions) and one
+holds a ``[set]`` table (name, noun, task, title, description, instructions, and an optional
+``[set.screens]``) and one
 ``[symbols.NAME]`` table per symbol with its response ``key`` and its ``strokes``
 (:func:`crs_study.stimuli.strokes.read_strokes`). Reading is strict: every problem is a
 one-line :class:`~crs_study.errors.ProtocolError` naming the file, the line and the key.
@@ -31,20 +35,22 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
 from crs_study._toml import Section, file_version, parse_toml_file, string_problem
 from crs_study.errors import ProtocolError
+from crs_study.stimuli.screens import FIELDS, ScreenTexts
 from crs_study.stimuli.strokes import Glyph, Symbol, read_strokes, sized_glyphs
 
 #: Format number of a set file (format 1 is the digit set's strokes-only file).
 SET_FORMAT = 2
 #: The dataset column of the symbol shown, for every set but the digit set.
 SYMBOL_COLUMN = "symbol"
-#: Keys that pause a session at the keypad, so no set or protocol may use them as answers.
-PAUSE_KEYS = frozenset({"q", "Q", "\x1b"})
+#: Keys that pause a session at the keypad, so no set or protocol may use them as answers:
+#: p pauses in place, q and Escape end the session safely for a later resume.
+PAUSE_KEYS = frozenset({"p", "P", "q", "Q", "\x1b"})
 #: What a dataset cell may not hold: "n/a" is BIDS' missing value.
 MISSING = "n/a"
 #: Longest symbol label.
@@ -53,7 +59,7 @@ MAX_LABEL = 20
 _NAME_RE = re.compile(r"[a-z][a-z0-9_-]*")
 _NOUN_RE = re.compile(r"[a-z][a-z -]*[a-z]")
 _TASK_RE = re.compile(r"[A-Za-z0-9]+")
-_SET_KEYS = ("name", "noun", "task", "title", "description", "instructions")
+_SET_KEYS = ("name", "noun", "task", "title", "description", "instructions", "screens")
 
 
 def spell(generic: str, column: str) -> str:
@@ -78,6 +84,8 @@ class StimulusSet:
     glyphs: Mapping[Symbol, Glyph]
     keys: Mapping[Symbol, str]
     source: str = ""
+    #: what the participant reads at the keypad, in the set's language
+    screens: ScreenTexts = field(default_factory=ScreenTexts)
 
     @property
     def plural(self) -> str:
@@ -140,7 +148,8 @@ def key_problem(key: object) -> str | None:
     if not isinstance(key, str) or len(key) != 1 or not key.isprintable() or key == " ":
         return f"expected a single printable character, got {key!r}"
     if key in PAUSE_KEYS:
-        return f"{key!r} pauses the session at the keypad (q, Q and Escape do); choose another"
+        return (f"{key!r} pauses the session at the keypad (p pauses; q, Q and Escape end "
+                "it); choose another")
     return None
 
 
@@ -183,7 +192,10 @@ def _parse(data: dict, source: str, text: str) -> StimulusSet:
     name = _matching(head, "name", _NAME_RE, "a lower-case name (letters, digits, _ or -)")
     noun = _matching(head, "noun", _NOUN_RE, "one symbol in lower-case words, e.g. 'letter'")
     task = _matching(head, "task", _TASK_RE, "a BIDS task label (letters and digits)")
-    title, description, instructions = (_one_line(head, k) for k in _SET_KEYS[3:])
+    title, description, instructions = (_one_line(head, k) for k in _SET_KEYS[3:6])
+    screens = ScreenTexts.from_section(head.table("screens", {}, keys=FIELDS)) \
+        if head.has("screens") else ScreenTexts()
+    head.raw("screens", None)
     head.done()
     table = root.table("symbols")
     keys: dict[str, str] = {}
@@ -206,4 +218,5 @@ def _parse(data: dict, source: str, text: str) -> StimulusSet:
     glyphs = sized_glyphs(strokes_of, root, "symbols", noun)
     return StimulusSet(name=name, noun=noun, column=SYMBOL_COLUMN, task=task, title=title,
                        description=description, instructions=instructions,
-                       symbols=tuple(glyphs), glyphs=glyphs, keys=keys, source=source)
+                       symbols=tuple(glyphs), glyphs=glyphs, keys=keys, source=source,
+                       screens=screens)

@@ -36,6 +36,8 @@ def make_responder(spec: str, *, seed: int, layout: Layout | None = None,
             options["keys"] = {protocol.key_for(s): s for s in protocol.symbols}
         if protocol is not None and "instruction" not in options:
             options["instruction"] = protocol.symbol_set.instructions  # what the screen shows
+        if protocol is not None and "texts" not in options:
+            options["texts"] = protocol.symbol_set.screens  # in the set's language
         return KeypadResponder(**options)
     if spec.startswith("scripted:") and len(spec) > len("scripted:"):
         return ScriptedResponder(spec[len("scripted:"):],

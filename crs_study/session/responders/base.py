@@ -66,9 +66,17 @@ class Response:
         return self.symbol is None
 
 
-#: Keys that pause a session at the keypad (so never response keys): q, Q, Escape. Defined
-#: with the stimulus sets, whose keys (and the protocol's) may not be them.
+#: Keys that pause a session at the keypad (so never response keys): p, P pause in place; q,
+#: Q, Escape end the session safely. Defined with the stimulus sets, whose keys (and the
+#: protocol's) may not be them.
 PAUSE_KEYS = SET_PAUSE_KEYS
+
+
+class PauseInPlace(Exception):  # noqa: N818  (a request, not a failure)
+    """The session pauses in place (the keypad's ``p``): raised from
+    :meth:`Responder.poll` during a stimulus or from :meth:`Responder.respond`; the runner
+    turns the display neutral, lets :meth:`Responder.pause` wait, and plays the trial again
+    (its row then says ``rerun = 1``)."""
 
 
 class Responder(ABC):
@@ -113,6 +121,20 @@ class Responder(ABC):
 
     def feedback(self, trial: PlannedTrial, response: Response, correct: bool) -> None:
         """Feedback after a practice trial; the default does nothing."""
+        return None
+
+    def poll(self) -> None:
+        """Called between the frames of a stimulus: a person's keypad raises
+        :class:`KeyboardInterrupt` to end the session or :class:`PauseInPlace` to pause it
+        (the display goes neutral first); the default asks nothing."""
+        return None
+
+    def pause(self, clock: Clock | None) -> None:
+        """Paused in place after :class:`PauseInPlace`: returns when the session goes on."""
+        return None
+
+    def end_session(self) -> None:
+        """Called once every trial is played (the keypad thanks the participant)."""
         return None
 
     def prompt(self, text: str, clock: Clock, rest_s: float | None = None) -> None:

@@ -3,14 +3,16 @@
 The perceptual observer (:class:`PerceptualObserver`) answers a trial from what a hand on the
 display could sense, never from the true symbol (of any stimulus set: digits, letters, ...):
 
-1. **Surface.** Each sensed frame's displayed setpoints go through the display model of the
-   trial's condition (:func:`crs_study.display.get_model`): ``pixel-only`` meets the
-   pixel tips under the stretched fabric of the paper (spandex sewn to every pixel,
-   crs-paper.md, Methods), a tent between the pixels: the ``linear`` model. (``nearest``, the
-   paper's pixel-only theory, is a staircase that a fabric never shows.) Every other
-   condition mounts the skeleton: the compressed ``beam`` network. Both are evaluated on a
-   square grid (``grid_spacing_mm``) over the sensing window (``sense_radius_mm`` around the
-   symbol's placement).
+1. **Surface.** Each sensed frame's displayed setpoints go through the display model the
+   trial's condition names (:attr:`crs_study.rendering.Condition.display_model`, built by
+   :func:`crs_study.display.get_model`): ``pixel-only`` meets the pixel tips under the
+   stretched fabric of the paper (spandex sewn to every pixel, Methods), a tent between the
+   pixels: the ``linear`` model. (``nearest``, the paper's pixel-only theory, is a staircase
+   that a fabric never shows.) ``crs`` mounts the skeleton: the compressed ``beam`` network.
+   The options ``pixel_model`` and ``skeleton_model`` replace the model of every condition
+   on the pixels alone, or with the beams driven. The surface is evaluated on a square grid
+   (``grid_spacing_mm``) over the sensing window (``sense_radius_mm`` around the symbol's
+   placement).
 2. **Skin.** Receptor noise (white, ``noise_mm`` standard deviation, in mm of indentation) is
    added and the result is blurred by a Gaussian of ``skin_blur_mm`` (the skin's spatial
    spread): sensed = G * (z + e). G * z is noise-free and cached per frame; G * e is drawn
@@ -96,6 +98,7 @@ from crs_study.errors import ConfigError, DisplayModelError
 from crs_study.geometry.layout import Layout, layout_key
 from crs_study.protocol.model import Protocol
 from crs_study.protocol.plan import PlannedTrial
+from crs_study.rendering.conditions import get_condition
 from crs_study.session.responders.base import (
     Responder,
     Response,
@@ -106,8 +109,6 @@ from crs_study.session.responders.base import (
 from crs_study.stimuli.stimulus import make_stimulus, placement_centre
 from crs_study.stimuli.strokes import Symbol
 
-#: Display model per condition; conditions not listed use the skeleton model ``beam``.
-DEFAULT_MODELS = {"pixel-only": "linear"}
 #: Models whose surface is linear in the setpoints (evaluated as one matrix product).
 LINEAR_MODELS = ("nearest", "linear")
 
@@ -116,8 +117,8 @@ LINEAR_MODELS = ("nearest", "linear")
 class ObserverOptions:
     """Parameters of the perceptual observer (module docstring for their meaning)."""
 
-    pixel_model: str = "linear"
-    skeleton_model: str = "beam"
+    pixel_model: str | None = None  # None: the condition's own display model
+    skeleton_model: str | None = None
     grid_spacing_mm: float = 3.0
     sense_radius_mm: float = 33.0
     skin_blur_mm: float = 3.0
@@ -234,9 +235,13 @@ class PerceptualObserver(Responder):
     # -- sensing ---------------------------------------------------------------------------
 
     def model_name(self, condition: str) -> str:
-        """The display model the skin meets in ``condition``."""
-        return self.options.pixel_model if condition == "pixel-only" else \
-            self.options.skeleton_model
+        """The display model the skin meets in ``condition``: the condition's own, unless
+        the ``pixel_model`` (pixels alone) or ``skeleton_model`` (beams driven) option
+        replaces it."""
+        meaning = get_condition(condition)
+        chosen = self.options.skeleton_model if meaning.drives_beams else \
+            self.options.pixel_model
+        return meaning.display_model if chosen is None else chosen
 
     def temperature(self, condition: str) -> float:
         """This participant's decision noise in ``condition`` (mm): the ability's temperature
@@ -376,8 +381,9 @@ class PerceptualObserver(Responder):
 
 def benefit_side(condition: str) -> float:
     """-1 for the pixels alone, +1 for a condition with the skeleton: the sign of a
-    participant's benefit draw in that condition's decision noise."""
-    return -1.0 if condition == "pixel-only" else 1.0
+    participant's benefit draw in that condition's decision noise
+    (:attr:`crs_study.rendering.Condition.benefit_side`)."""
+    return get_condition(condition).benefit_side
 
 
 def _largest_half_diagonal(protocol: Protocol, layout: Layout) -> float:
