@@ -3,7 +3,8 @@
 The loop (one thread; the serial device's writer threads put the bytes on the ports)
     1. wait for a datagram, the wire or a deadline (``select``);
     2. read every datagram waiting; each is decoded and either dropped and counted (malformed,
-       stale: not newer than the last accepted; another stream's while one is shown) or
+       stale: not newer than the last accepted, as RFC 1982 serial numbers, so the sequence
+       may wrap; another stream's while one is shown) or
        accepted: it becomes *the newest*, and the packet it replaces, never shown, is counted
        superseded;
     3. when the wire can take a frame (the last frame's last byte leaves within ``lead_s``),
@@ -20,12 +21,15 @@ later frame is changed-only).
 
 Stopping safely
     No accepted packet for ``silence_s`` (0.5 s): the display is flattened at once and the
-    session keeps listening (a stream that resumes is shown again; a new stream may take over
-    only now); with ``exit_on_silence`` the session ends instead. Ctrl-C, SIGTERM, SIGHUP
+    session keeps listening (a stream that resumes is shown again, from any sequence number: a
+    sender restarted with its old stream id is not locked out; a new stream may take over only
+    now); with ``exit_on_silence`` the session ends instead. Ctrl-C, SIGTERM, SIGHUP
     (:mod:`crs_study.signals`), the end of ``duration_s`` or ``max_packets``, or a device
-    fault end it: the device is closed, which sends the neutral pose and releases the ports
-    (a second signal waits for that). A device fault is reported in the result
-    (``stopped_by``, ``faults``), not raised, so what was measured is not lost.
+    fault end it: the device is closed, which sends the neutral pose and releases the ports.
+    A signal after the first (or one while closing) asks for what is already being done: it
+    is absorbed (counted in ``signals_while_closing``), and the result comes back as after one.
+    A device fault is reported in the result (``stopped_by``, ``faults``), not raised, so what
+    was measured is not lost.
 
 Why silence flattens rather than ends the session: a headset streaming over USB pauses now
 and then; flattening is what keeps a finger from meeting a bump the scene no longer tracks,
@@ -36,6 +40,7 @@ from __future__ import annotations
 
 import math
 import select
+import signal
 import time
 from dataclasses import asdict, dataclass
 
@@ -48,12 +53,12 @@ from crs_study.live.area import PAPER_DIAMETER_MM, RecognitionArea
 from crs_study.live.boards import BoardTap, HostModel, ShownFrame
 from crs_study.live.errors import LiveError, PacketError
 from crs_study.live.link import MAX_BATCH, Listener, parse_address
-from crs_study.live.packet import decode_packet
+from crs_study.live.packet import decode_packet, newer
 from crs_study.live.record import Recorder
 from crs_study.live.result import FrameCounts, LatencyLog, LiveResult, PacketCounts
 from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.render import Renderer
-from crs_study.signals import deferred, describe, terminate_as_interrupt
+from crs_study.signals import PAUSE_SIGNALS, SignalInterrupt, describe, handling
 
 #: Longest single wait of the loop (s): how often it looks at the clock with nothing to do.
 MAX_WAIT_S = 0.05
@@ -153,6 +158,8 @@ class LiveSession:
         self.frame_index = 0
         self.flat_shown = True
         self.stopped_by = ""
+        self.stopping = False
+        self.signals_while_closing = 0  # stop signals that came while the session closed
         self.faults: list[str] = []
         self.started = self.ended = math.nan
         self.listener: Listener | None = None
@@ -167,7 +174,7 @@ class LiveSession:
         host, port = parse_address(self.config.listen, "listen address")
         self.listener = Listener(host, port)
         try:
-            with terminate_as_interrupt():
+            with handling(self._on_signal, PAUSE_SIGNALS):
                 try:
                     self._open()
                     self._loop()
@@ -177,11 +184,20 @@ class LiveSession:
                     self.stopped_by = "device fault"
                     self.faults.append(str(fault))
                 finally:
-                    with deferred():
-                        self._close()
+                    self.stopping = True
+                    self._close()
         finally:
             self.listener.close()
         return self.result()
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        """The first stop signal stops the loop (as Ctrl-C, :mod:`crs_study.signals`); any
+        later one is counted only: it would ask for the close already under way."""
+        if self.stopping:
+            self.signals_while_closing += 1
+            return
+        self.stopping = True
+        raise KeyboardInterrupt if signum == signal.SIGINT else SignalInterrupt(signum)
 
     def _open(self) -> None:
         self.started = time.monotonic()
@@ -268,12 +284,11 @@ class LiveSession:
             return
         decode_s = time.thread_time() - start
         status = "accepted"
-        if packet.stream != self.stream:
-            if self.state == "live":
-                status = "other_stream"
-            else:  # nothing shown now: a new stream takes over with its own sequence
-                self.stream, self.last_sequence = packet.stream, -1
-        if status == "accepted" and packet.sequence <= self.last_sequence:
+        if self.state != "live":  # nothing shown now: any stream (re)starts its sequence
+            self.stream, self.last_sequence = packet.stream, -1
+        elif packet.stream != self.stream:
+            status = "other_stream"
+        if status == "accepted" and not newer(packet.sequence, self.last_sequence):
             status = "stale"
         if self.recorder:
             self.recorder.packet(datagram, status, packet)

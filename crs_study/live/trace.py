@@ -15,7 +15,9 @@ traces (every one a pure function of its arguments and, for jitter, a seed):
 * :func:`hold_trace`: a finger held still; with :meth:`FingerTrace.jittered` a trembling one
   (independent Gaussian noise of ``sd_mm`` on x and y per sample).
 
-:meth:`FingerTrace.resampled` gives the trace at another rate (linear interpolation in time).
+:meth:`FingerTrace.resampled` gives the trace at another rate (linear interpolation in time),
+:meth:`FingerTrace.faster` the trace played faster or slower. No trace has more than
+:data:`MAX_SAMPLES` samples or a position a packet (float32) cannot carry.
 A recording made by ``crs-study live --record`` replays as a trace
 (:func:`crs_study.live.record.read_trace`).
 """
@@ -36,6 +38,11 @@ from crs_study.stimuli.sets import DEFAULT_SET, load_stimulus_set
 HEADSET_RATE_HZ = 72.0
 #: Highest rate a trace may be sent or resampled at (packets/s).
 MAX_RATE_HZ = 2000.0
+#: Most samples a trace may have (a day at 72 packets/s is 6.2 million): resampling a long
+#: recording at a high rate must not ask for gigabytes.
+MAX_SAMPLES = 10_000_000
+#: Largest coordinate a packet carries (mm): the float32 of the packet format.
+MAX_COORDINATE_MM = float(np.finfo(np.float32).max)
 #: Width of a drawn symbol per unit of its height (the shipped protocols' 0.49 / 0.81 pitch,
 #: digits and letters alike).
 DIGIT_ASPECT = 0.49 / 0.81
@@ -57,6 +64,10 @@ class FingerTrace:
                             f"n >= 1, got {times.shape} and {xyz.shape}")
         if not (np.all(np.isfinite(times)) and np.all(np.isfinite(xyz))):
             raise LiveError(f"trace {self.name}: expected finite times and positions")
+        if np.any(np.abs(xyz) > MAX_COORDINATE_MM):
+            raise LiveError(f"trace {self.name}: expected positions a packet can carry "
+                            f"(|x|, |y|, |z| <= {MAX_COORDINATE_MM:.4g} mm, float32), got "
+                            f"{float(np.max(np.abs(xyz))):.4g}")
         if np.any(np.diff(times) <= 0) or times[0] < 0:
             raise LiveError(f"trace {self.name}: expected times from >= 0, strictly increasing")
         for array in (times, xyz):
@@ -75,10 +86,19 @@ class FingerTrace:
         """The trace at ``rate_hz`` samples a second from its start to its end (the last
         sample included), each coordinate interpolated linearly in time."""
         check_rate(rate_hz)
-        n = int(math.floor(self.duration_s * rate_hz + 1e-9)) + 1
+        n = _samples(self.duration_s * rate_hz, self.name) + 1
         times = np.arange(n) / rate_hz
         xyz = np.column_stack([np.interp(times, self.times, self.xyz[:, i]) for i in range(3)])
         return FingerTrace(times, xyz, self.name)
+
+    def faster(self, speed: float) -> FingerTrace:
+        """The trace played ``speed`` times as fast (its times divided by ``speed``)."""
+        if isinstance(speed, bool) or not isinstance(speed, int | float) \
+                or not (math.isfinite(speed) and 0.01 <= speed <= 100.0):
+            raise LiveError(f"speed: expected a factor in [0.01, 100], got {speed!r}")
+        if speed == 1:
+            return self
+        return FingerTrace(self.times / speed, self.xyz, f"{self.name} x{speed:g}")
 
     def jittered(self, sd_mm: float, seed: int = 0) -> FingerTrace:
         """The trace with independent Gaussian noise of ``sd_mm`` added to x and y of every
@@ -89,6 +109,14 @@ class FingerTrace:
         xyz = self.xyz.copy()
         xyz[:, :2] += noise
         return FingerTrace(self.times, xyz, f"{self.name}, jitter {sd_mm:g} mm")
+
+
+def _samples(count: float, name: str) -> int:
+    """``count`` as a whole number of samples, refused past :data:`MAX_SAMPLES`."""
+    if not count < MAX_SAMPLES:
+        raise LiveError(f"trace {name}: would have {count:.3g} samples, more than "
+                        f"{MAX_SAMPLES:.3g}; send a shorter trace or at a lower rate")
+    return int(math.floor(count + 1e-9))
 
 
 def check_rate(rate_hz: float) -> float:
@@ -109,7 +137,7 @@ def _positive(name: str, value: float) -> float:
 def _path(points: np.ndarray, speed_mm_s: float, rate_hz: float) -> np.ndarray:
     """Points along a polyline at constant speed, one per 1 / rate s, the end included."""
     length = arc_lengths(points)[-1]
-    n = max(1, int(math.ceil(length * rate_hz / speed_mm_s - 1e-9))) + 1
+    n = max(1, _samples(math.ceil(length * rate_hz / speed_mm_s - 1e-9), "path")) + 1
     return point_at(points, np.minimum(np.arange(n) * speed_mm_s / rate_hz, length))
 
 
@@ -195,6 +223,6 @@ def hold_trace(centre_mm: tuple[float, float] = (0.0, 0.0), duration_s: float = 
                press_mm: float = 5.0, rate_hz: float = HEADSET_RATE_HZ) -> FingerTrace:
     """A finger held still at ``centre_mm`` for ``duration_s``, pressing ``press_mm``."""
     rate = check_rate(rate_hz)
-    n = int(math.floor(_positive("duration", duration_s) * rate + 1e-9)) + 1
+    n = _samples(_positive("duration", duration_s) * rate, "held") + 1
     point = np.array([*centre_mm, _positive("press depth", press_mm)], dtype=float)
     return _with_times([np.tile(point, (n, 1))], rate, f"held {duration_s:g} s")
