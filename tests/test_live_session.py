@@ -21,6 +21,7 @@ from crs_study.device.calibration import PulseMap
 from crs_study.display import get_model
 from crs_study.live import FingerPacket, LiveConfig, LiveSession, encode_packet, read_trace
 from crs_study.live.boards import BoardTap
+from crs_study.live.predict import PredictConfig
 from crs_study.live.sender import send_trace
 from crs_study.live.trace import digit_trace, hold_trace, stroke_trace
 from crs_study.rendering.render import Renderer
@@ -94,8 +95,10 @@ def peak(model, setpoints: np.ndarray, around: tuple[float, float]) -> np.ndarra
 def test_a_digit_reaches_the_boards_and_the_peak_follows_the_finger(layout2d):
     trace = digit_trace(7, height_mm=50.0, speed_mm_s=50.0)
     device, tap = sim(layout2d)
+    # prediction off: the boards must hold what the renderer made of each packet itself
     result, session = live(device, lambda port: send_trace(trace, ("127.0.0.1", port), 5),
-                           tap, exit_on_silence=True, silence_s=0.3)
+                           tap, exit_on_silence=True, silence_s=0.3,
+                           predict=PredictConfig(method="off"))
     assert result.stopped_by == "silence" and result.source == "boards"
     p = result.packets
     assert p.received == p.accepted == len(trace) and p.stale == p.malformed == 0
@@ -230,7 +233,8 @@ def test_pty_boards_through_the_serial_code(boards, layout2d):
     trace = stroke_trace((-40.0, 0.0), (40.0, 10.0), speed_mm_s=80.0)
     device = SerialDevice.from_url(f"serial://{a.path},{b.path}", layout2d)
     result, session = live(device, lambda port: send_trace(trace, ("127.0.0.1", port)),
-                           exit_on_silence=True, silence_s=0.3)
+                           exit_on_silence=True, silence_s=0.3,
+                           predict=PredictConfig(method="off"))
     assert result.ok and result.source == "host model" and result.frames.written > 20
     assert a.wait_for(result.frames.written // 2) and b.wait_for(1)
     time.sleep(0.2)

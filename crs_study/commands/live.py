@@ -29,6 +29,7 @@ from crs_study.commands import HelpFormatter, add_device_options, device_options
 from crs_study.device import open_device
 from crs_study.errors import DeviceError
 from crs_study.geometry.layout import load_layout
+from crs_study.live.predict import PredictConfig
 from crs_study.live.session import LiveConfig, LiveSession
 from crs_study.live.view import TerminalView, screen
 from crs_study.signals import PAUSE_SIGNALS, handling
@@ -59,6 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="end the session (neutral, ports released) instead of flattening")
     timing.add_argument("--move-ms", type=int, default=0,
                         help="SERVO_MOVE time of each frame (0: as fast as the servos go)")
+    timing.add_argument("--predict", default="one-euro", choices=("one-euro", "off"),
+                        help="render each frame for where the finger will be when its servos "
+                             "are in place (a 1€-filtered constant-velocity prediction, step "
+                             "<= 6 mm; the default), or off: the newest packet as it came")
     timing.add_argument("--seconds", type=float, default=None,
                         help="stop after this long (default: until Ctrl-C)")
     timing.add_argument("--max-packets", type=int, default=None,
@@ -78,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
         listen=args.listen, condition=args.condition, diameter_mm=args.diameter_mm,
         max_height_mm=args.max_height_mm, area_margin_mm=args.area_margin_mm,
         silence_s=args.silence_s, exit_on_silence=args.exit_on_silence, move_ms=args.move_ms,
-        duration_s=args.seconds, max_packets=args.max_packets, record=args.record)
+        duration_s=args.seconds, max_packets=args.max_packets, record=args.record,
+        predict=PredictConfig(method=args.predict))
     layout = load_layout(args.layout)
     options = device_options(args, args.device)
     if args.device.startswith("sim://"):

@@ -5,12 +5,14 @@ hard keeps everything up to its last line). Times are seconds from the session's
 (``t0``, ``time.monotonic``)::
 
     {"format": "crs-study live recording", "version": 1, "layout": ..., "condition": ...,
-     "device": ..., "listen": ..., "started": UTC ISO time, "config": {...}}
+     "device": ..., "listen": ..., "started": UTC ISO time, "config": {... "predict": {the
+     predictor's parameters}}, "predictor": its description}
     {"packet": {"t": arrival, "read": read time, "from": "host:port", "status": ...,
                 "stream", "seq", "sender_time", "x", "y", "z"}}   status: accepted, stale,
                other_stream, malformed (then "reason" and the first 64 bytes as "hex")
     {"frame": {"index", "kind", "seq", "t": handed over, "host_done", "bytes": [per board],
-               "clamped", "setpoints": [mm, actuator order]}}
+               "clamped", "shown": [x, y, z] rendered (predicted) or null, "for": the time
+               that position was predicted for, "setpoints": [mm, actuator order]}}
     {"landed": {"index", "done", "in_place", "lost"}}   when a frame's bytes had arrived
     {"end": the session's result (LiveResult.to_json())}
 
@@ -88,6 +90,8 @@ class Recorder:
             "index": frame.index, "kind": frame.kind, "seq": frame.sequence,
             "t": _clean(frame.handed_at - self.t0), "host_done": _clean(frame.host_done - self.t0),
             "bytes": list(frame.bytes_sent), "clamped": clamped,
+            "shown": None if frame.shown is None else [round(float(v), 4) for v in frame.shown],
+            "for": _clean(frame.rendered_for - self.t0),
             "setpoints": [round(float(v), 5) for v in frame.setpoints]}})
 
     def landed(self, frame) -> None:

@@ -42,7 +42,7 @@ import math
 import select
 import signal
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -52,8 +52,10 @@ from crs_study.geometry.layout import Layout, load_layout
 from crs_study.live.area import PAPER_DIAMETER_MM, RecognitionArea
 from crs_study.live.boards import BoardTap, HostModel, ShownFrame
 from crs_study.live.errors import LiveError, PacketError
+from crs_study.live.landing import FingerHistory
 from crs_study.live.link import MAX_BATCH, Listener, parse_address
 from crs_study.live.packet import decode_packet, newer
+from crs_study.live.predict import PredictConfig, Predictor
 from crs_study.live.record import Recorder
 from crs_study.live.result import FrameCounts, LatencyLog, LiveResult, PacketCounts
 from crs_study.rendering.feed_cap import WireSlack
@@ -68,6 +70,8 @@ POLL_S = 0.005
 VIEW_PERIOD_S = 0.25
 #: Frames counted in the live view's recent window.
 VIEW_WINDOW = 300
+#: A frame of one servo on the wire (s): SERVO_MOVE for 1 servo, 10 bytes at 9600 baud.
+MIN_FRAME_S = 10 * BITS_PER_BYTE / BAUD_RATE
 #: Longest the session waits at its end for the last frame to leave the wire (s).
 DRAIN_S = 1.0
 
@@ -88,9 +92,12 @@ class LiveConfig:
     duration_s: float | None = None
     max_packets: int | None = None
     record: str | None = None
+    predict: PredictConfig = field(default_factory=PredictConfig)
 
     def __post_init__(self) -> None:
         parse_address(self.listen, "listen address")
+        if not isinstance(self.predict, PredictConfig):
+            raise LiveError(f"predict: expected a PredictConfig, got {self.predict!r}")
 
         def number(name: str, low: float, high: float, optional: bool = False) -> None:
             value = getattr(self, name)
@@ -142,6 +149,9 @@ class LiveSession:
         self.tap = tap
         self.view = view
         self.neutral = self.layout.neutral_setpoints()
+        self.last_setpoints = self.neutral
+        self.predictor = Predictor(self.config.predict)
+        self.finger = FingerHistory()
         self.byte_s = BITS_PER_BYTE / getattr(getattr(device, "options", None), "baud",
                                               BAUD_RATE)
         self.packets = PacketCounts()
@@ -176,7 +186,7 @@ class LiveSession:
         try:
             with handling(self._on_signal, PAUSE_SIGNALS):
                 try:
-                    self._open()
+                    self.start()
                     self._loop()
                 except KeyboardInterrupt as interrupt:
                     self.stopped_by = describe(interrupt)
@@ -199,13 +209,16 @@ class LiveSession:
         self.stopping = True
         raise KeyboardInterrupt if signum == signal.SIGINT else SignalInterrupt(signum)
 
-    def _open(self) -> None:
-        self.started = time.monotonic()
+    def start(self) -> None:
+        """Open the device and show the neutral pose (:meth:`run` does; a simulation on a
+        virtual clock calls :meth:`start`, :meth:`take`, :meth:`show` and :meth:`finish`)."""
+        self.started = self.device.clock.now()
         if self.config.record:
             header = {"layout": self.layout.name, "condition": self.config.condition,
                       "device": getattr(self.device, "url", type(self.device).__name__),
                       "listen": self.listen_address, "area": self.area.describe(),
-                      "config": asdict(self.config), "t0": self.started}
+                      "config": asdict(self.config), "t0": self.started,
+                      "predictor": self.config.predict.describe()}
             self.recorder = Recorder(self.config.record, header, self.started)
         # the first rendering builds the beams' tables (~0.2 s): not on a packet's time
         self.renderer.render(self.area.bump(0.0, 0.0, self.area.max_height_mm))
@@ -252,10 +265,10 @@ class LiveSession:
                 left = (MAX_BATCH if config.max_packets is None
                         else config.max_packets - self.packets.received)
                 for datagram in self.listener.receive(left):
-                    self._take(datagram)
+                    self.take(datagram)
             now = time.monotonic()
             if self.newest is not None and now >= self.next_frame_at:
-                self._show()
+                self.show()
             if self.state == "live" and now >= self.last_arrival + config.silence_s:
                 self.state = "silent"
                 self.silences += 1
@@ -264,14 +277,14 @@ class LiveSession:
                     return
                 if not self.flat_shown:
                     self._hand_over(self.neutral, "silence", None, 0.0)
-            self._finish(self.tap.poll(now))
+            self.finish(self.tap.poll(now))
             if self.view and now >= view_at:
                 self.view(self)
                 view_at = now + VIEW_PERIOD_S
 
     # -- packets -------------------------------------------------------------------------
 
-    def _take(self, datagram) -> None:
+    def take(self, datagram) -> None:
         counts = self.packets
         counts.received += 1
         start = time.thread_time()
@@ -286,6 +299,7 @@ class LiveSession:
         status = "accepted"
         if self.state != "live":  # nothing shown now: any stream (re)starts its sequence
             self.stream, self.last_sequence = packet.stream, -1
+            self.predictor.reset()
         elif packet.stream != self.stream:
             status = "other_stream"
         if status == "accepted" and not newer(packet.sequence, self.last_sequence):
@@ -300,17 +314,23 @@ class LiveSession:
             counts.out_of_area += 1
         self.last_sequence = packet.sequence
         self.last_arrival = datagram.arrival
+        self.predictor.update(datagram.arrival, packet.x_mm, packet.y_mm, packet.z_mm)
+        self.finger.add(datagram.arrival, packet.x_mm, packet.y_mm, packet.z_mm)
         self.state = "live"
         if self.newest is not None:
             counts.superseded += 1
             self.superseded.append(self.newest[1].arrival)
         self.newest = (packet, datagram, decode_s)
 
-    def _show(self) -> None:
+    def show(self) -> None:
         packet, datagram, decode_s = self.newest
         self.newest = None
         start = time.thread_time()
-        placed = self.area.place(packet.x_mm, packet.y_mm, packet.z_mm)
+        now = self.device.clock.now()  # the soonest a frame lands: wire free, one servo's frame
+        earliest = max(self.next_frame_at + self.config.lead_s - now, 0.0) + MIN_FRAME_S
+        shown, rendered_for = self.predictor.predict(now, (packet.x_mm, packet.y_mm, packet.z_mm),
+                                                     earliest)
+        placed = self.area.place(*shown)
         clamped = False
         if placed is None or placed[2] <= 0.0:
             kind, setpoints = "flat", self.neutral
@@ -318,18 +338,27 @@ class LiveSession:
             rendering = self.renderer.render_bump(placed[:2], self.area.diameter_mm, placed[2])
             kind, setpoints, clamped = "finger", rendering.setpoints, bool(rendering.clamped)
         self.packets.shown += 1
-        frame = self._hand_over(setpoints, kind, packet.sequence, decode_s, start, clamped)
+        frame = self._hand_over(setpoints, kind, packet.sequence, decode_s, start, clamped,
+                                shown if kind == "finger" else None, rendered_for)
         frame.arrivals = [datagram.arrival, *self.superseded]
         self.superseded = []
 
     def _hand_over(self, setpoints: np.ndarray, kind: str, sequence: int | None,
-                   decode_s: float, start: float | None = None,
-                   clamped: bool = False) -> ShownFrame:
+                   decode_s: float, start: float | None = None, clamped: bool = False,
+                   shown: tuple | None = None, rendered_for: float = math.nan) -> ShownFrame:
         report = self.device.send(setpoints, self.config.move_ms)
+        if kind == "finger" and any(report.bytes_sent):  # when its servos will be in place:
+            # the write policy's wire time, then the largest move at the servos' speed (or the
+            # SERVO_MOVE time)
+            travel = max(float(np.max(np.abs(setpoints - self.last_setpoints)))
+                         * self.layout.servo_speed_s_per_mm, self.config.move_ms / 1000.0)
+            self.predictor.landed(report.commanded_at,
+                                  report.wire_done_at + travel - report.commanded_at)
+            self.last_setpoints = setpoints
         software = decode_s + (time.thread_time() - start) if start is not None else math.nan
         frame = ShownFrame(self.frame_index, kind, setpoints, report.commanded_at,
                            report.wire_done_at, report.bytes_sent, sequence,
-                           software_s=software)
+                           software_s=software, shown=shown, rendered_for=rendered_for)
         self.frame_index += 1
         counts = self.frames
         counts.handed += 1
@@ -348,7 +377,7 @@ class LiveSession:
             self.recorder.frame(frame, clamped)
         return frame
 
-    def _finish(self, frames: list[ShownFrame]) -> None:
+    def finish(self, frames: list[ShownFrame]) -> None:
         """Count the frames whose bytes have arrived (or never will)."""
         for frame in frames:
             if self.recorder:
@@ -361,7 +390,8 @@ class LiveSession:
             for arrival in frame.arrivals:
                 self.log.newest.add(frame.done_at - arrival if shown else math.nan)
             if frame.kind == "finger" and frame.wrote and not frame.lost:
-                self.log.add(frame, max(frame.bytes_sent) * self.byte_s)
+                self.log.add(frame, max(frame.bytes_sent) * self.byte_s,
+                             self.finger.error(frame))
 
     # -- stopping ------------------------------------------------------------------------
 
@@ -385,7 +415,7 @@ class LiveSession:
         deadline = time.monotonic() + DRAIN_S
         while True:
             now = time.monotonic()
-            self._finish(self.tap.poll(now, flush=now >= deadline))
+            self.finish(self.tap.poll(now, flush=now >= deadline))
             if not getattr(self.tap, "pending", None) or now >= deadline:
                 break
             time.sleep(0.005)
