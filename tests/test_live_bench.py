@@ -40,3 +40,21 @@ def test_bench_live_quick():
     # the machine's floor: timing nothing costs less than rendering a frame, either way
     assert 0 <= empty_warm["value"] < warm["value"]
     assert 0 <= empty_paused["value"] < paused["value"]
+
+
+def test_bench_live_reports_position_error_with_and_without_prediction():
+    from crs_study.benchmarks import _live_landing
+
+    figures = {f.name: f for f in _live_landing.run(quick=True)}
+    natural = figures["position error at landing, natural: median"]
+    # deterministic (virtual time): prediction against no prediction in the same run
+    assert natural.target == "<= 1.5 mm and ratio <= 0.5" and natural.passed is not None
+    assert natural.value < 0.5 * natural.baseline and 3.0 < natural.baseline < 5.0
+    for speed in ("slow", "natural", "fast"):
+        median = figures[f"position error at landing, {speed}: median"]
+        assert 0 < median.value < median.baseline
+        assert median.value <= figures[f"position error at landing, {speed}: p95"].value
+    lead = figures["bump leads the finger, largest (any frame)"]
+    assert lead.target == "<= 15 ms" and lead.baseline <= 0.0  # without prediction: lags only
+    overshoot = figures["overshoot at stroke ends, digits: p95"]
+    assert overshoot.target == "<= 3 mm" and 0 <= overshoot.value <= 6.0  # the step cap

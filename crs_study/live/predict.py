@@ -22,8 +22,9 @@ for the finger's predicted position at the time its servos will be in place:
    stopped). Rendering for the *earliest* recent landing keeps frames from leading the
    finger (haptics should not lead vision by more than about 15 ms): a frame leads only when
    it lands earlier than every one of the last few. That is not a guarantee: ``crs-study
-   bench live`` measures the largest lead (about 30 ms on the digits; most frames lag). The press depth is predicted the same way (its step capped alike); a press
-   predicted to end (z <= 0) flattens the display.
+   bench live`` measures the largest lead (about 30 ms on the digits; most frames lag).
+   The press depth is predicted the same way (its step capped alike); a press predicted to
+   end (z <= 0) flattens the display.
 
 A gap between packets longer than ``reset_s`` (the sender paused, a new stream) restarts the
 filter: a velocity across a gap means nothing. With ``method = "off"`` frames show the newest
