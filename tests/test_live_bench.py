@@ -54,3 +54,20 @@ def test_bench_live_reports_position_error_with_and_without_prediction():
     assert lead.target == "<= 15 ms" and lead.baseline <= 0.0  # without prediction: lags only
     overshoot = figures["overshoot at stroke ends, digits: p95"]
     assert overshoot.target == "<= 3 mm" and 0 <= overshoot.value <= 6.0  # the step cap
+
+
+def test_a_recording_given_with_trace_is_measured_too(tmp_path):
+    from crs_study.benchmarks import _live_landing
+    from crs_study.live.predict import PredictConfig
+    from crs_study.live.trace import digit_trace
+
+    trace = digit_trace(3, speed_mm_s=100.0, profile="minimum-jerk")
+    path = tmp_path / "finger.jsonl"
+    lines = [{"format": "crs-study live recording", "version": 1}] + [
+        {"packet": {"t": 10.0 + t, "status": "accepted", "x": x, "y": y, "z": z}}
+        for t, (x, y, z) in zip(trace.times.tolist(), trace.xyz.tolist(), strict=True)]
+    path.write_text("\n".join(json.dumps(x) for x in lines) + "\n", encoding="utf-8")
+    group = _live_landing.groups(quick=True, traces=[str(path)])["recording finger.jsonl"]
+    on = _live_landing.measure(group, PredictConfig())
+    off = _live_landing.measure(group, PredictConfig(method="off"))
+    assert 0 < on["median"] < 0.5 * off["median"]  # as the digit it was made from
