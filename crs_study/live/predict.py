@@ -39,7 +39,6 @@ for Noisy Input in Interactive Systems. Proc. CHI 2012, 2527-2530.
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 from typing import Literal
 
@@ -67,6 +66,7 @@ class PredictConfig:
     d_cutoff_hz: float = 15.0
     max_extrapolation_mm: float = 6.0
     max_horizon_s: float = 0.120
+    max_lead_s: float = 0.015
     reset_s: float = 0.1
 
     def __post_init__(self) -> None:
@@ -74,7 +74,7 @@ class PredictConfig:
             raise LiveError(f"predict method: expected 'one-euro' or 'off', got {self.method!r}")
         for name, low, high in (("min_cutoff_hz", 1e-3, 1e3), ("beta", 0.0, 1e3),
                                 ("d_cutoff_hz", 1e-3, 1e3), ("max_extrapolation_mm", 0.0, 100.0),
-                                ("max_horizon_s", 0.0, 1.0),
+                                ("max_horizon_s", 0.0, 1.0), ("max_lead_s", 0.0, 0.1),
                                 ("reset_s", 1e-3, 10.0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) \
@@ -138,12 +138,11 @@ class OneEuro:
 
 
 class Predictor:
-    """Filters packets (:meth:`update`) and predicts frames (:meth:`predict`), module
+    """Filters packets (:meth:`update`) and predicts the finger at a time (:meth:`at`), module
     docstring. :attr:`state` says what the last prediction did (the live view)."""
 
     def __init__(self, config: PredictConfig) -> None:
         self.config = config
-        self.landings: deque[float] = deque(maxlen=LANDING_WINDOW)
         self.state: dict[str, float | bool] = {}
         self.reset()
 
@@ -151,6 +150,8 @@ class Predictor:
         c = self.config
         self.axes = [OneEuro(c.min_cutoff_hz, c.beta, c.d_cutoff_hz) for _ in range(3)]
         self.sample_at = -math.inf
+        self.speed = 0.0  # filtered planar speed (mm/s)
+        self.accel = 0.0  # its filtered rate of change (mm/s^2; < 0: slowing down)
 
     def update(self, t: float, x: float, y: float, z: float) -> None:
         """A packet's position, arrived at ``t``."""
@@ -162,40 +163,41 @@ class Predictor:
         ax.filter(t, x, speed)
         ay.filter(t, y, speed)
         az.filter(t, z)
+        if math.isfinite(self.sample_at) and t > self.sample_at:
+            dt = t - self.sample_at
+            raw = (speed - self.speed) / dt
+            self.accel += smoothing(self.config.d_cutoff_hz, dt) * (raw - self.accel)
+        self.speed = speed
         self.sample_at = max(self.sample_at, t)
 
-    def landed(self, handed: float, delay_s: float) -> None:
-        """A frame handed over at ``handed`` is expected in place ``delay_s`` later."""
-        if math.isfinite(delay_s) and delay_s >= 0:
-            self.landings.append((handed, delay_s))
+    def step(self, horizon: float) -> float:
+        """How far along its velocity the finger is extrapolated over ``horizon`` s (mm):
+        ``v h`` while the speed holds or rises; slowing down (``a < 0``), at that constant
+        deceleration until it stops, ``v h - |a| h^2 / 2`` for ``h < v / |a|``, at most
+        ``v^2 / (2 |a|)``; capped at ``max_extrapolation_mm``."""
+        v, a = self.speed, self.accel
+        if a < 0.0:
+            h = min(horizon, v / -a)
+            distance = v * h + 0.5 * a * h * h
+        else:
+            distance = v * horizon
+        return min(distance, self.config.max_extrapolation_mm)
 
-    def landing_s(self, now: float, earliest_s: float) -> float:
-        """Expected landing of a frame handed over at ``now``: the smallest of the recent
-        frames' delays, or ``earliest_s`` (the soonest any frame can land) when none is
-        recent."""
-        recent = [d for t, d in self.landings if t >= now - LANDING_MAX_AGE_S]
-        return min(recent) if len(recent) >= 2 else earliest_s
-
-    def predict(self, now: float, raw: tuple[float, float, float], earliest_s: float = 0.0
-                ) -> tuple[tuple[float, float, float], float]:
-        """The position to render for a frame handed over at ``now``, and the time it is
-        rendered for (``now`` + the landing estimate, or the sample's time when off).
-        ``earliest_s``: the soonest after ``now`` any frame can be in place."""
+    def at(self, t: float, raw: tuple[float, float, float]
+           ) -> tuple[tuple[float, float, float], float]:
+        """The position to render for the finger at time ``t``, and the time it is rendered
+        for (``t``, or earlier where the horizon is capped; the sample's own time when off:
+        ``raw``, the newest packet as it came)."""
         c = self.config
         if not c.on or not math.isfinite(self.sample_at):
             self.state = {"horizon_ms": 0.0, "step_mm": 0.0, "capped": False}
-            return raw, self.sample_at if math.isfinite(self.sample_at) else now
-        landing = self.landing_s(now, earliest_s)
-        horizon = min(max(0.0, now + landing - self.sample_at), c.max_horizon_s)
+            return raw, self.sample_at if math.isfinite(self.sample_at) else t
+        horizon = min(max(0.0, t - self.sample_at), c.max_horizon_s)
         ax, ay, az = self.axes
-        dx, dy, dz = ax.derivative * horizon, ay.derivative * horizon, az.derivative * horizon
-        step = math.hypot(dx, dy)
-        capped = step > c.max_extrapolation_mm
-        if capped:
-            scale = c.max_extrapolation_mm / step
-            dx, dy = dx * scale, dy * scale
-        dz = max(-c.max_extrapolation_mm, min(c.max_extrapolation_mm, dz))
-        self.state = {"horizon_ms": horizon * 1e3, "step_mm": min(step, c.max_extrapolation_mm),
-                      "speed_mm_s": math.hypot(ax.derivative, ay.derivative), "capped": capped}
-        position = (ax.value + dx, ay.value + dy, az.value + dz)
-        return position, self.sample_at + horizon
+        step = self.step(horizon)
+        scale = step / self.speed if self.speed > 0 else 0.0
+        dx, dy = ax.derivative * scale, ay.derivative * scale
+        dz = max(-c.max_extrapolation_mm, min(c.max_extrapolation_mm, az.derivative * horizon))
+        self.state = {"horizon_ms": horizon * 1e3, "step_mm": step, "speed_mm_s": self.speed,
+                      "capped": step >= c.max_extrapolation_mm, "slowing": self.accel < 0}
+        return (ax.value + dx, ay.value + dy, az.value + dz), self.sample_at + horizon

@@ -60,6 +60,7 @@ from crs_study.live.packet import decode_packet, newer
 from crs_study.live.predict import PredictConfig, Predictor
 from crs_study.live.record import Recorder
 from crs_study.live.result import FrameCounts, LatencyLog, LiveResult, PacketCounts
+from crs_study.live.timing import FrameTiming
 from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.render import Renderer
 from crs_study.signals import PAUSE_SIGNALS, SignalInterrupt, describe, handling
@@ -72,8 +73,6 @@ POLL_S = 0.005
 VIEW_PERIOD_S = 0.25
 #: Frames counted in the live view's recent window.
 VIEW_WINDOW = 300
-#: A frame of one servo on the wire (s): SERVO_MOVE for 1 servo, 10 bytes at 9600 baud.
-MIN_FRAME_S = 10 * BITS_PER_BYTE / BAUD_RATE
 #: Longest the session waits at its end for the last frame to leave the wire (s).
 DRAIN_S = 1.0
 
@@ -151,8 +150,8 @@ class LiveSession:
         self.tap = tap
         self.view = view
         self.neutral = self.layout.neutral_setpoints()
-        self.last_setpoints = self.neutral
         self.predictor = Predictor(self.config.predict)
+        self.timing = FrameTiming(device, self.config.move_ms)
         self.finger = FingerHistory()
         self.byte_s = BITS_PER_BYTE / getattr(getattr(device, "options", None), "baud",
                                               BAUD_RATE)
@@ -328,35 +327,33 @@ class LiveSession:
         packet, datagram, decode_s = self.newest
         self.newest = None
         start = time.thread_time()
-        now = self.device.clock.now()  # the soonest a frame lands: wire free, one servo's frame
-        earliest = max(self.next_frame_at + self.config.lead_s - now, 0.0) + MIN_FRAME_S
-        shown, rendered_for = self.predictor.predict(now, (packet.x_mm, packet.y_mm, packet.z_mm),
-                                                     earliest)
-        placed = self.area.place(*shown)
-        clamped = False
-        if placed is None or placed[2] <= 0.0:
-            kind, setpoints = "flat", self.neutral
+        now = self.device.clock.now()
+        raw = (packet.x_mm, packet.y_mm, packet.z_mm)
+        if self.config.predict.on:  # late binding: rendered for when it will be in place
+            shown, rendered_for, (kind, setpoints, clamped) = self.timing.bind(
+                now, self.predictor, raw, self._render)
         else:
-            rendering = self.renderer.render_bump(placed[:2], self.area.diameter_mm, placed[2])
-            kind, setpoints, clamped = "finger", rendering.setpoints, bool(rendering.clamped)
+            shown, rendered_for = self.predictor.at(now, raw)
+            kind, setpoints, clamped = self._render(shown)
         self.packets.shown += 1
         frame = self._hand_over(setpoints, kind, packet.sequence, decode_s, start, clamped,
                                 shown if kind == "finger" else None, rendered_for)
         frame.arrivals = [datagram.arrival, *self.superseded]
         self.superseded = []
 
+    def _render(self, position: tuple) -> tuple[str, np.ndarray, bool]:
+        """(kind, setpoints, clamped) of the bump under a finger at ``position``."""
+        placed = self.area.place(*position)
+        if placed is None or placed[2] <= 0.0:
+            return "flat", self.neutral, False
+        rendering = self.renderer.render_bump(placed[:2], self.area.diameter_mm, placed[2])
+        return "finger", rendering.setpoints, bool(rendering.clamped)
+
     def _hand_over(self, setpoints: np.ndarray, kind: str, sequence: int | None,
                    decode_s: float, start: float | None = None, clamped: bool = False,
                    shown: tuple | None = None, rendered_for: float = math.nan) -> ShownFrame:
         report = self.device.send(setpoints, self.config.move_ms)
-        if kind == "finger" and any(report.bytes_sent):  # when its servos will be in place:
-            # the write policy's wire time, then the largest move at the servos' speed (or the
-            # SERVO_MOVE time)
-            travel = max(float(np.max(np.abs(setpoints - self.last_setpoints)))
-                         * self.layout.servo_speed_s_per_mm, self.config.move_ms / 1000.0)
-            self.predictor.landed(report.commanded_at,
-                                  report.wire_done_at + travel - report.commanded_at)
-            self.last_setpoints = setpoints
+        self.timing.handed(report.commanded_at, setpoints, report.wire_done_at)
         software = decode_s + (time.thread_time() - start) if start is not None else math.nan
         frame = ShownFrame(self.frame_index, kind, setpoints, report.commanded_at,
                            report.wire_done_at, report.bytes_sent, sequence,

@@ -92,7 +92,7 @@ def _height_map(session, height: int = 5) -> list[str]:
     layout = session.layout
     pixels = [a for a in layout.actuators if a.kind == "pixel"]
     xy = layout.pixel_xy
-    values = session.last_setpoints
+    values = session.timing.last
     span = np.ptp(xy, axis=0)
     half = layout.pitch_mm / 2.0
     cols = np.round((xy[:, 0] - xy[:, 0].min()) / half).astype(int) * 2
