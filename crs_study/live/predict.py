@@ -10,21 +10,22 @@ for the finger's predicted position at the time its servos will be in place:
    slow or held finger is smoothed (tracker jitter) and a fast one is followed with little
    lag. ``v`` is the filtered derivative (cutoff ``d_cutoff``). x and y share the cutoff of
    the finger's planar speed; z (the press) has its own.
-2. **When.** The frame's servos are expected in place ``landing`` s after it is handed over:
-   the link's own measured figure, the smallest of the last few frames' (the write policy's
-   wire-done time of each frame, plus its largest setpoint change at the servos' speed,
-   0.08 s/cm) handed over in the last 0.25 s, so the prediction errs towards the present;
-   with fewer than two that recent (a bump rising from a flat display is one slow frame),
-   the soonest any frame can land (the wire free, then one servo's 10-byte frame). The
-   horizon is that time minus the sample's arrival, at most ``max_horizon_s``.
-3. **Extrapolate, bounded.** ``p = p_filtered + v * h``, the step ``|v h|`` capped at
-   ``max_extrapolation_mm`` (so the bump never lands further than that past where a stroke
-   stopped). Rendering for the *earliest* recent landing keeps frames from leading the
-   finger (haptics should not lead vision by more than about 15 ms): a frame leads only when
-   it lands earlier than every one of the last few. That is not a guarantee: ``crs-study
-   bench live`` measures the largest lead (about 30 ms on the digits; most frames lag).
-   The press depth is predicted the same way (its step capped alike); a press predicted to
-   end (z <= 0) flattens the display.
+2. **When: late binding** (:mod:`crs_study.live.timing`). The frame is rendered for the time
+   its servos will be in place, computed for its own setpoints when it is handed over (the
+   wait for the wire over): its last byte on the boards, from a copy of the device's write
+   policy, plus the servos' time for its largest move at 0.08 s/cm, the move's part counted up
+   to ``max_lead_s``. So no frame is rendered for more than ``max_lead_s`` (15 ms: haptics
+   should not lead vision by more than about that) after the earliest time it can be in place,
+   its last byte's arrival: no frame leads the finger by more, by construction. The horizon
+   is that time minus the sample's arrival, at most ``max_horizon_s``.
+3. **Extrapolate, bounded.** ``p = p_filtered + s(h) v / |v|``: ``s = |v| h`` while the
+   filtered planar speed holds or rises; while it falls (its filtered rate ``a < 0``), constant
+   deceleration until the finger stops, ``s = |v| h + a h^2 / 2`` up to the stopping distance
+   ``|v|^2 / (2 |a|)``: a minimum-jerk stroke (Flash & Hogan 1985) slows down smoothly to its
+   end, so the bump stops near it instead of running on. The step is capped at
+   ``max_extrapolation_mm`` (a stroke stopped at once, with no slowing to see, is overrun by
+   at most that). The press depth is extrapolated at its filtered rate (its step capped
+   alike); a press predicted to end (z <= 0) flattens the display.
 
 A gap between packets longer than ``reset_s`` (the sender paused, a new stream) restarts the
 filter: a velocity across a gap means nothing. With ``method = "off"`` frames show the newest
@@ -34,6 +35,8 @@ References
 ----------
 Casiez, G., Roussel, N. & Vogel, D. (2012). 1€ Filter: A Simple Speed-based Low-pass Filter
 for Noisy Input in Interactive Systems. Proc. CHI 2012, 2527-2530.
+Flash, T. & Hogan, N. (1985). The coordination of arm movements: an experimentally confirmed
+mathematical model. Journal of Neuroscience 5(7), 1688-1703.
 """
 
 from __future__ import annotations
@@ -43,10 +46,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 from crs_study.live.errors import LiveError
-
-#: Frames whose landing delays the estimate looks at, and how old they may be (s).
-LANDING_WINDOW = 6
-LANDING_MAX_AGE_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -90,8 +89,10 @@ class PredictConfig:
         if not self.on:
             return "off (the newest packet as it came)"
         return (f"1€ filter (min cutoff {self.min_cutoff_hz:g} Hz, beta {self.beta:g}, "
-                f"d cutoff {self.d_cutoff_hz:g} Hz) + constant velocity, step <= "
-                f"{self.max_extrapolation_mm:g} mm, horizon <= {self.max_horizon_s * 1e3:g} ms")
+                f"d cutoff {self.d_cutoff_hz:g} Hz) + velocity, slowing at the filtered "
+                f"deceleration, step <= {self.max_extrapolation_mm:g} mm, horizon <= "
+                f"{self.max_horizon_s * 1e3:g} ms, late-bound, lead <= "
+                f"{self.max_lead_s * 1e3:g} ms")
 
 
 def smoothing(cutoff_hz: float, dt: float) -> float:

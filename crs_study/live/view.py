@@ -73,7 +73,7 @@ def _predictor(session) -> str:
         return "off: each frame shows the newest packet as it came"
     state = session.predictor.state
     if not state:
-        return "1€ filter + constant velocity: no frame yet"
+        return "1€ filter + velocity, late-bound: no frame yet"
     return (f"1€ + velocity: {state.get('speed_mm_s', 0.0):5.0f} mm/s, "
             f"{state['horizon_ms']:3.0f} ms ahead, step {state['step_mm']:.1f} mm"
             + (f" (capped at {config.max_extrapolation_mm:g})" if state["capped"] else ""))
