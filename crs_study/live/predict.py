@@ -56,7 +56,9 @@ class PredictConfig:
     and 200 mm/s with minimum-jerk strokes): ``min_cutoff`` and ``beta`` as the 1€ paper's
     tuning procedure (a low ``min_cutoff`` for a still finger, then ``beta`` until a fast one
     shows little lag; beta 0.5-1 and step caps 6-8 mm differed by under 0.2 mm in median
-    error), ``d_cutoff`` 15 Hz (8 Hz: 1.83 against 1.64 mm at 100 mm/s).
+    error), ``d_cutoff`` 15 Hz (8 Hz: 1.83 against 1.64 mm at 100 mm/s, before late binding);
+    the filtered deceleration uses ``d_cutoff`` too. ``max_lead_s`` 15 ms: how far haptics may
+    lead vision (a bound, not a tuning: the figures are measured under it).
     """
 
     method: Literal["one-euro", "off"] = "one-euro"
