@@ -1,4 +1,6 @@
-"""Bench area ``live``: the live link's latency at the headset's 72 packets a second.
+"""Bench area ``live``: the live link's latency at the headset's 72 packets a second, and
+where its bumps land against the finger with and without prediction
+(:mod:`crs_study.benchmarks._live_landing`, first).
 
 A finger writes digit 9 with the package's strokes (60 mm high, 30 mm/s, pressing 5 mm,
 lifting between strokes; :func:`crs_study.live.trace.digit_trace`), sent over UDP on loopback
@@ -39,6 +41,7 @@ import threading
 import time
 
 from crs_study.benchmarks import Figure, median_seconds
+from crs_study.benchmarks import _live_landing as landing
 from crs_study.clock import RealClock
 from crs_study.device import open_device
 from crs_study.device.calibration import PulseMap
@@ -220,9 +223,9 @@ def nothing(item) -> None:
     """The empty work: what timing a call costs, after a pause and back to back."""
 
 
-def run(quick: bool) -> list[Figure]:
+def run(quick: bool, traces=()) -> list[Figure]:
     trace = bench_trace(quick)
-    out = []
+    out = landing.run(quick, traces)
     for name, runner in (("sim", _sim), ("pty", _pty)):
         result = runner(trace)
         if not result.ok or result.source != "boards":

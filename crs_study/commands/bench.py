@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--list", action="store_true", help="list the areas and exit")
     parser.add_argument("--quick", action="store_true", help="fewer repeats (for tests)")
     parser.add_argument("--json", action="store_true", help="print figures as JSON lines")
+    parser.add_argument("--trace", action="append", default=[], metavar="FILE",
+                        help="live: also measure the position error on this recording "
+                             "(crs-study live --record FILE); repeatable")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"crs-study bench on {machine}")
     failed = 0
     for name in chosen:
-        for fig in areas[name].run(quick=args.quick):
+        extra = {"traces": args.trace} if args.trace and name == "live" else {}
+        for fig in areas[name].run(quick=args.quick, **extra):
             failed += fig.passed is False
             if args.json:
                 print(json.dumps(fig.to_dict()))

@@ -20,15 +20,20 @@ frame as JSON lines; crs-study live-send --replay FILE sends it again.
 from __future__ import annotations
 
 import argparse
+import atexit
+import signal
 import sys
+import threading
 
 from crs_study.commands import HelpFormatter, add_device_options, device_options
 from crs_study.device import open_device
 from crs_study.errors import DeviceError
 from crs_study.geometry.layout import load_layout
+from crs_study.live.predict import PredictConfig
 from crs_study.live.session import LiveConfig, LiveSession
 from crs_study.live.view import TerminalView, screen
 from crs_study.rendering.conditions import CONDITIONS
+from crs_study.signals import PAUSE_SIGNALS, handling
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,6 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="end the session (neutral, ports released) instead of flattening")
     timing.add_argument("--move-ms", type=int, default=0,
                         help="SERVO_MOVE time of each frame (0: as fast as the servos go)")
+    timing.add_argument("--predict", default="one-euro", choices=("one-euro", "off"),
+                        help="render each frame for where the finger will be when its servos "
+                             "are in place (a 1€-filtered constant-velocity prediction, step "
+                             "<= 6 mm; the default), or off: the newest packet as it came")
     timing.add_argument("--seconds", type=float, default=None,
                         help="stop after this long (default: until Ctrl-C)")
     timing.add_argument("--max-packets", type=int, default=None,
@@ -70,14 +79,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
-
-
+    _ignore_stop_signals_at_exit()
     config = LiveConfig(
         listen=args.listen, condition=args.condition, diameter_mm=args.diameter_mm,
         max_height_mm=args.max_height_mm, area_margin_mm=args.area_margin_mm,
         silence_s=args.silence_s, exit_on_silence=args.exit_on_silence, move_ms=args.move_ms,
-        duration_s=args.seconds, max_packets=args.max_packets, record=args.record)
+        duration_s=args.seconds, max_packets=args.max_packets, record=args.record,
+        predict=PredictConfig(method=args.predict))
     layout = load_layout(args.layout)
     options = device_options(args, args.device)
     if args.device.startswith("sim://"):
@@ -85,7 +93,17 @@ def run(args: argparse.Namespace) -> int:
     device = open_device(args.device, layout, **options)
     live_view = sys.stdout.isatty() and not (args.no_view or args.json)
     session = LiveSession(device, config, view=TerminalView() if live_view else _Announce())
-    result = session.run()
+    # the session handles stop signals while it runs; before and after, one has nothing to
+    # stop (after: the display is neutral, the ports released) and cannot cut the report short
+    with handling(lambda signum, frame: None, PAUSE_SIGNALS):
+        result = session.run()
+        _report(args, session, result, live_view)
+    return 0
+
+
+def _report(args: argparse.Namespace, session: LiveSession, result, live_view: bool) -> None:
+    import json
+
     if args.json:
         print(json.dumps(result.to_json(), indent=1))
     else:
@@ -100,7 +118,25 @@ def run(args: argparse.Namespace) -> int:
         print(f"crs-study live: warning: {fault}", file=sys.stderr)
     if not result.ok:
         raise DeviceError(first)
-    return 0
+
+
+def _ignore_stop_signals_at_exit() -> None:
+    """Once the command is over, Ctrl-C, SIGTERM and SIGHUP are ignored until the process ends.
+
+    While the interpreter tears down (a second or so with numpy and scipy loaded) Python puts
+    the default actions back, so a second Ctrl-C there killed the process by SIGINT after it
+    had stopped cleanly and printed its result. An ignored signal stays ignored through that.
+    Registered with :mod:`atexit`, so a caller that runs the command in its own process (a
+    notebook, a test) keeps its handlers until it exits itself.
+    """
+    if threading.current_thread() is threading.main_thread():
+        atexit.unregister(_ignore_stop_signals)  # once, however often the command runs
+        atexit.register(_ignore_stop_signals)
+
+
+def _ignore_stop_signals() -> None:
+    for signum in PAUSE_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
 
 
 class _Announce:

@@ -5,7 +5,8 @@ One source: --digit D (a finger writing digit D with the package's strokes, lift
 strokes), --symbol S (symbol S of the stimulus set --set: the letters' strokes, a set file's),
 --stroke (a straight stroke from --start to --end), --hold (a finger held still at
 --centre for --seconds), or --replay FILE (the accepted packets of a ``crs-study live --record``
-file, at their recorded times unless --rate is given). --jitter-mm adds a tremor (Gaussian, per
+file at their recorded times, pauses over 2 s shortened; with --rate one every 1/rate s in
+their order). --speed plays any of them faster or slower. --jitter-mm adds a tremor (Gaussian, per
 packet, on x and y). Packets go at --rate a second (72: the Quest 2's frame rate), on an
 absolute schedule, one new stream per run. Coordinates are mm from the display's centre.
 """
@@ -56,7 +57,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source.add_argument("--hold", action="store_true", help="a finger held still")
     source.add_argument("--replay", metavar="FILE", help="a crs-study live --record file")
     parser.add_argument("--rate", type=float, default=None,
-                        help="packets a second (default 72; --replay: the recorded times)")
+                        help="packets a second (default 72; --replay: the recorded times, or "
+                             "the recorded packets at this rate)")
+    parser.add_argument("--speed", type=float, default=1.0,
+                        help="play the trace this many times as fast (--replay --speed 2: "
+                             "twice the recorded speed)")
     shape = parser.add_argument_group("the made-up traces")
     shape.add_argument("--set", default=None, metavar="NAME|FILE",
                        help="--symbol: a shipped stimulus set (digits, letters) or a set file")
@@ -88,9 +93,7 @@ def run(args: argparse.Namespace) -> int:
     address = parse_address(args.to, "--to")
     rate = HEADSET_RATE_HZ if args.rate is None else args.rate
     if args.replay:
-        trace = read_trace(args.replay)
-        if args.rate is not None:
-            trace = trace.resampled(args.rate)
+        trace = read_trace(args.replay, args.rate)
     elif args.digit is not None:
         trace = digit_trace(args.digit, args.height_mm, args.speed_mm_s, args.press_mm, rate,
                             args.centre)
@@ -103,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         trace = hold_trace(args.centre, args.seconds, args.press_mm, rate)
     if args.jitter_mm:
         trace = trace.jittered(args.jitter_mm, args.seed)
+    trace = trace.faster(args.speed)
     try:
         with terminate_as_interrupt():
             report = send_trace(trace, address, repeat=args.repeat)

@@ -17,10 +17,13 @@ Modules (each imports only those above it)::
               (jittered) finger; resampling
     sender    send a trace as packets at a set rate (``crs-study live-send``)
     record    a session recorded to JSON lines, read back as a trace (it replays)
+    predict   where the finger will be when a frame lands: the 1€ filter, bounded extrapolation
+    landing   position error at landing, lead, overshoot at stroke ends; FingerHistory
     boards    when frames reached the boards: the virtual boards' own record, or the host's
     result    LiveResult: counts, latency, ``to_json()``, ``to_frame()``
     session   LiveConfig, LiveSession, serve(): the loop, newest packet wins, the safe stop
     view      the terminal view (``crs-study live``)
+    simulate  a session on a virtual clock: the position error as a deterministic result
 
 ``serve("sim://", config=LiveConfig(listen="127.0.0.1:5005"))`` runs a session and returns a
 :class:`LiveResult`.
@@ -29,6 +32,7 @@ Modules (each imports only those above it)::
 from crs_study.live.area import RecognitionArea
 from crs_study.live.errors import LiveError, PacketError
 from crs_study.live.packet import FingerPacket, decode_packet, encode_packet
+from crs_study.live.predict import PredictConfig
 from crs_study.live.record import read_trace
 from crs_study.live.result import LiveResult
 from crs_study.live.sender import SendReport, send_trace
@@ -43,7 +47,7 @@ from crs_study.live.trace import (
 
 __all__ = [
     "FingerPacket", "FingerTrace", "LiveConfig", "LiveError", "LiveResult", "LiveSession",
-    "PacketError", "RecognitionArea", "SendReport", "decode_packet", "digit_trace",
+    "PacketError", "PredictConfig", "RecognitionArea", "SendReport", "decode_packet", "digit_trace",
     "encode_packet", "hold_trace", "read_trace", "send_trace", "serve", "stroke_trace",
     "symbol_trace",
 ]

@@ -61,6 +61,8 @@ class ShownFrame:
     sequence: int | None = None  # the packet it carries
     arrivals: list[float] = field(default_factory=list)  # carried packet first, then superseded
     software_s: float = math.nan  # decode + render + hand-over of the carried packet
+    shown: tuple[float, float, float] | None = None  # finger frame: (x_f, y_f, z_f) rendered
+    rendered_for: float = math.nan  # the time that position was predicted for
     landed: list[float | None] = field(default_factory=list)  # per board; None: nothing came
     settled: list[float] = field(default_factory=list)  # per board: servos in place
     lost: bool = False  # a write expected on a board never matched

@@ -11,7 +11,8 @@ module is that datagram as bytes and back, pure (no sockets). 36 bytes, little-e
      6      uint16   reserved     0
      8      uint32   stream       chosen at random when the sender starts; a new stream is a new
                                   sequence (a restarted scene counts from 0 again)
-    12      uint32   sequence     +1 per packet within a stream
+    12      uint32   sequence     +1 per packet within a stream, wrapping from 2^32 - 1 to 0
+                                  (compared as RFC 1982 serial numbers: :func:`newer`)
     16      float64  sender_time  seconds on the sender's own clock (recorded, never compared
                                   with ours)
     24      float32  x_f          mm, in the display's plane, from the area's centre
@@ -64,6 +65,25 @@ class FingerPacket:
             if isinstance(value, bool) or not isinstance(value, int | float) \
                     or not math.isfinite(value):
                 raise PacketError(f"{name}: expected a finite number, got {value!r}")
+
+
+def newer(sequence: int, last: int, bits: int = 32) -> bool:
+    """Whether ``sequence`` comes after ``last`` in serial-number arithmetic.
+
+    Notes
+    -----
+    RFC 1982 (Elz & Bush 1996, "Serial Number Arithmetic"), section 3.2, with SERIAL_BITS = 32:
+    ``s1 < s2`` when ``s1 < s2 and s2 - s1 < 2^31`` or ``s1 > s2 and s1 - s2 > 2^31``. So
+    ``0`` comes after ``2^32 - 1`` (the wrap), and a packet more than 2^31 behind is newer
+    again. Two numbers exactly 2^31 apart are not comparable (the RFC leaves them undefined):
+    not newer. ``last = -1`` (nothing accepted yet) makes every sequence newer. ``bits``: the
+    RFC's SERIAL_BITS (its worked examples use 8).
+    """
+    if last < 0:
+        return True
+    half = 1 << (bits - 1)
+    return (last < sequence and sequence - last < half) or \
+        (last > sequence and last - sequence > half)
 
 
 def encode_packet(packet: FingerPacket) -> bytes:

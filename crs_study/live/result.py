@@ -9,11 +9,18 @@ environment"; the issue's definition):
 ``newest``   every accepted packet, carried or superseded: arrival -> the first frame carrying
              it *or a newer one* has its last byte at the boards: how far the display lags a
              finger at any moment (newest wins, so most packets are never shown themselves)
+``lead``     the time a frame's position was predicted for minus when its servos were in
+             place (virtual boards) or its last byte arrived: > 0, the bump ahead of the finger
 ``software`` decode + render + hand-over of a carried packet: CPU time of the session's
              thread (``time.thread_time``: the work, not the waits of a loaded machine), and
              ``frame_wire``, the frame's own time on the wire (its busiest board's bytes at 10
              bits a byte), the figure it is compared with: ``software_share``, their ratio per
              frame (a fraction, not a time).
+
+Per frame also the **position error** (mm): the distance between the bump's centre and the
+finger when the frame's servos were in place, the finger's position then interpolated between
+the packets that arrived around it (:class:`~crs_study.live.landing.FingerHistory`): what the
+finger meets, as well as the link can know it.
 
 Only ``finger`` frames that put bytes on the wire, all of them arrived, count: a frame whose
 channels were all unchanged carries its packet with no wire time (counted ``unchanged``), a
@@ -31,7 +38,7 @@ from crs_study.live.latency import Series, Summary
 
 #: Columns of :meth:`LiveResult.to_frame`, one row per counted frame.
 FRAME_COLUMNS = ("frame", "sequence", "arrival", "handed", "done", "in_place", "software_s",
-                 "frame_wire_s", "host_error_s")
+                 "frame_wire_s", "host_error_s", "position_error_mm", "lead_s")
 
 
 @dataclass
@@ -70,7 +77,7 @@ class LatencyLog:
         self.columns = {name: Series() for name in FRAME_COLUMNS}
         self.newest = Series()
 
-    def add(self, frame, frame_wire_s: float) -> None:
+    def add(self, frame, frame_wire_s: float, position_error_mm: float = float("nan")) -> None:
         c = self.columns
         c["frame"].add(frame.index)
         c["sequence"].add(frame.sequence)
@@ -81,6 +88,9 @@ class LatencyLog:
         c["software_s"].add(frame.software_s)
         c["frame_wire_s"].add(frame_wire_s)
         c["host_error_s"].add(frame.done_at - frame.host_done)
+        c["position_error_mm"].add(position_error_mm)
+        landed = frame.in_place_at if frame.in_place_at == frame.in_place_at else frame.done_at
+        c["lead_s"].add(frame.rendered_for - landed)
 
     def delays(self, last: int | None = None) -> dict[str, Summary]:
         c = {k: s.array() for k, s in self.columns.items()}
@@ -99,6 +109,8 @@ class LatencyLog:
             "frame_wire": Summary.of(wire),
             "software_share": Summary.of(share),
             "host_error": Summary.of(c["host_error_s"][cut]),
+            "position_error": Summary.of(c["position_error_mm"][cut]),
+            "lead": Summary.of(c["lead_s"][cut]),
         }
 
 
@@ -148,7 +160,8 @@ class LiveResult:
             "frames_written_per_s": round(self.frame_rate_hz, 3),
             "unmatched_board_frames": self.unmatched_board_frames,
             "latency": {k: v.to_json() for k, v in self.latency.items()
-                        if k != "software_share"},
+                        if k not in ("software_share", "position_error")},
+            "position_error_mm": self.latency["position_error"].to_json(scale=1.0),
             "software_share": self.latency["software_share"].to_json(scale=1.0),
             "config": self.config,
         }

@@ -3,11 +3,14 @@
 The loop (one thread; the serial device's writer threads put the bytes on the ports)
     1. wait for a datagram, the wire or a deadline (``select``);
     2. read every datagram waiting; each is decoded and either dropped and counted (malformed,
-       stale: not newer than the last accepted; another stream's while one is shown) or
+       stale: not newer than the last accepted, as RFC 1982 serial numbers, so the sequence
+       may wrap; another stream's while one is shown) or
        accepted: it becomes *the newest*, and the packet it replaces, never shown, is counted
        superseded;
     3. when the wire can take a frame (the last frame's last byte leaves within ``lead_s``),
-       the newest packet is rendered (the same :class:`~crs_study.render.Renderer`, clip
+       the newest packet, moved to where the finger will be when this frame's servos are in
+       place (:mod:`crs_study.live.predict`; ``predict.method = "off"``: as it came), is
+       rendered (the same :class:`~crs_study.render.Renderer`, clip
        policy and feed cap as a session's stimuli) and handed to the device, whose calibrated
        limits refuse anything out of range, as in a session. So frames go at the rate the wire
        allows, each carrying the newest position, never a queue of old ones; what goes on the
@@ -20,12 +23,15 @@ later frame is changed-only).
 
 Stopping safely
     No accepted packet for ``silence_s`` (0.5 s): the display is flattened at once and the
-    session keeps listening (a stream that resumes is shown again; a new stream may take over
-    only now); with ``exit_on_silence`` the session ends instead. Ctrl-C, SIGTERM, SIGHUP
+    session keeps listening (a stream that resumes is shown again, from any sequence number: a
+    sender restarted with its old stream id is not locked out; a new stream may take over only
+    now); with ``exit_on_silence`` the session ends instead. Ctrl-C, SIGTERM, SIGHUP
     (:mod:`crs_study.signals`), the end of ``duration_s`` or ``max_packets``, or a device
-    fault end it: the device is closed, which sends the neutral pose and releases the ports
-    (a second signal waits for that). A device fault is reported in the result
-    (``stopped_by``, ``faults``), not raised, so what was measured is not lost.
+    fault end it: the device is closed, which sends the neutral pose and releases the ports.
+    A signal after the first (or one while closing) asks for what is already being done: it
+    is absorbed (counted in ``signals_while_closing``), and the result comes back as after one.
+    A device fault is reported in the result (``stopped_by``, ``faults``), not raised, so what
+    was measured is not lost.
 
 Why silence flattens rather than ends the session: a headset streaming over USB pauses now
 and then; flattening is what keeps a finger from meeting a bump the scene no longer tracks,
@@ -36,8 +42,9 @@ from __future__ import annotations
 
 import math
 import select
+import signal
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -47,13 +54,16 @@ from crs_study.geometry.layout import Layout, load_layout
 from crs_study.live.area import PAPER_DIAMETER_MM, RecognitionArea
 from crs_study.live.boards import BoardTap, HostModel, ShownFrame
 from crs_study.live.errors import LiveError, PacketError
+from crs_study.live.landing import FingerHistory
 from crs_study.live.link import MAX_BATCH, Listener, parse_address
-from crs_study.live.packet import decode_packet
+from crs_study.live.packet import decode_packet, newer
+from crs_study.live.predict import PredictConfig, Predictor
 from crs_study.live.record import Recorder
 from crs_study.live.result import FrameCounts, LatencyLog, LiveResult, PacketCounts
+from crs_study.live.timing import FrameTiming
 from crs_study.rendering.feed_cap import WireSlack
 from crs_study.rendering.render import Renderer
-from crs_study.signals import deferred, describe, terminate_as_interrupt
+from crs_study.signals import PAUSE_SIGNALS, SignalInterrupt, describe, handling
 
 #: Longest single wait of the loop (s): how often it looks at the clock with nothing to do.
 MAX_WAIT_S = 0.05
@@ -83,9 +93,12 @@ class LiveConfig:
     duration_s: float | None = None
     max_packets: int | None = None
     record: str | None = None
+    predict: PredictConfig = field(default_factory=PredictConfig)
 
     def __post_init__(self) -> None:
         parse_address(self.listen, "listen address")
+        if not isinstance(self.predict, PredictConfig):
+            raise LiveError(f"predict: expected a PredictConfig, got {self.predict!r}")
 
         def number(name: str, low: float, high: float, optional: bool = False) -> None:
             value = getattr(self, name)
@@ -137,6 +150,9 @@ class LiveSession:
         self.tap = tap
         self.view = view
         self.neutral = self.layout.neutral_setpoints()
+        self.predictor = Predictor(self.config.predict)
+        self.timing = FrameTiming(device, self.config.move_ms)
+        self.finger = FingerHistory()
         self.byte_s = BITS_PER_BYTE / getattr(getattr(device, "options", None), "baud",
                                               BAUD_RATE)
         self.packets = PacketCounts()
@@ -153,6 +169,8 @@ class LiveSession:
         self.frame_index = 0
         self.flat_shown = True
         self.stopped_by = ""
+        self.stopping = False
+        self.signals_while_closing = 0  # stop signals that came while the session closed
         self.faults: list[str] = []
         self.started = self.ended = math.nan
         self.listener: Listener | None = None
@@ -167,9 +185,9 @@ class LiveSession:
         host, port = parse_address(self.config.listen, "listen address")
         self.listener = Listener(host, port)
         try:
-            with terminate_as_interrupt():
+            with handling(self._on_signal, PAUSE_SIGNALS):
                 try:
-                    self._open()
+                    self.start()
                     self._loop()
                 except KeyboardInterrupt as interrupt:
                     self.stopped_by = describe(interrupt)
@@ -177,19 +195,31 @@ class LiveSession:
                     self.stopped_by = "device fault"
                     self.faults.append(str(fault))
                 finally:
-                    with deferred():
-                        self._close()
+                    self.stopping = True
+                    self._close()
         finally:
             self.listener.close()
         return self.result()
 
-    def _open(self) -> None:
-        self.started = time.monotonic()
+    def _on_signal(self, signum: int, frame: object) -> None:
+        """The first stop signal stops the loop (as Ctrl-C, :mod:`crs_study.signals`); any
+        later one is counted only: it would ask for the close already under way."""
+        if self.stopping:
+            self.signals_while_closing += 1
+            return
+        self.stopping = True
+        raise KeyboardInterrupt if signum == signal.SIGINT else SignalInterrupt(signum)
+
+    def start(self) -> None:
+        """Open the device and show the neutral pose (:meth:`run` does; a simulation on a
+        virtual clock calls :meth:`start`, :meth:`take`, :meth:`show` and :meth:`finish`)."""
+        self.started = self.device.clock.now()
         if self.config.record:
             header = {"layout": self.layout.name, "condition": self.config.condition,
                       "device": getattr(self.device, "url", type(self.device).__name__),
                       "listen": self.listen_address, "area": self.area.describe(),
-                      "config": asdict(self.config), "t0": self.started}
+                      "config": asdict(self.config), "t0": self.started,
+                      "predictor": self.config.predict.describe()}
             self.recorder = Recorder(self.config.record, header, self.started)
         # the first rendering builds the beams' tables (~0.2 s): not on a packet's time
         self.renderer.render(self.area.bump(0.0, 0.0, self.area.max_height_mm))
@@ -236,10 +266,10 @@ class LiveSession:
                 left = (MAX_BATCH if config.max_packets is None
                         else config.max_packets - self.packets.received)
                 for datagram in self.listener.receive(left):
-                    self._take(datagram)
+                    self.take(datagram)
             now = time.monotonic()
             if self.newest is not None and now >= self.next_frame_at:
-                self._show()
+                self.show()
             if self.state == "live" and now >= self.last_arrival + config.silence_s:
                 self.state = "silent"
                 self.silences += 1
@@ -248,14 +278,14 @@ class LiveSession:
                     return
                 if not self.flat_shown:
                     self._hand_over(self.neutral, "silence", None, 0.0)
-            self._finish(self.tap.poll(now))
+            self.finish(self.tap.poll(now))
             if self.view and now >= view_at:
                 self.view(self)
                 view_at = now + VIEW_PERIOD_S
 
     # -- packets -------------------------------------------------------------------------
 
-    def _take(self, datagram) -> None:
+    def take(self, datagram) -> None:
         counts = self.packets
         counts.received += 1
         start = time.thread_time()
@@ -268,12 +298,12 @@ class LiveSession:
             return
         decode_s = time.thread_time() - start
         status = "accepted"
-        if packet.stream != self.stream:
-            if self.state == "live":
-                status = "other_stream"
-            else:  # nothing shown now: a new stream takes over with its own sequence
-                self.stream, self.last_sequence = packet.stream, -1
-        if status == "accepted" and packet.sequence <= self.last_sequence:
+        if self.state != "live":  # nothing shown now: any stream (re)starts its sequence
+            self.stream, self.last_sequence = packet.stream, -1
+            self.predictor.reset()
+        elif packet.stream != self.stream:
+            status = "other_stream"
+        if status == "accepted" and not newer(packet.sequence, self.last_sequence):
             status = "stale"
         if self.recorder:
             self.recorder.packet(datagram, status, packet)
@@ -285,36 +315,49 @@ class LiveSession:
             counts.out_of_area += 1
         self.last_sequence = packet.sequence
         self.last_arrival = datagram.arrival
+        self.predictor.update(datagram.arrival, packet.x_mm, packet.y_mm, packet.z_mm)
+        self.finger.add(datagram.arrival, packet.x_mm, packet.y_mm, packet.z_mm)
         self.state = "live"
         if self.newest is not None:
             counts.superseded += 1
             self.superseded.append(self.newest[1].arrival)
         self.newest = (packet, datagram, decode_s)
 
-    def _show(self) -> None:
+    def show(self) -> None:
         packet, datagram, decode_s = self.newest
         self.newest = None
         start = time.thread_time()
-        placed = self.area.place(packet.x_mm, packet.y_mm, packet.z_mm)
-        clamped = False
-        if placed is None or placed[2] <= 0.0:
-            kind, setpoints = "flat", self.neutral
+        now = self.device.clock.now()
+        raw = (packet.x_mm, packet.y_mm, packet.z_mm)
+        if self.config.predict.on:  # late binding: rendered for when it will be in place
+            shown, rendered_for, (kind, setpoints, clamped) = self.timing.bind(
+                now, self.predictor, raw, self._render)
         else:
-            rendering = self.renderer.render_bump(placed[:2], self.area.diameter_mm, placed[2])
-            kind, setpoints, clamped = "finger", rendering.setpoints, bool(rendering.clamped)
+            shown, rendered_for = self.predictor.at(now, raw)
+            kind, setpoints, clamped = self._render(shown)
         self.packets.shown += 1
-        frame = self._hand_over(setpoints, kind, packet.sequence, decode_s, start, clamped)
+        frame = self._hand_over(setpoints, kind, packet.sequence, decode_s, start, clamped,
+                                shown if kind == "finger" else None, rendered_for)
         frame.arrivals = [datagram.arrival, *self.superseded]
         self.superseded = []
 
+    def _render(self, position: tuple) -> tuple[str, np.ndarray, bool]:
+        """(kind, setpoints, clamped) of the bump under a finger at ``position``."""
+        placed = self.area.place(*position)
+        if placed is None or placed[2] <= 0.0:
+            return "flat", self.neutral, False
+        rendering = self.renderer.render_bump(placed[:2], self.area.diameter_mm, placed[2])
+        return "finger", rendering.setpoints, bool(rendering.clamped)
+
     def _hand_over(self, setpoints: np.ndarray, kind: str, sequence: int | None,
-                   decode_s: float, start: float | None = None,
-                   clamped: bool = False) -> ShownFrame:
+                   decode_s: float, start: float | None = None, clamped: bool = False,
+                   shown: tuple | None = None, rendered_for: float = math.nan) -> ShownFrame:
         report = self.device.send(setpoints, self.config.move_ms)
+        self.timing.handed(report.commanded_at, setpoints, report.wire_done_at)
         software = decode_s + (time.thread_time() - start) if start is not None else math.nan
         frame = ShownFrame(self.frame_index, kind, setpoints, report.commanded_at,
                            report.wire_done_at, report.bytes_sent, sequence,
-                           software_s=software)
+                           software_s=software, shown=shown, rendered_for=rendered_for)
         self.frame_index += 1
         counts = self.frames
         counts.handed += 1
@@ -333,7 +376,7 @@ class LiveSession:
             self.recorder.frame(frame, clamped)
         return frame
 
-    def _finish(self, frames: list[ShownFrame]) -> None:
+    def finish(self, frames: list[ShownFrame]) -> None:
         """Count the frames whose bytes have arrived (or never will)."""
         for frame in frames:
             if self.recorder:
@@ -346,7 +389,8 @@ class LiveSession:
             for arrival in frame.arrivals:
                 self.log.newest.add(frame.done_at - arrival if shown else math.nan)
             if frame.kind == "finger" and frame.wrote and not frame.lost:
-                self.log.add(frame, max(frame.bytes_sent) * self.byte_s)
+                self.log.add(frame, max(frame.bytes_sent) * self.byte_s,
+                             self.finger.error(frame))
 
     # -- stopping ------------------------------------------------------------------------
 
@@ -370,7 +414,7 @@ class LiveSession:
         deadline = time.monotonic() + DRAIN_S
         while True:
             now = time.monotonic()
-            self._finish(self.tap.poll(now, flush=now >= deadline))
+            self.finish(self.tap.poll(now, flush=now >= deadline))
             if not getattr(self.tap, "pending", None) or now >= deadline:
                 break
             time.sleep(0.005)
