@@ -1,4 +1,4 @@
-"""Issue 13, item 8: a session that stopped before its end is reported as interrupted, never
+"""A session that stopped before its end is reported as interrupted, never
 as tampered with, and a sidecar that disagrees with its trial file in a way no interruption
 explains stays a tampering alarm.
 

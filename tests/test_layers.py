@@ -1,4 +1,4 @@
-"""The package's layers (issue 15, point 3): a folder per stage, imports only downwards, none
+"""The package's layers: a folder per stage, imports only downwards, none
 hidden inside a function, and no module past 500 lines.
 
 The layers are import-linter contracts in ``pyproject.toml`` (``[tool.importlinter]``), run

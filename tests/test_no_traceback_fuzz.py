@@ -5,7 +5,7 @@ runs under a time bound).
 
 The kinds: a protocol, a device file, a strokes file, an analysis plan, a dataset's trial TSV
 and JSON sidecar, the consent register, the numeric options. The values are the ones that
-broke a first day (issue 14): subnormal and huge floats (1e-310, 1e-320, 1e308), integers
+broke a first day: subnormal and huge floats (1e-310, 1e-320, 1e308), integers
 beyond int64, 256-character and longer strings, nesting deeper than Python's recursion limit,
 and their neighbours (NaN, infinities, empty strings, NUL). Hypothesis draws which key gets
 which value; a key's value is replaced on its line, in its table, so the rest of the file
