@@ -196,7 +196,7 @@ def test_psychometric_functions_when_a_level_varies(tmp_path):
     assert "figures/psychometric.png" in result.results["charts"]
 
 
-# --- point 10 of the issue: degenerate data, one test each ------------------------------------
+# --- degenerate data, one test each -------------------------------------------------------------
 
 def _run(tmp_path, cells):
     root = explicit_dataset(tmp_path / "ds", cells)
