@@ -2,7 +2,7 @@
 stepped clock that drives the serial device's writer threads through chosen times.
 
 The far end of each pty decodes what the host writes with the codec (host direction) and
-answers GET_BATTERY_VOLTAGE like a board (hardware.md: reply ``55 55 04 0F lo hi``). Test
+answers GET_BATTERY_VOLTAGE like a board (docs/device.md: reply ``55 55 04 0F lo hi``). Test
 modules take the ``boards`` fixture by importing ``boards_fixture``.
 """
 
@@ -99,7 +99,7 @@ def url_of(boards: list[PtyBoard]) -> str:
 
 
 def base0_reversed(layout):
-    """``layout`` with its first controller counting channels from 0 (hardware.md leaves 0 or
+    """``layout`` with its first controller counting channels from 0 (docs/device.md leaves 0 or
     1 open) and actuator 2's calibration reversed (zero_us > full_us)."""
     from dataclasses import replace
 

@@ -130,7 +130,7 @@ def adaptive_protocol(directory: Path, name: str = "adaptive.toml", *,
 def assert_same_but_reruns(resumed: Path, whole: Path, cut: set[int]) -> None:
     """A resumed session's trial file equals the uninterrupted run's byte for byte but for
     the ``rerun`` column, which is 1 exactly on the trials an interruption cut after their
-    stimulus began (issue 13.12: the participant felt part of them before the rerun)."""
+    stimulus began (the participant felt part of them before the rerun, and the data say so)."""
     import csv
 
     def table(path: Path) -> tuple[list[str], list[dict[str, str]]]:
@@ -161,7 +161,8 @@ def assert_same_but_reruns(resumed: Path, whole: Path, cut: set[int]) -> None:
 def record_consent(*labels: str, register: Path | None = None) -> None:
     """Record each person's consent on the shipped form in ``register`` (default: the test's
     own register, $CRS_STUDY_CONSENT_DIR from conftest): a person's label passes the consent
-    gate on every device, sim:// included (issue 13.3)."""
+    gate on every device, sim:// included (a person's data never enter a dataset without
+    their consent, whatever the device)."""
     from crs_study.consent import Register, read_form
     from crs_study.paths import shipped_file
 

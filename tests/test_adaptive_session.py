@@ -119,7 +119,7 @@ def test_interrupted_then_resumed_is_identical_to_uninterrupted(kind, at, reques
     assert second.status == "complete"
     tsv, sidecar, frames = files(out)
     whole_tsv, whole_sidecar, whole_frames = files(whole)
-    # the trial the pause cut after its stimulus began is rerun (rerun = 1, issue 13.12);
+    # the trial the pause cut after its stimulus began is rerun (rerun = 1: partly felt);
     # everything else is what the uninterrupted run wrote
     assert_same_but_reruns(tsv, whole_tsv, {at})
     assert gzip.decompress(frames.read_bytes()) == gzip.decompress(whole_frames.read_bytes())

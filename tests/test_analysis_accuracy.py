@@ -124,7 +124,7 @@ def _participants(correct_by_participant: dict[str, int], n: int = 50) -> pd.Dat
 def test_the_headline_interval_accounts_for_participants():
     # Three participants at 30, 50 and 76 % (50 trials each): the pooled Wilson interval
     # (trial level) is far narrower than the t interval across participants, which the
-    # headline shows (issue 12: [42.0, 58.0] against [22.8, 76.8] on such data).
+    # headline shows ([42.0, 58.0] against [22.8, 76.8] on such data).
     result = analyse_accuracy(_participants({"a": 15, "b": 25, "c": 38}), ("crs",), 0.1)
     (row,) = headline_accuracy(result).to_dict("records")
     per = np.array([0.30, 0.50, 0.76])

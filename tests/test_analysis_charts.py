@@ -70,7 +70,7 @@ def test_save_writes_a_png(tmp_path, trials):
 
 
 def test_accuracy_chart_bars_are_the_participant_level_intervals(trials):
-    # issue 12: the chart's bars account for participants (the headline's interval), and the
+    # the chart's bars account for participants (the headline's interval), and the
     # title says which interval it shows
     from crs_study.analysis.accuracy import headline_accuracy
 

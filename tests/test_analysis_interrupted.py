@@ -1,4 +1,4 @@
-"""Issue 13, item 8: a session that stopped before its end is reported as interrupted, never
+"""A session that stopped before its end is reported as interrupted, never
 as tampered with, and a sidecar that disagrees with its trial file in a way no interruption
 explains stays a tampering alarm.
 
@@ -66,7 +66,7 @@ def test_a_killed_dry_run_is_interrupted_not_tampered(tmp_path):
     _kill_when_rows(command, "sub-*/ses-*/beh/*_beh.tsv", dataset, 25)
     paths = SessionPaths(dataset, "sim01", 1)
     sidecar = json.loads(paths.sidecar.read_text())
-    assert sidecar["Status"] == "running"  # killed: as the issue's reproduction left it
+    assert sidecar["Status"] == "running"  # killed: as a SIGKILL mid-session leaves it
     for strict in ([], ["--strict"]):
         analysed = crs_study("analyze", dataset, "--out", tmp_path / "out", *strict)
         assert analysed.returncode == 0, analysed.stderr

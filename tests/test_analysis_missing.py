@@ -1,4 +1,4 @@
-"""Issue 13, item 7: a session that is missing or cannot be read is never dropped silently.
+"""A session that is missing or cannot be read is never dropped silently.
 
 Before: ``rm -rf ds/sub-sim02`` (or ``chmod 000`` on it) and ``crs-study analyze ds`` exited 0
 with 2 of 3 participants and no word. Now each session the dataset shows existed (its row in

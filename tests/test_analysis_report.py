@@ -86,7 +86,7 @@ def test_report_and_charts_are_written(full_run):
 def test_headline_reads_like_the_paper(full_run):
     _, _, result = full_run
     crs = result.results["conditions"]["crs"]
-    # issue 12: the headline's interval accounts for participants (the pooled Wilson one
+    # the headline's interval accounts for participants (the pooled Wilson one
     # stays in the table): the mean of participant accuracies with its t interval
     shown = crs["headline"]
     assert shown["accuracy"] == pytest.approx(crs["between_participants"]["mean"])
@@ -196,7 +196,7 @@ def test_psychometric_functions_when_a_level_varies(tmp_path):
     assert "figures/psychometric.png" in result.results["charts"]
 
 
-# --- point 10 of the issue: degenerate data, one test each ------------------------------------
+# --- degenerate data, one test each -------------------------------------------------------------
 
 def _run(tmp_path, cells):
     root = explicit_dataset(tmp_path / "ds", cells)
@@ -209,7 +209,7 @@ def test_separation_every_answer_right_in_one_condition(tmp_path):
     result = _run(tmp_path, _cells(8, {"pixel-only": 0.5, "crs": 1.0}))
     assert result.results["conditions"]["crs"]["accuracy"] == 1.0
     glmm = result.results["comparisons"][0]
-    # issue 12: the ML odds ratio does not exist; the primary figure is the one-sided limit
+    # separation: the ML odds ratio does not exist; the primary figure is the one-sided limit
     # of the unpenalised profile, the penalised fit is kept apart and labelled
     assert glmm["separated"] and glmm["estimate"] is None and glmm["p_wald"] is None
     low, high = glmm["ci95"]

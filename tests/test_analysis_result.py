@@ -1,4 +1,4 @@
-"""The analysis as a Python API (issue 15, point 2): ``analyze`` returns an ``Analysis`` of
+"""The analysis as a Python API: ``analyze`` returns an ``Analysis`` of
 result objects (``to_frame()``, ``to_json()``), writing the report is a flag or a method, and
 ``results.json`` says what it said before the nested dicts moved behind those objects.
 
@@ -63,7 +63,7 @@ def _same(got, expected, where="results"):
 def written(request, tmp_path_factory):
     name = request.param
     out = tmp_path_factory.mktemp(name) / "out"
-    # a copy: the analysis records its outputs in the dataset it reads (issue 13.4)
+    # a copy: the analysis records its outputs in the dataset it reads (its outputs registry)
     copy = shutil.copytree(FIXTURE / name, tmp_path_factory.mktemp(name) / name)
     return name, analyze(copy, CASES[name], out)
 

@@ -1,5 +1,5 @@
 """Simulated and human sessions are not pooled silently; every session is listed by who
-answered and on what device (issue 12, point 5); a participant left with no analysed trial
+answered and on what device; a participant left with no analysed trial
 is named."""
 
 from __future__ import annotations

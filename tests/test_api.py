@@ -1,4 +1,4 @@
-"""The Python API (issue 15, point 2): ``crs_study`` re-exports the functions a notebook calls,
+"""The Python API: ``crs_study`` re-exports the functions a notebook calls,
 each taking objects as well as paths and returning a result object.
 
 Before this, ``dry_run(load_protocol(p), ...)`` raised ``TypeError: expected str, bytes or
@@ -121,7 +121,7 @@ def test_analyze_a_dry_run_from_its_folder(tiny, tmp_path):
 
 
 def test_run_session_from_keyword_arguments(tiny, tmp_path):
-    record_consent("p01")  # a person's label is gated on sim:// too (issue 13.3)
+    record_consent("p01")  # a person's label is gated on sim:// too
     result = crs_study.run_session(tiny, "p01", tmp_path / "ds", responder="random",
                                    device_url="sim://")
     assert isinstance(result, crs_study.SessionResult) and result.status == "complete"

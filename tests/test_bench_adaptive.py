@@ -1,5 +1,5 @@
 """Bench area ``adaptive``: QUEST+ chooses each next level of a 60-trial block in under
-50 ms, and an adaptive dry-run runs above 100x real time (issue 17)."""
+50 ms, and an adaptive dry-run runs above 100x real time (the targets of the bench area)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,9 @@
-"""Bench area ``device``: the issue's wire figures, each against a same-run baseline.
+"""Bench area ``device``: the wire figures, each against a same-run baseline.
 
-Issue 3, "least we accept": frame rate >= 95 % of the wire bound with every channel changing;
+The least we accept: frame rate >= 95 % of the wire bound with every channel changing;
 software time per frame <= 1 % of the frame's wire time; median wire latency of the moving-bump
 digits on the 2D device <= 45 ms (the paper's device: 75 ms), shown against sending everything.
-The wire bound: a 19-servo SERVO_MOVE is 64 bytes, 66.7 ms at 9600 baud (hardware.md).
+The wire bound: a 19-servo SERVO_MOVE is 64 bytes, 66.7 ms at 9600 baud (docs/device.md).
 """
 
 from __future__ import annotations

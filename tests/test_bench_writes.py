@@ -1,6 +1,6 @@
 """Bench area ``writes``: the refresh riding on a frame against sending it on its own.
 
-Wire arithmetic (hardware.md): a 19-servo SERVO_MOVE is 64 bytes, 66.7 ms at 9600 baud. Riding,
+Wire arithmetic (docs/device.md): a 19-servo SERVO_MOVE is 64 bytes, 66.7 ms at 9600 baud. Riding,
 the worst frame is the one carrying the refresh: exactly one full frame's wire time. On its
 own, a refresh that falls due between two frames makes the next frame wait behind it.
 """

@@ -20,7 +20,7 @@ from _session_helpers import record_consent, tiny_letter_protocol, tiny_protocol
 
 @pytest.fixture(autouse=True)
 def _consented():
-    """p7k2m9q: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    """p7k2m9q: people's labels, gated by consent on every device, sim:// too."""
     record_consent("p7k2m9q")
 
 

@@ -1,6 +1,6 @@
 """Calibration: mm <-> pulse width per channel, limits that never reach the wire, calibrated copies.
 
-The linear map is the device file's (layout.py ``Calibration``; hardware.md "Linear PWM servos":
+The linear map is the device file's (layout.py ``Calibration``; docs/device.md "Linear PWM servos":
 1000 us retracted, 2000 us extended in the shipped default); PulseMap.to_pulses is the one
 place it is computed.
 """
@@ -127,7 +127,7 @@ def test_no_setpoint_outside_limits_is_ever_encoded(layout1d, cals, stimulus, sh
 
 @pytest.mark.parametrize("name", ["crs2d", "crs1d"])
 def test_the_shipped_device_files_map_travel_onto_their_published_endpoints(name):
-    # hardware.md, "Linear PWM servos": 1000 us fully retracted, 2000 us fully extended; the
+    # docs/device.md, "Linear PWM servos": 1000 us fully retracted, 2000 us fully extended; the
     # device files publish that per channel (their [calibration] table), and travel 0 and
     # full travel must land on those very pulse widths, half travel half way
     layout = load_layout(name)

@@ -1,7 +1,7 @@
 """LSC codec: published byte vectors, round trips, value checks, streaming resynchronisation.
 
-Byte vectors: ../shared/reference/hardware.md, "Published test vectors" (Hiwonder LSC-series
-communication protocol sheet).
+Byte vectors: the Hiwonder LSC-series communication protocol sheet's examples, copied into
+docs/device.md, "Test vectors".
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def test_published_battery_reply_decodes_to_7500_mv():
 
 
 def test_fixed_frames_match_the_protocol_table():
-    # hardware.md table: Length 5 / 2 / 5 / 2, n + 3
+    # docs/device.md table: Length 5 / 2 / 5 / 2, n + 3
     assert codec.action_group_run(3, 0) == bytes.fromhex("55 55 05 06 03 00 00")
     assert codec.action_group_stop() == bytes.fromhex("55 55 02 07")
     assert codec.action_group_speed(0xFF, 150) == bytes.fromhex("55 55 05 0B FF 96 00")
@@ -390,7 +390,7 @@ def test_any_bytes_are_accounted_for_whatever_the_chunking(stream, cuts, directi
 
 
 def _spec_servo_move(pairs: list[tuple[int, int]], time_ms: int) -> bytes:
-    """SERVO_MOVE written straight from hardware.md's table, independently of the codec:
+    """SERVO_MOVE written straight from the command table of docs/device.md, not by the codec:
     55 55, Length 3n + 5, 0x03, n, time lo hi, n x (id, pos lo, pos hi)."""
     out = [0x55, 0x55, 3 * len(pairs) + 5, 0x03, len(pairs), time_ms & 0xFF, time_ms >> 8]
     for servo, pulse in pairs:

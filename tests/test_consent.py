@@ -1,4 +1,4 @@
-"""Consent records, the gate, withdrawal (issue 6)."""
+"""Consent records, the gate, withdrawal."""
 
 from __future__ import annotations
 
@@ -199,8 +199,8 @@ PARTICIPANTS = ("a1", "a10", "b2")
 
 
 def make_dataset(root: Path) -> Path:
-    """A dataset in the DESIGN.md layout with three participants (labels a1 and a10 share a
-    prefix on purpose)."""
+    """A dataset in the stored layout (docs/architecture.md) with three participants (labels a1
+    and a10 share a prefix on purpose)."""
     root.mkdir(parents=True)
     (root / "dataset_description.json").write_text('{"Name": "t"}\n')
     (root / DATASET_LOCK).touch()  # as in every dataset a runner made
@@ -257,7 +257,8 @@ def test_withdrawal_removes_one_participant_and_leaves_others_byte_identical(tmp
 
 def test_withdrawal_removes_group_derivatives_that_hold_the_participant(tmp_path):
     """Which participants a group output holds is what the analysis recorded when it wrote
-    it (crs_study.dataset.outputs), never a search of the files' text (issue 13.1)."""
+    it (crs_study.dataset.outputs), never a search of the files' text (a label such as a1 is
+    part of a10, and a search finds both)."""
     from crs_study.dataset import OutputsRecord
 
     dataset = make_dataset(tmp_path / "ds")

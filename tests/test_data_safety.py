@@ -1,4 +1,4 @@
-"""Issue 13: never lose, leak or mix a participant's data. Each test replays one failure the
+"""Never lose, leak or mix a participant's data. Each test replays one failure the
 adversarial sweep found, as a new user's shell session would meet it: the ``crs-study``
 command in a real process on real files (in-process only where no process matters), and
 each failed before the fix it names."""

@@ -478,7 +478,7 @@ def test_a_second_signal_while_closing_waits_for_the_neutral_pose(boards, monkey
 
 def test_check_plans_the_protocol_with_the_devices_refresh(capsys):
     # the full refresh (every --refresh-s, default 1 s) is on the wire in the plan too: some
-    # frame in every second carries every channel, so 15 frames/s is the bound (hardware.md:
+    # frame in every second carries every channel, so 15 frames/s is the bound (docs/device.md:
     # 64 bytes, 66.7 ms on A)
     budgets = {}
     for extra in ([], ["--refresh-s", "0"]):

@@ -73,8 +73,8 @@ def test_shipped_mean_extents():
     assert digits[1].extent == pytest.approx((0.3, 1.0))
 
 
-PAPER_SIZE = (0.49, 0.81)  # crs-paper.md: "The average height and width of digits are only
-#                            0.81- and 0.49-pixel pitch."
+PAPER_SIZE = (0.49, 0.81)  # Wang, Meng & Chen 2025: "The average height and width of digits
+#                            are only#                            0.81- and 0.49-pixel pitch."
 
 
 @pytest.mark.parametrize("protocol_name", ["digit_identification.toml", "pilot.toml"])

@@ -56,12 +56,12 @@ def test_small_load_tends_to_the_cubic():
     np.testing.assert_allclose(near, cubic, rtol=1e-9)
 
 
-# --- the CRS physics (DESIGN.md quick check) --------------------------------------------------
+# --- the CRS physics (docs/physics.md, "A quick check") -----------------------------------------
 def test_design_check_peak_between_two_pixels():
-    """Bump of wavelength 3 pitches half-way between two pixels (DESIGN.md, DisplayModel).
+    """Bump of wavelength 3 pitches half-way between two pixels (docs/physics.md, quick check).
 
     Pixel heights 0.75 (Eq. 7 at 0.5 pitch from the centre); the compressed beam made as long
-    as the target's arc length peaks at ~1.0 at the centre. DESIGN.md quotes ~0.77 for the
+    as the target's arc length peaks at ~1.0 at the centre. The check once quoted ~0.77 for the
     plain clamped spline; what the published device's spline gives is 0.902 (scipy clamped
     CubicSpline on the knots clamp, 5 pixels, clamp), and no interpolating cubic spline gives
     0.77 (tests/test_display_spline.py::test_design_md_spline_check_values): still well short
@@ -91,7 +91,8 @@ def test_off_centre_peak_follows_the_target():
 
 
 def eq3_deflection(x, load, axial, ei, beta, l, d, terms=4000):
-    """crs-paper.md Eq. 3: y(x) = 4 P l^3 sum [1 - cos(n pi (l - d)/l)](1 - cos(2 n pi x/l))
+    """Wang, Meng & Chen 2025, Eq. 3:
+    y(x) = 4 P l^3 sum [1 - cos(n pi (l - d)/l)](1 - cos(2 n pi x/l))
     / (n^4 16 pi^4 EI - 4 n^2 pi^2 l^2 N + 3 beta l^4)."""
     n = np.arange(1, terms + 1)[:, None]
     num = (1 - np.cos(n * np.pi * (l - d) / l)) * (1 - np.cos(2 * n * np.pi * x[None, :] / l))

@@ -70,13 +70,14 @@ def test_2d_beams_are_scipy_clamped_splines_with_their_arc_length():
 
 
 def test_design_md_spline_check_values():
-    """DESIGN.md: a bump of wavelength 3 pitches half-way between two pixels (pixel heights
-    0.75 of the target's 1.0) gives a "spline maximum about 0.77". What the set-ups give
-    (scipy CubicSpline, the independent reference): ours, clamps one pitch beyond the 5 pixels
-    of the published 1D device, 0.902; an infinite lattice (20 pixels) 0.9007; natural ends at
-    the end pixels 0.881; four pixels clamped at the outer two 0.9375 (= 15/16 by hand: the
-    clamped cubic through 0, 3/4, 3/4, 0 with unit spacing). None is near 0.77; the claim in
-    DESIGN.md is not reproduced by any cubic spline, only the conclusion (spline < 0.95 << 1)."""
+    """The quick check (docs/physics.md): a bump of wavelength 3 pitches half-way between two
+    pixels (pixel heights 0.75 of the target's 1.0) was once said to give a "spline maximum
+    about 0.77". What the set-ups give (scipy CubicSpline, the independent reference): ours,
+    clamps one pitch beyond the 5 pixels of the published 1D device, 0.902; an infinite lattice
+    (20 pixels) 0.9007; natural ends at the end pixels 0.881; four pixels clamped at the outer
+    two 0.9375 (= 15/16 by hand: the clamped cubic through 0, 3/4, 3/4, 0 with unit spacing).
+    None is near 0.77: that figure is not reproduced by any cubic spline, only the conclusion
+    (spline < 0.95 << 1)."""
     def heights(x):
         r = np.abs(x - 45.0)
         return np.where(r < 45.0, 0.5 * (1 + np.cos(2 * np.pi * r / 90.0)), 0.0)

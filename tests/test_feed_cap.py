@@ -1,6 +1,7 @@
 """The feed cap (crs_study.rendering.feed_cap): what the boards actually hold never collapses.
 
-The bug (issue 18's live helper): the cap kept each beam at or below its longest stable shape,
+The bug (found by the live link's helper): the cap kept each beam at or below its longest
+stable shape,
 but the boards hold whole-us pulses, and the write policy resends a channel only when it moved
 by more than the dead-band; decoded from the boards, 3 of 186 frames of a finger writing 9
 made ``CompressedBeams.solve`` raise CollapseError. These tests render frames, send them to the

@@ -28,7 +28,8 @@ from crs_study.analysis.glmm_simulate import simulate_trials
 from crs_study.analysis.glmm_terms import RandomTerm
 from crs_study.errors import AnalysisError
 
-SHARED_CBPP = Path(__file__).resolve().parents[2] / "shared/reference/data/cbpp.csv"
+#: lme4's data(cbpp) and lme4's own fits of it, written by make_cbpp.R there (README.md).
+CBPP_FIXTURE = Path(__file__).parent / "fixtures" / "cbpp"
 PERIOD = ["Intercept", "C(period)[T.2]", "C(period)[T.3]", "C(period)[T.4]"]
 
 
@@ -37,9 +38,9 @@ def cbpp() -> pd.DataFrame:
     return load_cbpp()
 
 
-@pytest.mark.skipif(not SHARED_CBPP.exists(), reason="shared reference data not checked out")
 def test_embedded_cbpp_is_the_reference_file():
-    assert load_cbpp().equals(pd.read_csv(SHARED_CBPP)[["herd", "incidence", "size", "period"]])
+    reference = pd.read_csv(CBPP_FIXTURE / "cbpp.csv")
+    assert load_cbpp().equals(reference[["herd", "incidence", "size", "period"]])
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +65,9 @@ def two_conditions() -> pd.DataFrame:
 # ------------------------------------------------------------------------- lme4's cbpp example
 def test_cbpp_laplace_matches_lme4(cbpp_laplace):
     # lme4: glmer(cbind(incidence, size - incidence) ~ period + (1 | herd), cbpp, binomial)
-    # (shared/reference/data/README.md): -1.39855, -0.99234, -1.12868, -1.58030; herd variance
-    # 0.412455; logLik -92.0266; summary prints AIC 194.1, BIC 204.2, deviance 184.1.
+    # (lme4's documentation; tests/fixtures/cbpp/README.md): -1.39855, -0.99234, -1.12868,
+    # -1.58030; herd variance 0.412455; logLik -92.0266; summary prints AIC 194.1, BIC 204.2,
+    # deviance 184.1.
     r = cbpp_laplace
     assert list(r.params.index) == PERIOD
     np.testing.assert_allclose(r.params, [-1.39855, -0.99234, -1.12868, -1.58030], atol=1e-3)
@@ -80,6 +82,15 @@ def test_cbpp_laplace_matches_lme4(cbpp_laplace):
     assert (round(r.aic, 1), round(r.bic, 1), round(r.deviance, 1)) == (194.1, 204.2, 184.1)
     assert r.converged and r.method == "laplace" and r.warnings == ()
     assert r.n_groups == {"herd": 15} and r.nobs == 56
+
+
+def test_cbpp_matches_lme4_as_run_by_the_fixture_script(cbpp_laplace):
+    # lme4 1.1.31's own Laplace fit (tests/fixtures/cbpp/make_cbpp.R, lme4_cbpp.json).
+    lme4 = json.loads((CBPP_FIXTURE / "lme4_cbpp.json").read_text(encoding="utf-8"))["laplace"]
+    np.testing.assert_allclose(cbpp_laplace.params, lme4["fixef"], atol=1e-3)
+    assert cbpp_laplace.variance_components["herd"] == pytest.approx(lme4["herd_variance"],
+                                                                     rel=0.01)
+    assert cbpp_laplace.loglike == pytest.approx(lme4["loglik"], abs=1e-3)
 
 
 def test_cbpp_laplace_matches_mixedmodels_jl(cbpp_laplace):
@@ -127,7 +138,7 @@ def test_cbpp_standard_errors_match_lme4(cbpp_laplace):
 
 
 def test_cbpp_agq25_matches_lme4(cbpp):
-    # lme4 glmer(..., nAGQ = 25) (shared/reference/data/README.md): -1.39923, -0.99141,
+    # lme4 glmer(..., nAGQ = 25) (tests/fixtures/cbpp/README.md): -1.39923, -0.99141,
     # -1.12782, -1.57947.
     r = fit_glmm(cbpp, "incidence", "C(period)", "herd", trials="size", method="agq")
     np.testing.assert_allclose(r.params, [-1.39923, -0.99141, -1.12782, -1.57947], atol=1e-3)

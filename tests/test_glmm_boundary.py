@@ -1,5 +1,5 @@
 """The GLMM reaches its maximum: the boundary check, restarts, profiles that free every
-variance, the Schur-complement core and separation's one-sided limit (issue 12)."""
+variance, the Schur-complement core and separation's one-sided limit."""
 
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ def test_a_boundary_estimate_is_a_true_statement():
 
 
 def test_profile_intervals_free_every_variance():
-    # Few trials per cell (issue 12: 1.066-8.88 where lme4 gives 1.053-9.72). The digit
+    # Few trials per cell (our earlier 1.066-8.88 where lme4 gives 1.053-9.72). The digit
     # variance is 0 at the estimate but moves inward towards the upper end; holding it at 0
     # (our earlier profiles; glmmTMB's log-SD profile, 1.68534 on these data) ends too soon.
     # Each end is where the best likelihood with every other parameter free (an independent

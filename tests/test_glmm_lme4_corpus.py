@@ -1,4 +1,4 @@
-"""The primary GLMM against R's lme4 (and glmmTMB) on the parity corpus of issue 12.
+"""The primary GLMM against R's lme4 (and glmmTMB) on a parity corpus of 65 datasets.
 
 ``tests/fixtures/lme4/``: ``corpus.csv`` (65 datasets, aggregated successes / trials per
 participant x digit x condition; made by ``make_corpus.py``: dry-runs of the default protocol
@@ -9,7 +9,7 @@ reduced one, their log-likelihoods, estimates, the LR p, lme4's ``confint(method
 "profile")``, and for separated datasets the supremum and the one-sided profile limit by
 offset fits and ``uniroot``). The test needs no R.
 
-What must hold (issue 12, point 2): our log-likelihood >= lme4's - 1e-6 on every dataset,
+What must hold: our log-likelihood >= lme4's - 1e-6 on every dataset,
 full and reduced; where the two agree (neither higher by more than ``AGREE``), the condition
 effect within 1e-4, the SDs within 1e-3, the LR p within 1 % relative and the profile interval
 ends within 1e-3. Where ours is higher than lme4's (lme4 stopped short: it warns, or its own
@@ -199,7 +199,7 @@ def _check_end(result: dict, index: int, mine: float, theirs: float, where) -> N
     """Ends within 1e-3; else ours must be the true end and theirs demonstrably not: refitted,
     our end's drop equals chi2_1(0.95) and theirs misses it by ten times as much. (glmmTMB
     profiles log SDs, so a variance at 0 cannot move inward along the profile: its intervals
-    came out too narrow exactly where issue 12 says; lme4's spline on boundary fits misses.)"""
+    come out too narrow exactly there; lme4's spline on boundary fits misses.)"""
     if mine == pytest.approx(theirs, abs=1e-3):
         return
     cutoff = stats.chi2.ppf(0.95, 1)

@@ -1,4 +1,4 @@
-"""The package's layers (issue 15, point 3): a folder per stage, imports only downwards, none
+"""The package's layers: a folder per stage, imports only downwards, none
 hidden inside a function, and no module past 500 lines.
 
 The layers are import-linter contracts in ``pyproject.toml`` (``[tool.importlinter]``), run
@@ -31,7 +31,7 @@ PACKAGE = Path(crs_study.__file__).parent
 PYPROJECT = PACKAGE.parent / "pyproject.toml"
 LINT_IMPORTS = ("import sys; from importlinter.cli import lint_imports_command; "
                 "sys.exit(lint_imports_command())")
-#: The longest a module may be (the issue: "no module runs past about 500 lines").
+#: The longest a module may be (docs/conventions.md: a few hundred lines, 500 at most).
 MAX_LINES = 500
 
 #: The modules that load parts of the package lazily (``importlib.import_module``), and why.

@@ -1,5 +1,5 @@
 """``crs-study bench live``: the figures are measured (the boards' own record, this run's wire
-time as the baseline) and named as the issue states its targets."""
+time as the baseline) and named with their targets."""
 
 from __future__ import annotations
 

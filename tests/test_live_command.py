@@ -67,7 +67,7 @@ def test_board_tap_times_frames_and_skips_a_replaced_one(layout2d):
     assert frames[1].done_at - frames[1].handed_at == pytest.approx(10 * 10 / 9600)  # 1 servo
     assert frames[1].done_at == pytest.approx(frames[1].host_done)  # as the host predicted
     assert frames[3].done_at == pytest.approx(frames[3].host_done)
-    # servos in place (0.08 s/cm, hardware.md): frame 3 lands 10.4 ms after frame 1, the servo
+    # servos in place (0.08 s/cm, docs/device.md): frame 3 lands 10.4 ms after frame 1, the servo
     # then 10.4 / 8 = 1.30 mm up on its way to 3 mm; 3.70 mm more to 5 mm: 29.6 ms
     wire = 10 * 10 / 9600
     assert frames[3].done_at - frames[1].done_at == pytest.approx(wire)

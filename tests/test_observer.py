@@ -190,7 +190,7 @@ def test_a_frame_the_beam_cannot_show_is_skipped(protocol):
 
 
 def test_calibration_pixel_only_clearly_below_crs_near_the_paper(protocol, records):
-    # crs-paper.md: 50.3 % pixel-only, 67.8 % CRS. 40 presentations of each digit per
+    # Wang, Meng & Chen 2025: 50.3 % pixel-only, 67.8 % CRS. 40 presentations of each digit per
     # condition (400 a condition; binomial SE ~2.5 points) on the rendered frames.
     layout = protocol.layout()
     # The median participant (ability_sd = 0): one observer's accuracy is that of its draw.

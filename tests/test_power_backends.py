@@ -1,5 +1,5 @@
-"""The same answer whatever runs it: this process, a local pool, a Dask cluster (STYLE.md
-point 18: seeds belong to the unit of work, never to the worker)."""
+"""The same answer whatever runs it: this process, a local pool, a Dask cluster (seeds belong
+to the unit of work, never to the worker: docs/conventions.md)."""
 
 from __future__ import annotations
 

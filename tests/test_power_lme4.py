@@ -5,7 +5,7 @@ design, 200 at N = 6 and the same 200 at N = 12, made by ``make_datasets.py``) a
 ``lme4_fits.csv`` (lme4 1.1-31 under R 4.2.2: ``glmer`` of the full and the reduced model of
 every study and the likelihood-ratio test, made by ``fit_lme4.R``). The test needs no R.
 
-What must hold (issue 16): the counts of significant studies agree exactly, or every study
+What must hold: the counts of significant studies agree exactly, or every study
 decided differently is one where our likelihood is the higher; and ours is never below lme4's
 maximum (by more than 1e-6) on any fit.
 """

@@ -1,4 +1,4 @@
-"""Issue 6: nothing identifying enters the dataset, and the gate guards real sessions."""
+"""Nothing identifying enters the dataset, and the gate guards real sessions."""
 
 from __future__ import annotations
 

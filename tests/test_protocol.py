@@ -98,7 +98,7 @@ def test_shipped_protocols_load_with_the_contract_fields():
 def test_shipped_protocol_matches_the_paper():
     p = load_protocol(SHIPPED)
     s = p.stimulus
-    # crs-paper.md: digits 0.81 x 0.49 pitch, 90 mm bump (Eq. 7), pixel-only vs CRS.
+    # Wang, Meng & Chen 2025: digits 0.81 x 0.49 pitch, 90 mm bump (Eq. 7), pixel-only vs CRS.
     assert (s.symbol_height_pitch, s.symbol_width_pitch, s.bump_diameter_mm) == (0.81, 0.49, 90)
     assert s.symbols == tuple(range(10))
     assert p.design.ordering == "blocked" and p.design.counterbalancing != "none"
@@ -460,7 +460,7 @@ def test_warnings_are_issued_as_crs_study_warnings(tmp_path):
         emit_warnings(protocol)
 
 
-# --- where an error is: attributes, not text (issue 15, points 4 and 6) ----------------------
+# --- where an error is: attributes, not text (nothing parses a message back) ----------------
 
 def test_errors_carry_the_file_the_line_and_the_key_path(tmp_path):
     text = SHIPPED.read_text().replace("repetitions = 5", "repetitions = -5")

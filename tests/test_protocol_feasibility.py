@@ -32,7 +32,7 @@ def test_the_shipped_protocol_passes_every_check_with_its_numbers():
     by_key = {f.key_path: f for f in result.findings}
     wire = by_key["stimulus.frame_rate_hz"]
     # 19 servos on the busier board: 3 * 19 + 7 = 64 bytes of 10 bits at 9600 baud
-    # (hardware.md): 66.7 ms, so 15 full frames a second
+    # (docs/device.md): 66.7 ms, so 15 full frames a second
     assert wire.values["full_frame_wire_ms"] == pytest.approx(64 * 10 / 9600 * 1e3)
     assert wire.values["max_frame_rate_hz"] == pytest.approx(15.0)
     assert wire.line == line_of(SHIPPED, "frame_rate_hz")

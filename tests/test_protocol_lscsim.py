@@ -1,6 +1,6 @@
 """The lscsim:// pyserial handler: byte-timed writes, battery replies, timeouts, a vanishing port.
 
-Wire time (hardware.md): 10 bits a byte, so a 4-byte GET_BATTERY_VOLTAGE plus its 6-byte
+Wire time (docs/device.md): 10 bits a byte, so a 4-byte GET_BATTERY_VOLTAGE plus its 6-byte
 reply take 10 x 1.0417 ms at 9600 baud.
 """
 
@@ -28,7 +28,7 @@ def port():
 def test_battery_reply_arrives_after_its_wire_time(port):
     start = time.monotonic()
     port.write(codec.get_battery_voltage())
-    assert port.read(6) == bytes.fromhex("55 55 04 0F 4C 1D")  # 7500 mV (hardware.md)
+    assert port.read(6) == bytes.fromhex("55 55 04 0F 4C 1D")  # 7500 mV (docs/device.md)
     assert time.monotonic() - start >= 10 * 10 / 9600 - 1e-3
 
 

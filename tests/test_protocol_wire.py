@@ -23,7 +23,7 @@ PSYCHOMETRIC = shipped_file("protocols/digit_size_psychometric.toml")
 
 def test_full_frames_are_the_published_frame_sizes():
     budget = wire_budget(load_protocol(PILOT))
-    # hardware.md: SERVO_MOVE is 3 n + 7 bytes; crs2d has 19 channels on A and 18 on B;
+    # docs/device.md: SERVO_MOVE is 3 n + 7 bytes; crs2d has 19 channels on A and 18 on B;
     # 10 bits a byte at 9600 baud
     assert budget.full_frame_bytes == (3 * 19 + 7) + (3 * 18 + 7) == 125
     assert budget.full_frame_busiest_controller_ms == pytest.approx(64 * 10 / 9600 * 1e3)

@@ -2,7 +2,7 @@
 loaded through load_protocol as a file is: same fields, stable bytes, every check.
 
 Before this, ``dry_run(replace(protocol, ...))`` raised ``TypeError: expected str, bytes or
-os.PathLike object, not Protocol`` (issue 15, point 2), and a changed protocol kept the text
+os.PathLike object, not Protocol``, and a changed protocol kept the text
 and sha256 of the file it was read from, which a session would have stored as what ran.
 """
 

@@ -139,7 +139,7 @@ def test_a_wire_slower_than_nominal_builds_no_backlog(layout2d):
 def test_port_vanishing_mid_stream_raises_within_a_frame_and_neutral_is_attempted(layout2d,
                                                                                    two_ptys):
     a, b = two_ptys
-    frame_s = 64 * 10 / 9600  # a full 19-servo frame at 9600 baud (hardware.md: 66.7 ms)
+    frame_s = 64 * 10 / 9600  # a full 19-servo frame at 9600 baud (docs/device.md: 66.7 ms)
     device = serial_device(layout2d, a, b)
     device.open()
     try:

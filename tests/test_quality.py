@@ -49,7 +49,7 @@ def _hexagon_mean_distance(rng) -> float:
 @pytest.mark.parametrize(("lattice", "paper"), [("1d", 0.25), ("square", 0.3826),
                                                  ("hex", 0.3510)])
 def test_pixel_only_peak_position_distortion_matches_the_paper(lattice, paper, d_over_l):
-    # crs-paper.md: D_P = 0.25 d/l (1D), 0.3825 d/l (square), 0.3510 d/l (hexagonal)
+    # Wang, Meng & Chen 2025: D_P = 0.25 d/l (1D), 0.3825 d/l (square), 0.3510 d/l (hexagonal)
     result = distortion("nearest", lattice, d_over_l)
     assert result.D_P == pytest.approx(paper * d_over_l, rel=0.01)
 
@@ -193,7 +193,7 @@ def test_periodic_patches():
 
 @needs_beam
 def test_crs_1d_beats_pixel_only_and_linear_on_the_published_device():
-    # Issue 2: D_P at most 1/5 of pixel-only (the paper measured an order of magnitude),
+    # D_P at most 1/5 of pixel-only (the paper measured an order of magnitude, Fig. 2d),
     # D_S below the linear connection, at d/l = 1/3 (30 mm pitch, 90 mm bump).
     layout = load_layout("crs1d")
     beam = distortion("beam", "1d", 1 / 3, layout=layout)
@@ -221,7 +221,7 @@ def test_beam_on_the_published_2d_device_has_its_point_symmetry():
 @pytest.mark.slow
 @needs_beam
 def test_crs_2d_halves_the_distortions_of_hexagonal_pixels_on_the_published_device():
-    # Issue 2 / paper Fig. 4f-g: CRS D_P and D_S at most half of hexagonal pixel-only.
+    # Paper Fig. 4f-g: CRS D_P and D_S at most half of hexagonal pixel-only.
     layout = load_layout("crs2d")
     beam = distortion("beam", "hex", 1 / 3, layout=layout, symmetric=True)
     pixel = distortion("nearest", "hex", 1 / 3)

@@ -9,7 +9,7 @@ byte-identical to an uninterrupted run of the same command: the trial file (ever
 a virtual clock no column depends on wall time) and the per-frame device log; the sidecars
 differ only in their wall-clock fields (StartTime, EndTime, Resumes), and no temporary file
 is left behind. The whole test runs twice: on a fixed protocol, and on an adaptive one
-(QUEST+ chooses each test trial's digit height, issue 17: a resumed run rebuilds the tracks by
+(QUEST+ chooses each test trial's digit height: a resumed run rebuilds the tracks by
 replaying the stored responses and must reach the sidecar's fingerprint).
 
 Where the kills land. The child is ``crs_study.cli.main`` behind a few wrappers
@@ -204,7 +204,7 @@ def schedule(rng: random.Random) -> list[str]:
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["fixed", "adaptive"])
 def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
-    """``adaptive``: QUEST+ chooses each test trial's height (issue 17); a resumed run
+    """``adaptive``: QUEST+ chooses each test trial's height; a resumed run
     rebuilds its tracks by replaying the stored responses, checked against the sidecar."""
     if kind == "fixed":
         protocol = tiny_protocol(tmp_path, digits=(1, 4, 7), repetitions=4)
@@ -316,7 +316,7 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, kind):
         assert [int(r["trial_index"]) for r in rows] == list(range(len(rows)))  # order kept
         meta, ref_meta = json.loads(sidecar.read_text()), json.loads(ref_sidecar.read_text())
         # nothing lost, nothing duplicated; a trial a kill cut after its stimulus began says
-        # rerun = 1 (issue 13.12), and only those
+        # rerun = 1 (the participant felt part of it), and only those
         cut = {i["AtTrial"] for i in meta.get("Interruptions", ()) if i["TrialCut"]}
         assert_same_but_reruns(tsv, ref_tsv, cut)
         assert meta["TrialsSha256"] == hashlib.sha256(tsv.read_bytes()).hexdigest()

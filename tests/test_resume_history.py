@@ -25,7 +25,7 @@ WALL_CLOCK_KEYS = ("StartTime", "EndTime", "ProtocolPath")
 @pytest.fixture(autouse=True)
 def _consented():
     """The previous code ran these people's labels on sim:// without consent; this code gates
-    a person's label on every device (issue 13.3), so the register records their consent."""
+    a person's label on every device, so the register records their consent."""
     from crs_study.consent import Register, read_form
     from crs_study.paths import shipped_file
 
@@ -58,7 +58,7 @@ def _comparable(meta: SessionMetadata) -> dict:
     data = meta.to_dict()
     for key in WALL_CLOCK_KEYS:
         data.pop(key)
-    # the old code recorded no causes (issue 13.12) and hashed the file it wrote
+    # the old code recorded no causes of interruptions and hashed the file it wrote
     data.pop("Interruptions", None)
     data.pop("TrialsSha256")
     data["Resumes"] = [(r["AtTrial"], r["DeviceURL"]) for r in data["Resumes"]]
@@ -82,7 +82,7 @@ def test_a_session_begun_by_the_previous_code_finishes_as_if_this_code_began_it(
     assert (paused.status, paused.trials_completed) == ("interrupted", 4)
     whole = run_session(spec(reference, "p01"))
 
-    # The old session keeps the columns it began with (no ``rerun``, issue 13.12); this
+    # The old session keeps the columns it began with (no ``rerun``); this
     # code's file, without that column, is the same byte for byte.
     assert finished.tsv.read_text() == _without_column(whole.tsv.read_text(), "rerun")
     assert "rerun" not in finished.tsv.read_text().splitlines()[0].split("\t")

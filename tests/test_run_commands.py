@@ -18,7 +18,7 @@ from crs_study.commands.demo import fresh_directory
 
 @pytest.fixture(autouse=True)
 def _consented():
-    """p01: people's labels, gated by consent on sim:// too (issue 13.3)."""
+    """p01: people's labels, gated by consent on every device, sim:// too."""
     record_consent("p01")
 
 

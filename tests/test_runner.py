@@ -144,7 +144,7 @@ def _record_tsv_fsyncs(monkeypatch, tsv, events):
 
 
 def test_each_row_is_fsynced_before_the_next_trial_starts(tmp_path, devices, monkeypatch):
-    """Issue 4, item 6: each completed trial is appended to _beh.tsv and made durable (written,
+    """Each completed trial is appended to _beh.tsv and made durable (written,
     then fsynced) before the next trial starts. The order of fsyncs of the TSV and trial
     starts is recorded; before trial k starts, the TSV was fsynced holding its k rows."""
     spec = spec_for(tmp_path, tiny_protocol(tmp_path))
@@ -605,7 +605,7 @@ def test_disk_full_mid_session_is_one_line_and_loses_nothing(tmp_path, devices, 
     with pytest.raises(DatasetError, match=rf"{tsv_name}: cannot append to: No space left"
                        ) as raised:
         run_session(spec)
-    # ... and says the session is paused and how to go on (issue 14)
+    # ... and says the session is paused and how to go on
     assert "the session is paused at trial 5/" in str(raised.value)
     assert str(raised.value).endswith("run the same command to resume")
     monkeypatch.setattr(files.os, "write", real_write)

@@ -1,6 +1,6 @@
 """Frame scheduling: bytes per frame, the rates the wire allows, latency with merging.
 
-Wire arithmetic from hardware.md ("What the wire allows"): 3 n + 7 bytes a SERVO_MOVE, 10 bits
+Wire arithmetic from docs/device.md ("What the wire allows"): 3 n + 7 bytes a SERVO_MOVE, 10 bits
 a byte at 9600 baud; 19 servos = 64 bytes = 66.7 ms, 18 servos = 61 bytes = 63.5 ms.
 """
 
@@ -36,7 +36,7 @@ def _alternating(layout, n_frames: int) -> np.ndarray:
 
 def test_full_frames_on_the_2d_device_match_the_published_table(layout2d):
     plan = wire_plan(layout2d, _alternating(layout2d, 10), 10.0, deadband_us=0)
-    assert plan.full_bytes == (64, 61)  # 19 on A, 18 on B (hardware.md table)
+    assert plan.full_bytes == (64, 61)  # 19 on A, 18 on B (docs/device.md table)
     assert plan.changed_bytes.tolist() == [[64, 61]] * 10
     assert plan.full_frame_rate_hz == pytest.approx(1 / (64 * 10 / 9600))  # 15.0 frames/s
     # 10 frames/s leaves the wire idle between frames: each frame's latency is 64 bytes

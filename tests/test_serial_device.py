@@ -1,7 +1,7 @@
 """SerialDevice over pyserial: pseudo-terminal pairs and fake ports play the LSC boards.
 
 The far end of each pty decodes what SerialDevice writes with the codec (host direction) and
-answers GET_BATTERY_VOLTAGE like a board (hardware.md: reply ``55 55 04 0F lo hi``).
+answers GET_BATTERY_VOLTAGE like a board (docs/device.md: reply ``55 55 04 0F lo hi``).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """SimulatedDevice: the bytes it puts on its virtual wires, wire timing, servo display, faults.
 
-Sources written beside the numbers (hardware.md, "What the wire allows"): 9600 baud 8N1 is
+Sources written beside the numbers (docs/device.md, "What the wire allows"): 9600 baud 8N1 is
 10 bits a byte; SERVO_MOVE for n servos is 3n + 7 bytes; 18 servos 61 bytes 63.5 ms, 19
-servos 64 bytes 66.7 ms. hardware.md, "The published 2D device": 0.08 s/cm, a 9 mm stroke
+servos 64 bytes 66.7 ms. docs/device.md, "The published 2D device": 0.08 s/cm, a 9 mm stroke
 in 72 ms.
 """
 
@@ -38,7 +38,7 @@ def expected_frame(layout, controller, setpoints, only=None, move_ms=0):
     pairs = []
     for a in layout.actuators:
         if a.controller == controller and (only is None or a.index in only):
-            cal = a.calibration  # hardware.md, "Linear PWM servos": the device file's line
+            cal = a.calibration  # docs/device.md, "Linear PWM servos": the device file's line
             pulse = cal.zero_us + (cal.full_us - cal.zero_us) * setpoints[a.index] / cal.travel_mm
             pairs.append((a.channel, int(np.rint(pulse))))
     return codec.servo_move(pairs, move_ms)
@@ -209,7 +209,7 @@ def test_low_battery_is_refused_on_open(layout2d):
 
 
 def test_battery_is_asked_over_the_wire_and_takes_its_bytes_time(layout2d):
-    # hardware.md: GET_BATTERY_VOLTAGE is 55 55 02 0F (4 bytes), the reply 55 55 04 0F lo hi
+    # docs/device.md: GET_BATTERY_VOLTAGE is 55 55 02 0F (4 bytes), the reply 55 55 04 0F lo hi
     # (6 bytes); the query waits for the frame already on the wire (64 bytes on A)
     device = sim(layout2d, "sim://?battery_mv=7100", record=True)
     for board in device.boards:

@@ -27,7 +27,7 @@ def test_text_summary(capsys):
     assert "  k mod 2 = 0 (k = 0, 2, 4, ...): pixel-only crs\n" in out
     assert "  k mod 2 = 1 (k = 1, 3, 5, ...): crs pixel-only\n" in out
     assert "frames per trial:" in out and "expected duration:" in out
-    assert "wire, full frames: 125 bytes/frame" in out  # 3*19+7 + 3*18+7 (hardware.md)
+    assert "wire, full frames: 125 bytes/frame" in out  # 3*19+7 + 3*18+7 (docs/device.md)
     assert "ok  no collapse" in out
 
 

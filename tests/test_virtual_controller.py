@@ -1,8 +1,8 @@
 """The virtual LSC-24 board: servo motion, decoding the byte stream, replies and faults.
 
 Sources written beside the numbers:
-- hardware.md, "The published 2D device": speed 0.08 s/cm, so a full 9 mm stroke takes 72 ms.
-- hardware.md, "Published test vectors": ``55 55 08 03 01 E8 03 01 D0 07`` = servo 1 to 2000 us
+- docs/device.md, "The published 2D device": speed 0.08 s/cm, so a full 9 mm stroke takes 72 ms.
+- docs/device.md, "Published test vectors": ``55 55 08 03 01 E8 03 01 D0 07`` = servo 1 to 2000 us
   in 1000 ms; ``55 55 04 0F 4C 1D`` = battery 7500 mV.
 """
 
@@ -22,7 +22,7 @@ from crs_study.device.virtual_controller import (
     speed_us_per_s,
 )
 
-SPEED_S_PER_MM = 0.008  # 0.08 s/cm (hardware.md)
+SPEED_S_PER_MM = 0.008  # 0.08 s/cm (docs/device.md)
 US_PER_MM = 1000.0 / 9.0  # crs2d default calibration: 1000 us over 9 mm
 
 
@@ -33,7 +33,7 @@ def board(**kw) -> VirtualController:
 
 
 def test_full_stroke_speed_is_72_ms():
-    # hardware.md: "speed 0.08 s/cm, so a full stroke takes about 72 ms" (9 mm)
+    # docs/device.md: "speed 0.08 s/cm, so a full stroke takes about 72 ms" (9 mm)
     assert speed_us_per_s(1000, 2000, 9.0, SPEED_S_PER_MM) == pytest.approx(1000 / 0.072)
 
 
@@ -76,7 +76,7 @@ def test_published_servo_move_vector_moves_servo_1():
 def test_battery_reply_is_the_published_frame():
     vc = board(battery_mv=7500)
     reply = vc.receive(codec.get_battery_voltage(), 0.0)
-    assert reply == bytes.fromhex("55 55 04 0F 4C 1D")  # hardware.md: 7500 mV
+    assert reply == bytes.fromhex("55 55 04 0F 4C 1D")  # docs/device.md: 7500 mV
 
 
 def test_new_command_starts_from_where_the_servo_is():

@@ -95,7 +95,7 @@ def test_the_library_from_an_empty_folder(installed, tmp_path):
 
 
 def test_the_python_api_from_an_empty_folder(installed, tmp_path):
-    """Issue 15, point 2: a notebook's session with the wheel alone (a shipped protocol by
+    """A notebook's session with the wheel alone (a shipped protocol by
     name, changed in Python, rehearsed and analysed without writing)."""
     code = (
         "import dataclasses, crs_study\n"

@@ -1,6 +1,6 @@
 """The host's write policy (device/writes.py), and its three users putting the same bytes out.
 
-Wire arithmetic from hardware.md ("What the wire allows"): 10 bits a byte at 9600 baud
+Wire arithmetic from docs/device.md ("What the wire allows"): 10 bits a byte at 9600 baud
 (1.0417 ms), a SERVO_MOVE for n servos is 3 n + 7 bytes; the 1D device's board carries 7
 channels (28 bytes, 29.2 ms), the 2D device's 19 on A (64 bytes, 66.7 ms) and 18 on B (61).
 """

@@ -14,7 +14,7 @@ mean of the participants' accuracies with the t interval across participants
 :func:`headline_accuracy` picks, per condition, the figure the headline and the accuracy
 chart show: that participant-level interval, which accounts for the differences between
 participants (with 3 participants the pooled Wilson interval was [42.0, 58.0] where the
-participant-level one is [22.8, 76.8], issue 12).
+participant-level one is [22.8, 76.8]: the pooled one claimed a precision the study lacks).
 
 The symbol shown is in the trial table's symbol column (:func:`symbol_column_of`: ``digit``
 in digit datasets, ``symbol`` in those of every other stimulus set).

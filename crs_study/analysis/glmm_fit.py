@@ -266,7 +266,7 @@ def profile_interval(result: GlmmResult, index: int, level: float) -> tuple[floa
 
     Each profile point re-maximises over every other parameter, every variance included (a
     variance estimated at 0 is free to move inward at other values of ``b``: holding it at 0
-    gave intervals too narrow with few trials per cell, issue 12), by the same boundary-checked
+    gave intervals narrower than lme4's with few trials per cell), by the same boundary-checked
     :func:`~.glmm_optimise.maximise` as the fit (Venzon & Moolgavkar 1988 in the plain
     bracketing form); the ends are found with Brent's method.
     """

@@ -3,7 +3,7 @@
 The generating model is the analysis' own: ``logit P(correct) = b_condition + u_participant +
 v_digit`` with ``u ~ N(0, participant_sd^2)`` and ``v ~ N(0, digit_sd^2)``; an error names
 another digit, more often a neighbour; response times are log-normal, errors slower. Files
-follow ``crs_study.dataset.schema`` and the layout in DESIGN.md ("The stored dataset"), with each
+follow ``crs_study.dataset.schema`` and the layout of :mod:`crs_study.dataset.folder`, with each
 session's sidecar a real :class:`~crs_study.dataset.SessionMetadata` (the runner's format,
 read as strictly) whose ``TrialsSha256`` is the sha256 of its ``_beh.tsv`` bytes, so the loader's
 checks pass. The column dictionary is the runner's (:func:`crs_study.dataset.column_dictionary`).

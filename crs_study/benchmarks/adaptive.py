@@ -7,8 +7,9 @@ Figures:
   lapse rates), a simulated observer answering: the wait from a response to the next level
   (the posterior's update, the row's estimate and interval, and the choice by expected
   entropy), longest and median of the block's 60 (wall time: the participant waits it);
-  target: the longest < 50 ms (issue 17). Baseline, measured in the same run: the same wait
-  with a 1-up/2-down staircase on the same grid, the cheapest procedure.
+  target: the longest < 50 ms (a pause a participant does not notice between answering and
+  the next stimulus). Baseline, measured in the same run: the same wait with a 1-up/2-down
+  staircase on the same grid, the cheapest procedure.
 * rebuilding that block from its 60 recorded responses, as a resume does (informative).
 * an adaptive dry-run: simulated session seconds per wall second for simulated participants
   (perceptual observer, simulated device, virtual clock) on the shipped protocol, against
@@ -36,9 +37,10 @@ from crs_study.session.dry_runs import dry_run
 AREA = "adaptive"
 DESCRIPTION = "QUEST+ next-level wait in a 60-trial block; adaptive dry-run speed"
 
-#: Longest wait for QUEST+'s next level (s), issue 17.
+#: Longest wait for QUEST+'s next level (s): below what a participant notices.
 TARGET_NEXT_S = 0.050
-#: Least simulated seconds per wall second of an adaptive dry-run, issue 17.
+#: Least simulated seconds per wall second of an adaptive dry-run (a rehearsal of a study
+#: takes minutes, not the study's hours).
 TARGET_SPEEDUP = 100.0
 BLOCK_TRIALS = 60
 

@@ -14,7 +14,7 @@ channels only, dead-band 1 us, full refresh every second) on two devices in turn
           frames (and the servos, replayed through the servo model).
 
 Figures, per device, each against the wire time measured in the same run (the median frame's
-time on the wire: its busiest board's bytes at 10 bits a byte), targets from the issue:
+time on the wire: its busiest board's bytes at 10 bits a byte), with these targets:
 
 1. arrival -> last byte on the wire, median: <= 40 ms (the paper's whole device: 75 ms);
 2. the same, 99th percentile: <= 80 ms;

@@ -1,5 +1,5 @@
-"""Bench area ``power``: the three speed figures of issue 16, each against a baseline of the
-same run.
+"""Bench area ``power``: three speed figures of power by simulation, each against a baseline
+of the same run.
 
 1. The default curve (the shipped protocol, the simulated observer, 10 sample sizes 4..40 x
    1000 studies, every core) in at most 60 s, beside the time the plain loop of

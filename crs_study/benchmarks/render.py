@@ -3,8 +3,9 @@
 Baseline, measured in the same run: sampling the target at the pixels alone
 (``Bump.height`` on the pixel positions), the least any condition must do. The CRS condition
 adds one arc-length integral per beam; the figure is the median per-frame time and its ratio
-to the baseline. Target: a 2D CRS frame well under a millisecond (issue 2), here <= 100 us
-(a tenth of it; about 45 us on a quiet machine with the renderer's feed cap).
+to the baseline. Target: a 2D CRS frame well under a millisecond (a rounding error beside
+the 67 ms a full frame spends on the 9600-baud wire), here <= 100 us (a tenth of it; about
+45 us on a quiet machine with the renderer's feed cap).
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """The stored dataset's folder: BIDS ``beh``, its shared files and its participants.
 
-Layout (DESIGN.md, "The stored dataset"; every path is built by :mod:`crs_study.dataset.bids`)::
+Layout (docs/architecture.md, "The stored dataset"; every path is built by
+:mod:`crs_study.dataset.bids`)::
 
     DATASET/
       dataset_description.json, participants.tsv, participants.json, task-<task>_beh.json

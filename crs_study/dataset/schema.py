@@ -138,7 +138,7 @@ def level_columns(task: Task = DEFAULT_TASK) -> dict[str, tuple[str, str]]:
     right after the symbol's (absent otherwise: BIDS allows extra columns and a constant
     column would suggest a level was varied). Names are those the analysis looks for
     (``crs_study.analysis.plan.KNOWN_LEVEL_COLUMNS``); the protocol key that sets each is in
-    ``crs_study.protocol.level_parameters``."""
+    ``crs_study.protocol.model.level_parameters``."""
     return {
         task.spelled("symbol_height"): (
             f"Height of the {task.noun}'s box in pixel pitches, varied across trials by the "

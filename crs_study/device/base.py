@@ -141,7 +141,7 @@ class Device(ABC):
         :meth:`heartbeat_check` needs; nothing waits for the answer.
 
         The LSC boards acknowledge no move, but they answer GET_BATTERY_VOLTAGE
-        (hardware.md), and a board reads its bytes in order: an answer to a question asked
+        (docs/device.md), and a board reads its bytes in order: an answer to a question asked
         after a trial's last frame says the board read the whole trial. The runner asks right
         after the stimulus (so a person's response is never delayed by the wait) and checks
         after the response. A device that cannot be asked (the default) does nothing.

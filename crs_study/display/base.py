@@ -7,7 +7,7 @@ A model is built once per layout and then evaluated per frame::
 
 Models register themselves in :data:`MODELS` by name when their module is imported; the
 ``crs_study.display`` package imports them all and looks them up (``get_model``). Collapse
-(crs-paper.md, Eq. 4, or a solver reaching the critical load) is raised as
+(Wang, Meng & Chen 2025, Eq. 4, or a solver reaching the critical load) is raised as
 :class:`~crs_study.errors.CollapseError`, never returned as a shape.
 """
 

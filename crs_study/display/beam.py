@@ -1,13 +1,14 @@
 """``beam``: the compressed beam of the CRS, solved in closed form per segment.
 
 Each beam runs from its start clamp (s = 0) through its pixels to its end clamp (s = S).
-Between consecutive constraint points it obeys (crs-paper.md, Mechanical model; Eq. 3's ODE)::
+Between consecutive constraint points it obeys (Wang, Meng & Chen 2025, the ODE behind Eq. 3;
+docs/physics.md, "The compressed beam")::
 
     EI y'''' + N y'' + beta y = 0,
 
 N the compressive axial load, beta the Winkler foundation of a skin pressed onto the skeleton
-(``foundation=True``: ``layout.foundation_stiffness``; the default ``False`` is the issue's
-"optionally": beta = 0, the display as shown, and the trigonometric closed form).
+(``foundation=True``: ``layout.foundation_stiffness``; the default ``False``: beta = 0, the
+display as shown without a finger pressing on it, and the trigonometric closed form).
 Conditions: y = y' = 0 at both clamps; at a pixel y equals the commanded height on both
 sides and y, y', y'' (slope, moment) are continuous, the shear jumping by the pixel's
 reaction (the beam is pressed through a point support). N is found so that the beam's

@@ -1,8 +1,8 @@
 """The equations of the compressed beam: EI y'''' + N y'' + beta y = 0 on each segment.
 
 The solver (:mod:`crs_study.display.beam`) finds the axial load N of every beam; this module
-gives, for a load, the shape through the pixel heights (crs-paper.md, Mechanical model;
-Eq. 3's ODE) and the no-collapse number of Eq. 4.
+gives, for a load, the shape through the pixel heights (Wang, Meng & Chen 2025, the ODE
+behind Eq. 3) and the no-collapse number of Eq. 4 (docs/physics.md, "The compressed beam").
 
 Solution per segment
     With k = sqrt(N/EI) and beta = 0 the segment solution is a combination of
@@ -35,7 +35,7 @@ _FACTORIALS = np.array([math.factorial(n) for n in range(_SERIES_TERMS)], dtype=
 
 
 def no_collapse_number(bending_stiffness: float, beta: float, pitch_mm: float) -> float:
-    """Delta = 16 pi^4 EI / (27 beta d^4) (crs-paper.md, Eq. 4); inf when beta = 0."""
+    """Delta = 16 pi^4 EI / (27 beta d^4) (Wang, Meng & Chen 2025, Eq. 4); inf when beta = 0."""
     if beta <= 0.0:
         return math.inf
     return 16.0 * math.pi**4 * bending_stiffness / (27.0 * beta * pitch_mm**4)

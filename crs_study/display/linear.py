@@ -1,12 +1,13 @@
 """The ``linear`` display model: straight connections between the pixel tips.
 
-The paper's "linear connection" (origami-like displays, crs-paper.md Fig. 2d): in 1D the
-surface is the piecewise-linear interpolant of the pixel heights, in 2D the piecewise-linear
-interpolant on the Delaunay triangulation of the pixel positions (barycentric weights within
-each triangle). Outside the pixels' convex hull the surface is the base, 0. On the hexagonal
-lattice the Delaunay triangulation is unique (equilateral triangles); on a square lattice four
-points are co-circular and Qhull picks one diagonal per square, so the model is not symmetric
-there. A 2D layout whose pixels all lie on one line is interpolated along that line.
+The paper's "linear connection" (origami-like displays; Wang, Meng & Chen 2025, Fig. 2d;
+docs/physics.md, "Display models"): in 1D the surface is the piecewise-linear interpolant of
+the pixel heights, in 2D the piecewise-linear interpolant on the Delaunay triangulation of the
+pixel positions (barycentric weights within each triangle). Outside the pixels' convex hull the
+surface is the base, 0. On the hexagonal lattice the Delaunay triangulation is unique
+(equilateral triangles); on a square lattice four points are co-circular and Qhull picks one
+diagonal per square, so the model is not symmetric there. A 2D layout whose pixels all lie on
+one line is interpolated along that line.
 
 Its maximum lies at a pixel (a linear function peaks at a vertex), so the peak position
 distortion equals the pixel-only one (paper: D_P = 0.25 d/l in 1D for both).

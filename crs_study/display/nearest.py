@@ -1,7 +1,8 @@
 """The ``nearest`` display model: pixel-only theory, the skin meets the nearest pixel's height.
 
-The paper's pixel-only display (crs-paper.md, Fig. 2d, Eqs. 1, 2, 5, 6): with no connection
-between pixels the displayed surface over each pixel's Voronoi cell is that pixel's height, so
+The paper's pixel-only display (Wang, Meng & Chen 2025, Fig. 2d, Eqs. 1, 2, 5, 6): with no
+connection between pixels the displayed surface over each pixel's Voronoi cell is that pixel's
+height, so
 
     psi(x) = h_k,   k = argmin_j |x - p_j|
 

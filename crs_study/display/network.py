@@ -13,8 +13,8 @@ pixels. :class:`NetworkModel` turns the beam shapes into a surface:
 
 The fabric model
 ----------------
-The published 2D device covers the beams with spandex fabric, sewn to each pixel and
-stretched over the frame (crs-paper.md, Methods). Spandex has no bending stiffness worth
+The published 2D device covers the beams with spandex fabric, sewn to each pixel and stretched
+over the frame (Wang, Meng & Chen 2025, Methods). Spandex has no bending stiffness worth
 speaking of; pre-stretched, it carries an (assumed uniform, isotropic) tension T. With no load
 between the supports, small-slope membrane equilibrium is Laplace's equation::
 

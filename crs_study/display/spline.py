@@ -4,16 +4,16 @@ A beam bent only by its point supports, with no axial load and no foundation, sa
 EI y'''' = 0 between supports with y, y', y'' continuous at the pixels: a cubic spline. The ends
 are at base height with zero slope at the clamps (``CubicSpline(..., bc_type="clamped")``).
 This is a beam **without** boundary servos: it stays near the pixel heights and does not put a
-peak where the target has one. DESIGN.md's check (bump of wavelength 3 pitches half-way
-between two pixels, pixel heights 0.75, target 1.0) quotes "spline maximum about 0.77"; what
-we compute is 0.902 (published 1D device: clamps one pitch beyond the end pixels, pixels
-0, 0.75, 0.75, 0, 0). No interpolating cubic spline gives 0.77: natural or not-a-knot ends at
-the end pixels 0.88 / 0.87, clamps 0.5-2 pitches out 0.89-0.91, four pixels clamped at the
-outer two 0.94, an infinite lattice 0.9007 (scipy ``CubicSpline``; tests/test_display_spline.py).
-Only an unloaded beam on a stiff skin foundation comes down to it (beta ~ 3 kPa, Delta ~ 1.5,
-and its maximum then sits near a pixel). It is not a model of the CRS condition; use
-``beam`` for that. In 2D the splines form the same network, joined by the same fabric, as the
-compressed beams (:mod:`crs_study.display.network`).
+peak where the target has one. The quick check in docs/physics.md (bump of wavelength 3 pitches
+half-way between two pixels, pixel heights 0.75, target 1.0) once quoted a "spline maximum
+about 0.77"; what we compute is 0.902 (published 1D device: clamps one pitch beyond the end
+pixels, pixels 0, 0.75, 0.75, 0, 0). No interpolating cubic spline gives 0.77: natural or
+not-a-knot ends at the end pixels 0.88 / 0.87, clamps 0.5-2 pitches out 0.89-0.91, four pixels
+clamped at the outer two 0.94, an infinite lattice 0.9007 (scipy ``CubicSpline``;
+tests/test_display_spline.py). Only an unloaded beam on a stiff skin foundation comes down to
+it (beta ~ 3 kPa, Delta ~ 1.5, and its maximum then sits near a pixel). It is not a model of
+the CRS condition; use ``beam`` for that. In 2D the splines form the same network, joined by
+the same fabric, as the compressed beams (:mod:`crs_study.display.network`).
 
 Yield: the curvature kappa = |y''| / (1 + y'^2)^(3/2) is at most |y''|, and |y''| of a cubic
 spline is largest at a knot (y'' is linear on each segment), so the check against the yield

@@ -35,7 +35,7 @@ from crs_study.paths import data_dir
 #: Device files shipped with the package, by name.
 BUILTIN_DEVICES = ("crs2d", "crs1d")
 
-#: Pulse widths an LSC board accepts (hardware.md): 500 to 2500 us.
+#: Pulse widths an LSC board accepts (docs/device.md, "Calibration"): 500 to 2500 us.
 PULSE_MIN_US = 500
 PULSE_MAX_US = 2500
 
@@ -48,7 +48,7 @@ class Controller:
     """One LSC-24 board: its name in channel references and how it numbers channels."""
 
     name: str
-    channel_base: int  # 0 or 1: the number of the first channel (hardware.md: unconfirmed)
+    channel_base: int  # 0 or 1: the number of the first channel (unconfirmed: docs/device.md)
     channels: int  # how many channels the board has (24 for the LSC-24)
     index: int  # position in the device file = position of its port in a serial:// URL
 

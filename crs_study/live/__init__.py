@@ -1,6 +1,6 @@
 """Live mode: the paper's VR link. Finger packets over UDP in, the bump of Eq. 7 out.
 
-The paper's system (crs-paper.md, Fig. 5 and Methods "VR environment") sends the fingertip's
+The paper's system (Wang, Meng & Chen 2025, Fig. 5 and Methods) sends the fingertip's
 position relative to the display, (x_f, y_f, z_f), from a Unity scene over UDP; the computer
 renders the raised cosine of Eq. 7 under the finger and drives the two LSC-24 boards. This
 package is that link, with its latency measured as the paper's figure is. The packet format

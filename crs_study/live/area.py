@@ -1,8 +1,8 @@
 """The recognition area, and a finger packet's position turned into the bump of Eq. 7.
 
 The paper's scene sends the fingertip "relative to the center of the CRS recognition area"
-(crs-paper.md, Methods "VR environment"): a packet's (x_f, y_f) are millimetres from the
-display's centre (:func:`crs_study.stimulus.display_centre`, the centroid of the pixels, the
+(Wang, Meng & Chen 2025, Methods): a packet's (x_f, y_f) are millimetres from the
+display's centre (:func:`crs_study.stimuli.stimulus.display_centre`, the centroid of the pixels, the
 centre pixel on crs2d), in the device file's axes. The area is where a finger makes a bump:
 
 * a 2D display: the convex hull of the pixel centres, grown by ``margin_mm`` (each edge moved

@@ -17,7 +17,7 @@ Two sources, one interface (``add(frame)``, ``poll(now) -> finished frames``):
 
 Servos in place: after frame f has landed, the time every servo of every board reaches its
 latest command, ``max(arrive)`` of the servo model (a move takes ``max(T, |dp| / v)``,
-hardware.md), as if no later frame came. A board that got nothing for f (no channel changed)
+docs/device.md), as if no later frame came. A board that got nothing for f (no channel changed)
 counts with its servos' state after its last write before f.
 """
 

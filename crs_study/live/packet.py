@@ -1,6 +1,6 @@
 """The finger packet: one UDP datagram from the VR scene per headset frame (format version 1).
 
-The paper's scene (crs-paper.md, Methods "VR environment") sends the fingertip's position
+The paper's scene (Wang, Meng & Chen 2025, Methods) sends the fingertip's position
 relative to the centre of the display's recognition area, (x_f, y_f, z_f), over UDP. This
 module is that datagram as bytes and back, pure (no sockets). 36 bytes, little-endian::
 

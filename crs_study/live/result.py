@@ -1,7 +1,7 @@
 """What a live session did: packet and frame counts, latency figures, per-frame rows.
 
-Latency, per packet a frame carried (the paper's device latency, crs-paper.md Methods "VR
-environment"; the issue's definition):
+Latency, per packet a frame carried (the paper's device latency, 75 ms: Wang, Meng & Chen
+2025, Methods), measured at three points of the path from the finger to the skin:
 
 ``handed``   arrival (the kernel's stamp) -> the frame carrying it handed to the device
 ``wire``     arrival -> that frame's last byte arrived at its board (the later board)

@@ -10,7 +10,7 @@ The loop (one thread; the serial device's writer threads put the bytes on the po
     3. when the wire can take a frame (the last frame's last byte leaves within ``lead_s``),
        the newest packet, moved to where the finger will be when this frame's servos are in
        place (:mod:`crs_study.live.predict`; ``predict.method = "off"``: as it came), is
-       rendered (the same :class:`~crs_study.render.Renderer`, clip
+       rendered (the same :class:`~crs_study.rendering.render.Renderer`, clip
        policy and feed cap as a session's stimuli) and handed to the device, whose calibrated
        limits refuse anything out of range, as in a session. So frames go at the rate the wire
        allows, each carrying the newest position, never a queue of old ones; what goes on the

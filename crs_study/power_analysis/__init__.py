@@ -13,7 +13,7 @@ The stages, in the order they build on each other:
 * :mod:`~crs_study.power_analysis.model`: the generating model (pilot, parameters);
   :mod:`~crs_study.power_analysis.observer`: the observer's predicted accuracies (mode 2);
 * :mod:`~crs_study.power_analysis.simulate`: studies with common random numbers;
-* :mod:`~crs_study.power_analysis.laplace`, :mod:`~crs_study.power_analysis.maximise`: the
+* :mod:`crs_study.analysis.glmm_batch` (with :mod:`crs_study.analysis.glmm_newton`): the
   primary GLMM fitted to many studies at once, at ``fit_glmm``'s maximum;
 * :mod:`~crs_study.power_analysis.study`: the unit of work;
   :mod:`~crs_study.power_analysis.fidelity`: mode 3;

@@ -3,8 +3,8 @@
 :func:`map_tasks` maps one pure function over the tasks and returns the results in the
 tasks' order, whatever order they finish in. The function and each task are the same on
 every backend, and a task carries its own seeds (:mod:`crs_study.power_analysis.simulate`), so the
-answer is the same wherever it ran (STYLE.md point 18: Dask's ``client.map``, numpy's
-``SeedSequence``).
+answer is the same wherever it ran (seeds belong to the unit of work, never to the worker:
+docs/conventions.md; Dask's ``client.map``, numpy's ``SeedSequence``).
 
 * ``jobs = 1``, no scheduler: in this process, one task after another;
 * ``jobs > 1``: a :class:`concurrent.futures.ProcessPoolExecutor` of ``jobs`` spawned

@@ -2,7 +2,7 @@
 
 :func:`run_task` is a pure function of a :class:`PowerTask` (design, model, seed, the points
 and a range of study numbers) to a small :class:`TaskResult`; the backends map it over a
-process pool or a Dask cluster (:mod:`crs_study.power_analysis.backends`, STYLE.md point 18).
+process pool or a Dask cluster by the same code (:mod:`crs_study.power_analysis.backends`).
 
 Each simulated study is tested as ``analyze`` tests a dataset
 (:func:`crs_study.analysis.primary.primary_test`): the plan's random structure (maximal by

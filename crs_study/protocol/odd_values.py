@@ -38,7 +38,8 @@ WARN_ITI_S = 0.1
 #: ... a symbol's stimulus lasting longer than this (s; the shipped 20 mm/s: 2 to 5 s):
 WARN_DRAWING_S = 15.0
 #: ... a stroke speed at which the device's latency lags the bump by more than this fraction
-#: of the symbol's height; the latency is the paper's device's (crs-paper.md, Methods: 75 ms).
+#: of the symbol's height; the latency is the paper's device's (75 ms: Wang, Meng & Chen 2025,
+#: Methods).
 WARN_LAG_FRACTION = 0.25
 PAPER_LATENCY_S = 0.075
 

@@ -1,6 +1,6 @@
 """The paper's display-quality criteria: peak position distortion D_P and shape distortion D_S.
 
-For a bump of diameter (wavelength) l centred at X (crs-paper.md; the ideal shape, its
+For a bump of diameter (wavelength) l centred at X (Wang, Meng & Chen 2025; the ideal shape, its
 Supplementary Equation 4 and Eq. 7, is the raised cosine phi = [1 + cos(2 pi |x - X| / l)] / 2
 on |x - X| <= l/2)::
 
@@ -87,7 +87,7 @@ MAX_D_OVER_L = {"1d": 1.0, "square": 1.0 / math.sqrt(2.0), "hex": math.sqrt(3.0)
 #: compressed beam stays far from its yield curvature for l >= 30 mm.
 DEFAULT_HEIGHT_MM = 5.0
 
-#: The paper's theory lines (crs-paper.md): (lattice, model) -> (quantity, coefficient, power).
+#: The paper's theory lines (docs/physics.md): (lattice, model) -> (quantity, coefficient, power).
 #: D = coefficient * (d/l)^power. Pixel-only D_P is exact theory; the D_S lines are fits.
 THEORY = {
     ("1d", "nearest"): {"D_P": (0.25, 1), "D_S": (0.994, 1)},

@@ -1,10 +1,10 @@
 """Lattice geometry for the quality criteria: periodic patches of pixels and one lattice cell.
 
-The paper's expectations (crs-paper.md, Eqs. 1, 2, 5, 6) run over peak positions uniform over
-the display. On an infinite lattice every quantity is periodic in the peak position, so the
-expectation over the display equals the expectation over one lattice cell: the Voronoi cell
-of a pixel (a segment of length d, a square of side d, a hexagon of inradius d/2). A finite
-patch of pixels large enough that the bump's support never leaves it stands in for the
+The paper's expectations (Wang, Meng & Chen 2025, Eqs. 1, 2, 5, 6) run over peak positions
+uniform over the display. On an infinite lattice every quantity is periodic in the peak
+position, so the expectation over the display equals the expectation over one lattice cell: the
+Voronoi cell of a pixel (a segment of length d, a square of side d, a hexagon of inradius d/2).
+A finite patch of pixels large enough that the bump's support never leaves it stands in for the
 infinite lattice.
 
 Lattice names: ``"1d"`` (a line of pixels), ``"square"`` and ``"hex"`` (pitch d = distance

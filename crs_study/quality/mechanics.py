@@ -2,7 +2,7 @@
 
 Units: mm and N (EI in N mm^2, the Winkler modulus beta in N/mm^2, loads in N).
 
-* No-collapse number (crs-paper.md, Eq. 4): Delta = 16 pi^4 EI / (27 beta d^4); the beam
+* No-collapse number (Wang, Meng & Chen 2025, Eq. 4): Delta = 16 pi^4 EI / (27 beta d^4); the beam
   collapses when pressed into the skin if Delta < 1. It follows from the critical loads of
   Eq. 3, N_cr^(n) = (16 n^4 pi^4 EI + 3 beta l^4) / (4 n^2 pi^2 l^2) with l = 3 d: Delta > 1 is
   N_cr^(1) < N_cr^(3) (tests/test_quality.py checks the two agree).

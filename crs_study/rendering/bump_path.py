@@ -3,7 +3,7 @@
 :class:`BumpPath` computes what the ``pixel-only`` and ``crs`` conditions of
 :mod:`crs_study.rendering.render` compute for a :class:`~crs_study.stimuli.targets.Bump`,
 within rounding, with fewer and cheaper steps: the live link renders one frame per packet on
-the real clock (issue 18: software time per packet under 1 % of the frame's wire time), and a
+the real clock (software time per packet must stay under 1 % of the frame's wire time), and a
 session's stimuli are rendered frame by frame too.
 
 Why it is faster (measured: ``crs-study bench render`` and ``crs-study bench live``)

@@ -12,7 +12,7 @@ Conditions are :class:`~crs_study.rendering.conditions.Condition` objects regist
 ``crs``
     the same pixel heights, and for each beam the compression that makes the beam's length in
     the display equal to the target's arc length along the beam's line between its clamps
-    (crs-paper.md, Supplementary Discussion 7)::
+    (Wang, Meng & Chen 2025, Supplementary Discussion 7; docs/physics.md)::
 
         feed = L_target - L_straight,   L_target = integral sqrt(1 + (dz/ds)^2) ds
 

@@ -1,6 +1,6 @@
 """Target surfaces: what the display should show.
 
-The stimulus of the paper is a raised-cosine bump (crs-paper.md, Eq. 7)::
+The stimulus of the paper is a raised-cosine bump (Wang, Meng & Chen 2025, Eq. 7)::
 
     z(x, y) = z_f / 2 * [1 + cos(2 pi rho / l)],   rho = |(x, y) - (x_f, y_f)| <= l / 2
     z(x, y) = 0                                     otherwise

@@ -6,13 +6,13 @@ display could sense, never from the true symbol (of any stimulus set: digits, le
 1. **Surface.** Each sensed frame's displayed setpoints go through the display model the
    trial's condition names (:attr:`crs_study.rendering.Condition.display_model`, built by
    :func:`crs_study.display.get_model`): ``pixel-only`` meets the pixel tips under the
-   stretched fabric of the paper (spandex sewn to every pixel, Methods), a tent between the
-   pixels: the ``linear`` model. (``nearest``, the paper's pixel-only theory, is a staircase
-   that a fabric never shows.) ``crs`` mounts the skeleton: the compressed ``beam`` network.
-   The options ``pixel_model`` and ``skeleton_model`` replace the model of every condition
-   on the pixels alone, or with the beams driven. The surface is evaluated on a square grid
-   (``grid_spacing_mm``) over the sensing window (``sense_radius_mm`` around the symbol's
-   placement).
+   stretched fabric of the paper (spandex sewn to every pixel; Wang, Meng & Chen 2025,
+   Methods), a tent between the pixels: the ``linear`` model. (``nearest``, the paper's
+   pixel-only theory, is a staircase that a fabric never shows.) ``crs`` mounts the skeleton:
+   the compressed ``beam`` network. The options ``pixel_model`` and ``skeleton_model`` replace
+   the model of every condition on the pixels alone, or with the beams driven. The surface is
+   evaluated on a square grid (``grid_spacing_mm``) over the sensing window
+   (``sense_radius_mm`` around the symbol's placement).
 2. **Skin.** Receptor noise (white, ``noise_mm`` standard deviation, in mm of indentation) is
    added and the result is blurred by a Gaussian of ``skin_blur_mm`` (the skin's spatial
    spread): sensed = G * (z + e). G * z is noise-free and cached per frame; G * e is drawn
