@@ -106,3 +106,64 @@ def test_an_unreachable_scheduler_writes_nothing(protocol, tmp_path, capsys, mon
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--scheduler tcp://127.0.0.1:{port}: cannot reach" in err[0]
     assert not out.exists()
+
+
+# --- outputs that do not mislead: the range follows the effect, nothing is overwritten -----
+
+def _auto_args(protocol, *extra):
+    return ["power", str(protocol), "--draws", "4", "--studies", "30", "--jobs", "1",
+            "--target", "0.8", *extra]
+
+
+def test_the_default_range_is_chosen_from_the_effect_and_the_curve_crosses_the_target(
+        protocol, tmp_path, capsys, monkeypatch):
+    """No --participants: a coarse search picks the counts, so the curve starts below the
+    target and ends above it (the old fixed 4:40:4 was flat at 100 % for the shipped
+    protocol: "N = 4 or fewer"); a halved effect moves the range to larger N. (A coarser
+    search than the command's, to keep the test short.)"""
+    from crs_study.power_analysis import api
+
+    monkeypatch.setattr(api, "SEARCH_STUDIES", 30)
+    monkeypatch.setattr(api, "SEARCH_MAX", 64)
+    crossings = {}
+    for scale in ("1", "0.5"):
+        out = tmp_path / f"scale{scale}"
+        assert main(_auto_args(protocol, "--effect-scale", scale, "--out", str(out))) == 0
+        data = json.loads((out / "power.json").read_text())
+        points = [(p["participants"], p["power"]) for p in data["points"]]
+        assert len(points) >= 5
+        note = next(n for n in data["notes"] if n.startswith("participant range"))
+        assert "chosen from the effect" in note, note
+        if points[0][0] > 2:                       # room below: the curve crosses the target
+            assert points[0][1] < 0.8 <= points[-1][1], (note, points)
+        crossings[scale] = points[-1][0]
+    assert crossings["0.5"] > crossings["1"]
+
+
+def test_the_chart_states_the_effect_size_and_the_effect_scale(protocol, tmp_path):
+    from crs_study.power_analysis import power
+
+    result = power(protocol, participants="2:4:2", studies=20, draws=4, effect_scale=0.7)
+    title = result.plot().get_title()
+    assert "odds ratio crs / pixel-only" in title and "--effect-scale 0.7" in title
+    assert "typical participant: pixel-only" in title
+    assert repr(result).startswith("<PowerResult of ") and "\n" not in repr(result)
+    assert "--effect-scale 0.7" in result._repr_html_()
+    assert result.plot()._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"     # shows in a notebook
+
+
+def test_a_second_run_does_not_overwrite_the_first(protocol, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    base = ["power", str(protocol), "--draws", "4", "--studies", "20", "--participants",
+            "2:4:2", "--jobs", "1"]
+    stem = protocol.stem
+    assert main(base) == 0
+    first = (tmp_path / f"power_{stem}" / "power.json").read_bytes()
+    assert main([*base, "--seed", "7"]) == 0
+    out = capsys.readouterr().out
+    assert f"results: power_{stem}-2/power.json" in out
+    assert (tmp_path / f"power_{stem}" / "power.json").read_bytes() == first
+    assert main([*base, "--out", f"power_{stem}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds an earlier run's power.json" in err[0]
+    assert (tmp_path / f"power_{stem}" / "power.json").read_bytes() == first
