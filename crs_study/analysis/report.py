@@ -186,7 +186,7 @@ class Analysis(Displayed):
                  "ci_low": (c["ci95"] or [None, None])[0],
                  "ci_high": (c["ci95"] or [None, None])[1],
                  "p_value": c["p_value"], "primary": c["primary"]}
-                for c in results_json.comparisons(self)]
+                for c in to_jsonable(results_json.comparisons(self))[0]]
         return pd.DataFrame(rows, columns=["condition", "reference", "method", "estimate",
                                            "ci_low", "ci_high", "p_value", "primary"])
 
