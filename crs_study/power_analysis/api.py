@@ -177,7 +177,7 @@ def auto_range(design: PowerDesign, model: GenerativeModel, seed: int,
             break
         n *= 2
     if found is None:
-        low, high = SEARCH_MAX // 8, SEARCH_MAX
+        low, high = max(2, SEARCH_MAX // 8), SEARCH_MAX
     elif found == 2:
         low, high = 2, 10
     else:
