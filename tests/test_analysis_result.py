@@ -154,8 +154,42 @@ def test_a_chart_from_the_analysis(tmp_path, written):
     assert isinstance(ax, Axes)
     png = save(ax, tmp_path / "accuracy.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    with pytest.raises(AnalysisError, match="no chart 'pie'; expected one of accuracy"):
+    with pytest.raises(AnalysisError, match="no chart 'pie'; this analysis has accuracy, "):
         analysis.plot("pie")
+    with pytest.raises(AnalysisError, match=r"no chart 'tracks' \(not in this analysis: no "
+                                            r"session is adaptive\); this analysis has"):
+        analysis.plot("tracks")                  # a raw KeyError before
+
+
+def test_every_result_object_shows_itself_in_a_line_and_a_table(written):
+    """A concise repr (the dataclass's was 29,000 characters for an Analysis) and a small
+    HTML table for notebooks (IPython's _repr_html_ hook)."""
+    _, analysis = written
+    objects = [analysis, analysis.data, analysis.accuracy, analysis.primary,
+               analysis.secondary, analysis.confusions, *analysis.confusions.values(),
+               analysis.speed_accuracy, analysis.psychometric, analysis.thresholds,
+               analysis.compare(analysis.to_dict())]
+    for result in objects:
+        text = repr(result)
+        assert text.startswith("<") and "\n" not in text and len(text) < 1200, text
+        html = result._repr_html_()
+        assert html.startswith("<table>") and html.endswith("</table>")
+    assert analysis.headline[:40] in repr(analysis)
+    assert f"warnings ({len(analysis.warnings)})" in analysis._repr_html_()
+
+
+def test_charts_show_in_a_notebook_and_leave_no_figure_behind(written):
+    """Drawn without pyplot: a script that draws every chart holds no figure afterwards;
+    the Axes and its figure give IPython a PNG (_repr_png_), so no %matplotlib is needed."""
+    import matplotlib.pyplot as plt
+
+    _, analysis = written
+    before = plt.get_fignums()
+    for name in analysis.plots():
+        ax = analysis.plot(name)
+        assert ax._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert ax.figure._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert plt.get_fignums() == before == []
 
 
 # --- load_dataset: the trials an analysis sees -------------------------------------------------

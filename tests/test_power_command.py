@@ -106,3 +106,93 @@ def test_an_unreachable_scheduler_writes_nothing(protocol, tmp_path, capsys, mon
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--scheduler tcp://127.0.0.1:{port}: cannot reach" in err[0]
     assert not out.exists()
+
+
+# --- outputs that do not mislead: the range follows the effect, nothing is overwritten -----
+
+#: The pilot's plan with random intercepts and the chi-square LR: cheap studies (no
+#: bootstrap reference, no slopes), for what these tests show.
+CHI2_PLAN = """
+[plan]
+name = "chi2"
+conditions = ["pixel-only", "crs"]
+[primary]
+random_effects = ["participant"]
+structure = "intercepts"
+p_value = "chi2"
+"""
+
+
+@pytest.fixture(scope="module")
+def chi2_plan(tmp_path_factory):
+    path = tmp_path_factory.mktemp("plan") / "chi2.toml"
+    path.write_text(CHI2_PLAN)
+    return path
+
+
+def test_the_default_range_is_chosen_from_the_effect_so_the_curve_crosses_the_target(
+        protocol, chi2_plan, monkeypatch):
+    """No participants given: a coarse search picks the counts from the effect (the fixed
+    4:40:4 was flat at 100 % for the shipped protocol: "N = 4 or fewer"); a smaller effect
+    moves the range to larger N, and the search's N lies inside the range. (A coarser
+    search than the command's, to keep the test short.)"""
+    from crs_study.power_analysis import api
+    from crs_study.power_analysis.backends import open_backend
+    from crs_study.power_analysis.design import design_from_protocol
+    from crs_study.power_analysis.model import model_from_parameters
+
+    monkeypatch.setattr(api, "SEARCH_STUDIES", 20)
+    monkeypatch.setattr(api, "SEARCH_MAX", 128)
+    design = design_from_protocol(protocol, chi2_plan)
+    found = {}
+    with open_backend(1) as backend:
+        for name, crs in (("large", 0.95), ("small", 0.75)):
+            model = model_from_parameters(design, {"pixel-only": 0.5, "crs": crs},
+                                          participant_sd=0.3)
+            counts, note = api.auto_range(design, model, 1, (1,), 0.8, backend)
+            assert "chosen from the effect" in note and counts == tuple(sorted(counts))
+            assert len(counts) >= 5
+            n = int(note.split("near N = ")[1].split(" ")[0])
+            assert counts[0] <= n <= counts[-1] and (counts[0] < n or counts[0] == 2)
+            found[name] = n
+    assert found["small"] > found["large"]
+
+
+def test_the_command_uses_the_chosen_range_and_the_chart_states_the_effect(
+        protocol, chi2_plan, tmp_path, monkeypatch):
+    from crs_study.power_analysis import api
+
+    monkeypatch.setattr(api, "SEARCH_STUDIES", 4)
+    monkeypatch.setattr(api, "SEARCH_MAX", 8)
+    out = tmp_path / "auto"
+    assert main(["power", str(protocol), "--draws", "2", "--studies", "2", "--jobs", "1",
+                 "--plan", str(chi2_plan), "--effect-scale", "0.7", "--out", str(out)]) == 0
+    data = json.loads((out / "power.json").read_text())
+    assert any(n.startswith("participant range") for n in data["notes"])
+    assert len(data["points"]) >= 5
+    result = api.power(protocol, participants="2", studies=2, draws=2, effect_scale=0.7,
+                       plan=chi2_plan)
+    title = " ".join(result.plot().get_title().split())
+    assert "odds ratio crs / pixel-only" in title and "--effect-scale 0.7" in title
+    assert "typical participant: pixel-only" in title
+    assert repr(result).startswith("<PowerResult of ") and "\n" not in repr(result)
+    assert "--effect-scale 0.7" in result._repr_html_()
+    assert result.plot()._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"     # shows in a notebook
+
+
+def test_a_second_run_does_not_overwrite_the_first(protocol, chi2_plan, tmp_path, capsys,
+                                                   monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    base = ["power", str(protocol), "--draws", "2", "--studies", "2", "--participants",
+            "2", "--jobs", "1", "--plan", str(chi2_plan)]
+    stem = protocol.stem
+    assert main(base) == 0
+    first = (tmp_path / f"power_{stem}" / "power.json").read_bytes()
+    assert main([*base, "--seed", "7"]) == 0
+    out = capsys.readouterr().out
+    assert f"results: power_{stem}-2/power.json" in out
+    assert (tmp_path / f"power_{stem}" / "power.json").read_bytes() == first
+    assert main([*base, "--out", f"power_{stem}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds an earlier run's power.json" in err[0]
+    assert (tmp_path / f"power_{stem}" / "power.json").read_bytes() == first

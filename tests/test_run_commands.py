@@ -170,6 +170,39 @@ def test_odd_protocol_values_are_printed_as_warnings_before_the_session(tmp_path
     assert "design.inter_trial_interval_s: 0.0 s: the next digit starts" in err[0]
 
 
+
+@pytest.mark.slow
+def test_the_demo_writes_outside_the_checkout_and_lists_every_chart(tmp_path):
+    """Run as README orders it, from inside a source checkout: the demo writes under the
+    home folder (a checkout's git clean would delete its dataset), says where and why, and
+    names every chart it wrote (it listed 2 of 5)."""
+    import subprocess
+    import sys
+
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    subprocess.run(["git", "init", "-q", str(checkout)], check=True)
+    home = tmp_path / "home"
+    home.mkdir()
+    protocol = tiny_protocol(tmp_path, repetitions=2)
+    env = {**os.environ, "HOME": str(home), "MPLBACKEND": "Agg"}
+    done = subprocess.run([sys.executable, "-m", "crs_study", "demo", "--protocol",
+                           str(protocol), "--participants", "2", "--responder", "random",
+                           "--jobs", "1"], cwd=checkout, env=env, capture_output=True,
+                          text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert sorted(p.name for p in checkout.iterdir()) == [".git"]   # nothing in the checkout
+    (dataset,) = (home / "crs-study-demo").iterdir()
+    assert f"demo: writing to {dataset} (a folder of its own, outside any source checkout" \
+        in done.stderr
+    figures = sorted((dataset / "derivatives" / "crs-study" / "figures").glob("*.png"))
+    listed = sorted(line.split(": ", 1)[1] for line in done.stdout.splitlines()
+                    if line.startswith("chart ("))
+    assert len(figures) >= 5 and listed == [str(p) for p in figures]
+    lines = done.stdout.splitlines()
+    assert lines[1].startswith("pixel-only") or lines[1].startswith("crs")   # the headline
+
+
 def test_fresh_directories_never_collide(tmp_path):
     first = fresh_directory(tmp_path)
     first.mkdir(parents=True)

@@ -26,9 +26,12 @@ REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow  # about 20 s, most of it the demo itself; kept in the default run
 
 
-def _run(command: list[str], cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess:
+def _run(command: list[str], cwd: Path, timeout: float = 240,
+         home: Path | None = None) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items()
            if k not in ("PYTHONPATH", "PYTHONHOME", "MPLBACKEND", "PYTHONSTARTUP")}
+    if home is not None:
+        env["HOME"] = str(home)
     done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=timeout, check=False)
     assert done.returncode == 0, f"{command} exited {done.returncode}:\n{done.stderr[-3000:]}"
@@ -66,12 +69,16 @@ def installed(tmp_path_factory) -> Path:
 
 
 def test_crs_study_demo_from_an_empty_folder(installed, tmp_path):
-    done = _run([str(installed / "crs-study"), "demo"], tmp_path)
+    home = tmp_path / "home"
+    home.mkdir()
+    (tmp_path / "here").mkdir()
+    done = _run([str(installed / "crs-study"), "demo"], tmp_path / "here", home=home)
     lines = done.stdout.splitlines()
     assert lines[0].startswith("demo: 12 simulated participants, 1440 trials, dataset in "
-                               "crs-study-output/demo-")
+                               f"{home / 'crs-study-demo'}/demo-")
+    assert not any((tmp_path / "here").iterdir())   # nothing in the current folder
     report = next(line for line in lines if line.startswith("report: "))
-    assert (tmp_path / report.removeprefix("report: ")).is_file()
+    assert Path(report.removeprefix("report: ")).is_file()
     assert any(line.startswith("chart (accuracy): ") for line in lines)
 
 

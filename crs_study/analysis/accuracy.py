@@ -29,6 +29,7 @@ import pandas as pd
 from scipy import stats
 from statsmodels.stats.proportion import proportion_confint
 
+from crs_study._display import Display, Displayed, percent
 from crs_study.analysis.jsonable import json_text, records
 from crs_study.dataset.schema import SYMBOL_COLUMNS, symbol_column
 from crs_study.errors import AnalysisError
@@ -102,8 +103,8 @@ def accuracy_table(trials: pd.DataFrame, by: list[str], chance: float,
     return table
 
 
-@dataclass(frozen=True)
-class AccuracyResult:
+@dataclass(frozen=True, repr=False)
+class AccuracyResult(Displayed):
     """Accuracy tables and the inputs that made them.
 
     ``by_condition``: one row per condition (in ``conditions`` order); ``by_participant``:
@@ -120,6 +121,14 @@ class AccuracyResult:
     alpha: float
     warnings: tuple[str, ...] = field(default=())
     between_participants: pd.DataFrame = field(default_factory=pd.DataFrame)
+
+    def _display(self) -> Display:
+        rows = tuple((r["condition"], f"{percent(r['accuracy'])} [{percent(r['ci_low'])}, "
+                      f"{percent(r['ci_high'])}] ({r['method']})")
+                     for _, r in headline_accuracy(self).iterrows())
+        return Display(f"AccuracyResult, {len(self.conditions)} conditions",
+                       (*rows, ("chance", percent(self.chance))), self.warnings,
+                       ".to_frame(), .by_participant, .by_symbol")
 
     def to_frame(self) -> pd.DataFrame:
         """The accuracy table: one row per condition (``by_condition``)."""

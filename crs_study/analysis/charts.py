@@ -1,32 +1,80 @@
 """Charts: pure functions of result objects, ``plot_x(result, ax=None) -> Axes``.
 
-No pyplot state: without ``ax`` a new :class:`matplotlib.figure.Figure` is made (reach it as
-``ax.figure``), so charts render the same under any backend and in threads.
+No pyplot state: without ``ax`` a new figure is made (reach it as ``ax.figure``), so charts
+render the same under any backend and in threads, and a script drawing many holds none of
+them; that figure and its Axes display as a picture in a notebook with no magic
+(:mod:`crs_study._figure`).
+
+Every chart colours a condition alike: :func:`condition_colours` gives each condition its
+colour from its place in the plan's order (``colours``; by default the result's own order),
+so that ``crs`` is the same colour in the accuracy, tracks and thresholds charts of one
+report. Percent axes run a little past 0 and 100 so that an interval's cap at either end is
+drawn whole, and a level axis names the level's units (:data:`LEVEL_UNITS`).
 """
 
 from __future__ import annotations
 
 import textwrap
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
 from matplotlib.axes import Axes
-from matplotlib.figure import Figure
-from matplotlib.ticker import FormatStrFormatter
+from matplotlib.ticker import FixedLocator, FormatStrFormatter, NullLocator
 
+from crs_study._figure import new_axes
 from crs_study.analysis.accuracy import PARTICIPANT_LEVEL, AccuracyResult, headline_accuracy
 from crs_study.analysis.confusion import ConfusionResult
 from crs_study.analysis.psychometric import PsychometricResult
 from crs_study.analysis.speed_accuracy import SpeedAccuracyResult
 from crs_study.analysis.thresholds import ThresholdResult
+from crs_study.dataset.schema import LEVEL_COLUMNS
 
+#: Paul Tol's "bright" qualitative scheme (colour-blind safe), one colour per condition.
 COLOURS = ("#4477aa", "#ee6677", "#228833", "#ccbb44", "#66ccee", "#aa3377")
+#: Units of the level columns as an axis writes them (the dataset's units: pitch, mm/s).
+LEVEL_UNITS = {"pitch": "pixel pitches"}
+#: Percent axes: a margin past 0 and 100 % so that a cap at either end is not cut.
+PERCENT_LIMITS = (-4.0, 104.0)
+
+
+def condition_colours(conditions: Iterable[str]) -> dict[str, str]:
+    """Each condition's colour by its place in ``conditions`` (the plan's order)."""
+    return {c: COLOURS[i % len(COLOURS)] for i, c in enumerate(dict.fromkeys(conditions))}
+
+
+def level_label(column: str | None) -> str:
+    """``digit height (pixel pitches)``, ``stroke speed (mm/s)``: the column and its units."""
+    if not column:
+        return "level"
+    units = LEVEL_COLUMNS.get(column, (None, None))[1]
+    name = column.replace("_", " ")
+    return f"{name} ({LEVEL_UNITS.get(units, units)})" if units else name
+
+
+def _colour(colours: Mapping[str, str], condition: str) -> str:
+    return colours.get(condition) or COLOURS[len(colours) % len(COLOURS)]
 
 
 def _axes(ax: Axes | None, size: tuple[float, float] = (5.0, 4.0)) -> Axes:
-    if ax is not None:
-        return ax
-    return Figure(figsize=size, layout="constrained").add_subplot()
+    return ax if ax is not None else new_axes(size)
+
+
+def _percent_axis(ax: Axes, label: str = "correct (%)") -> None:
+    ax.set_ylim(*PERCENT_LIMITS)
+    ax.set_yticks(range(0, 101, 20))
+    ax.set_ylabel(label)
+
+
+def _level_ticks(axis, low: float, high: float, scale: str) -> None:
+    """Ticks labelled from ``low`` to ``high`` (on a log scale, six at even ratios, rounded
+    to two figures: matplotlib's own leave a range under a decade mostly unlabelled)."""
+    if scale != "log" or not (0 < low < high):
+        return
+    ticks = sorted({float(f"{v:.2g}") for v in np.geomspace(low, high, 6)})
+    axis.set_major_locator(FixedLocator(ticks))
+    axis.set_major_formatter(FormatStrFormatter("%g"))
+    axis.set_minor_locator(NullLocator())
 
 
 def _legend(ax: Axes, **options) -> None:
@@ -43,7 +91,8 @@ def save(ax: Axes, path: str | Path, dpi: int = 110) -> Path:
     return path
 
 
-def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
+def plot_accuracy(result: AccuracyResult, ax: Axes | None = None, *,
+                  colours: Mapping[str, str] | None = None) -> Axes:
     """Accuracy per condition over per-participant lines joining conditions.
 
     The marker and its bar are :func:`~crs_study.analysis.accuracy.headline_accuracy`: the
@@ -53,6 +102,7 @@ def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
     participant alike).
     """
     ax = _axes(ax)
+    colours = colours or condition_colours(result.conditions)
     conditions = list(result.by_condition["condition"])
     x = {c: i for i, c in enumerate(conditions)}
     wide = result.by_participant.pivot(index="participant_id", columns="condition",
@@ -61,12 +111,12 @@ def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
         ax.plot(range(len(conditions)), 100 * row.to_numpy(float), color="0.6", lw=0.8,
                 alpha=0.6, marker="o", ms=3, zorder=1)
     table = headline_accuracy(result)
-    for i, row in table.iterrows():
-        colour = COLOURS[i % len(COLOURS)]
+    for _, row in table.iterrows():
         acc = 100 * row["accuracy"]
         ax.errorbar(x[row["condition"]], acc,
                     yerr=[[acc - 100 * row["ci_low"]], [100 * row["ci_high"] - acc]],
-                    fmt="s", color=colour, ms=8, capsize=6, lw=2, zorder=3)
+                    fmt="s", color=_colour(colours, row["condition"]), ms=8, capsize=6, lw=2,
+                    zorder=3)
         ax.annotate(f"{acc:.1f} %", (x[row["condition"]], acc), xytext=(10, 0),
                     textcoords="offset points", va="center", fontsize=9)
     ax.axhline(100 * result.chance, color="k", ls=":", lw=1)
@@ -74,8 +124,8 @@ def plot_accuracy(result: AccuracyResult, ax: Axes | None = None) -> Axes:
             fontsize=8)
     ax.set_xticks(range(len(conditions)), conditions)
     ax.set_xlim(-0.5, len(conditions) - 0.5)
-    ax.set_ylim(0, 100)
-    ax.set_ylabel("correct (%)")
+    ax.set_xlabel("display condition")
+    _percent_axis(ax)
     level = f"{100 * (1 - result.alpha):.0f} %"
     methods = set(table["method"])
     if methods == {PARTICIPANT_LEVEL}:
@@ -109,12 +159,14 @@ def plot_confusion(result: ConfusionResult, ax: Axes | None = None) -> Axes:
     return ax
 
 
-def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> Axes:
+def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None, *,
+                        colours: Mapping[str, str] | None = None) -> Axes:
     """Mean correct RT against accuracy: participants (small) and, per condition, the geometric
     mean RT and pooled accuracy with their intervals (``summarise_efficiency``)."""
     ax = _axes(ax)
-    for i, condition in enumerate(result.conditions):
-        colour = COLOURS[i % len(COLOURS)]
+    colours = colours or condition_colours(result.conditions)
+    for condition in result.conditions:
+        colour = _colour(colours, condition)
         cells = result.efficiency.loc[result.efficiency["condition"] == condition]
         ax.scatter(cells["mean_correct_rt"].astype(float), 100 * cells["accuracy"].astype(float),
                    s=14, color=colour, alpha=0.45, lw=0)
@@ -133,18 +185,19 @@ def plot_speed_accuracy(result: SpeedAccuracyResult, ax: Axes | None = None) -> 
     # the axis says both, as the legend does
     ax.set_xlabel(f"{result.rt_column.replace('_', ' ')} of correct trials (s): dots mean, "
                   "diamonds geometric mean", fontsize=8)
-    ax.set_ylabel("correct (%)")
-    ax.set_ylim(0, 100)
+    _percent_axis(ax)
     _legend(ax, fontsize=8, title="condition (geometric mean RT, pooled\naccuracy; 95 % CI)",
             title_fontsize=8)
     ax.set_title("Speed against accuracy (dots: participants)", fontsize=9)
     return ax
 
 
-def plot_caf(result: SpeedAccuracyResult, ax: Axes | None = None) -> Axes:
+def plot_caf(result: SpeedAccuracyResult, ax: Axes | None = None, *,
+             colours: Mapping[str, str] | None = None) -> Axes:
     """Conditional accuracy functions: accuracy by response-time quantile bin, per condition."""
     ax = _axes(ax)
-    for i, condition in enumerate(result.conditions):
+    colours = colours or condition_colours(result.conditions)
+    for condition in result.conditions:
         rows = result.caf.loc[result.caf["condition"] == condition]
         if rows.empty:
             continue
@@ -152,51 +205,72 @@ def plot_caf(result: SpeedAccuracyResult, ax: Axes | None = None) -> Axes:
         ax.errorbar(rows["mean_rt"].to_numpy(float), acc,
                     yerr=[acc - 100 * rows["ci_low"].to_numpy(float),
                           100 * rows["ci_high"].to_numpy(float) - acc],
-                    marker="o", capsize=3, color=COLOURS[i % len(COLOURS)], label=condition)
+                    marker="o", capsize=3, color=_colour(colours, condition), label=condition)
     ax.set_xlabel(f"mean {result.rt_column.replace('_', ' ')} in bin (s)")
-    ax.set_ylabel("correct (%)")
-    ax.set_ylim(0, 100)
+    _percent_axis(ax)
     _legend(ax, fontsize=8)
     ax.set_title("Conditional accuracy functions (RT quantile bins)", fontsize=9)
     return ax
 
 
-def plot_psychometric(result: PsychometricResult, ax: Axes | None = None) -> Axes:
-    """Accuracy against level per condition with the fitted functions and thresholds."""
-    ax = _axes(ax)
-    for i, (condition, fit) in enumerate(result.fits.items()):
-        colour = COLOURS[i % len(COLOURS)]
+def plot_psychometric(result: PsychometricResult, ax: Axes | None = None, *,
+                      colours: Mapping[str, str] | None = None) -> Axes:
+    """Accuracy against level per condition with the fitted functions and thresholds.
+
+    A degenerate fit (:meth:`~crs_study.analysis.psychometric.PsychometricFit.degenerate`:
+    the lapse rate at its bound, or a slope the levels tested cannot pin down) is drawn
+    dashed, and its legend entry says why. The legend sits outside the axes, where it hides
+    neither the data nor the chance line.
+    """
+    ax = _axes(ax, (7.0, 4.0))
+    colours = colours or condition_colours(result.fits)
+    for condition, fit in result.fits.items():
+        colour = _colour(colours, condition)
         data = fit.data
         acc = 100 * data["accuracy"].to_numpy(float)
         ax.errorbar(data["level"], acc, yerr=[acc - 100 * data["ci_low"].to_numpy(float),
                                               100 * data["ci_high"].to_numpy(float) - acc],
                     fmt="o", color=colour, capsize=3)
         grid = np.linspace(data["level"].min(), data["level"].max(), 200)
-        ax.plot(grid, 100 * fit.predict(grid), color=colour,
-                label=f"{condition}: threshold {fit.threshold:.3g}" if np.isfinite(fit.threshold)
-                else f"{condition}: no threshold (flat)")
+        label = (f"{condition}: threshold {fit.threshold:.3g}" if np.isfinite(fit.threshold)
+                 else f"{condition}: no threshold (flat)")
+        flags = fit.degenerate()
+        if flags:
+            label += "\n" + textwrap.fill("DEGENERATE FIT (dashed): " + "; ".join(flags), 40,
+                                          subsequent_indent="  ")
+        ax.plot(grid, 100 * fit.predict(grid), color=colour, ls="--" if flags else "-",
+                label=label)
         if fit.threshold_ci95 is not None:
             ax.axvspan(*fit.threshold_ci95, color=colour, alpha=0.12, lw=0)
     if result.fits:
-        ax.axhline(100 * next(iter(result.fits.values())).guess, color="k", ls=":", lw=1)
-    ax.set_xlabel(str(result.level_column))
-    ax.set_ylabel("correct (%)")
-    ax.set_ylim(0, 100)
-    _legend(ax, fontsize=8)
+        guess = next(iter(result.fits.values())).guess
+        ax.axhline(100 * guess, color="k", ls=":", lw=1, label=f"chance ({100 * guess:.3g} %)")
+    ax.set_xlabel(level_label(result.level_column))
+    _percent_axis(ax)
+    _legend(ax, fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
     ax.set_title("Psychometric functions (shaded: threshold 95 % CI)", fontsize=9)
     return ax
 
 
-def _conditions(result: ThresholdResult) -> dict[str, str]:
-    names = list(dict.fromkeys(result.thresholds["condition"]))
-    return {c: COLOURS[i % len(COLOURS)] for i, c in enumerate(names)}
+def _threshold_colours(result: ThresholdResult,
+                       colours: Mapping[str, str] | None) -> dict[str, str]:
+    """The conditions of the thresholds, each with its colour (the plan's order when given;
+    else the reference first, as the comparisons name it)."""
+    names = list(dict.fromkeys(result.thresholds["condition"])) if len(result.thresholds) \
+        else []
+    if colours is None:
+        order = [c.reference for c in result.comparisons[:1]] + names
+        colours = condition_colours(order)
+    ordered = [c for c in colours if c in names] + [c for c in names if c not in colours]
+    return {c: _colour(colours, c) for c in ordered}
 
 
-def plot_tracks(result: ThresholdResult, ax: Axes | None = None) -> Axes:
+def plot_tracks(result: ThresholdResult, ax: Axes | None = None, *,
+                colours: Mapping[str, str] | None = None) -> Axes:
     """Each adaptive track: level against trial, reversals marked, per condition's colour;
     the procedure's final thresholds as ticks at the right."""
     ax = _axes(ax, (6.0, 4.0))
-    colours = _conditions(result)
+    colours = _threshold_colours(result, colours)
     tracks = result.tracks
     for (_, condition), track in tracks.groupby(["participant_id", "condition"]):
         colour = colours.get(condition, "k")
@@ -213,23 +287,26 @@ def plot_tracks(result: ThresholdResult, ax: Axes | None = None) -> Axes:
                                       "procedure_threshold"]
         ax.plot([end] * len(final), final, "_", color=colour, ms=12, mew=2,
                 label=f"{condition} ({len(final)} tracks)")
-    if result.design is not None and result.design.scale == "log":
+    design = result.design
+    if design is not None and design.scale == "log":
         ax.set_yscale("log")
-        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
-        ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    if len(tracks):
+        _level_ticks(ax.yaxis, float(tracks["level"].min()), float(tracks["level"].max()),
+                     design.scale if design else "linear")
     ax.set_xlabel("test trial of the track (thick: median of the tracks)")
-    ax.set_ylabel(result.design.level_column if result.design else "level")
+    ax.set_ylabel(level_label(design.level_column if design else None))
     ax.set_title("Adaptive tracks (circles: reversals; ticks: final estimates)", fontsize=9)
     _legend(ax, fontsize=8)
     return ax
 
 
-def plot_thresholds(result: ThresholdResult, ax: Axes | None = None) -> Axes:
+def plot_thresholds(result: ThresholdResult, ax: Axes | None = None, *,
+                    colours: Mapping[str, str] | None = None) -> Axes:
     """Each participant's fitted psychometric function per condition, with the procedure's
     threshold and 95 % interval at the target rate."""
     ax = _axes(ax, (6.0, 4.0))
     design = result.design
-    colours = _conditions(result)
+    colours = _threshold_colours(result, colours)
     levels = result.tracks["level"] if len(result.tracks) else np.array([1.0])
     grid_u = np.linspace(*design.to_axis(np.array([levels.min(), levels.max()])), 200)
     offsets = {c: 3.0 * (i - (len(colours) - 1) / 2) for i, c in enumerate(colours)}
@@ -246,16 +323,16 @@ def plot_thresholds(result: ThresholdResult, ax: Axes | None = None) -> Axes:
                     fmt="x", color=colour, alpha=0.7, capsize=2, lw=0.8)
     for condition, colour in colours.items():
         ax.plot([], [], color=colour, label=condition)
-    ax.axhline(100 * design.target_rate, color="k", ls="--", lw=0.8)
-    ax.axhline(100 * result.guess, color="k", ls=":", lw=0.8)
+    ax.axhline(100 * design.target_rate, color="k", ls="--", lw=0.8,
+               label=f"target ({100 * design.target_rate:.3g} %)")
+    ax.axhline(100 * result.guess, color="k", ls=":", lw=0.8,
+               label=f"chance ({100 * result.guess:.3g} %)")
     if design.scale == "log":
         ax.set_xscale("log")
-        ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
-        ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
-    ax.set_xlabel(design.level_column)
-    ax.set_ylabel("correct (%)")
-    ax.set_ylim(0, 100)
+    _level_ticks(ax.xaxis, float(np.min(levels)), float(np.max(levels)), design.scale)
+    ax.set_xlabel(level_label(design.level_column))
+    _percent_axis(ax)
     ax.set_title(f"Fitted functions; x: {design.procedure} thresholds at "
                  f"{100 * design.target_rate:.0f} % (95 % CI)", fontsize=9)
-    _legend(ax, fontsize=8)
+    _legend(ax, fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
     return ax

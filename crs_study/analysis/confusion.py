@@ -51,6 +51,7 @@ import numpy as np
 import pandas as pd
 from scipy import special, stats
 
+from crs_study._display import Display, Displayed
 from crs_study.analysis.accuracy import symbol_column_of
 from crs_study.analysis.jsonable import json_text
 
@@ -109,8 +110,8 @@ def information_transfer(counts: np.ndarray, bias_correction: str = "miller-mado
     return t
 
 
-@dataclass(frozen=True)
-class ConfusionResult:
+@dataclass(frozen=True, repr=False)
+class ConfusionResult(Displayed):
     """Per condition: ``counts`` and row ``proportions`` (K x K), the transmitted information
     ``bits`` (bias-corrected as named), ``bits_plugin``, ``ci95`` (basic bootstrap), the stimulus
     entropy ``stimulus_bits``, ``relative`` = bits / stimulus_bits, ``n_trials``,
@@ -129,6 +130,13 @@ class ConfusionResult:
     bias_correction: str
     bootstrap: dict = field(default_factory=dict)
     note: str = ""
+
+    def _display(self) -> Display:
+        ci = "" if self.ci95 is None else f" [{self.ci95[0]:.3g}, {self.ci95[1]:.3g}]"
+        return Display(f"ConfusionResult of {self.condition!r}",
+                       (("information transfer", f"{self.bits:.3g} bits{ci} of "
+                         f"{self.stimulus_bits:.3g}"), ("trials", str(self.n_trials))),
+                       (self.note,) if self.note else (), ".counts, .proportions, .to_frame()")
 
     def to_dict(self) -> dict:
         return {"condition": self.condition, "bits": self.bits,
@@ -152,8 +160,8 @@ TRANSFER_COLUMNS = ("condition", "bits", "ci_low", "ci_high", "bits_plugin", "st
                     "relative", "n_trials", "n_no_response", "bias_correction")
 
 
-@dataclass(frozen=True, eq=False)
-class Confusions(Mapping[str, ConfusionResult]):
+@dataclass(frozen=True, eq=False, repr=False)
+class Confusions(Displayed, Mapping[str, ConfusionResult]):
     """Each condition's :class:`ConfusionResult`, in the analysis' order of conditions."""
 
     by_condition: dict[str, ConfusionResult]
@@ -166,6 +174,12 @@ class Confusions(Mapping[str, ConfusionResult]):
 
     def __len__(self) -> int:
         return len(self.by_condition)
+
+    def _display(self) -> Display:
+        rows = tuple((c, r._display().rows[0][1]) for c, r in self.by_condition.items())
+        return Display(f"Confusions of {len(self)} conditions (information transfer)", rows,
+                       tuple(r.note for r in self.by_condition.values() if r.note),
+                       ".to_frame(), [condition]")
 
     def to_frame(self) -> pd.DataFrame:
         """Information transfer: one row per condition (:data:`TRANSFER_COLUMNS`; ``ci_low``,

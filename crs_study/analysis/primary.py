@@ -36,6 +36,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from crs_study._display import Display
 from crs_study.analysis import glmm
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
@@ -146,6 +147,16 @@ class PrimaryResult:
         model = ("no mixed model" if self.fits is None else
                  f"correct ~ condition + {self.fits.full.random_formula}")
         return f"<PrimaryResult {model}; {'; '.join(parts) or 'no comparison'}; .summary()>"
+
+    def _repr_html_(self) -> str:
+        """The comparisons as a small table in a notebook (:mod:`crs_study._display`)."""
+        model = ("no mixed model" if self.fits is None else
+                 f"correct ~ condition + {self.fits.full.random_formula}")
+        return Display("PrimaryResult", (("model", model), *(
+            (f"{c.condition} vs {c.reference}", f"{c.method}: " + (
+                "n/a" if c.estimate is None else f"{c.estimate:.3g}")
+             + f", p = {format_pvalue(c.p_value)}") for c in self.comparisons)),
+            self.warnings, ".summary(), .to_frame()").html()
 
     def to_frame(self) -> pd.DataFrame:
         """One row per comparison (the fields of :class:`Comparison`)."""

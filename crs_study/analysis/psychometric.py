@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, special, stats
 
+from crs_study._display import Display, Displayed
 from crs_study.analysis.accuracy import wilson_interval
 from crs_study.analysis.jsonable import json_text
 from crs_study.analysis.plan import known_level_columns
@@ -55,6 +56,27 @@ class PsychometricFit:
     data: pd.DataFrame
     n_bootstrap: int = 0
     note: str = ""
+    lapse_max: float = float("nan")
+
+    def degenerate(self) -> tuple[str, ...]:
+        """Why the fit cannot be read at face value (empty when it can): the lapse rate at
+        its upper bound ``lapse_max`` (the data ask for more errors at the easiest levels
+        than it allows, so slope and threshold are biased: Wichmann & Hill 2001, "The
+        psychometric function I", Percept Psychophys 63:1293), or a slope so steep that the
+        function rises from 25 % to 75 % of its range between two adjacent levels tested
+        (the data then only bound the slope from below: any steeper fits as well)."""
+        flags = []
+        if self.lapse_max > 0 and self.lapse >= self.lapse_max * (1.0 - LAPSE_BOUND_TOLERANCE):
+            flags.append(f"lapse rate {self.lapse:.3g} at its bound {self.lapse_max:g}")
+        levels = np.unique(self.data["level"].to_numpy(float))
+        if len(levels) > 1 and self.beta != 0:
+            with np.errstate(all="ignore"):
+                rise = abs(threshold_level(self.function, self.alpha, self.beta, 0.75)
+                           - threshold_level(self.function, self.alpha, self.beta, 0.25))
+            if rise < np.min(np.diff(levels)):
+                flags.append(f"slope {self.beta:.3g} not identified (the whole rise lies "
+                             "between two levels tested)")
+        return tuple(flags)
 
     def predict(self, levels: np.ndarray) -> np.ndarray:
         return psi(np.asarray(levels, float), self.function, self.alpha, self.beta,
@@ -72,13 +94,29 @@ class PsychometricFit:
                 "n_correct": self.data["n_correct"].tolist()}
 
 
-@dataclass(frozen=True)
-class PsychometricResult:
+@dataclass(frozen=True, repr=False)
+class PsychometricResult(Displayed):
     level_column: str | None
     fits: dict[str, PsychometricFit]
     skipped: bool
     note: str = ""
     warnings: tuple[str, ...] = field(default=())
+
+    def _display(self) -> Display:
+        if self.skipped:
+            return Display("PsychometricResult (skipped)", (("why", self.note),), self.warnings)
+        rows = []
+        for condition, fit in self.fits.items():
+            ci = "" if fit.threshold_ci95 is None else \
+                f" [{fit.threshold_ci95[0]:.3g}, {fit.threshold_ci95[1]:.3g}]"
+            text = (f"threshold {fit.threshold:.3g}{ci}" if np.isfinite(fit.threshold)
+                    else "no threshold (flat)")
+            flags = fit.degenerate()
+            rows.append((condition, text + (f"; DEGENERATE: {'; '.join(flags)}" if flags
+                                            else "")))
+        return Display(f"PsychometricResult ({self.fits[next(iter(self.fits))].function} "
+                       f"of {self.level_column})", tuple(rows), self.warnings,
+                       ".to_frame(), .fits")
 
     def to_frame(self) -> pd.DataFrame:
         """One row per condition's fit (the fields of :class:`PsychometricFit`)."""
@@ -265,7 +303,7 @@ def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: flo
                     "none is reported")
             warnings.append(f"psychometric function of {condition!r}: {note}")
             fits[condition] = PsychometricFit(condition, function, a, b, lam, guess, np.nan,
-                                              None, ll, table, 0, note)
+                                              None, ll, table, 0, note, lapse_max)
             continue
         if n_bootstrap:
             rng = np.random.default_rng([seed, 8, index])
@@ -282,7 +320,7 @@ def analyse_psychometric(trials: pd.DataFrame, conditions: list[str], guess: flo
         if not levels.min() <= point <= levels.max():
             note = (note + "; " if note else "") + "the threshold lies outside the levels tested"
         fits[condition] = PsychometricFit(condition, function, a, b, lam, guess, point, ci, ll,
-                                          table, n_bootstrap, note)
+                                          table, n_bootstrap, note, lapse_max)
     if not fits:
         return PsychometricResult(column, {}, True, f"{column!r} varies but no condition has "
                                   "3 or more levels: psychometric functions skipped",

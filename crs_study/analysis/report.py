@@ -24,7 +24,8 @@ a dataset of another stimulus set: the keys name the symbol as its trials do),
 ``information_transfer`` (per condition ``bits, ci95, ...``), ``speed_accuracy``,
 ``psychometric``, ``exclusions``, ``chance``, ``alpha``, ``plan``, ``datasets``,
 ``sessions``, ``software``, ``generated_at`` and, once written, ``charts``. Each section is
-its result object's ``to_dict()``.
+its result object's ``to_dict()`` (:mod:`crs_study.analysis.results_json`); the report is
+written from the same objects.
 """
 
 from __future__ import annotations
@@ -32,16 +33,17 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
-from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import pandas as pd
 from matplotlib.axes import Axes
 
 from crs_study import __version__
+from crs_study._display import Display, Displayed
 from crs_study._files import os_errors, sha256_file, write_atomically
-from crs_study.analysis import charts
+from crs_study.analysis import charts, results_json
 from crs_study.analysis.accuracy import AccuracyResult, analyse_accuracy, chance_level
 from crs_study.analysis.confusion import Confusions, analyse_confusions
 from crs_study.analysis.headline import headline
@@ -58,7 +60,6 @@ from crs_study.analysis.reproduce import (
     read_results,
 )
 from crs_study.analysis.secondary import SecondaryResult, secondary_tests
-from crs_study.analysis.sources import summarise_sources
 from crs_study.analysis.speed_accuracy import SpeedAccuracyResult, analyse_speed_accuracy
 from crs_study.analysis.study_data import DatasetPaths, StudyData, load_dataset
 from crs_study.analysis.thresholds import ThresholdResult, analyse_thresholds
@@ -66,7 +67,6 @@ from crs_study.dataset.bids import DERIVATIVES, derivatives_dir
 from crs_study.dataset.lock_file import PlanLock
 from crs_study.dataset.outputs import OutputsRecord, participants_by_dataset
 from crs_study.errors import AnalysisError, DatasetError
-from crs_study.paths import recorded_path
 
 #: The charts :meth:`Analysis.plot` draws by name (``confusion``: one per condition, through
 #: :func:`crs_study.analysis.charts.plot_confusion` and ``Analysis.confusions[condition]``).
@@ -84,8 +84,8 @@ class ReportFiles:
     charts: tuple[Path, ...]
 
 
-@dataclass(frozen=True, eq=False)
-class Analysis:
+@dataclass(frozen=True, eq=False, repr=False)
+class Analysis(Displayed):
     """Every analysis of the plan on stored datasets (:func:`analyze`).
 
     Attributes
@@ -116,6 +116,10 @@ class Analysis:
         comparison (else ``skipped``).
     plan_lock : LockCheck or None
         The plan analysed against its lock (:mod:`crs_study.analysis.plan_lock`).
+    generated_at : str
+        When the analysis ran (UTC, ISO 8601), as ``results.json`` records it.
+    plan_sha256 : str or None
+        The sha256 of the plan's file when the analysis read it (None: a plan object).
     """
 
     data: StudyData
@@ -127,14 +131,52 @@ class Analysis:
     psychometric: PsychometricResult
     headline: str
     warnings: tuple[str, ...]
-    content: dict = field(repr=False)  # results.json's, but ``charts``: see to_dict()
     files: ReportFiles | None = None
     thresholds: ThresholdResult | None = None
     plan_lock: LockCheck | None = None
+    generated_at: str = ""
+    plan_sha256: str | None = None
 
     @property
     def plan(self) -> AnalysisPlan:
         return self.data.plan
+
+    @property
+    def reference(self) -> str:
+        """The reference condition (every comparison is against it)."""
+        return self.accuracy.conditions[0]
+
+    @property
+    def n_participants(self) -> int:
+        """Participants with a trial analysed."""
+        return int(self.data.trials["participant_id"].nunique())
+
+    def warning_groups(self) -> dict[str, tuple[str, ...]]:
+        """The warnings by what they concern (each group's in the order found), in the order
+        a reader checks them: the data, the design (conditions, participants, separation),
+        then each analysis; the group of a warning is the result object that raised it."""
+        thresholds = self.thresholds.warnings if self.thresholds is not None else ()
+        sources = {"data": self.data.warnings, "accuracy": self.accuracy.warnings,
+                   "primary test": self.primary.warnings,
+                   "secondary tests": self.secondary.warnings,
+                   "speed and accuracy": self.speed_accuracy.warnings,
+                   "psychometric functions": self.psychometric.warnings,
+                   "adaptive thresholds": thresholds}
+        groups: dict[str, list[str]] = {}
+        for warning in self.warnings:
+            group = next((name for name, raised in sources.items() if warning in raised),
+                         "design and other")
+            groups.setdefault(group, []).append(warning)
+        order = ["data", "design and other", *list(sources)[1:]]
+        return {name: tuple(groups[name]) for name in order if name in groups}
+
+    def _display(self) -> Display:
+        accuracy = self.accuracy._display().rows[:-1]
+        return Display(f"Analysis of {self.n_participants} participants ({self.plan.name})",
+                       (("headline", self.headline), *accuracy,
+                        ("report", "written: " + str(self.files.report) if self.files
+                         else "not written (.write())")),
+                       self.warnings, f".to_frame(), .plot(name): {', '.join(self.plots())}")
 
     @property
     def results(self) -> dict:
@@ -149,13 +191,13 @@ class Analysis:
                  "ci_low": (c["ci95"] or [None, None])[0],
                  "ci_high": (c["ci95"] or [None, None])[1],
                  "p_value": c["p_value"], "primary": c["primary"]}
-                for c in self.content["comparisons"]]
+                for c in to_jsonable(results_json.comparisons(self))[0]]
         return pd.DataFrame(rows, columns=["condition", "reference", "method", "estimate",
                                            "ci_low", "ci_high", "p_value", "primary"])
 
     def to_dict(self) -> dict:
         """``results.json``'s content (plain JSON values; see the module docstring)."""
-        results = json.loads(json.dumps(self.content))
+        results = to_jsonable(results_json.content(self))[0]
         if self.files is not None:
             results["charts"] = [p.relative_to(self.files.folder).as_posix()
                                  for p in self.files.charts]
@@ -174,20 +216,34 @@ class Analysis:
             earlier = read_results(earlier)
         return compare_results(earlier, self.to_dict(), rtol)
 
+    @property
+    def colours(self) -> dict[str, str]:
+        """Each condition's colour in every chart: by its place in the plan's order."""
+        present = self.accuracy.conditions
+        return charts.condition_colours(
+            [c for c in self.plan.conditions if c in present] + list(present))
+
+    def plots(self) -> tuple[str, ...]:
+        """The charts this analysis has (:meth:`plot`): a psychometric chart needs fitted
+        functions, the tracks and thresholds an adaptive study."""
+        adaptive = self.thresholds is not None and not self.thresholds.skipped
+        return tuple(name for name in PLOTS
+                     if (name != "psychometric" or self.psychometric.fits)
+                     and (name not in ("tracks", "thresholds") or adaptive))
+
     def plot(self, chart: str = "accuracy", ax: Axes | None = None) -> Axes:
-        """One of the report's charts (:data:`PLOTS`) on ``ax`` (a new figure without);
-        returns the Axes (:mod:`crs_study.analysis.charts`)."""
-        draw = {"accuracy": lambda: charts.plot_accuracy(self.accuracy, ax),
-                "speed_accuracy": lambda: charts.plot_speed_accuracy(self.speed_accuracy, ax),
-                "caf": lambda: charts.plot_caf(self.speed_accuracy, ax),
-                "psychometric": lambda: charts.plot_psychometric(self.psychometric, ax),
-                "tracks": lambda: charts.plot_tracks(self.thresholds, ax),
-                "thresholds": lambda: charts.plot_thresholds(self.thresholds, ax)}
-        if chart not in draw:
-            raise AnalysisError(f"no chart {chart!r}; expected one of {', '.join(PLOTS)} "
-                                "(a confusion matrix: charts.plot_confusion("
-                                "analysis.confusions[condition]))")
-        return draw[chart]()
+        """One of the report's charts (:meth:`plots` names those this analysis has) on
+        ``ax`` (a new figure without, which a notebook shows as a picture); returns the Axes
+        (:mod:`crs_study.analysis.charts`)."""
+        available = self.plots()
+        if chart not in available:
+            why = "" if chart not in PLOTS else " (not in this analysis: " + (
+                "no stimulus level varies" if chart == "psychometric" else
+                "no session is adaptive") + ")"
+            raise AnalysisError(f"no chart {chart!r}{why}; this analysis has "
+                                f"{', '.join(available)} (a confusion matrix: "
+                                "charts.plot_confusion(analysis.confusions[condition]))")
+        return _draw(self, chart, ax)
 
     def write(self, out: str | os.PathLike[str] | None = None) -> ReportFiles:
         """Write ``results.json``, the report and the plan's charts into ``out`` (default:
@@ -207,7 +263,7 @@ class Analysis:
                                 tuple(chart_files))
             written = replace(self, files=files)
             write_atomically(files.results, written.to_json())
-            report = write_report(folder, written.to_dict(), written, chart_files)
+            report = write_report(folder, written, chart_files)
             _derivative_description(folder, list(self.data.datasets))
         record.done([files.results, report, *chart_files])
         return replace(files, report=report)
@@ -235,7 +291,8 @@ def analyze(datasets: StudyData | DatasetPaths,
             out: str | os.PathLike[str] | None = None, *, write: bool = True,
             strict: bool = False, include_simulated: bool = False,
             responders: Sequence[str] | None = None, map_tasks=None,
-            lock: str | os.PathLike[str] | PlanLock | None = None) -> Analysis:
+            lock: str | os.PathLike[str] | PlanLock | None = None,
+            progress: Callable[[str], None] | None = None) -> Analysis:
     """Analyse stored datasets as the analysis plan says; write the report when ``write``.
 
     Parameters
@@ -254,6 +311,7 @@ def analyze(datasets: StudyData | DatasetPaths,
         parametric bootstrap (a process pool's or a Dask cluster's map; default: here).
     lock : a plan lock file (or :class:`~crs_study.protocol.lock.PlanLock`) to check the plan
         against (default: the latest lock the sessions recorded; :mod:`.plan_lock`).
+    progress : ``progress(step)`` as each step begins (``crs-study analyze`` shows them).
 
     Returns
     -------
@@ -261,13 +319,16 @@ def analyze(datasets: StudyData | DatasetPaths,
     """
     if lock is not None and not isinstance(lock, PlanLock):
         lock = PlanLock.read(lock)
+    step = progress or (lambda _: None)
+    step("loading the datasets")
     if isinstance(datasets, StudyData):
         data = datasets if plan is None else datasets.with_plan(plan)
     else:
         data = load_dataset(datasets, plan, strict=strict, include_simulated=include_simulated,
                             responders=responders)
-    analysis = run_analyses(data, map_tasks, lock)
+    analysis = run_analyses(data, map_tasks, step, lock)
     if write:
+        step("writing the report and charts")
         analysis = replace(analysis, files=analysis.write(out))
     return analysis
 
@@ -304,10 +365,18 @@ def order_conditions(trials: pd.DataFrame, plan: AnalysisPlan) -> tuple[list[str
     return [reference, *ordered], reference, notes
 
 
-def run_analyses(data: StudyData, map_tasks=None, lock: PlanLock | None = None) -> Analysis:
+#: The steps of :func:`run_analyses`, as ``progress`` names them.
+STEPS = ("accuracy", "primary test", "secondary tests", "confusions", "speed and accuracy",
+         "psychometric functions", "adaptive thresholds")
+
+
+def run_analyses(data: StudyData, map_tasks=None,
+                 progress: Callable[[str], None] | None = None,
+                 lock: PlanLock | None = None) -> Analysis:
     """Every analysis of the data's plan on its trials, as an :class:`Analysis` (unwritten);
-    ``map_tasks`` runs the bootstrap's units of work, ``lock`` is the plan lock to check
-    against (:func:`analyze`)."""
+    ``map_tasks`` runs the bootstrap's units of work, ``progress(step)`` is told of each of
+    :data:`STEPS` as it begins, ``lock`` is the plan lock to check against (:func:`analyze`)."""
+    step = progress or (lambda _: None)
     trials, plan = data.trials, data.plan
     plan_lock = check_plan_lock(plan, data.sessions, lock)
     warnings: list[str] = [f"the analysis deviates from the locked plan: {d}"
@@ -321,6 +390,7 @@ def run_analyses(data: StudyData, map_tasks=None, lock: PlanLock | None = None) 
         warnings.append("a single participant: no random effect of participant is estimable "
                         "and no participant-level test is possible; trials are treated as "
                         "independent, so the result describes this participant only")
+    step("accuracy")
     accuracy = analyse_accuracy(trials, tuple(conditions), chance, alpha)
     warnings += accuracy.warnings
     for _, row in accuracy.by_condition.iterrows():
@@ -328,122 +398,73 @@ def run_analyses(data: StudyData, map_tasks=None, lock: PlanLock | None = None) 
             warnings.append(f"condition {row['condition']!r} is at {100 * row['accuracy']:.0f} "
                             f"% correct ({row['n_correct']}/{row['n_trials']}): its odds are "
                             "infinite (separation); see the GLMM note on what was done")
+    step("primary test")
     primary = primary_test(trials, conditions, reference, plan.primary.random_effects,
                            plan.primary.method, plan.primary.n_quadrature, alpha,
                            **plan.primary.test_options(), seed=plan.seed,
                            map_tasks=map_tasks)
     warnings += primary.warnings
+    step("secondary tests")
     secondary = secondary_tests(trials, accuracy.by_participant, conditions, reference,
                                 plan.secondary.tests, plan.secondary.correction, alpha)
     warnings += secondary.warnings
+    step("confusions")
     confusions, notes = analyse_confusions(
         trials, conditions, plan.confusion.bias_correction, plan.confusion.bootstrap,
         plan.confusion.bootstrap_unit, plan.seed, alpha)
     warnings += notes
+    step("speed and accuracy")
     speed = analyse_speed_accuracy(trials, conditions, plan.exclusions.rt_column,
                                    plan.speed_accuracy.caf_bins, alpha)
     warnings += speed.warnings
+    step("psychometric functions")
     psych_plan = plan.psychometric
     psychometric = analyse_psychometric(
         trials, conditions, chance, psych_plan.level_column, psych_plan.function,
         psych_plan.lapse_max, psych_plan.threshold, psych_plan.bootstrap, plan.seed, alpha)
     warnings += psychometric.warnings
+    step("adaptive thresholds")
     thresholds = analyse_thresholds(data.all_trials, trials, data.sessions, conditions,
                                     reference, chance, psych_plan.lapse_max,
                                     psych_plan.bootstrap, plan.seed, alpha)
     warnings += thresholds.warnings
-    tables = accuracy.to_dict()
-    primary_part, secondary_part = primary.to_dict(), secondary.to_dict()
-    # named as the trials name the symbol: accuracy_by_digit and per_digit for digit data
-    by_symbol = f"accuracy_by_{accuracy.by_symbol.columns[0]}"
-    per_symbol = f"per_{secondary.symbol_column}"
-    results = {
-        "alpha": alpha, "chance": chance, "reference": reference,
-        "n_participants": int(n_participants),
-        "n_trials_total": int(len(data.all_trials)), "n_trials_analysed": int(len(trials)),
-        "exclusions": data.exclusion_counts,
-        "conditions": tables["conditions"],
-        "accuracy_by_participant": tables["accuracy_by_participant"],
-        by_symbol: tables[by_symbol],
-        "comparisons": primary_part["comparisons"] + secondary_part["comparisons"],
-        "primary": {"omnibus": primary_part["omnibus"], "model": primary_part["model"]},
-        per_symbol: secondary_part[per_symbol],
-        "information_transfer": Confusions(confusions).to_dict(),
-        "speed_accuracy": speed.to_dict(),
-        "psychometric": psychometric.to_dict(),
-        "warnings": warnings,
-    }
-    if not thresholds.skipped:  # (results.json of fixed-level studies is as it was)
-        results = {**{k: v for k, v in results.items() if k != "warnings"},
-                   "thresholds": thresholds.to_dict(), "warnings": warnings}
-        if thresholds.comparisons:
-            # the procedure steers accuracy towards its target: the thresholds answer the
-            # study's question, the accuracy GLMM is secondary
-            for comparison in results["comparisons"]:
-                if comparison["primary"]:
-                    comparison["primary"] = False
-                    comparison["secondary_because"] = (
-                        "an adaptive procedure steers accuracy towards its target rate: "
-                        "the threshold comparison is the primary result")
-    results["headline"] = headline(results)
-    kinds = sorted(set(data.sources["kind"]))
-    results["sources"] = {"kind": kinds[0] if len(kinds) == 1 else "mixed",
-                          "sessions": summarise_sources(data.sources),
-                          "notes": list(data.source_notes)}
-    # each sentence once, in order
-    results["warnings"] = list(dict.fromkeys(list(data.warnings) + results["warnings"]))
+    warnings = list(dict.fromkeys(list(data.warnings) + warnings))  # each sentence once
     plan_file = data.plan_path
-    results["plan"] = {"name": plan.name,
-                       "path": None if plan_file is None else recorded_path(plan_file),
-                       "sha256": None if plan_file is None else sha256_file(plan_file),
-                       "lock": plan_lock.to_dict()}
-    results["datasets"] = [{"path": str(d.resolve()), "name": name} for d, name in
-                           zip(data.datasets, pd.unique(data.all_trials["dataset"]),
-                               strict=False)]
-    results["sessions"] = _sessions(data.sessions)
-    results["software"] = {"name": "crs-study", "version": __version__}
-    results["generated_at"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-    results, non_finite = to_jsonable(results)
+    analysis = Analysis(data, accuracy, primary, secondary, Confusions(confusions), speed,
+                        psychometric, "", tuple(warnings), thresholds=thresholds,
+                        generated_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                        plan_sha256=None if plan_file is None else sha256_file(plan_file),
+                        plan_lock=plan_lock)
+    content = results_json.content(analysis)
+    line = headline(content)  # from the file's sections, so a reader can rebuild it
+    non_finite = to_jsonable(content)[1]
     if non_finite:
-        results["warnings"].append(f"results.json: non-finite values written as null at "
-                                   f"{', '.join(non_finite[:5])}")
-    return Analysis(data, accuracy, primary, secondary, Confusions(confusions), speed,
-                    psychometric, results["headline"], tuple(results["warnings"]), results,
-                    thresholds=thresholds, plan_lock=plan_lock)
+        warnings.append(f"results.json: non-finite values written as null at "
+                        f"{', '.join(non_finite[:5])}")
+    return replace(analysis, headline=line, warnings=tuple(warnings))
+
+
+def _draw(analysis: Analysis, chart: str, ax: Axes | None = None) -> Axes:
+    """Chart ``chart`` of :data:`PLOTS`, in the analysis's condition colours."""
+    result = {"accuracy": analysis.accuracy, "speed_accuracy": analysis.speed_accuracy,
+              "caf": analysis.speed_accuracy, "psychometric": analysis.psychometric,
+              "tracks": analysis.thresholds, "thresholds": analysis.thresholds}[chart]
+    return getattr(charts, f"plot_{chart}")(result, ax, colours=analysis.colours)
 
 
 def draw_charts(analysis: Analysis, folder: Path) -> list[Path]:
-    """PNG charts named by the plan's ``report.charts``; returns the files written."""
-    wanted = analysis.plan.report.charts
+    """PNG charts named by the plan's ``report.charts`` that the analysis has; returns the
+    files written."""
+    wanted, available = analysis.plan.report.charts, analysis.plots()
     files = []
-    if "accuracy" in wanted:
-        files.append(charts.save(charts.plot_accuracy(analysis.accuracy),
-                                 folder / "accuracy.png"))
-    if "confusion" in wanted:
-        for i, result in enumerate(analysis.confusions.values()):
-            files.append(charts.save(charts.plot_confusion(result),
-                                     folder / f"confusion_{i}_{_slug(result.condition)}.png"))
-    if "speed_accuracy" in wanted:
-        files.append(charts.save(charts.plot_speed_accuracy(analysis.speed_accuracy),
-                                 folder / "speed_accuracy.png"))
-    if "caf" in wanted:
-        files.append(charts.save(charts.plot_caf(analysis.speed_accuracy), folder / "caf.png"))
-    if "psychometric" in wanted and analysis.psychometric.fits:
-        files.append(charts.save(charts.plot_psychometric(analysis.psychometric),
-                                 folder / "psychometric.png"))
-    adaptive = analysis.thresholds is not None and not analysis.thresholds.skipped
-    for name in ("tracks", "thresholds"):
-        if name in wanted and adaptive:
-            draw = charts.plot_tracks if name == "tracks" else charts.plot_thresholds
-            files.append(charts.save(draw(analysis.thresholds), folder / f"{name}.png"))
+    for name in PLOTS:
+        if name in wanted and name in available:
+            files.append(charts.save(_draw(analysis, name), folder / f"{name}.png"))
+        if name == "accuracy" and "confusion" in wanted:
+            for i, result in enumerate(analysis.confusions.values()):
+                files.append(charts.save(charts.plot_confusion(result), folder /
+                                         f"confusion_{i}_{_slug(result.condition)}.png"))
     return files
-
-
-def _sessions(sessions: pd.DataFrame) -> list[dict]:
-    columns = ["dataset", "participant", "session", "n_rows", "Status", "Responder",
-               "DeviceURL", "Seed", "SoftwareVersion", "TrialsSha256"]
-    sessions = sessions.reindex(columns=columns)
-    return sessions.astype(object).where(sessions.notna(), None).to_dict("records")
 
 
 def _out_dir(datasets: list[Path], out_dir: str | os.PathLike[str] | None) -> Path:

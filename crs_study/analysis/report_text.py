@@ -4,42 +4,90 @@ from __future__ import annotations
 
 import html
 import os
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pandas as pd
 
+from crs_study import __version__
+from crs_study.analysis.sources import summarise_sources
+from crs_study.paths import recorded_path
+
 if TYPE_CHECKING:  # the report's own module imports this one
     from crs_study.analysis.report import Analysis
 
-REFERENCES = (
-    "Wilson EB (1927) Probable inference, the law of succession, and statistical inference. "
-    "JASA 22:209. Brown LD, Cai TT, DasGupta A (2001) Interval estimation for a binomial "
-    "proportion. Statist Sci 16:101.",
-    "Bates D, Maechler M, Bolker B, Walker S (2015) Fitting linear mixed-effects models "
-    "using lme4. J Stat Softw 67(1).",
-    "Barr DJ, Levy R, Scheepers C, Tily HJ (2013) Random effects structure for confirmatory "
-    "hypothesis testing: keep it maximal. J Mem Lang 68:255. Matuschek H, Kliegl R, Vasishth "
-    "S, Baayen H, Bates D (2017) Balancing Type I error and power in linear mixed models. "
-    "J Mem Lang 94:305.",
-    "Fagerland MW, Lydersen S, Laake P (2013) The McNemar test for binary matched-pairs data: "
-    "mid-p and asymptotic are better than exact conditional. BMC Med Res Methodol 13:91.",
-    "Holm S (1979) A simple sequentially rejective multiple test procedure. Scand J Stat 6:65.",
-    "Lakens D (2013) Calculating and reporting effect sizes. Front Psychol 4:863. Kerby DS "
-    "(2014) The simple difference formula. Compr Psychol 3:11.",
-    "Miller GA, Nicely PE (1955) An analysis of perceptual confusions among some English "
-    "consonants. JASA 27:338. Miller GA (1955) Note on the bias of information estimates. "
-    "Panzeri S, Treves A (1996) Analytical estimates of limited sampling biases in different "
-    "information measures. Network 7:87.",
-    "Woltz DJ, Was CA (2006) Availability of related long-term memory during and after "
-    "attention focus in working memory. Mem Cognit 34:668. Liesefeld HR, Janczyk M (2019) "
-    "Combining speed and accuracy to control for speed-accuracy trade-offs(?). Behav Res "
-    "Methods 51:40.",
-    "Wichmann FA, Hill NJ (2001) The psychometric function I. Percept Psychophys 63:1293.",
-    "Watson AB (2017) QUEST+: a general multidimensional Bayesian adaptive psychometric "
-    "method. J Vis 17(3):10.",
-    "Levitt H (1971) Transformed up-down methods in psychoacoustics. J Acoust Soc Am 49:467.",
-)
+#: The methods' references, by what uses them; the report cites those of the methods that
+#: ran (:func:`references`).
+REFERENCES = {
+    "wilson": "Wilson EB (1927) Probable inference, the law of succession, and statistical "
+              "inference. JASA 22:209. Brown LD, Cai TT, DasGupta A (2001) Interval estimation "
+              "for a binomial proportion. Statist Sci 16:101.",
+    "lme4": "Bates D, Maechler M, Bolker B, Walker S (2015) Fitting linear mixed-effects "
+            "models using lme4. J Stat Softw 67(1).",
+    "random_structure": "Barr DJ, Levy R, Scheepers C, Tily HJ (2013) Random effects "
+                        "structure for confirmatory hypothesis testing: keep it maximal. J Mem "
+                        "Lang 68:255. Matuschek H, Kliegl R, Vasishth S, Baayen H, Bates D "
+                        "(2017) Balancing Type I error and power in linear mixed models. J Mem "
+                        "Lang 94:305.",
+    "bootstrap": "Halekoh U, Hojsgaard S (2014) A Kenward-Roger approximation and parametric "
+                 "bootstrap methods for tests in linear mixed models: the R package pbkrtest. "
+                 "J Stat Softw 59(9). Besag J, Clifford P (1991) Sequential Monte Carlo "
+                 "p-values. Biometrika 78:301.",
+    "fisher": "Fisher RA (1922) On the interpretation of chi-square from contingency tables, "
+              "and the calculation of P. J R Stat Soc 85:87.",
+    "mcnemar": "Fagerland MW, Lydersen S, Laake P (2013) The McNemar test for binary "
+               "matched-pairs data: mid-p and asymptotic are better than exact conditional. "
+               "BMC Med Res Methodol 13:91.",
+    "holm": "Holm S (1979) A simple sequentially rejective multiple test procedure. Scand J "
+            "Stat 6:65.",
+    "effect_sizes": "Lakens D (2013) Calculating and reporting effect sizes. Front Psychol "
+                    "4:863. Kerby DS (2014) The simple difference formula. Compr Psychol 3:11.",
+    "information": "Miller GA, Nicely PE (1955) An analysis of perceptual confusions among "
+                   "some English consonants. JASA 27:338. Miller GA (1955) Note on the bias of "
+                   "information estimates. Panzeri S, Treves A (1996) Analytical estimates of "
+                   "limited sampling biases in different information measures. Network 7:87.",
+    "speed_accuracy": "Woltz DJ, Was CA (2006) Availability of related long-term memory "
+                      "during and after attention focus in working memory. Mem Cognit 34:668. "
+                      "Liesefeld HR, Janczyk M (2019) Combining speed and accuracy to control "
+                      "for speed-accuracy trade-offs(?). Behav Res Methods 51:40.",
+    "psychometric": "Wichmann FA, Hill NJ (2001) The psychometric function I. Percept "
+                    "Psychophys 63:1293.",
+    "quest_plus": "Watson AB (2017) QUEST+: a general multidimensional Bayesian adaptive "
+                  "psychometric method. J Vis 17(3):10.",
+    "staircase": "Levitt H (1971) Transformed up-down methods in psychoacoustics. J Acoust "
+                 "Soc Am 49:467.",
+}
+
+
+def references(analysis: Analysis) -> list[str]:
+    """The references of the methods this analysis used, in :data:`REFERENCES` order."""
+    comparisons = analysis.primary.comparisons
+    used = {"wilson", "information"}
+    if any(c.test == "glmm" for c in comparisons):
+        used.add("lme4")
+        if analysis.primary.fits is not None:
+            used.add("random_structure")
+    if any(c.p_method == "bootstrap" for c in comparisons):
+        used.add("bootstrap")
+    if any(c.test == "fisher" for c in comparisons):
+        used.add("fisher")
+    methods = " ".join(t.method.lower() for t in analysis.secondary.tests)
+    if "mcnemar" in methods or analysis.secondary.per_symbol:
+        used.add("mcnemar")
+    if analysis.secondary.per_symbol and analysis.plan.secondary.correction == "holm":
+        used.add("holm")
+    if any(t.effect_size is not None for t in analysis.secondary.tests):
+        used.add("effect_sizes")
+    if not analysis.speed_accuracy.efficiency_summary.empty:
+        used.add("speed_accuracy")
+    thresholds = analysis.thresholds
+    adaptive = thresholds is not None and not thresholds.skipped
+    if analysis.psychometric.fits or adaptive:
+        used.add("psychometric")
+    if adaptive and thresholds.design is not None:
+        used.add("quest_plus" if "quest" in thresholds.design.procedure else "staircase")
+    return [text for key, text in REFERENCES.items() if key in used]
 
 
 def _fmt(value) -> str:
@@ -58,10 +106,11 @@ def _fmt(value) -> str:
     return str(value)
 
 
-def _plan_text(plan: dict) -> str:
-    if plan["path"] is None:
-        return f"Plan `{plan['name']}` (given in Python, not read from a file). "
-    return f"Plan `{plan['path']}` (sha256 {plan['sha256'][:12]}...). "
+def _plan_text(analysis: Analysis) -> str:
+    path = analysis.data.plan_path
+    if path is None:
+        return f"Plan `{analysis.plan.name}` (given in Python, not read from a file). "
+    return f"Plan `{recorded_path(path)}` (sha256 {analysis.plan_sha256[:12]}...). "
 
 
 def _table(frame: pd.DataFrame) -> list[list[str]]:
@@ -69,30 +118,32 @@ def _table(frame: pd.DataFrame) -> list[list[str]]:
                                                 for row in frame.astype(object).values.tolist()]
 
 
-def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
+def build_blocks(analysis: Analysis, charts: list[Path],
                  out: Path) -> list[tuple[str, object]]:
-    """The report as ``(kind, content)`` blocks: h1, h2, p, list, table, image, code."""
-    plan = analysis.plan
+    """The report as ``(kind, content)`` blocks: h1, h2, p, list, table, image, code; written
+    from the analysis's result objects."""
+    plan, data = analysis.plan, analysis.data
+    warnings = analysis.warnings
     images = {p.stem: os.path.relpath(p, out) for p in charts}
     blocks: list[tuple[str, object]] = [("h1", f"Analysis: {plan.name}"),
-                                        ("p", f"**{results['headline']}**")]
+                                        ("p", f"**{analysis.headline}**")]
     if analysis.plan_lock is not None:
         blocks.append(("p", analysis.plan_lock.sentence()))
-    if results["warnings"]:
-        blocks += [("h2", f"Warnings ({len(results['warnings'])})"),
-                   ("list", results["warnings"])]
+    if warnings:
+        blocks.append(("h2", f"Warnings ({len(warnings)})"))
+        for group, raised in analysis.warning_groups().items():
+            blocks += [("p", f"**{group.capitalize()}** ({len(raised)})"),
+                       ("list", list(raised))]
     blocks += [("h2", "Data"), ("p", (
-        f"{results['n_participants']} participant(s), {len(results['sessions'])} session(s); "
-        f"{results['n_trials_analysed']} of {results['n_trials_total']} trials analysed. "
-        + _plan_text(results["plan"]) +
-        f"Chance level {100 * results['chance']:.1f} %, alpha {results['alpha']:g}."))]
-    sources = results.get("sources")
-    if sources:
-        blocks += [("p", "Sessions by who answered and on what device (kind: `simulated` when "
-                         "the responder is a simulated participant or the device is `sim://`):"),
-                   ("table", _table(pd.DataFrame(sources["sessions"])))]
-        blocks += [("p", note) for note in sources["notes"]]
-    exclusions = pd.DataFrame(results["exclusions"]).T
+        f"{analysis.n_participants} participant(s), {len(data.sessions)} session(s); "
+        f"{len(data.trials)} of {len(data.all_trials)} trials analysed. "
+        + _plan_text(analysis) +
+        f"Chance level {100 * analysis.accuracy.chance:.1f} %, alpha {plan.alpha:g}."))]
+    blocks += [("p", "Sessions by who answered and on what device (kind: `simulated` when "
+                     "the responder is a simulated participant or the device is `sim://`):"),
+               ("table", _table(pd.DataFrame(summarise_sources(data.sources))))]
+    blocks += [("p", note) for note in data.source_notes]
+    exclusions = pd.DataFrame(data.exclusion_counts).T
     if not exclusions.empty:  # conditions in the plan's order, as in every other table
         order = [c for c in plan.conditions if c in exclusions.columns]
         exclusions = exclusions[order + [c for c in exclusions.columns if c not in order]]
@@ -111,23 +162,23 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
                ("table", _table(accuracy.between_participants))]
     if "accuracy" in images:
         blocks.append(("image", images["accuracy"]))
-    blocks += _primary_model_blocks(results, analysis)
+    blocks += _primary_model_blocks(analysis)
     primary = analysis.primary.to_frame()
     if not primary.empty:
         blocks.append(("table", _table(primary[["condition", "reference", "estimate", "ci95",
                                                 "ci_method", "ci95_wald", "p_value",
                                                 "p_wald", "p_lr"]])))
-    for comparison in results["comparisons"]:
-        penalised = comparison.get("penalised")
+    for comparison in analysis.primary.comparisons:
+        penalised = comparison.penalised
         if penalised:
             blocks.append(("p", (
-                f"`{comparison['condition']}` against `{comparison['reference']}`: the "
+                f"`{comparison.condition}` against `{comparison.reference}`: the "
                 "maximum-likelihood odds ratio is infinite (separation), so the table gives "
                 "its one-sided profile limit. Penalised fit, for orientation only "
                 f"({penalised['note']}; prior: {penalised['prior']}): odds ratio "
                 f"{_fmt(penalised['odds_ratio'])}, Wald interval "
                 f"{_fmt(penalised['ci95_wald'])}, Wald p {_fmt(penalised['p_wald'])}.")))
-    effects = (results["primary"]["model"] or {}).get("random_effects") or {}
+    effects = (analysis.primary.model or {}).get("random_effects") or {}
     profiled = {name: e for name, e in effects.items() if e.get("sd_ci95") is not None}
     if profiled:
         blocks.append(("p", "Random intercepts (standard deviation on the logit scale, "
@@ -137,8 +188,8 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
     if analysis.primary.fits is not None:
         blocks += [("p", "The model as lme4's `summary(glmer(...))` prints it:"),
                    ("code", analysis.primary.fits.full.summary())]
-    if results["primary"]["omnibus"]:
-        omnibus = results["primary"]["omnibus"]
+    if analysis.primary.omnibus:
+        omnibus = analysis.primary.omnibus
         blocks.append(("p", f"Omnibus likelihood-ratio test of condition: chi2({omnibus['df']})"
                             f" = {omnibus['statistic']:.3f}, p = {_fmt(omnibus['p_value'])}."))
     secondary = analysis.secondary.to_frame()
@@ -148,7 +199,7 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
             "effect_size_name", "n"]]))]
     for condition, table in analysis.secondary.per_symbol.items():
         blocks += [("p", f"Per {table.columns[0]}, `{condition}` against "
-                         f"`{results['reference']}` "
+                         f"`{analysis.reference}` "
                          f"(McNemar mid-p, {plan.secondary.correction} correction):"),
                    ("table", _table(table))]
     blocks.append(("h2", "Confusions and information transfer"))
@@ -197,25 +248,24 @@ def build_blocks(results: dict, analysis: Analysis, charts: list[Path],
         for stem in ("tracks", "thresholds"):
             if stem in images:
                 blocks.append(("image", images[stem]))
-    blocks += [("h2", "Methods and references"), ("list", list(REFERENCES)),
-               ("p", f"crs-study {results['software']['version']}, generated "
-                     f"{results['generated_at']}.")]
+    blocks += [("h2", "Methods and references"), ("list", references(analysis)),
+               ("p", f"crs-study {__version__}, generated {analysis.generated_at}.")]
     return blocks
 
 
-def _primary_model_blocks(results: dict, analysis: Analysis) -> list[tuple[str, object]]:
+def _primary_model_blocks(analysis: Analysis) -> list[tuple[str, object]]:
     """The primary test's heading: the model fitted, the one the plan asked for, and every
     step of the plan's rule that led from one to the other."""
     plan = analysis.plan
-    adaptive = results.get("thresholds") and not results["thresholds"].get("skipped", True)
+    adaptive = analysis.thresholds is not None and not analysis.thresholds.skipped
     title = "Accuracy model (secondary: the thresholds answer an adaptive study)" if \
         adaptive else "Primary test"
-    model = (results["primary"]["model"] or {})
+    model = (analysis.primary.model or {})
     structure = model.get("structure")
     fitted = model.get("random_formula", "none")
     out: list[tuple[str, object]] = [("h2", title), ("p", (
         f"Mixed-effects logistic regression `correct ~ condition + {fitted}` "
-        f"({plan.primary.method}); odds ratio against `{results['reference']}`, "
+        f"({plan.primary.method}); odds ratio against `{analysis.reference}`, "
         "likelihood-ratio test of condition with the random part as fitted."))]
     if structure:
         rule = (f"reduce ({', then '.join(structure['reduction'])})"
@@ -254,37 +304,81 @@ def render_markdown(blocks: list[tuple[str, object]]) -> str:
     return "\n".join(lines)
 
 
+#: Columns of an HTML table beyond which it is split into parts (the first column repeated in
+#: each), so that no table scrolls sideways on a page of :data:`PAGE_WIDTH`.
+HTML_TABLE_COLUMNS = 8
+PAGE_WIDTH = "60em"
+_STYLE = (f"body{{font-family:sans-serif;max-width:{PAGE_WIDTH};margin:auto;padding:0 1em}}"
+          "table{border-collapse:collapse;margin:0.5em 0}"
+          "td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%;overflow-wrap:break-word}"
+          ".headline{font-size:115%;border-left:5px solid #4477aa;background:#eef3f9;"
+          "padding:0.6em 0.9em}"
+          "code{background:#f3f3f3;padding:0 2px}pre{overflow-x:auto;font-size:85%}"
+          "img{max-width:100%}")
+
+
+def inline_html(text: str) -> str:
+    """Markdown's inline marks as HTML: `code` and **strong** (everything else escaped)."""
+    out = []
+    for k, part in enumerate(re.split(r"(`[^`]*`)", str(text))):
+        if k % 2:
+            out.append(f"<code>{html.escape(part[1:-1])}</code>")
+        else:
+            out.append(re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", html.escape(part)))
+    return "".join(out)
+
+
+def split_table(table: list[list[str]], width: int = HTML_TABLE_COLUMNS
+                ) -> list[list[list[str]]]:
+    """A table of more than ``width`` columns as parts of at most ``width``, each starting
+    with the first (key) column."""
+    header = table[0]
+    if len(header) <= width:
+        return [table]
+    rest = list(range(1, len(header)))
+    step = width - 1
+    return [[[row[0], *(row[i] for i in rest[k:k + step])] for row in table]
+            for k in range(0, len(rest), step)]
+
+
 def render_html(blocks: list[tuple[str, object]]) -> str:
+    """One HTML page: Markdown's inline marks rendered, the headline (the bold paragraph
+    after the title) set apart, wide tables split (:func:`split_table`)."""
     body: list[str] = []
     for kind, content in blocks:
         if kind in ("h1", "h2"):
-            body.append(f"<{kind}>{html.escape(str(content))}</{kind}>")
+            body.append(f"<{kind}>{inline_html(content)}</{kind}>")
         elif kind == "p":
-            text = html.escape(str(content)).replace("**", "")
-            body.append(f"<p>{text}</p>")
+            text = str(content)
+            if len(body) == 1 and text.startswith("**") and text.endswith("**"):
+                body.append(f'<p class="headline"><strong>{inline_html(text[2:-2])}'
+                            "</strong></p>")
+            else:
+                body.append(f"<p>{inline_html(text)}</p>")
         elif kind == "list":
-            body.append("<ul>" + "".join(f"<li>{html.escape(i)}</li>" for i in content)
+            body.append("<ul>" + "".join(f"<li>{inline_html(i)}</li>" for i in content)
                         + "</ul>")
         elif kind == "table":
-            header, *rows = content
-            body.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header)
-                        + "</tr>" + "".join("<tr>" + "".join(
-                            f"<td>{html.escape(c)}</td>" for c in row) + "</tr>"
-                            for row in rows) + "</table>")
+            for part in split_table(content):
+                header, *rows = part
+                body.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>"
+                                                    for h in header)
+                            + "</tr>" + "".join("<tr>" + "".join(
+                                f"<td>{html.escape(c)}</td>" for c in row) + "</tr>"
+                                for row in rows) + "</table>")
         elif kind == "image":
-            body.append(f'<p><img src="{html.escape(str(content))}" alt=""></p>')
+            body.append(f'<p><img src="{html.escape(str(content))}" '
+                        f'alt="{html.escape(Path(str(content)).stem)}"></p>')
         elif kind == "code":
             body.append(f"<pre>{html.escape(str(content))}</pre>")
-    style = ("body{font-family:sans-serif;max-width:60em;margin:auto}table{border-collapse:"
-             "collapse}td,th{border:1px solid #ccc;padding:2px 6px;font-size:90%}")
     return (f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>crs-study report"
-            f"</title><style>{style}</style></head><body>\n" + "\n".join(body)
+            f"</title><style>{_STYLE}</style></head><body>\n" + "\n".join(body)
             + "\n</body></html>\n")
 
 
-def write_report(out: Path, results: dict, analysis: Analysis, charts: list[Path]) -> Path:
+def write_report(out: Path, analysis: Analysis, charts: list[Path]) -> Path:
     """Write ``report.md`` or ``report.html`` (the plan's ``report.format``)."""
-    blocks = build_blocks(results, analysis, charts, out)
+    blocks = build_blocks(analysis, charts, out)
     if analysis.plan.report.format == "html":
         path = out / "report.html"
         path.write_text(render_html(blocks), encoding="utf-8")

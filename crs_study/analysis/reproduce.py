@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from crs_study._display import Display, Displayed
 from crs_study._files import not_a_regular_file
 from crs_study.errors import AnalysisError
 
@@ -55,8 +56,8 @@ class Difference:
         return f"{self.where}: {_short(self.earlier)} then, {_short(self.now)} now"
 
 
-@dataclass(frozen=True)
-class ResultsComparison:
+@dataclass(frozen=True, repr=False)
+class ResultsComparison(Displayed):
     """The verdict of :func:`compare_results`."""
 
     differences: tuple[Difference, ...]
@@ -69,6 +70,14 @@ class ResultsComparison:
     @property
     def same(self) -> bool:
         return not self.differences
+
+    def _display(self) -> Display:
+        rows = [("verdict", "the same numbers" if self.same else
+                 f"{len(self.differences)} of {self.compared} values differ"),
+                ("values compared", str(self.compared)), ("tolerance", f"relative {self.rtol:g}")]
+        rows += [(d.where, f"{_short(d.earlier)} then, {_short(d.now)} now")
+                 for d in self.differences[:SHOWN]]
+        return Display("ResultsComparison", tuple(rows), (), ".describe(), .to_dict()")
 
     def describe(self) -> str:
         """A sentence, then one line per difference (at most :data:`SHOWN`)."""

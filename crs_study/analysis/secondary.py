@@ -35,6 +35,7 @@ from scipy import stats
 from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.multitest import multipletests
 
+from crs_study._display import Display, Displayed
 from crs_study.analysis.accuracy import floor_p, symbol_column_of
 from crs_study.analysis.jsonable import json_text, records
 from crs_study.analysis.plan import KNOWN_LEVEL_COLUMNS, PER_SYMBOL_TESTS
@@ -272,8 +273,8 @@ def per_symbol(trials: pd.DataFrame, condition: str, reference: str, correction:
     return table, notes
 
 
-@dataclass(frozen=True)
-class SecondaryResult:
+@dataclass(frozen=True, repr=False)
+class SecondaryResult(Displayed):
     """The tests of every condition against the reference; ``per_symbol``: condition -> the
     :func:`per_symbol` table; ``symbol_column``: the trials' column of the symbol shown
     (``digit``, ``symbol``), which names the tables' first column and their key in
@@ -283,6 +284,14 @@ class SecondaryResult:
     per_symbol: dict[str, pd.DataFrame]
     warnings: tuple[str, ...] = ()
     symbol_column: str = SYMBOL_COLUMNS[0]
+
+    def _display(self) -> Display:
+        rows = tuple((f"{t.method} ({t.condition} vs {t.reference})",
+                      ("n/a" if t.estimate is None else f"{t.estimate:.3g}") + ", "
+                      + ("p n/a" if t.p_value is None else f"p = {t.p_value:.3g}"))
+                     for t in self.tests)
+        return Display(f"SecondaryResult, {len(self.tests)} tests", rows, self.warnings,
+                       ".to_frame(), .per_symbol")
 
     def to_frame(self) -> pd.DataFrame:
         """One row per test (the fields of :class:`TestResult`)."""

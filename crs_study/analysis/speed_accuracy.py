@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from crs_study._display import Display, Displayed, percent
 from crs_study.analysis.accuracy import wilson_interval
 from crs_study.analysis.jsonable import json_text, records
 
@@ -45,8 +46,8 @@ MEASURES = ("accuracy", "mean_correct_rt", "ies", "rcs", "bis")
 POSITIVE_MEASURES = ("mean_correct_rt", "ies", "rcs")
 
 
-@dataclass(frozen=True)
-class SpeedAccuracyResult:
+@dataclass(frozen=True, repr=False)
+class SpeedAccuracyResult(Displayed):
     """Tables described in the module docstring, the response-time column used, warnings."""
 
     rt_summary: pd.DataFrame
@@ -57,6 +58,19 @@ class SpeedAccuracyResult:
     rt_column: str
     alpha: float = 0.05
     warnings: tuple[str, ...] = field(default=())
+
+    def _display(self) -> Display:
+        rows = []
+        for condition in self.conditions:
+            row = self.efficiency_summary.loc[self.efficiency_summary["condition"] == condition]
+            if row.empty:
+                continue
+            rt, accuracy = row.iloc[0]["mean_correct_rt"], row.iloc[0]["accuracy"]
+            rt_text = "n/a" if rt is None or rt != rt else f"{float(rt):.3g} s"
+            rows.append((condition, f"correct {self.rt_column.replace('_', ' ')} {rt_text}, "
+                                    f"accuracy {percent(accuracy)}"))
+        return Display("SpeedAccuracyResult", tuple(rows), self.warnings,
+                       ".to_frame(), .rt_summary, .caf, .efficiency")
 
     def to_frame(self) -> pd.DataFrame:
         """The efficiency summary: one row per condition and measure."""

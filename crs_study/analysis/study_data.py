@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from crs_study._display import Display, Displayed
 from crs_study.analysis.load import LoadedData, load_datasets, with_exclusions
 from crs_study.analysis.plan import AnalysisPlan, Exclusions, default_plan_path, load_plan
 from crs_study.analysis.sources import select_sources
@@ -40,8 +41,8 @@ NO_EXCLUSIONS = Exclusions(practice=False, device_faults=False, timeouts="keep",
 DatasetPaths = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
 
 
-@dataclass(frozen=True, eq=False)
-class StudyData:
+@dataclass(frozen=True, eq=False, repr=False)
+class StudyData(Displayed):
     """The trials of one or several datasets as an analysis sees them (:func:`load_dataset`).
 
     Attributes
@@ -85,6 +86,17 @@ class StudyData:
     #: every trial of the sessions chosen as stored, before any exclusion (another plan's
     #: exclusions apply to these: :meth:`with_plan`)
     raw: LoadedData = field(repr=False)
+
+    def _display(self) -> Display:
+        trials = self.trials
+        counts = trials.groupby("condition", sort=False).size() if len(trials) else {}
+        return Display("StudyData", (
+            ("datasets", ", ".join(os.fspath(d) for d in self.datasets)),
+            ("participants", str(trials["participant_id"].nunique() if len(trials) else 0)),
+            ("sessions", str(len(self.sessions))),
+            ("trials", f"{len(trials)} analysed of {len(self.all_trials)}"),
+            ("per condition", ", ".join(f"{c} {n}" for c, n in dict(counts).items())),
+            ("plan", self.plan.name)), self.warnings, ".to_frame(), .excluded, .sessions")
 
     def to_frame(self) -> pd.DataFrame:
         """The trials analysed (a copy of :attr:`trials`)."""

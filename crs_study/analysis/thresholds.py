@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 from scipy import special, stats
 
+from crs_study._display import Display, Displayed
 from crs_study.analysis.jsonable import json_text
 from crs_study.analysis.psychometric import fit_counts, level_effect_pvalue
 
@@ -119,8 +120,8 @@ class ThresholdComparison:
                 f"{self.n_pairs} participants")
 
 
-@dataclass(frozen=True)
-class ThresholdResult:
+@dataclass(frozen=True, repr=False)
+class ThresholdResult(Displayed):
     """Per-participant thresholds (``thresholds``), the tracks they came from (``tracks``:
     participant, condition, trial within the track, level, correct, reversal) and the paired
     comparisons. ``skipped`` with a ``note`` when no session is adaptive."""
@@ -133,6 +134,19 @@ class ThresholdResult:
     comparisons: tuple[ThresholdComparison, ...] = ()
     guess: float = 0.1
     warnings: tuple[str, ...] = ()
+
+    def _display(self) -> Display:
+        if self.skipped:
+            return Display("ThresholdResult (skipped)", (("why", self.note),), self.warnings)
+        design = self.design
+        rows = [("procedure", f"{design.procedure}, {design.level_column} at "
+                              f"{100 * design.target_rate:.3g} % correct"),
+                ("thresholds", f"{len(self.thresholds)} (participant x condition)")]
+        rows += [(f"{c.condition} vs {c.reference} ({c.method})",
+                  f"ratio {c.ratio:.3g}" if c.ratio is not None else
+                  f"difference {c.mean_difference:+.3g}") for c in self.comparisons]
+        return Display("ThresholdResult", tuple(rows), self.warnings,
+                       ".to_frame(), .tracks, .comparisons")
 
     def to_frame(self) -> pd.DataFrame:
         """One row per participant and condition: ``participant_id, condition, n_trials,

@@ -49,8 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="observer noise draws per stimulus for its predicted accuracy "
                              "(default 200)")
     curve = parser.add_argument_group("the curve")
-    curve.add_argument("--participants", metavar="A:B[:STEP]", default="4:40:4",
-                       help="participant counts (a range, a number, or a comma list)")
+    curve.add_argument("--participants", metavar="A:B[:STEP]", default="auto",
+                       help="participant counts (a range, a number, or a comma list; "
+                            "default: chosen from the effect so the curve crosses --target)")
     curve.add_argument("--repetitions", metavar="A:B[:STEP]", default=None,
                        help="repetitions per symbol and condition (default: the "
                             "protocol's)")
@@ -71,7 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     output = parser.add_argument_group("output")
     output.add_argument("--out", metavar="DIR", default=None,
                         help="where power.json and power.png go (default: "
-                             "power_<protocol name> in the current folder)")
+                             "power_<protocol name> in the current folder, numbered -2, -3, "
+                             "... when an earlier run is there); a folder holding an earlier "
+                             "run's power.json is refused")
     output.add_argument("--json", action="store_true",
                         help="print power.json on stdout instead of the line; no progress")
 
@@ -130,6 +133,15 @@ def _check_writable(out: Path) -> None:
                          "nothing was computed") from None
 
 
+def fresh_folder(base: Path) -> Path:
+    """``base``, or ``base-2``, ``base-3``, ... : the first that holds no earlier run."""
+    candidate, number = base, 2
+    while candidate.exists():
+        candidate = base.with_name(f"{base.name}-{number}")
+        number += 1
+    return candidate
+
+
 def _say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
@@ -150,9 +162,12 @@ def run(args: argparse.Namespace) -> int:
     check_options(args.participants, args.repetitions, options["studies"], options["seed"],
                   options["target"], args.fidelity, options["jobs"], options["effect_scale"],
                   options["participant_sd"], options["participant_slope_sd"], options["draws"])
-    out = Path(args.out) if args.out else Path(f"power_{Path(args.protocol).stem}")
+    out = Path(args.out) if args.out else fresh_folder(Path(f"power_{Path(args.protocol).stem}"))
     if out.exists() and not out.is_dir():
         raise PowerError(f"--out: {out} is a file, not a folder")
+    if (out / "power.json").exists():
+        raise PowerError(f"--out: {out} holds an earlier run's power.json; choose another "
+                         "folder (or leave out --out for a new numbered one)")
     if args.pilot is not None and not Path(args.pilot).is_dir():
         raise PowerError(f"--pilot: {args.pilot} is not a dataset folder")
     if args.scheduler is not None:

@@ -28,11 +28,16 @@ from crs_study.power_analysis.study import PowerTask, run_null_task, run_task
 STUDIES_PER_TASK = 50
 DEFAULT_SEED = 20260116
 FIDELITIES = ("model", "full")
+#: ``participants="auto"``: the range is chosen from the effect (:func:`auto_range`).
+AUTO = "auto"
+#: Studies per N of the search for the range, and its largest N.
+SEARCH_STUDIES = 100
+SEARCH_MAX = 256
 
 
 def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float = 1.0,
           participant_sd: float | None = None, participant_slope_sd: float | None = None,
-          participants: Any = "4:40:4",
+          participants: Any = "auto",
           repetitions: Any = None, studies: int = 1000, seed: int = DEFAULT_SEED,
           target: float = 0.8, fidelity: str = "model", jobs: int = 1, scheduler: Any = None,
           plan: Any = None, model: GenerativeModel | None = None, draws: int | None = None,
@@ -54,7 +59,8 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
         (the random slope the plan's maximal model fits); default: the observer's
         calibration or the pilot's estimate, which it replaces.
     participants, repetitions : ranges (``"4:40:4"``, ``"3:10"``, a number or a list);
-        repetitions default to the protocol's.
+        repetitions default to the protocol's. ``participants="auto"`` (the default) chooses
+        the range from the effect so that the curve crosses ``target`` (:func:`auto_range`).
     studies : simulated studies per point. seed : the run's seed (the same seed gives the
         same answer on any backend and any number of workers).
     target : the power sought (the one-line answer and the chart's line).
@@ -96,6 +102,9 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
         if effect_scale != 1.0:
             raise PowerError("--effect-scale: --fidelity full runs the simulated observer's "
                              "sessions as they are; the scale applies to --fidelity model")
+        if participants == AUTO:
+            raise PowerError("--participants: --fidelity full runs real dry-runs for each N "
+                             "(slow): give the few counts to check, e.g. --participants 4:8:4")
     with open_backend(jobs, scheduler) as backend:      # an unreachable scheduler fails here
         if fidelity == "full":
 
@@ -121,6 +130,10 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
                 draws, backend, notify)
             if model is not None and effect_scale != 1.0:
                 generating = generating.scaled(effect_scale)
+            if participants == AUTO:
+                participants, note = auto_range(design, generating, seed, reps, target,
+                                                backend, notify)
+                notes.append(note)
             tasks = _tasks(design, generating, seed, participants, reps, studies)
             results = backend.map(run_task, tasks, progress, weight=lambda t: t.n_studies)
             raw = merge(results)
@@ -137,6 +150,46 @@ def power(protocol: Any, *, pilot: str | Path | None = None, effect_scale: float
                        fidelity=fidelity, backend=where,
                        seconds=time.perf_counter() - started, cpu_seconds=cpu,
                        notes=tuple(notes))
+
+
+def auto_range(design: PowerDesign, model: GenerativeModel, seed: int,
+               repetitions: tuple[int, ...], target: float, backend: Backend,
+               notify: Callable[[str], None] | None = None) -> tuple[tuple[int, ...], str]:
+    """Participant counts whose curve crosses ``target``, chosen from the effect.
+
+    A coarse search: :data:`SEARCH_STUDIES` studies at N = 2, 4, 8, ... (doubling, at most
+    :data:`SEARCH_MAX`) until the power at the protocol's first repetition count reaches
+    ``target``; the range then runs from a quarter of that N (at least 2) to twice it, in
+    about ten steps, so that the curve rises through the target inside it. With power at
+    the target already at N = 2, it is 2 to 10 (the answer is then "2 or fewer"); never
+    reached, it ends at :data:`SEARCH_MAX`. The search has its own seed (``seed + 1``): the
+    curve's studies are not the ones that chose its range. Returns the counts and a note.
+    """
+    if notify is not None:
+        notify("choosing the participant range from the effect (a coarse search) ...")
+    n, found, power_at = 2, None, 0.0
+    while n <= SEARCH_MAX:
+        tasks = _tasks(design, model, seed + 1, (n,), repetitions[:1], SEARCH_STUDIES)
+        raw = merge(backend.map(run_task, tasks, None, weight=lambda t: t.n_studies))
+        power_at = float(PowerResult(design, model, ((n, repetitions[0]),), raw)
+                         .significant().mean())
+        if power_at >= target:
+            found = n
+            break
+        n *= 2
+    if found is None:
+        low, high = max(2, SEARCH_MAX // 8), SEARCH_MAX
+    elif found == 2:
+        low, high = 2, 10
+    else:
+        low, high = max(2, found // 4), 2 * found
+    step = max(1, round((high - low) / 9))
+    counts = tuple(range(low, high + 1, step))
+    where = (f"reached {100 * target:g} % near N = {found}" if found is not None else
+             f"stayed below {100 * target:g} % up to N = {SEARCH_MAX}")
+    return counts, (f"participant range {low}:{counts[-1]}:{step} chosen from the effect: a "
+                    f"search of {SEARCH_STUDIES} studies per N {where} (--participants "
+                    "sets it)")
 
 
 def _tasks(design, model, seed, participants, repetitions, studies) -> list[PowerTask]:
@@ -165,7 +218,8 @@ def check_options(participants, repetitions, studies, seed, target, fidelity, jo
         if isinstance(value, int) and value > most:
             raise PowerError(f"{option}: expected at most {most}, got {value}")
 
-    participants = parse_range(participants, "--participants", 2)
+    participants = AUTO if participants == AUTO else parse_range(participants,
+                                                                 "--participants", 2)
     repetitions = None if repetitions is None else parse_range(repetitions, "--repetitions",
                                                                 1)
     if isinstance(studies, bool) or not isinstance(studies, int) or studies < 2:

@@ -30,6 +30,7 @@ mean_log_odds      mean estimated log odds ratio over the studies that have one
 from __future__ import annotations
 
 import json
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,8 @@ import pandas as pd
 from scipy import stats
 
 from crs_study import __version__
+from crs_study._display import Display, Displayed
+from crs_study._figure import new_axes
 from crs_study._files import os_errors, write_atomically
 from crs_study.power_analysis.design import PowerDesign, PowerError
 from crs_study.power_analysis.model import GenerativeModel
@@ -79,8 +82,8 @@ class Answer:
                 "ci_at_last": list(self.ci_at_last)}
 
 
-@dataclass(frozen=True)
-class PowerResult:
+@dataclass(frozen=True, repr=False)
+class PowerResult(Displayed):
     """A power curve (see the module docstring for :meth:`to_frame`'s columns).
 
     ``raw`` keeps the per-study arrays (point x study [x comparison]): ``p_value``,
@@ -181,6 +184,29 @@ class PowerResult:
                               (float(last["ci_low"]), float(last["ci_high"]))))
         return out
 
+    def _display(self) -> Display:
+        participants = [n for n, _ in self.points]
+        return Display(f"PowerResult of {self.design.protocol}", (
+            ("answer", self.headline()),
+            ("participants", f"{min(participants)} to {max(participants)}"),
+            ("effect", self.effect_text()), ("alpha", f"{self.design.alpha:g}")),
+            self.notes, ".to_frame(), .plot(), .save(folder)")
+
+    def effect_text(self) -> str:
+        """The effect the studies were drawn from, in words: each comparison's odds ratio
+        for the typical participant (the exponent of the mean log-odds difference over
+        symbols and levels), the typical participant's accuracy in each condition, and the
+        ``--effect-scale`` applied (1: the effect as its source gives it)."""
+        base = self.model.base
+        accuracy = (1.0 / (1.0 + np.exp(-base))).mean(axis=(0, 1))
+        parts = [f"odds ratio {c} / {self.design.reference} "
+                 f"{np.exp(np.mean(base[..., k + 1] - base[..., 0])):.3g}"
+                 for k, c in enumerate(self.design.comparisons)]
+        typical = ", ".join(f"{c} {100 * a:.0f} %"
+                            for c, a in zip(self.design.conditions, accuracy, strict=True))
+        scale = self.model.details.get("effect_scale", 1.0)
+        return f"{'; '.join(parts)} (typical participant: {typical}); --effect-scale {scale:g}"
+
     def headline(self) -> str:
         """One line per comparison and repetition count, e.g. ``80 % power at N = 12 (Monte
         Carlo 95 %: 8-12); 1000 studies per point; 0 fits failed``."""
@@ -265,10 +291,8 @@ class PowerResult:
         """Power against participants: a line per comparison and repetition count, the
         Monte Carlo 95 % band, the target line, and the share of failed or separated fits
         when there are any. Returns the Axes."""
-        if ax is None:         # no pyplot state (as crs_study.analysis.charts)
-            from matplotlib.figure import Figure
-
-            ax = Figure(figsize=(7.0, 4.5), layout="constrained").add_subplot()
+        if ax is None:         # no pyplot state; shown in a notebook (crs_study._figure)
+            ax = new_axes((7.0, 4.5))
         table = self.to_frame()
         groups = list(table.groupby(["comparison", "repetitions"], sort=False))
         for (comparison, r), rows in groups:
@@ -299,8 +323,10 @@ class PowerResult:
         ax.set_ylabel(f"power (p < {self.design.alpha:g})")
         source = {"observer": "simulated observer", "pilot": "pilot fit"}.get(
             self.model.source, self.model.source)
-        ax.set_title(f"{self.design.protocol}: {self.n_studies} studies per point, effect "
-                     f"from the {source}\nband: Monte Carlo 95 % interval", fontsize=10)
+        ax.set_title("\n".join(textwrap.wrap(
+            f"{self.design.protocol}: {self.n_studies} studies per point, effect from the "
+            f"{source}: {self.effect_text()}", 80)) + "\nband: Monte Carlo 95 % interval",
+            fontsize=8)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="lower right")
         return ax

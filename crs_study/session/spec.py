@@ -10,6 +10,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from crs_study._display import Display, Displayed
 from crs_study.protocol.model import Protocol
 
 #: Where a session reports its progress (one line at a time), e.g. to stderr.
@@ -44,8 +45,8 @@ class SessionSpec:
         object.__setattr__(self, "dataset", Path(self.dataset))
 
 
-@dataclass(frozen=True)
-class SessionResult:
+@dataclass(frozen=True, repr=False)
+class SessionResult(Displayed):
     """How a run ended."""
 
     status: str  # "complete", "interrupted" or "already-complete"
@@ -61,13 +62,21 @@ class SessionResult:
     sidecar: Path
     message: str = ""
 
+    def _display(self) -> Display:
+        return Display(f"SessionResult of {self.participant!r}, session {self.session}", (
+            ("status", self.status),
+            ("trials", f"{self.trials_completed} of {self.trials_planned} "
+                       f"({self.trials_run} by this run)"),
+            ("late frames", str(self.late_frames)), ("trials file", os.fspath(self.tsv))),
+            (self.message,) if self.message else (), ".to_dict()")
+
     def to_dict(self) -> dict:
         """The fields as plain JSON values (paths as strings)."""
         return {k: os.fspath(v) if isinstance(v, Path) else v for k, v in asdict(self).items()}
 
 
-@dataclass(frozen=True)
-class DryRunResult(Sequence[SessionResult]):
+@dataclass(frozen=True, repr=False)
+class DryRunResult(Displayed, Sequence[SessionResult]):
     """The sessions of a dry-run (:func:`crs_study.session.dry_run`), in participant order.
 
     A sequence of :class:`SessionResult` (``len``, indexing, unpacking), with the dataset
@@ -82,6 +91,15 @@ class DryRunResult(Sequence[SessionResult]):
 
     def __len__(self) -> int:
         return len(self.sessions)
+
+    def _display(self) -> Display:
+        statuses: dict[str, int] = {}
+        for r in self.sessions:
+            statuses[r.status] = statuses.get(r.status, 0) + 1
+        return Display(f"DryRunResult of {len(self.sessions)} simulated participants", (
+            ("dataset", os.fspath(self.dataset)), ("trials", str(self.trials)),
+            ("sessions", ", ".join(f"{n} {s}" for s, n in statuses.items()))),
+            tuple(r.message for r in self.sessions if r.message), ".to_frame(), [i]")
 
     @property
     def trials(self) -> int:
