@@ -37,11 +37,6 @@ OUTSIDE = re.compile(r"\bissues? ?#?[0-9]+\b|crs-paper\.md|hardware\.md|design\.
 #: Where to look for them: every text the repository holds, recorded data aside (the sidecars
 #: of old sessions under tests/fixtures hold the device files those sessions ran with).
 SCANNED_SUFFIXES = {".py", ".md", ".toml", ".R", ".txt", ".cfg", ".ini", ".yml", ".yaml"}
-#: The shipped device files: every session records the sha256 of its device file's text and a
-#: resume refuses another text, so even a comment changed here refuses to resume every session
-#: begun under the current release (tests/test_protocol_resume.py resumes such sessions).
-#: Their comments keep their old wording until resume compares device files by content.
-FINGERPRINTED = {"crs_study/data/devices/crs1d.toml", "crs_study/data/devices/crs2d.toml"}
 
 
 def documents() -> dict[str, str]:
@@ -164,8 +159,7 @@ def scanned_files() -> list[Path]:
                     and not skip & set(path.relative_to(ROOT).parts)
                     and not path.name.endswith(".egg-info")):
                 found.append(path)
-    return [p for p in sorted(found) if p.exists()
-            and str(p.relative_to(ROOT)) not in FINGERPRINTED]
+    return [p for p in sorted(found) if p.exists()]
 
 
 def test_nothing_points_outside_the_repository():

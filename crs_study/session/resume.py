@@ -14,6 +14,7 @@ it also refuses to finish a session by another kind of run than the one that beg
 from __future__ import annotations
 
 import hashlib
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -64,14 +65,19 @@ def fingerprints(protocol: Protocol, plan: TrialPlan, device_text: str,
     }
 
 
-def check_resume(stored: SessionMetadata, expected: Fingerprints, sidecar: Path) -> None:
+def check_resume(stored: SessionMetadata, expected: Fingerprints, sidecar: Path,
+                 device_text: str | None = None) -> None:
     """A stored session may only be resumed with the same plan: one line saying what differs.
 
     A fingerprint the stored session lacks (``StimulusSha256`` of a session begun by older
-    software) is not compared.
+    software) is not compared. A device file whose text differs only in its comments or
+    layout (``device_text`` reads as the same TOML as the stored text) is the same device.
     """
     recorded = stored.fingerprints()
     for key, label in FINGERPRINTS.items():
+        if key == "DeviceFileSha256" and device_text is not None \
+                and _same_toml(stored.device_file_text, device_text):
+            continue
         if recorded[key] is not None and recorded[key] != expected[key]:
             raise SessionError(
                 f"{sidecar}: cannot resume: the {label} differs ({key} stored "
@@ -166,3 +172,11 @@ def check_frames(frame_log: Path, rows: list[dict[str, str]], plan: TrialPlan, f
                 "(the renderer, or the device's dead-band, changed since the session "
                 "began); finish it with the software and device options that began it or "
                 "start another --session")
+
+
+def _same_toml(stored: str, current: str) -> bool:
+    """Both texts read as the same TOML document (comments and layout aside)."""
+    try:
+        return tomllib.loads(stored) == tomllib.loads(current)
+    except tomllib.TOMLDecodeError:
+        return False

@@ -188,7 +188,7 @@ def seed_check(spec: SessionSpec) -> dict[str, str | int]:
     expected = fingerprints(protocol, plan, device_text, layout)
     stored = SessionStore(paths, columns=session_columns(protocol)).read_sidecar()
     if stored is not None:
-        check_resume(stored, expected, paths.sidecar)
+        check_resume(stored, expected, paths.sidecar, device_text)
     return {
         "participant": spec.participant, "session": spec.session,
         "seed": expected["Seed"], "counterbalance": expected["Counterbalance"],
@@ -258,7 +258,8 @@ def run_session(spec: SessionSpec, *, progress: Progress | None = None,
     with opening.store:
         stored = opening.store.read_sidecar()
         if stored is not None:
-            check_resume(stored, opening.expected, opening.paths.sidecar)
+            check_resume(stored, opening.expected, opening.paths.sidecar,
+                         opening.device_text)
         if stored is not None and stored.is_complete:
             return already_complete(opening, stored)
         run = resume_session(opening, stored, device_options)
