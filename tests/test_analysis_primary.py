@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crs_study.analysis import glmm, primary
+from crs_study.analysis import glmm, primary, primary_fit
 from crs_study.analysis.glmm import MAX_QUADRATURE, GlmmFitError
 from crs_study.analysis.plan import AnalysisPlan
 from crs_study.analysis.primary import design, primary_test
@@ -68,7 +68,7 @@ def test_a_failing_model_falls_back_to_fisher_with_a_warning(monkeypatch):
     def broken(*args, **kwargs):
         raise GlmmFitError("singular design")
 
-    monkeypatch.setattr(primary, "_fit", broken)
+    monkeypatch.setattr(primary_fit, "fit_model", broken)
     trials = _trials(seed=3)
     result = primary_test(trials, ["pixel-only", "crs"], "pixel-only")
     (comparison,) = result.comparisons

@@ -1,9 +1,8 @@
 """The analysis as a Python API: ``analyze`` returns an ``Analysis`` of
 result objects (``to_frame()``, ``to_json()``), writing the report is a flag or a method, and
-``results.json`` says what it said before the nested dicts moved behind those objects.
-
-The outside reference for "unchanged" is the output of main as of 90d7b34 on the same
-datasets (tests/fixtures/results_90d7b34, made by its make_fixture.py with that code).
+``results.json`` says what the code named in tests/fixtures/analysis_results/COMMIT wrote for
+the same datasets (made by its make_fixture.py): a refactoring must not change it, and a
+deliberate change of the analysis regenerates it, its diff reviewed in the commit.
 """
 
 from __future__ import annotations
@@ -23,9 +22,10 @@ from matplotlib.axes import Axes
 from crs_study.analysis import Analysis, StudyData, analyze, load_dataset, load_plan
 from crs_study.analysis.charts import save
 from crs_study.errors import AnalysisError
+from crs_study.paths import shipped_file
 
-FIXTURE = Path(__file__).parent / "fixtures" / "results_90d7b34"
-CASES = {"pilot": None, "levels": FIXTURE / "levels_plan.toml"}
+FIXTURE = Path(__file__).parent / "fixtures" / "analysis_results"
+CASES = {"pilot": shipped_file("analysis/pilot.toml"), "levels": FIXTURE / "levels_plan.toml"}
 
 
 def _comparable(results: dict) -> dict:
@@ -255,7 +255,9 @@ def test_analyze_takes_loaded_data_and_another_plan(tmp_path):
         load_plan(plan).exclusions, max_response_time_s=2.0))
     other = analyze(data, strict, write=False)
     assert other.results["alpha"] == 0.01 and "slow" in other.results["exclusions"]
-    assert other.results["plan"] == {"name": "test plan", "path": None, "sha256": None}
+    assert other.results["plan"] == {"name": "test plan", "path": None, "sha256": None,
+                                     "lock": {"status": "not locked", "locked_at": None,
+                                              "sha256": None, "deviations": []}}
     assert len(other.data.trials) < len(data.trials)
     files = other.write(tmp_path / "out")
     assert "Plan `test plan` (given in Python, not read from a file)" in \

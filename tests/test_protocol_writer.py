@@ -93,7 +93,7 @@ title = "Tiny \\"quoted\\" \\\\ title"
 device = "crs2d"
 consent_form = "consent/consent_form.md"
 consent_form_version = "1.0"
-analysis_plan = "analysis/digit_identification.toml"
+analysis_plan = "analysis/pilot.toml"
 
 [stimulus]
 digits = [1, 4, 7]
