@@ -24,6 +24,7 @@ seed = 7
 
 [primary]
 random_effects = ["participant"]
+bootstrap_replicates = 99        # the p's Monte Carlo error is not what these tests test
 
 [confusion]
 bootstrap = 200
