@@ -148,9 +148,18 @@ def test_init_then_use_the_copies_from_another_folder(tmp_path, monkeypatch, cap
                                     "check one with: crs-study validate "
                                     "study/protocols/pilot.toml")
     assert main(["validate", "study/protocols/pilot.toml", "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["protocol"] == "study/protocols/pilot.toml"
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["protocol"] == "study/protocols/pilot.toml"
+    # the copy still has the shipped study id, which seeds every session's trial order
+    assert captured.err == ("crs-study validate: warning: study id 'digitid-pilot' is the "
+                            "shipped pilot protocol's: give the copy an id of its own ([study] "
+                            "id), since the id seeds every session's trial order\n")
     assert main(["init", "study"]) == 0
     assert capsys.readouterr().out.splitlines()[-1].startswith("init: 0 of 15 files copied")
+    copy = tmp_path / "study" / "protocols" / "pilot.toml"
+    copy.write_text(copy.read_text().replace('id = "digitid-pilot"', 'id = "ourlab-pilot"'))
+    assert main(["validate", str(copy), "--json"]) == 0
+    assert capsys.readouterr().err == ""
 
 
 def test_commands_take_a_shipped_protocol_by_name_from_any_folder(tmp_path, monkeypatch,

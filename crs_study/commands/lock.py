@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,7 @@ from crs_study.dataset.session_metadata import now_utc
 from crs_study.errors import ProtocolError
 from crs_study.paths import resolve_protocol
 from crs_study.protocol import analysis_plan_path, load_protocol
-from crs_study.protocol.lock import is_shipped
+from crs_study.protocol.lock import is_shipped, kept_shipped_id
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -81,6 +82,12 @@ def run(args: argparse.Namespace) -> int:
         raise ProtocolError(f"{args.protocol} is a protocol shipped with crs-study: copy it "
                             "with crs-study init and lock the copy")
     lock = make_lock(args.protocol, args.plan)
+    protocol = load_protocol(args.protocol)
+    kept = kept_shipped_id(protocol)
+    if kept is not None:
+        print(f"crs-study lock: warning: study id {protocol.study_id!r} is the shipped {kept} "
+              "protocol's: give the copy an id of its own ([study] id) before locking, since "
+              "the id seeds every session's trial order", file=sys.stderr)
     target = lock_path(protocol_path)
     earlier = find_lock(protocol_path) if target.exists() or target.is_symlink() else None
     if earlier is not None:

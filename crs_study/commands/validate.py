@@ -20,6 +20,7 @@ import sys
 from crs_study.adaptive.spec import AdaptiveSpec
 from crs_study.api import ProtocolSummary, validate
 from crs_study.errors import ProtocolProblems
+from crs_study.protocol.lock import kept_shipped_id
 
 #: The exit status of an invalid protocol (the command line's one for a known error).
 EXIT_INVALID = 2
@@ -46,6 +47,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"crs-study validate: {len(problems.problems)} errors in {problems.source}",
               file=sys.stderr)
         return EXIT_INVALID
+    kept = kept_shipped_id(summary.protocol)
+    if kept is not None:
+        print(f"crs-study validate: warning: study id {summary.protocol.study_id!r} is the "
+              f"shipped {kept} protocol's: give the copy an id of its own ([study] id), since "
+              "the id seeds every session's trial order", file=sys.stderr)
     if args.json:
         print(summary.to_json(trials=args.list))
         return 0

@@ -9,11 +9,12 @@ the data it concerns.
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 
 from crs_study.dataset.lock_file import PlanLock, find_lock, lock_path
 from crs_study.errors import ProtocolError
-from crs_study.paths import data_dir
+from crs_study.paths import data_dir, shipped_protocols
 from crs_study.protocol.model import Protocol, analysis_plan_path
 
 
@@ -54,3 +55,20 @@ def current_lock(protocol: Protocol) -> PlanLock | None:
                             "or record the change with crs-study lock --relock before more "
                             "data")
     return lock
+
+
+def kept_shipped_id(protocol: Protocol) -> str | None:
+    """The name of the shipped protocol whose study id a copied protocol still has (None
+    for a shipped protocol itself, or an id of its own). The id seeds every session's trial
+    order and names the study in its datasets: a copy that keeps it shares both with every
+    other lab that ran the shipped protocol."""
+    if is_shipped(protocol.path):
+        return None
+    for name, path in shipped_protocols().items():
+        try:
+            shipped = tomllib.loads(path.read_text(encoding="utf-8"))
+        except (OSError, tomllib.TOMLDecodeError):
+            continue
+        if shipped.get("study", {}).get("id") == protocol.study_id:
+            return name
+    return None
