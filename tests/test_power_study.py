@@ -72,7 +72,7 @@ def test_a_full_model_that_cannot_be_fitted_is_fishers_test_as_in_analyze(design
     def fail(*args, **kwargs):
         raise GlmmFitError("numerical failure (test)")
 
-    monkeypatch.setattr(primary, "_fit", fail)
+    monkeypatch.setattr(primary_fit, "fit_model", fail)
     expected = _analyze_p(design, Y, 2)
     assert expected.method.startswith("Fisher")
     out = decide_trials(design, cells_frame(design, Y, design.cell_trials(2)))
