@@ -10,12 +10,23 @@ from _session_helpers import tiny_protocol
 
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
 from crs_study.cli import main
+from crs_study.paths import shipped_file
 from crs_study.power_analysis import backends
 
 
 @pytest.fixture(scope="module")
 def protocol(tmp_path_factory):
-    return tiny_protocol(tmp_path_factory.mktemp("protocol"), digits=(1, 4, 7))
+    """The tiny protocol with the pilot's plan reduced to random intercepts: these tests are
+    about the command's output, and the maximal model's fits of two participants' six trials
+    (variances the data cannot bound) cost seconds a study."""
+    folder = tmp_path_factory.mktemp("protocol")
+    path = tiny_protocol(folder, digits=(1, 4, 7))
+    plan = shipped_file("analysis/pilot.toml").read_text(encoding="utf-8")
+    (folder / "plan.toml").write_text(plan.replace('structure = "maximal"',
+                                                   'structure = "intercepts"'))
+    path.write_text(path.read_text().replace('analysis_plan = "analysis/pilot.toml"',
+                                             'analysis_plan = "plan.toml"'))
+    return path
 
 
 def _args(protocol, out, *extra):
