@@ -12,7 +12,7 @@ import pytest
 import crs_study.commands as commands
 from crs_study.cli import COMMANDS, build_parser, command_module, main
 
-SUBCOMMANDS = ("demo", "init", "validate", "run", "dry-run", "analyze", "power", "consent",
+SUBCOMMANDS = ("demo", "init", "validate", "lock", "run", "dry-run", "analyze", "power", "consent",
                "device", "live", "live-send", "quality", "bench")
 
 
