@@ -54,8 +54,8 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     free = ~held
     diagonal = getattr(objective, "diagonal", None)
     capped = getattr(objective, "capped", None)   # (n,) True for the loading entries
-    theta = theta0.copy() if capped is None else np.where(
-        capped, np.clip(theta0, -THETA_CAP, THETA_CAP), theta0)
+    theta = theta0.copy() if capped is None else np.where(   # a held value stays as given
+        capped & free, np.clip(theta0, -THETA_CAP, THETA_CAP), theta0)
     value, g = objective.evaluate(theta)
     g = np.where(free, g, 0.0)
     converged = np.zeros(S, dtype=bool)
@@ -66,8 +66,10 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     sub = objective.subset(active)
     for iteration in range(MAX_ITERATIONS):
         th, v, ga = theta[active], value[active], g[active]
+        pinned = np.zeros_like(held[active])
         if capped is not None:     # at the cap, a gradient pushing outward is satisfied
-            ga = np.where(capped & (np.abs(th) >= THETA_CAP) & (th * ga > 0), 0.0, ga)
+            pinned = capped & (np.abs(th) >= THETA_CAP) & (th * ga > 0)
+            ga = np.where(pinned, 0.0, ga)
         done = np.max(np.abs(ga), axis=1) < GRADIENT_TOL
         bad = ~np.isfinite(v) | ~np.isfinite(ga).all(axis=1)
         converged[active[done & ~bad]] = True
@@ -81,6 +83,7 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
             N = None if N is None else N[keep]
         if not len(active):
             break
+        pinned = pinned[keep]
         iterations[active] += 1
         if N is None or (iteration and iteration % REFRESH_EVERY == 0):
             N = _negative_hessian(sub, th, ga, free[active])
@@ -90,11 +93,16 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
                 rows = np.flatnonzero(unusable)
                 N[rows] = _negative_hessian(sub.subset(rows), th[rows], ga[rows],
                                             free[active][rows])
-        step = _solve(N, ga, free[active])
+        moving = free[active] & ~pinned
+        # the step of the problem with the pinned loadings held (their rows and columns
+        # out of N), not the full step clipped: clipping leaves a direction that is no
+        # longer Newton's and the iteration crawls along the cap
+        step = _solve(_held_out(N.copy(), moving) if pinned.any() else N, ga, moving)
         if diagonal is not None:
             step = _short_of_zero(step, th, diagonal)
         if capped is not None:
-            step = np.where(capped, np.clip(th + step, -THETA_CAP, THETA_CAP) - th, step)
+            step = np.where(capped & moving, np.clip(th + step, -THETA_CAP, THETA_CAP) - th,
+                            step)
         th_new, v_new, g_new, ok = _line_search(sub, th, v, step)
         g_new = np.where(free[active], g_new, 0.0)
         N = _bfgs(N, th_new - th, ga - g_new, ok)
