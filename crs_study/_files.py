@@ -22,6 +22,7 @@ import errno
 import hashlib
 import os
 import stat
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -75,6 +76,23 @@ def os_errors(error: type[CrsStudyError], what: str = "",
         yield
     except OSError as exc:
         raise error(describe_os_error(exc, what, path)) from None
+
+
+def check_writable(out: str | Path, error: type[CrsStudyError], option: str = "--out") -> None:
+    """``out`` can be made and written, checked before any work: a folder made and removed at
+    once in the nearest folder that exists (the realest test: permissions, read-only or
+    virtual file systems, a file where a folder should be)."""
+    out = Path(out)
+    parent = out if out.is_dir() else next((p for p in out.absolute().parents if p.exists()),
+                                           None)
+    if parent is None or not parent.is_dir():
+        raise error(f"{option}: {out} cannot be made ({parent} is not a folder); nothing was "
+                    "computed")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".crs-study-", dir=parent))
+    except OSError as exc:
+        raise error(f"{option}: cannot write in {parent} ({exc.strerror or exc}); nothing "
+                    "was computed") from None
 
 
 def fsync_dir(directory: str | Path) -> None:

@@ -15,6 +15,13 @@ from crs_study.analysis.glmm_terms import INTERCEPT, covariance, sd_and_correlat
 
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
 _END_TOLERANCE = 5e-5       # Brent's tolerance on a profile end (log-odds or SD)
+#: A profile interval's end is sought at most this far from the estimate (log-odds or SD
+#: units): 15 on the log-odds scale is an odds ratio of 3.3 million, beyond any difference
+#: between two displays; the profile of separated or nearly separated data (a condition at 0
+#: or 100 % for every participant) stays flat far out, each point a slow fit, and an end
+#: out there says only that the data do not bound it: reported as open (null), as when the
+#: profile never reaches the cutoff.
+PROFILE_SPAN = 15.0
 
 
 def _minimise(problem, start: np.ndarray, fixed_values: dict[int, float]
@@ -334,11 +341,14 @@ def _profile_drop(problem, theta_hat: np.ndarray, index: int, level: float,
 
 
 def _profile_end(drop, estimate: float, step: float) -> float:
-    """The root of ``drop`` beyond ``estimate`` in the direction of ``step`` (doubled up to
-    12 times to bracket it); infinite when the profile never reaches the cutoff."""
-    for _ in range(12):
+    """The root of ``drop`` beyond ``estimate`` in the direction of ``step`` (doubled to
+    bracket it, never beyond ``PROFILE_SPAN``); infinite when the profile does not reach the
+    cutoff within that span."""
+    while True:
+        step = float(np.copysign(min(abs(step), PROFILE_SPAN), step))
         if drop(estimate + step) > 0:
             a, b = sorted((estimate, estimate + step))
             return float(optimize.brentq(drop, a, b, xtol=_END_TOLERANCE))
+        if abs(step) >= PROFILE_SPAN:
+            return float(np.copysign(np.inf, step))
         step *= 2.0
-    return float(np.copysign(np.inf, step))

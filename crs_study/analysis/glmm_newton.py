@@ -28,6 +28,11 @@ REFRESH_EVERY = 4
 MAX_STEP = 1.0
 #: Largest share of its size a diagonal loading may lose in one step (never its sign).
 TO_ZERO = 0.9
+#: Halvings of a step before the line search gives up (the study is then stalled): a
+#: millionth of Newton's step that still does not rise lies where the objective's value is
+#: rounding noise, and further halvings "succeed" on that noise for dozens of iterations
+#: without moving.
+MAX_HALVINGS = 20
 #: Largest size of any entry of a loading ``T_k`` (SD units on the logit scale). Where a
 #: term's random effects are separated (a level whose responses are all correct or all
 #: wrong, with few levels) the likelihood rises without bound as its SD grows; the supremum
@@ -194,7 +199,7 @@ def _bfgs(N: np.ndarray, s: np.ndarray, y: np.ndarray, ok: np.ndarray) -> np.nda
 def _line_search(sub, theta, value, step):
     """The full step where the objective does not fall there (value and gradient in one
     evaluation), else the step halved until it does (values only, then the gradient at the
-    point taken). ``ok`` False where 30 halvings found no such point."""
+    point taken). ``ok`` False where ``MAX_HALVINGS`` halvings found no such point."""
     S = len(theta)
     warm = sub.warm.copy()
     trial = theta + step
@@ -208,7 +213,7 @@ def _line_search(sub, theta, value, step):
     pending = np.flatnonzero(~ok)
     t = np.ones(S)
     halved = np.zeros(S, dtype=bool)
-    for _ in range(30):
+    for _ in range(MAX_HALVINGS):
         if not len(pending):
             break
         t[pending] *= 0.5

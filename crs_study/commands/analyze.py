@@ -25,7 +25,7 @@ import sys
 import threading
 import time
 
-from crs_study._files import os_errors
+from crs_study._files import check_writable, os_errors
 from crs_study.analysis import analyze
 from crs_study.analysis.reproduce import DEFAULT_RTOL, check_tolerance, read_results
 from crs_study.dataset import dataset_dir
@@ -129,6 +129,8 @@ def print_warnings(analysis, command: str = "analyze") -> None:
 def run(args: argparse.Namespace) -> int:
     if args.out is not None:
         dataset_dir(args.out)  # --out '' is a one-line error, not the current folder
+        if args.check is None:
+            check_writable(args.out, AnalysisError)   # before the work, not after it
     if args.check is not None:
         if args.out is not None:
             raise AnalysisError("--check writes nothing: leave out --out")

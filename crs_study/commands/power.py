@@ -12,10 +12,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
+from crs_study._files import check_writable
 from crs_study.errors import CrsStudyError
 from crs_study.power_analysis import PowerError, power
 from crs_study.power_analysis.api import check_options
@@ -119,20 +119,6 @@ class ProgressBar:
         self.stream.flush()
 
 
-def _check_writable(out: Path) -> None:
-    """``out`` can be made and written: a folder made and removed at once in the nearest
-    folder that exists (the realest test: permissions, read-only or virtual file systems)."""
-    parent = out if out.is_dir() else next((p for p in out.absolute().parents if p.exists()),
-                                           None)
-    if parent is None or not parent.is_dir():
-        raise PowerError(f"--out: {out} cannot be made ({parent} is not a folder)")
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=".crs-power-", dir=parent))
-    except OSError as exc:
-        raise PowerError(f"--out: cannot write in {parent} ({exc.strerror or exc}); "
-                         "nothing was computed") from None
-
-
 def fresh_folder(base: Path) -> Path:
     """``base``, or ``base-2``, ``base-3``, ... : the first that holds no earlier run."""
     candidate, number = base, 2
@@ -172,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         raise PowerError(f"--pilot: {args.pilot} is not a dataset folder")
     if args.scheduler is not None:
         check_address(args.scheduler)
-    _check_writable(out)  # before the curve is computed, not after
+    check_writable(out, PowerError)  # before the curve is computed, not after
     progress = None if args.json else ProgressBar("studies")
     started = time.perf_counter()
     try:
