@@ -76,7 +76,7 @@ def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout1d):
 
 
 def _reference_latency_send_all(times: np.ndarray, write_s: float) -> np.ndarray:
-    """Independent formulation: on an idle wire, write i starts at the first arrival after
+    """Independent formulation: on an idle wire, write i starts at the first arrival at or after
     write i-1 ended; on a busy one, when write i-1 ends. It carries every frame that arrived
     since; a frame arriving at the very instant the wire frees is not one of them (the write
     due then goes first: the write policy's tie rule). All writes take write_s."""
