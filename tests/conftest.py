@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 
 import numpy as np
 import pytest
@@ -16,6 +17,16 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 settings.register_profile("seeded", derandomize=True, database=None, print_blob=True)
 settings.register_profile("explore", database=None, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
+
+# Ctrl-C reaches the processes the tests start as it reaches a command typed at a terminal. A
+# suite started in the background by a shell without job control (``pytest ... &`` in a
+# script) inherits SIGINT ignored (POSIX: the shell ignores it for asynchronous commands), every
+# process it starts inherits that in turn, and Python then never raises KeyboardInterrupt: a
+# test's Ctrl-C to ``crs-study run`` did nothing and the session ran to its end. A handled
+# signal returns to its default in a started program, an ignored one does not; so SIGINT is
+# handled here again, as by a Python started from a terminal.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")

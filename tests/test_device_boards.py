@@ -90,9 +90,10 @@ def read_until(process: subprocess.Popen, marker: str, timeout: float) -> str:
 
 
 def readme_device_steps() -> list[str]:
-    """Step 2 of the README's study, as written (``crs-study device ...`` lines)."""
+    """The device step of the README's study, as written (``crs-study device ...`` lines),
+    found by its title whatever its number: up to the next numbered step."""
     text = README.read_text(encoding="utf-8")
-    block = text[text.index("# 2. The device"):text.index("# 3. A participant")]
+    (block,) = re.findall(r"^# \d+\. The device.*?(?=^# \d+\. )", text, re.M | re.S)
     return [line.split(" #")[0].strip() for line in block.splitlines()
             if line.startswith("crs-study device ")]
 

@@ -126,4 +126,10 @@ def test_init_copies_the_shipped_files_to_edit(installed, tmp_path):
         (REPO / "consent" / "consent_form.md").read_bytes()
     done = _run([str(installed / "crs-study"), "validate", "study/protocols/pilot.toml"],
                 tmp_path)
-    assert "analysis plan analysis/digit_identification.toml: found" in done.stdout
+    # the copy finds the plan its protocol names, itself copied (the pilot's own, descriptive)
+    copied = tomllib.loads((tmp_path / "study" / "protocols" / "pilot.toml").read_text())
+    plan = copied["study"]["analysis_plan"]
+    assert plan == "analysis/pilot.toml"
+    assert f"analysis plan {plan}: found" in done.stdout
+    assert (tmp_path / "study" / plan).read_bytes() == \
+        (REPO / "crs_study" / "data" / plan).read_bytes()
