@@ -53,7 +53,7 @@ def test_a_null_pilot_whose_participants_differ_gives_that_slope_to_new_particip
 
 
 def test_the_effect_scale_shrinks_the_condition_effect_and_the_power(pilot):
-    kwargs = dict(pilot=pilot, participants="4:8:4", studies=150, jobs=1, seed=3)
+    kwargs = dict(pilot=pilot, participants="4:8:4", studies=50, jobs=1, seed=3)
     full = power("digit_identification", **kwargs)
     half = power("digit_identification", effect_scale=0.5, **kwargs)
     effect = full.model.base[0, 0, 1] - full.model.base[0, 0, 0]
