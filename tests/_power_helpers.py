@@ -20,11 +20,15 @@ def pilot_model_matching_analyze(protocol, pilot):
     with the chi2 p: the fit is the same, and the parametric bootstrap of the p (below 20
     participants) would refit the model hundreds of times for a p not compared."""
     model = model_from_pilot(design_from_protocol(protocol), pilot)
-    plan = load_plan(analysis_plan_path(load_protocol(protocol)))
-    plan = dataclasses.replace(plan, primary=dataclasses.replace(plan.primary, p_value="chi2"))
-    fitted = analyze([pilot], plan, write=False).results["primary"]["model"]
+    fitted = analyze([pilot], chi2_plan(protocol), write=False).results["primary"]["model"]
     coefficients = fitted["coefficients"]
     intercept = coefficients["Intercept"]["estimate"]
     crs = coefficients["condition[crs]"]["estimate"]
     np.testing.assert_allclose(model.base[0, 0], [intercept, intercept + crs], rtol=1e-9)
     return model, fitted["variance_components"]
+
+
+def chi2_plan(protocol):
+    """The analysis plan of ``protocol`` with the chi2 LR p (``p_value = "chi2"``)."""
+    plan = load_plan(analysis_plan_path(load_protocol(protocol)))
+    return dataclasses.replace(plan, primary=dataclasses.replace(plan.primary, p_value="chi2"))
