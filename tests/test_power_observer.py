@@ -2,8 +2,9 @@
 
 The prediction uses the observer's own decision rule (checked against
 ``PerceptualObserver.choice_probabilities``); mode 2's power is checked against mode 3's on
-the same protocol at two points (``tests/fixtures/power/fidelity_full.csv``, 600 studies of
-real dry-runs made by ``make_fidelity.py``), within the Monte Carlo error of both.
+the same protocol at two points (``tests/fixtures/power/fidelity_full.csv``, 200 studies of
+real dry-runs made by ``make_fidelity.py``, its plan's random part random intercepts on both
+sides), within the Monte Carlo error of both.
 """
 
 from __future__ import annotations
@@ -65,15 +66,24 @@ def test_predictions_are_deterministic_and_shaped_by_the_protocol(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def mode2():
-    """Mode 2 at the fixture's points, many studies (the observer's default prediction)."""
-    return power(make_fidelity.PROTOCOL, participants=make_fidelity.PARTICIPANTS,
-                 studies=2000, seed=5)
+def pilot_protocol(tmp_path_factory):
+    """The fixture's protocol: the pilot, its plan's random part random intercepts (what is
+    compared is the observer's accuracies against real dry-runs, the same model fitted to
+    both; the maximal model on two to four participants costs seconds a study)."""
+    return make_fidelity.pilot_protocol(tmp_path_factory.mktemp("pilot"))
+
+
+@pytest.fixture(scope="module")
+def mode2(pilot_protocol):
+    """Mode 2 at the fixture's points, five times the fixture's studies (100 noise draws
+    of the observer per stimulus, as the letter test)."""
+    return power(pilot_protocol, participants=make_fidelity.PARTICIPANTS,
+                 studies=1000, seed=5, draws=100)
 
 
 def test_mode_2_and_mode_3_agree_within_the_monte_carlo_error(mode2):
-    """At N = 2 and 4 (pilot protocol) the power from the predicted accuracies (2000
-    studies) and from real dry-runs analysed as analyze does (600 studies) cannot be told
+    """At N = 2 and 4 (pilot protocol) the power from the predicted accuracies (1000
+    studies) and from real dry-runs analysed as analyze does (200 studies) cannot be told
     apart: Fisher's exact test of the two counts p > 0.05, and mode 2's power inside mode
     3's Clopper-Pearson 95 % interval."""
     full = pd.read_csv(FIXTURES / "fidelity_full.csv")
@@ -81,6 +91,7 @@ def test_mode_2_and_mode_3_agree_within_the_monte_carlo_error(mode2):
     for n in make_fidelity.PARTICIPANTS:
         rows = full.loc[full["n"] == n]
         k3, s3 = int((rows["p_value"] < 0.05).sum()), len(rows)
+        assert s3 == make_fidelity.STUDIES
         row = table.loc[table["participants"] == n].iloc[0]
         k2, s2 = int(row["significant"]), int(row["studies"])
         assert 0.15 < k3 / s3 < 0.85                        # points that can tell
@@ -89,11 +100,12 @@ def test_mode_2_and_mode_3_agree_within_the_monte_carlo_error(mode2):
         assert interval.low <= k2 / s2 <= interval.high, (n, k2 / s2, k3 / s3)
 
 
-def test_the_mode_3_fixture_is_what_the_code_makes_now():
+def test_the_mode_3_fixture_is_what_the_code_makes_now(pilot_protocol):
     """Two studies of the fixture rerun (real sessions, analysed): the same chi2 p-values
-    (the reported p of a study also depends on the null studies of its point)."""
-    result = power(make_fidelity.PROTOCOL, fidelity="full", participants=(2,), studies=2,
-                   seed=make_fidelity.SEED)
+    (the reported p of a study also depends on the null studies of its point; the chi2 p
+    does not depend on the observer's prediction, so few draws)."""
+    result = power(pilot_protocol, fidelity="full", participants=(2,), studies=2,
+                   seed=make_fidelity.SEED, draws=4)
     stored = pd.read_csv(FIXTURES / "fidelity_full.csv")
     for study in range(2):
         row = stored.loc[(stored["n"] == 2) & (stored["study"] == study)].iloc[0]

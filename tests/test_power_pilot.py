@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _power_helpers import pilot_model_matching_analyze
+from _power_helpers import chi2_plan, pilot_model_matching_analyze
 
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
 from crs_study.power_analysis import PowerError, design_from_protocol, model_from_pilot, power
@@ -53,7 +53,10 @@ def test_a_null_pilot_whose_participants_differ_gives_that_slope_to_new_particip
 
 
 def test_the_effect_scale_shrinks_the_condition_effect_and_the_power(pilot):
-    kwargs = dict(pilot=pilot, participants="4:8:4", studies=150, jobs=1, seed=3)
+    """The plan's chi2 p: what is tested is the effect and its power, and the bootstrap's
+    null studies (below 20 participants) would double the cost."""
+    kwargs = dict(pilot=pilot, participants="4:8:4", studies=50, jobs=1, seed=3,
+                  plan=chi2_plan("digit_identification"))
     full = power("digit_identification", **kwargs)
     half = power("digit_identification", effect_scale=0.5, **kwargs)
     effect = full.model.base[0, 0, 1] - full.model.base[0, 0, 0]

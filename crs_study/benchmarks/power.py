@@ -15,7 +15,10 @@ of the same run.
    cluster with 1 worker (the same studies; cluster start-up not timed, and given time and
    retries on a busy machine: :func:`~crs_study.power_analysis.backends.local_cluster`).
 
-``--quick`` runs each on fewer studies (no targets judged for 1 and 2).
+``--quick`` runs each on two sample sizes (:data:`QUICK_SIZES`), a few studies and few
+observer noise draws: a check that every figure runs, in well under a minute on two cores (no
+targets judged for 1 and 2; the plan's maximal model on four participants costs about a
+second a study with the bootstrap's null studies).
 """
 
 from __future__ import annotations
@@ -47,13 +50,20 @@ TARGET_DASK_RATIO = 1.6
 #: fits alone.
 _OBSERVER_LIKE = {"pixel-only": 0.453, "crs": 0.676}
 SIZES = tuple(range(4, 41, 4))
+QUICK_SIZES = (4, 8)
+#: The observer's noise draws of the quick curve (the full one: the default).
+QUICK_DRAWS = 4
 #: Studies per point of each figure: (quick, full).
-CURVE_STUDIES = (100, 1000)
-PER_STUDY_STUDIES = (50, 200)
+CURVE_STUDIES = (8, 1000)
+PER_STUDY_STUDIES = (4, 200)
+#: fit_primary's studies per size timed for figure 1's baseline: (quick, full).
+LOOP_STUDIES = (1, 10)
+#: Studies at N = 4 that warm the Dask workers before the timing: (quick, full).
+WARM_STUDIES = (2, 50)
 #: The Dask figure runs the default --studies (1000: 20 units of work of STUDIES_PER_TASK).
 #: With 400 (8 units) two workers often got 5 and 3, a 1.6x ceiling that measured the
 #: split, not Dask: 1.50-1.82x over four runs, against 1.97-1.98x with 1000.
-DASK_STUDIES = (100, 1000)
+DASK_STUDIES = (8, 1000)
 
 _LME4_SCRIPT = r"""
 suppressPackageStartupMessages(library(lme4))
@@ -98,29 +108,35 @@ def run(quick: bool) -> list[Figure]:
     return figures
 
 
+def _sizes(quick: bool) -> tuple[int, ...]:
+    return QUICK_SIZES if quick else SIZES
+
+
 def _curve(quick: bool) -> list[Figure]:
     """Figure 1: the default curve, every core, against the plain fit_primary loop."""
 
-    studies = CURVE_STUDIES[not quick]
+    studies, sizes = CURVE_STUDIES[not quick], _sizes(quick)
     jobs = os.cpu_count() or 1
     start = time.perf_counter()
-    result = power("digit_identification", participants=SIZES, studies=studies, jobs=jobs)
+    result = power("digit_identification", participants=sizes, studies=studies, jobs=jobs,
+                   draws=QUICK_DRAWS if quick else None)
     seconds = time.perf_counter() - start
-    per_study = _fit_primary_seconds(result.model, result.design, 3 if quick else 10)
-    loop = per_study * studies * len(SIZES)
-    name = f"default curve, {len(SIZES)} sizes x {studies} studies, {jobs} jobs"
+    per_study = _fit_primary_seconds(result.model, result.design, LOOP_STUDIES[not quick],
+                                     sizes)
+    loop = per_study * studies * len(sizes)
+    name = f"default curve, {len(sizes)} sizes x {studies} studies, {jobs} jobs"
     if quick:
         return [Figure(AREA, name, seconds, "s", "fit_primary loop (extrapolated)", loop)]
     return [Figure(AREA, name, seconds, "s", "fit_primary loop (extrapolated)", loop,
                    f"value <= {TARGET_CURVE_SECONDS:g} s", seconds <= TARGET_CURVE_SECONDS)]
 
 
-def _fit_primary_seconds(model, design, per_size: int) -> float:
+def _fit_primary_seconds(model, design, per_size: int, sizes: tuple[int, ...]) -> float:
     """Median seconds of fit_primary (full and reduced) over studies of every size."""
 
     times = []
-    cumulative = simulate_studies(model, 7, range(per_size), max(SIZES), design.repetitions)
-    for n in SIZES:
+    cumulative = simulate_studies(model, 7, range(per_size), max(sizes), design.repetitions)
+    for n in sizes:
         for s in range(per_size):
             frame = cells_frame(design, cumulative[s, :n, -1].astype(float),
                                 design.cell_trials(design.repetitions))
@@ -130,13 +146,13 @@ def _fit_primary_seconds(model, design, per_size: int) -> float:
     return float(np.median(times))
 
 
-def _studies_csv(model, design, per_size: int, path: Path) -> None:
+def _studies_csv(model, design, per_size: int, sizes: tuple[int, ...], path: Path) -> None:
     import pandas as pd
 
 
-    cumulative = simulate_studies(model, 11, range(per_size), max(SIZES), design.repetitions)
+    cumulative = simulate_studies(model, 11, range(per_size), max(sizes), design.repetitions)
     frames = []
-    for n in SIZES:
+    for n in sizes:
         for s in range(per_size):
             frame = cells_frame(design, cumulative[s, :n, -1].astype(float),
                                 design.cell_trials(design.repetitions))
@@ -152,17 +168,17 @@ def _per_study(quick: bool) -> list[Figure]:
     design = design_from_protocol("digit_identification")
     model = model_from_parameters(design, _OBSERVER_LIKE,
                                   participant_sd=0.42, digit_sd=0.29)
-    studies = PER_STUDY_STUDIES[not quick]
+    studies, sizes = PER_STUDY_STUDIES[not quick], _sizes(quick)
     start = time.perf_counter()
-    power("digit_identification", model=model, participants=SIZES, studies=studies, jobs=1)
-    ours = (time.perf_counter() - start) / (studies * len(SIZES))
+    power("digit_identification", model=model, participants=sizes, studies=studies, jobs=1)
+    ours = (time.perf_counter() - start) / (studies * len(sizes))
     rscript = shutil.which("Rscript")
     per_size = 1 if quick else 3
     timed = {}
     if rscript:
         with tempfile.TemporaryDirectory() as folder:
             csv, script = Path(folder) / "studies.csv", Path(folder) / "refit.R"
-            _studies_csv(model, design, per_size, csv)
+            _studies_csv(model, design, per_size, sizes, csv)
             script.write_text(_LME4_SCRIPT)
             for form in ("trials", "cells"):
                 try:
@@ -174,7 +190,7 @@ def _per_study(quick: bool) -> list[Figure]:
                 for line in run.stdout.splitlines():
                     if line.startswith("per_study "):
                         timed[form] = float(line.split()[1])
-    name = "per study (10 sizes 4..40), one process"
+    name = f"per study ({len(sizes)} sizes {sizes[0]}..{sizes[-1]}), one process"
     if "trials" not in timed:
         return [Figure(AREA, f"{name}; lme4 not timed (no Rscript with lme4)", ours, "s",
                        "ours", ours)]
@@ -193,14 +209,14 @@ def _dask(quick: bool) -> list[Figure]:
     design = design_from_protocol("digit_identification")
     model = model_from_parameters(design, _OBSERVER_LIKE,
                                   participant_sd=0.42, digit_sd=0.29)
-    studies = DASK_STUDIES[not quick]
+    studies, sizes = DASK_STUDIES[not quick], _sizes(quick)
     rates, busy = {}, 0.0
     for workers in (1, 2):
         with local_cluster(workers) as client:   # started, every worker in, before timing
-            power("digit_identification", model=model, participants=(4,), studies=50,
-                  scheduler=client)                                         # warm the workers
+            power("digit_identification", model=model, participants=(4,),
+                  studies=WARM_STUDIES[not quick], scheduler=client)        # warm the workers
             start = time.perf_counter()
-            result = power("digit_identification", model=model, participants=SIZES,
+            result = power("digit_identification", model=model, participants=sizes,
                            studies=studies, scheduler=client)
             wall = time.perf_counter() - start
             rates[workers] = studies / wall
