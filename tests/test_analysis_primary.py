@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crs_study.analysis import glmm, primary, primary_fit
+from crs_study.analysis import glmm, primary_fit
 from crs_study.analysis.glmm import MAX_QUADRATURE, GlmmFitError
 from crs_study.analysis.plan import AnalysisPlan
 from crs_study.analysis.primary import design, primary_test
