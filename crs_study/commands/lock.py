@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,6 @@ from crs_study import __version__
 from crs_study._files import sha256_bytes
 from crs_study.analysis.plan import AnalysisPlan, load_plan
 from crs_study.dataset.lock_file import PlanLock, find_lock, lock_path
-from crs_study.dataset.session_metadata import now_utc
 from crs_study.errors import ProtocolError
 from crs_study.paths import resolve_protocol
 from crs_study.protocol import analysis_plan_path, load_protocol
@@ -72,7 +72,9 @@ def make_lock(protocol_source: str, plan_source: str | None = None) -> PlanLock:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise ProtocolError(f"{plan_path}: not UTF-8 text") from None
-    return PlanLock(now_utc(), __version__, protocol.path.name, protocol.sha256, plan_name,
+    # to the microsecond: a relock within the second of the first lock is still the later one
+    # (the analysis takes the latest lock the sessions recorded)
+    return PlanLock(datetime.now(UTC), __version__, protocol.path.name, protocol.sha256, plan_name,
                     sha256_bytes(raw), primary_specification(plan), text)
 
 
@@ -93,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     if earlier is not None:
         changed = earlier.mismatch(lock.protocol_sha256, lock.plan_text.encode("utf-8"))
         if changed is None and earlier.plan_name == lock.plan_name:
-            print(f"{target}: already locked on {earlier.locked_at.isoformat()}, unchanged")
+            print(f"{target}: already locked on "
+                  f"{earlier.locked_at.isoformat(timespec='seconds')}, unchanged")
             return 0
         if not args.relock:
             raise ProtocolError(f"{target}: {changed or 'another plan file is named'}; lock "
@@ -105,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     lock.write(target)
     spec = lock.primary
     print(f"locked {protocol_path.name} and its analysis plan {Path(lock.plan_name).name} on "
-          f"{lock.locked_at.isoformat()}")
+          f"{lock.locked_at.isoformat(timespec='seconds')}")
     print(f"  protocol sha256 {lock.protocol_sha256}")
     print(f"  plan sha256     {lock.plan_sha256}")
     print(f"  primary test    {spec['test']}, structure {spec['structure']}, random effects "
