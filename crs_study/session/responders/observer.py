@@ -74,10 +74,10 @@ Calibration: the defaults were chosen (noise, peak fraction and temperature swep
 displayed frames of the simulated device) so that the shipped protocol on the published 2D
 device gives pixel-only accuracy near the paper's 50.3 % and CRS near 67.8 %. The temperature
 was re-tuned (1.6 -> 1.9 mm) when the digits were sized by their average bounding box
-(crs_study/stimuli/digits.py), which made them 12 % wider and easier: ``crs-study demo``
-(12 simulated participants on protocols/digit_identification.toml, 600 test trials a
-condition, the report's headline) gives 51.3 % pixel-only and 69.7 % CRS (49.7 % and 68.3 %
-before participants differed in their benefit).
+(crs_study/stimuli/digits.py), which made them 12 % wider and easier: ``crs-study demo
+--participants 12`` (protocols/digit_identification.toml, 600 test trials a condition, the
+report's headline) gives 51.3 % pixel-only and 69.7 % CRS (49.7 % and 68.3 % before
+participants differed in their benefit); the demo's 20 participants give 50.8 % and 70.4 %.
 tests/test_observer.py checks the gap and the range. ``detect_mm`` (2 mm, 40 % of the 5 mm
 bump) sits above the maximum of the blurred receptor noise (~1 mm), so a flat frame is not
 felt as a phantom peak. Decision times: median rt_median_s e^(rt_uncertainty H), about 2 s
