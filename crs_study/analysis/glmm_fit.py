@@ -343,8 +343,11 @@ def _profile_drop(problem, theta_hat: np.ndarray, index: int, level: float,
 def _profile_end(drop, estimate: float, step: float) -> float:
     """The root of ``drop`` beyond ``estimate`` in the direction of ``step`` (doubled to
     bracket it, never beyond ``PROFILE_SPAN``); infinite when the profile does not reach the
-    cutoff within that span."""
-    while True:
+    cutoff within that span. A first step of 0 (a standard error of 0) starts at a
+    thousandth of the span."""
+    if not np.isfinite(step) or abs(step) < 1e-3 * PROFILE_SPAN:
+        step = float(np.copysign(1e-3 * PROFILE_SPAN, step if np.isfinite(step) else 1.0))
+    while True:   # at most 11 doublings from a thousandth to the whole span
         step = float(np.copysign(min(abs(step), PROFILE_SPAN), step))
         if drop(estimate + step) > 0:
             a, b = sorted((estimate, estimate + step))
