@@ -17,6 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from _power_helpers import chi2_plan
 from _session_helpers import tiny_letter_protocol, tiny_protocol
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -209,17 +210,12 @@ def test_a_letter_dry_run_writes_a_letterid_dataset(letter_dataset):
     assert not (dataset / "task-digitid_beh.json").exists()
 
 
-def test_a_letter_dataset_is_analysed_with_the_sets_labels(letter_dataset, tmp_path):
+def test_a_letter_dataset_is_analysed_with_the_sets_labels(letter_dataset):
     """The letter plan as shipped but for its p-value rule (chi2: this checks the labels; the
     parametric bootstrap of three participants' 18 trials, separated data, costs minutes and
     is tested on its own in test_analysis_bootstrap.py)."""
     dataset, _ = letter_dataset
-    text = shipped_file("analysis/letter_identification.toml").read_text(encoding="utf-8")
-    text, count = re.subn(r'(?m)^p_value\s*=\s*"auto"', 'p_value = "chi2"', text)
-    assert count == 1
-    plan = tmp_path / "letters_chi2.toml"
-    plan.write_text(text, encoding="utf-8")
-    analysis = crs_study.analyze(dataset, plan, write=False)
+    analysis = crs_study.analyze(dataset, chi2_plan("letter_identification"), write=False)
     accuracy = analysis.accuracy.to_frame()
     assert list(accuracy["condition"]) == ["pixel-only", "crs"]
     assert analysis.accuracy.chance == pytest.approx(1 / 3)   # three letters shown
