@@ -11,6 +11,7 @@ from scipy import optimize, stats
 from crs_study.analysis.glmm_newton import THETA_CAP
 from crs_study.analysis.glmm_optimise import Optimum, at_cap, boundary_failures, maximise
 from crs_study.analysis.glmm_result import BoundaryFace, FitState, GlmmResult
+from crs_study.analysis.glmm_start import moment_start
 from crs_study.analysis.glmm_terms import INTERCEPT, covariance, sd_and_correlation
 
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
@@ -48,8 +49,11 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     """
     n_fixed = problem.n_fixed
     layout = getattr(problem.model, "layout", None)
-    theta_start = layout.start() if layout is not None else np.ones(problem.model.n_variance)
-    start = np.r_[np.zeros(n_fixed), theta_start]
+    if layout is not None:
+        lik = problem.model.likelihood
+        start = moment_start(lik.X, lik.Y[0], lik.m, lik.terms, layout)
+    else:
+        start = np.r_[np.zeros(n_fixed), np.ones(problem.model.n_variance)]
     opt = maximise(problem, start)
     theta, at_zero = opt.theta, opt.at_zero
     failed = boundary_failures(opt)
