@@ -38,7 +38,8 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
              notes: list[str]) -> GlmmResult:
     """Maximise the (penalised) marginal log-likelihood and assemble the result.
 
-    From ``beta = 0`` and every loading the identity (lme4's start), by
+    From the data's empirical logits and moments (:func:`~.glmm_start.moment_start`; a
+    single intercept from ``beta = 0`` and SD 1), by
     :func:`~.glmm_optimise.maximise`: theta unconstrained, a boundary (an SD at 0, a
     correlated term of reduced rank) taken only when its variance-scale slope says the
     likelihood falls inward. ``converged`` is true when the gradient over the parameters not
