@@ -32,7 +32,7 @@ import pandas as pd
 from crs_study.analysis.glmm_fit import _variances, describe_face
 from crs_study.analysis.glmm_laplace import LaplaceLikelihood
 from crs_study.analysis.glmm_newton import newton
-from crs_study.analysis.glmm_optimise import _MAX_ROUNDS, NEAR_ZERO, SLOPE_TOLERANCE, Face
+from crs_study.analysis.glmm_optimise import NEAR_ZERO, SLOPE_TOLERANCE, Face
 from crs_study.analysis.glmm_start import moment_start
 from crs_study.analysis.glmm_terms import (
     ThetaLayout,
@@ -202,87 +202,42 @@ def fit_batch(objective: BatchObjective, start: np.ndarray,
               curvature: np.ndarray | None = None) -> BatchFit:
     """Maximise every study's likelihood from ``start`` (S, n), boundary checked;
     ``curvature`` (S, n, n), a negative Hessian near the start (the full model's at its
-    maximum, for the reduced model), saves the first differences.
-
-    Near a boundary Newton's method slows to a linear crawl (``l ~ a s^2 + b s^4``): a study
-    stopped there (``face_sd``) is decided on the face, where the problem is regular, in
-    rounds as :func:`~crs_study.analysis.glmm_optimise.maximise` decides them (a fit on one
-    face may end near another); one whose face does not hold finishes its interior fit."""
+    maximum, for the reduced model), saves the first differences."""
     layout = objective.layout
     S, n = start.shape
     start = _floored(layout, start)
-    state = _BoundaryState(objective, *newton(objective, start, np.zeros((S, n), dtype=bool),
-                                              curvature, face_sd=NEAR_ZERO))
-    for _ in range(_MAX_ROUNDS):
-        if not state.decide_round():
-            break
-    return state.result()
-
-
-class _BoundaryState:
-    """The batch's maxima while their boundaries are decided, round by round."""
-
-    def __init__(self, objective, theta, value, converged, iterations, N):
-        S, n = theta.shape
-        blocks = len(objective.layout.blocks)
-        self.objective, self.theta, self.value, self.N = objective, theta, value, N
-        self.iterations = iterations
-        self.interior_done = converged.copy()
-        self.open = np.ones(S, dtype=bool)          # not yet settled on the interior
-        self.needs = np.zeros(S, dtype=bool)
-        self.at_zero = np.zeros((S, n), dtype=bool)
-        self.deficiency = np.zeros((S, blocks), dtype=int)
-        self.slopes = np.full((S, blocks), np.nan)
-
-    def decide_round(self) -> bool:
-        """One round: the studies near a face they do not sit on yet fitted on it; False
-        when there are none."""
-        objective, layout = self.objective, self.objective.layout
-        target = np.maximum(_near(layout, self.theta), self.deficiency)
-        check = np.flatnonzero(self.open & (target > self.deficiency).any(axis=1))
-        if not len(check):
-            return False
+    held = np.zeros((S, n), dtype=bool)
+    theta, value, converged, iterations, N = newton(objective, start, held, curvature)
+    needs = ~converged
+    at_zero = np.zeros((S, n), dtype=bool)
+    blocks = len(layout.blocks)
+    deficiency = np.zeros((S, blocks), dtype=int)
+    slopes = np.full((S, blocks), np.nan)
+    near = _near(layout, theta)
+    # Near a boundary Newton's method slows to a linear crawl (l ~ a s^2 + b s^4): a study
+    # that has not converged there is decided on the face, where the problem is regular.
+    check = np.flatnonzero(near.any(axis=1))
+    if len(check):
         sub = objective.subset(check)
-        b_start, b_held = _on_faces(layout, self.theta[check], target[check])
+        b_start, b_held = _on_faces(layout, theta[check], near[check])
         b_theta, b_value, b_ok, b_iter, _ = newton(sub, b_start, b_held)
-        self.iterations[check] += b_iter
-        face_slopes, _ = _face_slopes(sub, b_theta, target[check])
+        iterations[check] += b_iter
+        face_slopes, _ = _face_slopes(sub, b_theta, near[check])
         inward = (np.nan_to_num(face_slopes, nan=-np.inf) > SLOPE_TOLERANCE).any(axis=1)
-        tolerance = 1e-9 * (1.0 + np.abs(self.value[check]))
-        take = b_ok & ~inward & (b_value >= self.value[check] - tolerance)
-        # a face that does not hold, from an interior end not yet converged: finish that
-        # fit; the next round looks again at where it ends
-        was_done = self.interior_done[check].copy()
-        self._finish_interior(check[~take & ~was_done])
-        decided = ~take & was_done
-        keep_interior = decided & (self.value[check] > b_value + tolerance)
-        rows = check[take]
-        self.theta[rows], self.value[rows] = b_theta[take], b_value[take]
-        self.at_zero[rows] = b_held[take]
-        self.deficiency[rows] = target[check][take]
-        self.slopes[rows] = face_slopes[take]
-        objective.warm[rows] = sub.warm[take]
-        self.needs[check[decided & ~keep_interior]] = True
-        self.open[check[decided]] = False
-        return True
-
-    def _finish_interior(self, rows: np.ndarray) -> None:
-        """Newton's method to convergence (no stop at a face) from where ``rows`` stopped,
-        the faces they already sit on held."""
-        if not len(rows):
-            return
-        part = self.objective.subset(rows)
-        theta, value, ok, iterations, N = newton(part, self.theta[rows], self.at_zero[rows],
-                                                 self.N[rows])
-        self.theta[rows], self.value[rows], self.N[rows] = theta, value, N
-        self.objective.warm[rows] = part.warm
-        self.interior_done[rows] = ok
-        self.iterations[rows] += iterations
-
-    def result(self) -> BatchFit:
-        needs = self.needs | (self.open & ~self.interior_done & ~self.deficiency.any(axis=1))
-        return BatchFit(self.theta, self.value, self.at_zero, self.deficiency, self.slopes,
-                        needs, self.iterations, self.N)
+        best = value[check]
+        tolerance = 1e-9 * (1.0 + np.abs(best))
+        take_boundary = b_ok & ~inward & (b_value >= best - tolerance)
+        keep_interior = ~take_boundary & (best > b_value + tolerance) & converged[check]
+        rows = check[take_boundary]
+        theta[rows] = b_theta[take_boundary]
+        value[rows] = b_value[take_boundary]
+        at_zero[rows] = b_held[take_boundary]
+        deficiency[rows] = near[check][take_boundary]
+        slopes[rows] = face_slopes[take_boundary]
+        objective.warm[rows] = sub.warm[take_boundary]
+        needs[check[take_boundary]] = False
+        needs[check[~take_boundary & ~keep_interior]] = True
+    return BatchFit(theta, value, at_zero, deficiency, slopes, needs, iterations, N)
 
 
 def _floored(layout: ThetaLayout, start: np.ndarray) -> np.ndarray:
