@@ -62,8 +62,8 @@ from crs_study.benchmarks import Figure, median_seconds
 from crs_study.power_analysis.backends import open_backend
 
 AREA = "glmm"
-DESCRIPTION = ("the primary GLMM (maximal and intercepts) vs lme4, the glmm package and "
-               "statsmodels")
+DESCRIPTION = ("the primary GLMM (maximal and intercepts) and its bootstrap p vs lme4, the "
+               "glmm package and statsmodels")
 
 TARGET_SECONDS = 2.0
 #: The maximal model's fit of 40 participants x 400 trials (median, s).

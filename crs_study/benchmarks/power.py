@@ -52,7 +52,8 @@ from crs_study.power_analysis.study import cells_frame, decide_trials
 from crs_study.protocol import analysis_plan_path, load_protocol
 
 AREA = "power"
-DESCRIPTION = "power by simulation: default curve, per-study cost vs lme4, Dask scaling"
+DESCRIPTION = ("power by simulation: default curve, per-study cost vs lme4, a point with "
+               "the plan's test, Dask scaling")
 
 TARGET_CURVE_SECONDS = 60.0
 TARGET_LME4_RATIO = 100.0
