@@ -22,13 +22,14 @@ Targets:
 * ``crs-study analyze`` of 100 participants x 400 trials with the maximal model in at most
   5 s (baseline: loading the dataset);
 * the parametric bootstrap p of the condition effect with B = 1000 replicates on the 40 x 400
-  trials under the maximal model in at most 30 s of wall time on every core (two on the
-  machine the target was set for), run as ``analyze`` runs it: the observed fit pair, then
-  :meth:`~crs_study.analysis.primary_fit.PrimaryFits.bootstrap` with the shipped plan's seed
-  and sequential stopping rule on a process pool of one job per core, the pool's start-up
-  included. Beside it one lme4 ``glmer`` fit pair (full + reduced, from the same ``Rscript``
-  run as the whole test above), so the ratio reads "the bootstrap in the time lme4 takes for
-  N fit pairs"; without R, our own observed fit pair. ``--quick`` draws
+  trials under the maximal model in at most 30 s of wall time (one run) on every core (two
+  on the machine the target was set for), run as ``analyze`` runs it: the observed fit pair,
+  then :meth:`~crs_study.analysis.primary_fit.PrimaryFits.bootstrap` with the shipped plan's
+  seed and sequential stopping rule (which does not stop here: no replicate reaches the LR of
+  an effect this size, so all B are refitted) on a process pool of one job per core, the
+  pool's start-up included. Beside it one lme4 ``glmer`` fit pair (full + reduced, from the
+  same ``Rscript`` run as the whole test above), so the ratio reads "the bootstrap in the
+  time lme4 takes for N fit pairs"; without R, our own observed fit pair. ``--quick`` draws
   :data:`BOOTSTRAP_REPLICATES` ``[0]`` replicates on the same data, target not judged.
 
 Beside them, for orientation: AGQ(25) and unpooled Laplace fits, and statsmodels'
