@@ -5,7 +5,8 @@ bootstrap to a thousand of one dataset's. :func:`fit_batch` maximises the Laplac
 log-likelihood (:class:`~crs_study.analysis.glmm_laplace.LaplaceLikelihood`, read through
 lme4's theta by a :class:`~crs_study.analysis.glmm_terms.ThetaLayout`) for every study of a
 batch by Newton's method: the exact gradient, the Hessian by forward differences of it
-(refreshed every ``REFRESH_EVERY`` iterations, BFGS updates between), a step-halving line
+(refreshed every ``REFRESH_EVERY`` iterations where the secant updates are slow, BFGS
+updates between), a step-halving line
 search, every study on its own and frozen once its gradient is below ``GRADIENT_TOL`` (far
 inside lme4's convergence check, ``2 max |g| < 2e-3``, and inside the ``2e-5`` that
 :mod:`crs_study.analysis.glmm_optimise` accepts). Theta is unconstrained, as there; the

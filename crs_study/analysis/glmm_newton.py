@@ -2,8 +2,9 @@
 
 :func:`newton` maximises an objective of ``S`` parameter vectors (a batch of studies, or one
 fit) over the coordinates not held: the exact gradient, the Hessian by forward differences of
-it (refreshed every ``REFRESH_EVERY`` iterations, BFGS updates between: Nocedal & Wright
-2006, Numerical Optimization, eq. 6.19), the Newton step made an ascent step where the
+it (refreshed every ``REFRESH_EVERY`` iterations where the last step did not cut the
+gradient by ``FAST``, BFGS updates between: Nocedal & Wright 2006, Numerical Optimization,
+eq. 6.19), the Newton step made an ascent step where the
 Hessian is not negative definite (eigenvalues reflected and floored) and no longer than
 ``MAX_STEP``, a step-halving line search; each study frozen once its gradient is below
 ``GRADIENT_TOL``, so its answer never depends on the others.
