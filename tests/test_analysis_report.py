@@ -40,6 +40,15 @@ def _cells(n_participants, accuracy, repetitions=2, seed=0):
             for p in range(n_participants)}
 
 
+def _twenty_participants(path):
+    """A dataset of 20 participants, one repetition each: the plan's rule ("auto", the
+    parametric bootstrap below 20 participants) takes the chi2 p for it. The tests of where the
+    analysis writes, which plan it reads and what the command prints use it: with 3
+    participants the bootstrap's refits of the maximal GLMM cost seven times the analysis, for
+    a p they do not read."""
+    return dataset(path, n_participants=20, repetitions=1)
+
+
 @pytest.fixture(scope="module")
 def full_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("report")
@@ -156,7 +165,7 @@ def test_reanalysis_gives_identical_results(full_run, tmp_path):
 
 
 def test_default_output_is_a_bids_derivative_and_the_protocol_plan_is_used(tmp_path):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     result = analyze_dataset(root)
     out = root / "derivatives" / "crs-study"
     assert result.results_path == out / "results.json"
@@ -168,7 +177,7 @@ def test_default_output_is_a_bids_derivative_and_the_protocol_plan_is_used(tmp_p
 def test_the_shipped_plan_is_named_without_the_install_location(tmp_path, monkeypatch):
     # From a folder without analysis/, the shipped plan is used; it is named by its place in
     # the package, not the install location (which can name the user's home folder).
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     monkeypatch.chdir(tmp_path)
     result = analyze_dataset(root)
     assert result.results["plan"]["path"] == "crs_study/data/analysis/digit_identification.toml"
@@ -308,7 +317,7 @@ def test_format_p_never_prints_zero():
 # --- the command line -------------------------------------------------------------------------
 
 def test_cli_prints_headline_and_writes_files(tmp_path, capsys):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     plan = write_plan(tmp_path / "p.toml")
     assert main(["analyze", str(root), "--plan", str(plan), "--out", str(tmp_path / "o")]) == 0
     out = capsys.readouterr().out
