@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from analysis_fixtures import dataset, explicit_dataset, session_files, write_plan
+from analysis_fixtures import CHI2_PLAN, dataset, explicit_dataset, session_files, write_plan
 from scipy import stats
 
 from crs_study.analysis.headline import format_p, headline
@@ -43,9 +43,9 @@ def _cells(n_participants, accuracy, repetitions=2, seed=0):
 def _twenty_participants(path):
     """A dataset of 20 participants, one repetition each: the plan's rule ("auto", the
     parametric bootstrap below 20 participants) takes the chi2 p for it. The tests of where the
-    analysis writes, which plan it reads and what the command prints use it: with 3
-    participants the bootstrap's refits of the maximal GLMM cost seven times the analysis, for
-    a p they do not read."""
+    analysis writes, which plan it reads, the HTML report, what the command prints and how it
+    reports an edited trial file use it: with 3 participants the bootstrap's refits of the
+    maximal GLMM cost seven times the analysis, for a p they do not read."""
     return dataset(path, n_participants=20, repetitions=1)
 
 
@@ -186,7 +186,7 @@ def test_the_shipped_plan_is_named_without_the_install_location(tmp_path, monkey
 
 
 def test_html_report(tmp_path):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     plan = write_plan(tmp_path / "p.toml", '[plan]\nname = "h"\n[report]\nformat = "html"\n'
                       'charts = ["accuracy"]\n[confusion]\nbootstrap = 50\n')
     result = analyze([root], plan, tmp_path / "out")
@@ -198,7 +198,7 @@ def test_html_report(tmp_path):
 def test_psychometric_functions_when_a_level_varies(tmp_path):
     root = dataset(tmp_path / "ds", n_participants=4, repetitions=6, level_column="digit_height",
                    levels=(0.4, 0.6, 0.8, 1.0, 1.2), level_threshold=0.8, level_slope=8.0)
-    result = analyze([root], write_plan(tmp_path / "p.toml"), tmp_path / "out")
+    result = analyze([root], write_plan(tmp_path / "p.toml", CHI2_PLAN), tmp_path / "out")
     psychometric = result.results["psychometric"]
     assert psychometric["level_column"] == "digit_height" and not psychometric["skipped"]
     assert set(psychometric["fits"]) == set(CONDITIONS)
@@ -328,7 +328,7 @@ def test_cli_prints_headline_and_writes_files(tmp_path, capsys):
 
 
 def test_cli_tampering_is_loud_and_strict_fails(tmp_path, capsys):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     plan = write_plan(tmp_path / "p.toml")
     tsv, _ = session_files(root)[0]
     original = tsv.read_bytes()
