@@ -36,6 +36,26 @@ def tiny_protocol(directory: Path, name: str = "tiny.toml", *, digits=(1, 4, 7),
     return path
 
 
+def quick_analysis_protocol(directory: Path, **changes) -> Path:
+    """:func:`tiny_protocol` (``changes`` its options) whose analysis plan, written beside it,
+    is the pilot's with one random intercept per participant, for the tests of what the
+    analysis does with sessions (missing, interrupted, withdrawn) that read none of the GLMM.
+    The pilot's maximal model on a few participants of a tiny protocol leaves a flat
+    likelihood whose profile limits took half the CPU of every ``crs-study analyze``."""
+    text = shipped_file("analysis/pilot.toml").read_text(encoding="utf-8")
+    for key, value in (("random_effects", '["participant"]'), ("structure", '"intercepts"')):
+        text, count = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value}", text)
+        assert count == 1, key
+    plan = directory / "quick_plan.toml"
+    plan.write_text(text, encoding="utf-8")
+    protocol = tiny_protocol(directory, **changes)
+    text, count = re.subn(r"(?m)^analysis_plan\s*=.*$", f'analysis_plan = "{plan}"',
+                          protocol.read_text(encoding="utf-8"))
+    assert count == 1
+    protocol.write_text(text, encoding="utf-8")
+    return protocol
+
+
 def tiny_letter_protocol(directory: Path, symbols=("C", "L", "S"), study_id="tinyletters"
                          ) -> Path:
     """The shipped letter protocol made small: three letters once per condition, fast."""

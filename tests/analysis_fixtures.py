@@ -33,6 +33,10 @@ bootstrap = 200
 bootstrap = 20
 """
 
+#: FAST_PLAN with the primary p against chi2, for tests that do not read the p: the plan's
+#: rule ("auto") takes a parametric bootstrap of it below 20 participants.
+CHI2_PLAN = FAST_PLAN.replace("[primary]\n", '[primary]\np_value = "chi2"\n')
+
 
 def dataset(path: Path, **changes) -> Path:
     """A synthetic dataset (see :class:`SyntheticSpec`; ``changes`` override fields)."""

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import pytest
-from _session_helpers import tiny_protocol
+from _session_helpers import quick_analysis_protocol, tiny_protocol
 from analysis_fixtures import edit_sidecar
 
 from crs_study._files import sha256_bytes
@@ -60,7 +60,8 @@ def _kill_when_rows(command: list[str], tsv_glob: str, root: Path, rows: int) ->
 
 
 def test_a_killed_dry_run_is_interrupted_not_tampered(tmp_path):
-    protocol, dataset = tiny_protocol(tmp_path, repetitions=30), tmp_path / "ds"
+    # the GLMM is not read: the plan's random intercept per participant is enough
+    protocol, dataset = quick_analysis_protocol(tmp_path, repetitions=30), tmp_path / "ds"
     command = ["dry-run", protocol, "--participants", 1, "--out", dataset,
                "--responder", "random"]
     _kill_when_rows(command, "sub-*/ses-*/beh/*_beh.tsv", dataset, 25)

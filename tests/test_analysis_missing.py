@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from _session_helpers import tiny_protocol
+from _session_helpers import quick_analysis_protocol
 
 from crs_study.analysis.load import load_datasets
 from crs_study.dataset import SessionPaths
@@ -37,9 +37,11 @@ def crs_study(*args, timeout: float = 120):
 
 @pytest.fixture(scope="module")
 def three(tmp_path_factory) -> Path:
-    """A dry-run of three simulated participants, sim01..sim03 (copied by :func:`dataset`)."""
+    """A dry-run of three simulated participants, sim01..sim03 (copied by :func:`dataset`),
+    whose protocol names a plan with a random intercept per participant: these tests read
+    which sessions the analysis took and what it says of the others, never the GLMM."""
     folder = tmp_path_factory.mktemp("three")
-    done = crs_study("dry-run", tiny_protocol(folder), "--participants", 3, "--out",
+    done = crs_study("dry-run", quick_analysis_protocol(folder), "--participants", 3, "--out",
                      folder / "ds", "--responder", "random")
     assert done.returncode == 0, done.stderr
     return folder / "ds"

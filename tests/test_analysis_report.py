@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from analysis_fixtures import dataset, explicit_dataset, session_files, write_plan
+from analysis_fixtures import CHI2_PLAN, dataset, explicit_dataset, session_files, write_plan
 from scipy import stats
 
 from crs_study.analysis.headline import format_p, headline
@@ -38,6 +38,15 @@ def _cells(n_participants, accuracy, repetitions=2, seed=0):
     return {f"{p + 1:02d}": [(c, d, r, int(rng.random() < accuracy[c])) for c in accuracy
                             for d in range(10) for r in range(repetitions)]
             for p in range(n_participants)}
+
+
+def _twenty_participants(path):
+    """A dataset of 20 participants, one repetition each: the plan's rule ("auto", the
+    parametric bootstrap below 20 participants) takes the chi2 p for it. The tests of where the
+    analysis writes, which plan it reads, the HTML report, what the command prints and how it
+    reports an edited trial file use it: with 3 participants the bootstrap's refits of the
+    maximal GLMM cost seven times the analysis, for a p they do not read."""
+    return dataset(path, n_participants=20, repetitions=1)
 
 
 @pytest.fixture(scope="module")
@@ -156,7 +165,7 @@ def test_reanalysis_gives_identical_results(full_run, tmp_path):
 
 
 def test_default_output_is_a_bids_derivative_and_the_protocol_plan_is_used(tmp_path):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     result = analyze_dataset(root)
     out = root / "derivatives" / "crs-study"
     assert result.results_path == out / "results.json"
@@ -168,7 +177,7 @@ def test_default_output_is_a_bids_derivative_and_the_protocol_plan_is_used(tmp_p
 def test_the_shipped_plan_is_named_without_the_install_location(tmp_path, monkeypatch):
     # From a folder without analysis/, the shipped plan is used; it is named by its place in
     # the package, not the install location (which can name the user's home folder).
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     monkeypatch.chdir(tmp_path)
     result = analyze_dataset(root)
     assert result.results["plan"]["path"] == "crs_study/data/analysis/digit_identification.toml"
@@ -177,7 +186,7 @@ def test_the_shipped_plan_is_named_without_the_install_location(tmp_path, monkey
 
 
 def test_html_report(tmp_path):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     plan = write_plan(tmp_path / "p.toml", '[plan]\nname = "h"\n[report]\nformat = "html"\n'
                       'charts = ["accuracy"]\n[confusion]\nbootstrap = 50\n')
     result = analyze([root], plan, tmp_path / "out")
@@ -189,7 +198,7 @@ def test_html_report(tmp_path):
 def test_psychometric_functions_when_a_level_varies(tmp_path):
     root = dataset(tmp_path / "ds", n_participants=4, repetitions=6, level_column="digit_height",
                    levels=(0.4, 0.6, 0.8, 1.0, 1.2), level_threshold=0.8, level_slope=8.0)
-    result = analyze([root], write_plan(tmp_path / "p.toml"), tmp_path / "out")
+    result = analyze([root], write_plan(tmp_path / "p.toml", CHI2_PLAN), tmp_path / "out")
     psychometric = result.results["psychometric"]
     assert psychometric["level_column"] == "digit_height" and not psychometric["skipped"]
     assert set(psychometric["fits"]) == set(CONDITIONS)
@@ -308,7 +317,7 @@ def test_format_p_never_prints_zero():
 # --- the command line -------------------------------------------------------------------------
 
 def test_cli_prints_headline_and_writes_files(tmp_path, capsys):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     plan = write_plan(tmp_path / "p.toml")
     assert main(["analyze", str(root), "--plan", str(plan), "--out", str(tmp_path / "o")]) == 0
     out = capsys.readouterr().out
@@ -319,7 +328,7 @@ def test_cli_prints_headline_and_writes_files(tmp_path, capsys):
 
 
 def test_cli_tampering_is_loud_and_strict_fails(tmp_path, capsys):
-    root = dataset(tmp_path / "ds", n_participants=3, repetitions=2)
+    root = _twenty_participants(tmp_path / "ds")
     plan = write_plan(tmp_path / "p.toml")
     tsv, _ = session_files(root)[0]
     original = tsv.read_bytes()

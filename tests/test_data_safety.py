@@ -14,7 +14,14 @@ import time
 from pathlib import Path
 
 import pytest
-from _session_helpers import PauseAt, record_consent, start_command, tiny_protocol, wait_for_stderr
+from _session_helpers import (
+    PauseAt,
+    quick_analysis_protocol,
+    record_consent,
+    start_command,
+    tiny_protocol,
+    wait_for_stderr,
+)
 
 from crs_study.cli import main
 from crs_study.consent import Register
@@ -161,7 +168,8 @@ def test_simulated_labels_are_their_own_space(tmp_path):
 # -- 4. copies outside the dataset -------------------------------------------------------------
 
 def test_withdrawal_reaches_analysis_outputs_written_elsewhere(tmp_path):
-    protocol, dataset, out = tiny_protocol(tmp_path, repetitions=2), tmp_path / "ds", \
+    # the GLMM is not read: the plan's random intercept per participant is enough
+    protocol, dataset, out = quick_analysis_protocol(tmp_path, repetitions=2), tmp_path / "ds", \
         tmp_path / "elsewhere" / "results"
     done = crs_study("dry-run", protocol, "--participants", 3, "--out", dataset,
                      "--responder", "random")
