@@ -31,3 +31,16 @@ def test_the_figures_and_their_baselines(monkeypatch):
     dask, busy = rest[-2:]
     assert dask.baseline_name == "1 worker" and dask.target == "ratio >= 1.6"
     assert 0 < busy.value <= 2.2 and busy.baseline == 2.0
+
+
+@pytest.mark.slow
+def test_the_point_with_the_plans_test_is_set_against_the_same_point_with_chi2():
+    """Figure 3 in its quick form (a few studies, target printed, not judged): at 12
+    participants the shipped plan's test is the bootstrap-calibrated one, its baseline the
+    same point with the chi2 test."""
+    point = bench.point_figure(quick=True)
+    assert point.name.startswith(f"one point, N = 12 x {bench.POINT_STUDIES[0]} studies, "
+                                 "the plan's test (p_value = 'auto': bootstrap-calibrated")
+    assert point.baseline_name == "the same point, p_value = 'chi2'"
+    assert point.value > 0 and point.baseline > 0
+    assert point.target == "value <= 30 s at 1000 studies" and point.passed is None

@@ -214,11 +214,12 @@ def run_bootstrap_task(task: BootstrapTask) -> BootstrapChunk:
     def tiled(matrix):
         return None if matrix is None else np.tile(matrix, (S, 1, 1))
 
-    full = fit_batch(rows.objective(Y), np.tile(task.full_start, (S, 1)),
+    full_objective = rows.objective(Y)
+    full = fit_batch(full_objective, full_objective.moment_starts(),
                      tiled(task.full_curvature))
     drop_index = rows.columns.index(task.dropped)
     reduced = fit_batch(rows.objective(Y, task.dropped),
-                        np.tile(np.delete(task.full_start, drop_index), (S, 1)),
+                        np.delete(full.theta, drop_index, axis=1),
                         tiled(task.reduced_curvature))
     statistics = 2.0 * (full.value - reduced.value)
     unsettled = np.flatnonzero(full.needs_reference | reduced.needs_reference)

@@ -149,10 +149,12 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     -----
     Maximises the Laplace or AGQ marginal log-likelihood jointly over ``(beta, theta)``
     (lme4's second optimisation stage; theta the entries of each term's Cholesky factor, as
-    lme4's) with scipy (TNC, then L-BFGS-B if needed), unconstrained, from ``beta = 0`` and
-    every factor the identity; a covariance near the boundary (an SD near 0, a correlated
-    term near losing rank) is put on it only when the variance-scale slope there says the
-    likelihood falls inward, otherwise the fit restarts from interior points
+    lme4's) by Newton's method (scipy's TNC, then L-BFGS-B, where it stops short),
+    unconstrained, from the data's empirical logits and moments
+    (:func:`~.glmm_start.moment_start`; lme4 starts at ``beta = 0`` and every factor the
+    identity, one intercept from ``beta = 0``, SD 1); a covariance near the boundary (an SD
+    near 0, a correlated term near losing rank) is put on it only when the variance-scale
+    slope there says the likelihood falls inward, otherwise the fit restarts from interior points
     (:func:`~.glmm_optimise.maximise`). Standard errors: the inverse of the observed
     information of that objective, fixed-effects block (lme4's ``calc.vcov.hess``), the
     Hessian by central differences of the exact gradient.

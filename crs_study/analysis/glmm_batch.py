@@ -5,7 +5,8 @@ bootstrap to a thousand of one dataset's. :func:`fit_batch` maximises the Laplac
 log-likelihood (:class:`~crs_study.analysis.glmm_laplace.LaplaceLikelihood`, read through
 lme4's theta by a :class:`~crs_study.analysis.glmm_terms.ThetaLayout`) for every study of a
 batch by Newton's method: the exact gradient, the Hessian by forward differences of it
-(refreshed every ``REFRESH_EVERY`` iterations, BFGS updates between), a step-halving line
+(refreshed every ``REFRESH_EVERY`` iterations where the secant updates are slow, BFGS
+updates between), a step-halving line
 search, every study on its own and frozen once its gradient is below ``GRADIENT_TOL`` (far
 inside lme4's convergence check, ``2 max |g| < 2e-3``, and inside the ``2e-5`` that
 :mod:`crs_study.analysis.glmm_optimise` accepts). Theta is unconstrained, as there; the
@@ -33,6 +34,7 @@ from crs_study.analysis.glmm_fit import _variances, describe_face
 from crs_study.analysis.glmm_laplace import LaplaceLikelihood
 from crs_study.analysis.glmm_newton import newton
 from crs_study.analysis.glmm_optimise import NEAR_ZERO, SLOPE_TOLERANCE, Face
+from crs_study.analysis.glmm_start import moment_start
 from crs_study.analysis.glmm_terms import (
     ThetaLayout,
     loading,
@@ -70,6 +72,13 @@ class BatchObjective:
 
     def subset(self, index) -> BatchObjective:
         return BatchObjective(self.likelihood.subset(index), self.layout)
+
+    def moment_starts(self) -> np.ndarray:
+        """Each study's start read off its own data (:func:`~.glmm_start.moment_start`),
+        (S, n): nearer each study's maximum than any one start for all of them."""
+        lik = self.likelihood
+        return np.array([moment_start(lik.X, y, lik.m, lik.terms, self.layout)
+                         for y in lik.Y])
 
     def normalised(self, theta: np.ndarray) -> np.ndarray:
         return self.layout.normalised(theta)

@@ -232,11 +232,13 @@ class CrossedTerms:
         self.likelihood = LaplaceLikelihood(data.X, data.trials, data.successes, rows)
         self.layout = ThetaLayout(data.X.shape[1], terms)
         self.n_variance = self.layout.n_theta
+        self._last = None     # (theta, value, gradient or None) of the last evaluation
 
     def loadings_loglik(self, beta: np.ndarray, loadings: list[np.ndarray],
                         grad: bool = True):
         """Value, ``dl/dbeta`` and every ``dl/dT_k`` (r_k, r_k) at loadings given directly
         (any real matrices: the boundary checks use ones outside theta's pattern)."""
+        self._last = None     # the warm start moves to these loadings' modes
         value, g_beta, g_loadings = self.likelihood.evaluate(
             np.asarray(beta, float)[None], [np.asarray(T, float)[None] for T in loadings], grad)
         if not grad:
@@ -244,10 +246,19 @@ class CrossedTerms:
         return float(value[0]), g_beta[0], [g[0] for g in g_loadings]
 
     def loglik(self, theta: np.ndarray, grad: bool = True):
+        """The value (and gradient) at ``theta``; asked again at the point of the last
+        evaluation (a fit reads its optimum several times), the numbers of that one."""
         layout = self.layout
-        theta = np.asarray(theta, dtype=float)
+        theta = np.array(theta, dtype=float)
+        last = self._last
+        if last is not None and np.array_equal(last[0], theta) and (last[2] is not None
+                                                                    or not grad):
+            return last[1] if not grad else (last[1], last[2].copy())
         value, g_beta, g_loadings = self.likelihood.evaluate(
             theta[None, :layout.n_fixed], layout.loadings(theta[None]), grad)
+        gradient = (np.r_[g_beta[0], layout.theta_gradient(g_loadings)[0]] if grad
+                    else None)
+        self._last = (theta, float(value[0]), gradient)
         if not grad:
             return float(value[0])
-        return float(value[0]), np.r_[g_beta[0], layout.theta_gradient(g_loadings)[0]]
+        return float(value[0]), gradient.copy()

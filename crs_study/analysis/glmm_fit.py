@@ -11,6 +11,7 @@ from scipy import optimize, stats
 from crs_study.analysis.glmm_newton import THETA_CAP
 from crs_study.analysis.glmm_optimise import Optimum, at_cap, boundary_failures, maximise
 from crs_study.analysis.glmm_result import BoundaryFace, FitState, GlmmResult
+from crs_study.analysis.glmm_start import moment_start
 from crs_study.analysis.glmm_terms import INTERCEPT, covariance, sd_and_correlation
 
 _CONVERGED_GRADIENT = 2e-3  # lme4's check.conv.grad tolerance (on the deviance scale)
@@ -37,7 +38,8 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
              notes: list[str]) -> GlmmResult:
     """Maximise the (penalised) marginal log-likelihood and assemble the result.
 
-    From ``beta = 0`` and every loading the identity (lme4's start), by
+    From the data's empirical logits and moments (:func:`~.glmm_start.moment_start`; a
+    single intercept from ``beta = 0`` and SD 1), by
     :func:`~.glmm_optimise.maximise`: theta unconstrained, a boundary (an SD at 0, a
     correlated term of reduced rank) taken only when its variance-scale slope says the
     likelihood falls inward. ``converged`` is true when the gradient over the parameters not
@@ -48,8 +50,11 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     """
     n_fixed = problem.n_fixed
     layout = getattr(problem.model, "layout", None)
-    theta_start = layout.start() if layout is not None else np.ones(problem.model.n_variance)
-    start = np.r_[np.zeros(n_fixed), theta_start]
+    if layout is not None:
+        lik = problem.model.likelihood
+        start = moment_start(lik.X, lik.Y[0], lik.m, lik.terms, layout)
+    else:
+        start = np.r_[np.zeros(n_fixed), np.ones(problem.model.n_variance)]
     opt = maximise(problem, start)
     theta, at_zero = opt.theta, opt.at_zero
     failed = boundary_failures(opt)

@@ -202,6 +202,7 @@ class LaplaceLikelihood:
             self.rest_blocks.append((k, slice(position, position + t.levels * t.size)))
             position += t.levels * t.size
         self.q_rest = position
+        self.rest_rows, self.rest_cols, self.rest_source = self._rest_positions()
         self.q = self.q_large + self.q_rest
         rL, nL, qR = self.r_large, self.n_large, self.q_rest
         large_pos = big.codes[:, None] * rL + np.arange(rL)                  # (n, rL)
@@ -217,6 +218,22 @@ class LaplaceLikelihood:
             self.B_sums = _outer_sums(n, large_pos, big.Z, rest_pos, rest_z, qR, nL * rL * qR)
             self.C_sums = _outer_sums(n, rest_pos, rest_z, rest_pos, rest_z, qR, qR * qR)
         self.u = np.zeros((len(self.Y), self.q))
+
+    def _rest_positions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where each rest loading's entries sit in ``Lambda_R`` (rows, columns) and which
+        entry of the terms' flattened loadings each is."""
+        rows, cols, source, offset = [], [], [], 0
+        for k, cut in self.rest_blocks:
+            t = self.terms[k]
+            level, i, j = np.meshgrid(np.arange(t.levels), np.arange(t.size),
+                                      np.arange(t.size), indexing="ij")
+            rows.append((cut.start + level * t.size + i).ravel())
+            cols.append((cut.start + level * t.size + j).ravel())
+            source.append((offset + i * t.size + j).ravel())
+            offset += t.size * t.size
+        if not rows:
+            return (np.zeros(0, dtype=int),) * 3
+        return np.concatenate(rows), np.concatenate(cols), np.concatenate(source)
 
     @property
     def n_studies(self) -> int:
@@ -236,26 +253,14 @@ class LaplaceLikelihood:
         return v[:, :self.q_large].reshape(len(v), self.n_large, self.r_large), \
             v[:, self.q_large:]
 
-    def _rest_apply(self, M: np.ndarray, loadings, side: str, transpose: bool = False):
-        """``M`` with each rest term's block multiplied by its loading: on the right of the
-        last axis (``side = "right"``: ``M T``) or on the left of axis 1 (``"left"``:
-        ``T' M``, the transpose of each block's loading when ``transpose``)."""
-        out = np.empty_like(M) if side == "right" else np.empty(M.shape)
-        for k, cut in self.rest_blocks:
-            T = loadings[k]
-            t = self.terms[k]
-            if side == "right":
-                block = M[..., cut].reshape(M.shape[:-1] + (t.levels, t.size))
-                T_ = np.swapaxes(T, 1, 2) if transpose else T
-                T_ = T_.reshape((len(T),) + (1,) * (block.ndim - 3) + T.shape[1:])
-                out[..., cut] = _mm(block, T_).reshape(M.shape[:-1] + (-1,))
-            else:
-                block = M[:, cut].reshape((len(M), t.levels, t.size) + M.shape[2:])
-                T_ = np.swapaxes(T, 1, 2) if transpose else T
-                moved = np.moveaxis(block, 2, -1)                      # (S, Lk, ..., rk)
-                moved = _mm(moved, T_.reshape((len(T),) + (1,) * (moved.ndim - 3)
-                                              + (t.size, t.size)))
-                out[:, cut] = np.moveaxis(moved, -1, 2).reshape(out[:, cut].shape)
+    def _rest_matrix(self, loadings) -> np.ndarray:
+        """``Lambda_R`` (S, qR, qR): the rest terms' loadings, each repeated along the
+        diagonal once per level. One dense product with it applies every rest loading at
+        once: a BLAS call on a small matrix costs less than a loop over terms and levels."""
+        S = len(loadings[self.large])
+        out = np.zeros((S, self.q_rest, self.q_rest))
+        values = np.concatenate([loadings[k].reshape(S, -1) for k in self.rest], axis=1)
+        out[:, self.rest_rows, self.rest_cols] = values[:, self.rest_source]
         return out
 
     def _effects(self, u: np.ndarray, loadings) -> tuple[np.ndarray, np.ndarray]:
@@ -264,7 +269,7 @@ class LaplaceLikelihood:
         bL = _mm(uL, np.swapaxes(loadings[self.large], 1, 2)).reshape(len(u), -1)
         if not self.q_rest:
             return bL, uR
-        return bL, self._rest_apply(uR, loadings, "right", transpose=True)
+        return bL, (self._rest_matrix(loadings) @ uR[:, :, None])[:, :, 0]
 
     def _linear(self, offset, u, loadings) -> np.ndarray:
         """``X beta + Z Lambda u`` per row (S, n)."""
@@ -279,7 +284,7 @@ class LaplaceLikelihood:
         gL = _mm(gL, loadings[self.large]).reshape(S, -1)
         if not self.q_rest:
             return gL
-        gR = self._rest_apply(self.rest_sums.to_bins(v), loadings, "right")
+        gR = (self.rest_sums.to_bins(v)[:, None, :] @ self._rest_matrix(loadings))[:, 0]
         return np.concatenate([gL, gR], axis=1)
 
     def _h(self, Y, offset, u, loadings) -> np.ndarray:
@@ -397,11 +402,11 @@ class _Factor:
             return
         self.WB = lik.B_sums.to_bins(w).reshape(S, nL, rL, qR)
         self.BL = _mm(TLt, self.WB)                                       # T_L' sum w zL zR'
-        B = lik._rest_apply(self.BL.reshape(S, nL * rL, qR), loadings, "right").reshape(
-            S, nL, rL, qR)
+        self.LR = LR = lik._rest_matrix(loadings)                        # Lambda_R
+        B = (self.BL.reshape(S, nL * rL, qR) @ LR).reshape(S, nL, rL, qR)
         self.WC = lik.C_sums.to_bins(w).reshape(S, qR, qR)
-        C = lik._rest_apply(lik._rest_apply(self.WC, loadings, "right"), loadings, "left")
-        C = C + np.eye(qR)
+        self.WC_LR = self.WC @ LR
+        C = np.swapaxes(LR, 1, 2) @ self.WC_LR + np.eye(qR)
         self.E = _mm(self.A_inv, B)                                        # (S, nL, rL, qR)
         schur = C - np.swapaxes(B.reshape(S, nL * rL, qR), 1, 2) @ self.E.reshape(
             S, nL * rL, qR)
@@ -445,10 +450,9 @@ class _Factor:
         if self.E is None:
             return d
         nL, rL, qR = lik.n_large, lik.r_large, lik.q_rest
-        K_LR = -lik._rest_apply(_mm(TL, self.F).reshape(S, nL * rL, qR), loadings, "right",
-                                transpose=True)
-        K_RR = lik._rest_apply(lik._rest_apply(self.S_inv, loadings, "right", transpose=True),
-                               loadings, "left", transpose=True)
+        LRt = np.swapaxes(self.LR, 1, 2)
+        K_LR = -(_mm(TL, self.F).reshape(S, nL * rL, qR) @ LRt)
+        K_RR = self.LR @ self.S_inv @ LRt
         return (d + 2.0 * lik.B_sums.to_rows(K_LR.reshape(S, -1))
                 + lik.C_sums.to_rows(K_RR.reshape(S, -1)))
 
@@ -464,11 +468,10 @@ class _Factor:
             out[lik.large] = large
             return out
         nL, rL, qR = lik.n_large, lik.r_large, lik.q_rest
-        WBT = lik._rest_apply(self.WB.reshape(S, nL * rL, qR), loadings, "right").reshape(
-            S, nL, rL, qR)
+        WBT = (self.WB.reshape(S, nL * rL, qR) @ self.LR).reshape(S, nL, rL, qR)
         out[lik.large] = large - _outer_contract(WBT, self.F).sum(axis=1)
         # rest: W_RR T_R S^-1 + W_RL T_L P_LR, its diagonal blocks per term
-        M = (lik._rest_apply(self.WC, loadings, "right") @ self.S_inv
+        M = (self.WC_LR @ self.S_inv
              - np.swapaxes(self.BL.reshape(S, nL * rL, qR), 1, 2)
              @ self.F.reshape(S, nL * rL, qR))
         for k, cut in lik.rest_blocks:

@@ -2,8 +2,9 @@
 
 :func:`newton` maximises an objective of ``S`` parameter vectors (a batch of studies, or one
 fit) over the coordinates not held: the exact gradient, the Hessian by forward differences of
-it (refreshed every ``REFRESH_EVERY`` iterations, BFGS updates between: Nocedal & Wright
-2006, Numerical Optimization, eq. 6.19), the Newton step made an ascent step where the
+it (refreshed every ``REFRESH_EVERY`` iterations where the last step did not cut the
+gradient by ``FAST``, BFGS updates between: Nocedal & Wright 2006, Numerical Optimization,
+eq. 6.19), the Newton step made an ascent step where the
 Hessian is not negative definite (eigenvalues reflected and floored) and no longer than
 ``MAX_STEP``, a step-halving line search; each study frozen once its gradient is below
 ``GRADIENT_TOL``, so its answer never depends on the others.
@@ -24,6 +25,10 @@ MAX_ITERATIONS = 40
 #: The Hessian is taken afresh by differences every this many iterations (BFGS between):
 #: near a boundary (l ~ a sigma^2 + b sigma^4) the secant updates alone converge slowly.
 REFRESH_EVERY = 4
+#: ... unless the last step cut the largest gradient entry to this share of itself or less:
+#: the secant updates are then converging superlinearly, and a fresh matrix costs an
+#: evaluation per parameter for nothing.
+FAST = 0.1
 #: Longest step in any coordinate (log-odds or SD units) in one iteration.
 MAX_STEP = 1.0
 #: Largest share of its size a diagonal loading may lose in one step (never its sign).
@@ -44,7 +49,7 @@ THETA_CAP = 10.0
 
 
 def newton(objective, theta0: np.ndarray, held: np.ndarray,
-            N0: np.ndarray | None = None):
+            N0: np.ndarray | None = None, face_sd: float | None = None):
     """Maxima over the free coordinates (``~held``) of every study.
 
     The first step is Newton's with the Hessian by forward differences of the exact
@@ -54,6 +59,12 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     negative Hessian known to be near (a related model's), replaces the first differences.
     Returns ``(theta, value, converged, iterations, N)`` with ``N`` each study's last
     matrix; ``objective.warm`` holds the conditional modes at ``theta``.
+
+    ``face_sd``: a study whose step was shortened short of zero (:func:`_short_of_zero`) and
+    left a diagonal loading below ``face_sd`` stops there, not converged. Its maximum is on
+    that face or near it, which Newton's method approaches only geometrically (each step
+    ``TO_ZERO`` of the way), every other coordinate's step shortened with it; the caller
+    decides on the face, where the problem is regular.
     """
     S, n = theta0.shape
     free = ~held
@@ -67,6 +78,7 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     iterations = np.zeros(S, dtype=int)
     N = None if N0 is None else _held_out(N0.copy(), free)
     N_last = np.zeros((S, n, n))
+    fast = np.zeros(S, dtype=bool)      # the last step cut the gradient by FAST or more
     active = np.arange(S)
     sub = objective.subset(active)
     for iteration in range(MAX_ITERATIONS):
@@ -90,8 +102,13 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
             break
         pinned = pinned[keep]
         iterations[active] += 1
-        if N is None or (iteration and iteration % REFRESH_EVERY == 0):
+        if N is None:
             N = _negative_hessian(sub, th, ga, free[active])
+        elif iteration and iteration % REFRESH_EVERY == 0:
+            rows = np.flatnonzero(~fast[active])     # the secant updates are not converging
+            if len(rows):
+                N[rows] = _negative_hessian(sub.subset(rows), th[rows], ga[rows],
+                                            free[active][rows])
         elif iteration == 0:                # N0 given: differences only where it is unusable
             unusable = np.linalg.eigvalsh(N)[:, 0] <= 0
             if unusable.any():
@@ -103,8 +120,9 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
         # out of N), not the full step clipped: clipping leaves a direction that is no
         # longer Newton's and the iteration crawls along the cap
         step = _solve(_held_out(N.copy(), moving) if pinned.any() else N, ga, moving)
+        shortened = np.zeros(len(active), dtype=bool)
         if diagonal is not None:
-            step = _short_of_zero(step, th, diagonal)
+            step, shortened = _short_of_zero(step, th, diagonal)
         if capped is not None:
             step = np.where(capped & moving, np.clip(th + step, -THETA_CAP, THETA_CAP) - th,
                             step)
@@ -113,12 +131,17 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
         N = _bfgs(N, th_new - th, ga - g_new, ok)
         theta[active] = np.where(ok[:, None], th_new, th)
         value[active] = np.where(ok, v_new, v)
+        fast[active] = ok & (np.max(np.abs(g_new), axis=1)
+                             < FAST * np.max(np.abs(ga), axis=1))
         g[active] = np.where(ok[:, None], g_new, ga)
-        if not ok.all():                       # no ascent along the step: stalled
-            objective.warm[active[~ok]] = sub.warm[~ok]
-            N_last[active[~ok]] = N[~ok]
-            active, N = active[ok], N[ok]
-            sub = sub.subset(np.flatnonzero(ok))
+        go_on = ok.copy()
+        if face_sd is not None and diagonal is not None:
+            go_on &= ~(shortened & (np.abs(th_new[:, diagonal]) < face_sd).any(axis=1))
+        if not go_on.all():                    # stalled, or stopped at a face
+            objective.warm[active[~go_on]] = sub.warm[~go_on]
+            N_last[active[~go_on]] = N[~go_on]
+            active, N = active[go_on], N[go_on]
+            sub = sub.subset(np.flatnonzero(go_on))
     else:
         objective.warm[active] = sub.warm
         if N is not None:
@@ -167,19 +190,21 @@ def _solve(N: np.ndarray, g: np.ndarray, free: np.ndarray) -> np.ndarray:
     return step * np.minimum(1.0, MAX_STEP / np.maximum(longest, 1e-300))
 
 
-def _short_of_zero(step: np.ndarray, theta: np.ndarray, diagonal: np.ndarray) -> np.ndarray:
+def _short_of_zero(step: np.ndarray, theta: np.ndarray, diagonal: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """``step`` shortened so that no diagonal loading loses more than ``TO_ZERO`` of its size
     or changes sign (the interior-point "fraction to the boundary" rule: Nocedal & Wright
     2006, eq. 16.66). The likelihood is even in a column's sign, so a diagonal that crosses
     0 lands on the mirror image of the same model, and at 0 itself its gradient vanishes:
     crossing costs iterations and gains nothing. A boundary optimum is still approached
-    geometrically, and the boundary is decided on its face."""
+    geometrically, and the boundary is decided on its face. Returns the step and where it
+    was shortened."""
     th, st = theta[:, diagonal], step[:, diagonal]
     toward = (th != 0.0) & (th * st < 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         room = np.where(toward, TO_ZERO * np.abs(th) / np.abs(st), np.inf)
     t = np.minimum(1.0, room.min(axis=1, initial=np.inf))
-    return step * t[:, None]
+    return step * t[:, None], t < 1.0
 
 
 def _bfgs(N: np.ndarray, s: np.ndarray, y: np.ndarray, ok: np.ndarray) -> np.ndarray:

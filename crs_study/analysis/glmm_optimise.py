@@ -102,6 +102,7 @@ class Optimum:
     restarts: int = 0
     message: str = ""
     settled: bool = True     # False: a local fit stopped short near a face, not yet decided
+    curvature: np.ndarray | None = None   # an unsettled end's negative Hessian (Newton's)
 
     @property
     def at_zero(self) -> dict[int, float]:
@@ -207,8 +208,9 @@ def local_fit(problem, start: np.ndarray, held: dict[int, float],
     mask = np.zeros(len(theta0), dtype=bool)
     for i, value in held.items():
         theta0[i], mask[i] = value, True
-    theta, value, converged, iterations, _ = newton(
-        single, theta0[None], mask[None], None if curvature is None else curvature[None])
+    theta, value, converged, iterations, N = newton(
+        single, theta0[None], mask[None], None if curvature is None else curvature[None],
+        face_sd=NEAR_ZERO if stop_near_face else None)
     if converged[0] and np.isfinite(value[0]):
         value = problem.objective(theta[0], grad=False)
         return Optimum(theta[0], float(value), [], single.calls + 1, int(iterations[0]), 0,
@@ -216,7 +218,7 @@ def local_fit(problem, start: np.ndarray, held: dict[int, float],
     if stop_near_face and np.isfinite(value[0]) and _faces_near(problem, theta[0], held):
         value = problem.objective(theta[0], grad=False)
         return Optimum(theta[0], float(value), [], single.calls + 1, int(iterations[0]), 0,
-                       "Newton: stopped near a boundary", settled=False)
+                       "Newton: stopped near a boundary", settled=False, curvature=N[0])
     fit = _scipy_fit(problem, start, held, methods)
     fit.evaluations += single.calls
     return fit
@@ -392,7 +394,7 @@ def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
             break
         on_face = {i: 0.0 for face in near for i in face.held}
         boundary = local_fit(problem, _on_face(problem, best.theta, near),
-                             {**fixed, **on_face}, methods)
+                             {**fixed, **on_face}, methods, best.curvature)
         evaluations += boundary.evaluations
         iterations += boundary.iterations
         deeper = {face.block for face in near}

@@ -1,4 +1,4 @@
-"""Bench area ``power``: three speed figures of power by simulation, each against a baseline
+"""Bench area ``power``: four speed figures of power by simulation, each against a baseline
 of the same run.
 
 1. The default curve (the shipped protocol, the simulated observer, 10 sample sizes 4..40 x
@@ -11,18 +11,27 @@ of the same run.
    the full and the reduced ``glmer``, timed inside ``Rscript`` (printed beside ours; the
    aggregated ``cbind`` form, kinder to lme4, as a second figure). Without ``Rscript`` and
    lme4 the figure says so.
-3. A Dask ``LocalCluster`` on loopback with 2 workers at least 1.6x the throughput of the same
+3. One point of the curve with the plan's test in at most 30 s of wall time on every core (two
+   on the machine the target was set for): the shipped protocol and plan at
+   :data:`POINT_PARTICIPANTS` participants, where the plan's ``p_value = "auto"`` is the
+   bootstrap-calibrated test (each study's LR referred to as many null studies of the point:
+   :func:`~crs_study.power_analysis.study.calibrated_pvalues`), 1000 studies; beside it the
+   same point and studies with the plan's ``p_value = "chi2"`` (no null studies), so the ratio
+   is the cost of calibration. Both are ``power`` calls with ``jobs`` = the cores, the pool's
+   start-up included, the model of figure 2.
+4. A Dask ``LocalCluster`` on loopback with 2 workers at least 1.6x the throughput of the same
    cluster with 1 worker (the same studies; cluster start-up not timed, and given time and
    retries on a busy machine: :func:`~crs_study.power_analysis.backends.local_cluster`).
 
-``--quick`` runs each on two sample sizes (:data:`QUICK_SIZES`), a few studies and few
-observer noise draws: a check that every figure runs, in well under a minute on two cores (no
-targets judged for 1 and 2; the plan's maximal model on four participants costs about a
-second a study with the bootstrap's null studies).
+``--quick`` runs each on two sample sizes (:data:`QUICK_SIZES`; figure 3 on its one point), a
+few studies and few observer noise draws: a check that every figure runs, in well under a
+minute on two cores (no target judged for 1 to 3, figure 3's printed; the plan's maximal
+model on four participants costs about a second a study with the bootstrap's null studies).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -32,20 +41,29 @@ from pathlib import Path
 
 import numpy as np
 
+from crs_study.analysis.plan import default_plan_path, load_plan
 from crs_study.benchmarks import Figure
+from crs_study.paths import resolve_protocol
 from crs_study.power_analysis import model_from_parameters, power
 from crs_study.power_analysis.backends import local_cluster
 from crs_study.power_analysis.design import design_from_protocol
 from crs_study.power_analysis.simulate import simulate_studies
 from crs_study.power_analysis.study import cells_frame, decide_trials
+from crs_study.protocol import analysis_plan_path, load_protocol
 
 AREA = "power"
-DESCRIPTION = "power by simulation: default curve, per-study cost vs lme4, Dask scaling"
+DESCRIPTION = ("power by simulation: default curve, per-study cost vs lme4, a point with "
+               "the plan's test, Dask scaling")
 
 TARGET_CURVE_SECONDS = 60.0
 TARGET_LME4_RATIO = 100.0
 TARGET_DASK_RATIO = 1.6
-#: Figures 2 and 3 use given numbers near the observer's predictions for the shipped
+#: Figure 3: wall seconds of one point of 1000 studies with the plan's test.
+TARGET_POINT_SECONDS = 30.0
+#: Figure 3's point: a sample size tactile studies run, below the shipped plan's
+#: ``bootstrap_below`` (20), so its test is the bootstrap-calibrated one.
+POINT_PARTICIPANTS = 12
+#: Figures 2 to 4 use given numbers near the observer's predictions for the shipped
 #: protocol (45 % and 68 % correct, participant SD 0.42, digits' SD 0.29), so they time the
 #: fits alone.
 _OBSERVER_LIKE = {"pixel-only": 0.453, "crs": 0.676}
@@ -56,6 +74,7 @@ QUICK_DRAWS = 4
 #: Studies per point of each figure: (quick, full).
 CURVE_STUDIES = (8, 1000)
 PER_STUDY_STUDIES = (4, 200)
+POINT_STUDIES = (4, 1000)
 #: fit_primary's studies per size timed for figure 1's baseline: (quick, full).
 LOOP_STUDIES = (1, 10)
 #: Studies at N = 4 that warm the Dask workers before the timing: (quick, full).
@@ -104,6 +123,7 @@ cat(sprintf("per_study %.6f %d\n", total / n, n))
 def run(quick: bool) -> list[Figure]:
     figures = _curve(quick)
     figures += _per_study(quick)
+    figures.append(point_figure(quick))
     figures += _dask(quick)
     return figures
 
@@ -204,8 +224,32 @@ def _per_study(quick: bool) -> list[Figure]:
     return figures
 
 
+def point_figure(quick: bool) -> Figure:
+    """Figure 3: one point with the plan's test against the same point with chi2, wall time
+    on every core (module docstring)."""
+    protocol = load_protocol(resolve_protocol("digit_identification"))
+    plan = load_plan(analysis_plan_path(protocol) or default_plan_path())
+    chi2 = dataclasses.replace(plan, primary=dataclasses.replace(plan.primary, p_value="chi2"))
+    design = design_from_protocol(protocol, plan)
+    model = model_from_parameters(design, _OBSERVER_LIKE, participant_sd=0.42, digit_sd=0.29)
+    studies, jobs = POINT_STUDIES[not quick], os.cpu_count() or 1
+    seconds = []
+    for rule in (plan, chi2):
+        start = time.perf_counter()
+        power(protocol, model=model, plan=rule, participants=(POINT_PARTICIPANTS,),
+              studies=studies, jobs=jobs)
+        seconds.append(time.perf_counter() - start)
+    test = ("bootstrap-calibrated: + as many null studies"
+            if design.bootstrapped(POINT_PARTICIPANTS) else "chi2")
+    return Figure(AREA, f"one point, N = {POINT_PARTICIPANTS} x {studies} studies, the plan's "
+                        f"test (p_value = {plan.primary.p_value!r}: {test}), {jobs} jobs (wall)",
+                  seconds[0], "s", "the same point, p_value = 'chi2'", seconds[1],
+                  f"value <= {TARGET_POINT_SECONDS:g} s at {POINT_STUDIES[1]} studies",
+                  None if quick else seconds[0] <= TARGET_POINT_SECONDS)
+
+
 def _dask(quick: bool) -> list[Figure]:
-    """Figure 3: studies per second on a LocalCluster, 2 workers against 1."""
+    """Figure 4: studies per second on a LocalCluster, 2 workers against 1."""
     design = design_from_protocol("digit_identification")
     model = model_from_parameters(design, _OBSERVER_LIKE,
                                   participant_sd=0.42, digit_sd=0.29)

@@ -27,7 +27,6 @@ from crs_study.power_analysis.backends import open_backend
 from crs_study.protocol import emit_warnings, load_protocol
 from crs_study.session import dry_run
 
-
 #: Twenty simulated participants: the shipped plan's own rule then takes the chi2 LR p of the
 #: maximal model (the parametric bootstrap is its rule below twenty, where chi2 is liberal),
 #: the p lme4 gives for the same fits, in seconds; at twelve the demo's effect drew all

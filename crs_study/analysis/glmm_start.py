@@ -1,0 +1,98 @@
+"""A start for the GLMM's maximisation read off the data: empirical logits and moments.
+
+lme4 starts every loading at the identity (SDs 1, correlations 0) and ``beta`` at 0; from
+there Newton's method spends most of its iterations finding the region of the maximum. The
+rows here are pooled binomial cells (a participant, a symbol, a condition), so each carries
+an estimate of its own linear predictor, the empirical logit (Cox 1970, The Analysis of
+Binary Data, sec. 3.2; Gart & Zweifel 1967, Biometrika 54:181)::
+
+    e_i = log((y_i + 1/2) / (m_i - y_i + 1/2)),   v_i = 1 / (y_i + 1/2) + 1 / (m_i - y_i + 1/2)
+
+with ``v_i`` its sampling variance, each taken on the counts pooled as far as the quantity
+allows (the 1/2 shrinks a logit of few trials towards 0). By weighted least squares
+(weights ``1 / v_i``):
+
+* ``beta`` from the logits of the rows pooled by their fixed design ``x_i`` on ``X``;
+* for each term ``k`` and level ``l``, ``b_l`` from the residuals ``e - X beta`` of the
+  level's rows pooled by (``x_i``, ``z_ik``) (over the other terms' levels) on the term's
+  design ``Z_k``, with sampling covariance ``V_l = (Z_l' W Z_l)^-1``;
+* ``Sigma_k = cov_l(b_l) - mean_l(V_l)`` (the spread of the levels' coefficients less the
+  part their noise explains: the method of moments), diagonal for an uncorrelated term, its
+  eigenvalues floored at ``MIN_START_SD^2`` (a start on a boundary never leaves it), and
+  ``T_k`` its Cholesky factor.
+
+Only the start changes: the maximum is decided by the likelihood, and a term whose levels
+cannot be estimated this way (a level without every column's rows, too few levels) starts
+at lme4's identity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from crs_study.analysis.glmm_terms import ThetaLayout, theta_of
+
+#: Smallest SD (logit scale) of a start's loading: away from the boundary, where the
+#: gradient in a zero column vanishes whatever the data.
+MIN_START_SD = 0.1
+#: A level's coefficients enter the moments only when its design is this well conditioned.
+_MIN_RCOND = 1e-8
+
+
+def moment_start(X: np.ndarray, successes: np.ndarray, trials: np.ndarray, terms,
+                 layout: ThetaLayout) -> np.ndarray:
+    """``(beta, theta_1, ...)`` for pooled rows (module docstring). ``terms`` are the
+    likelihood's term rows (``codes``, ``levels``, ``Z``), in the layout's order."""
+    y, m = np.asarray(successes, float), np.asarray(trials, float)
+    rows, e, weight = _pooled_logits(X, y, m)
+    beta = _weighted_fit(rows, e, weight)
+    if beta is None:
+        return np.r_[np.zeros(X.shape[1]), layout.start()]
+    parts = [beta]
+    for term_rows, term in zip(terms, layout.terms, strict=True):
+        Z = term_rows.Z
+        r = Z.shape[1]
+        keys, e, weight = _pooled_logits(np.column_stack([term_rows.codes, Z, X]), y, m)
+        sigma = _level_moments(keys[:, 0].astype(int), term_rows.levels, keys[:, 1:1 + r],
+                               e - keys[:, 1 + r:] @ beta, weight)
+        if sigma is None:
+            parts.append(theta_of(term, np.eye(term.size)))
+            continue
+        if not term.correlated:
+            sigma = np.diag(np.diag(sigma))
+        values, vectors = np.linalg.eigh(sigma)
+        sigma = (vectors * np.maximum(values, MIN_START_SD ** 2)) @ vectors.T
+        parts.append(theta_of(term, np.linalg.cholesky(sigma)))
+    return np.concatenate(parts)
+
+
+def _pooled_logits(keys: np.ndarray, y: np.ndarray, m: np.ndarray):
+    """The distinct rows of ``keys``, each with the empirical logit of its pooled counts and
+    that logit's inverse sampling variance: pooled, a logit is less shrunk by the 1/2."""
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    y_, m_ = np.bincount(inverse, y), np.bincount(inverse, m)
+    e = np.log((y_ + 0.5) / (m_ - y_ + 0.5))
+    return unique, e, 1.0 / (1.0 / (y_ + 0.5) + 1.0 / (m_ - y_ + 0.5))
+
+
+def _weighted_fit(X: np.ndarray, e: np.ndarray, weight: np.ndarray) -> np.ndarray | None:
+    root = np.sqrt(weight)
+    coef, _, rank, _ = np.linalg.lstsq(X * root[:, None], e * root, rcond=None)
+    return coef if rank == X.shape[1] and np.all(np.isfinite(coef)) else None
+
+
+def _level_moments(codes: np.ndarray, levels: int, Z: np.ndarray, residual: np.ndarray,
+                   weight: np.ndarray) -> np.ndarray | None:
+    """``cov_l(b_l) - mean_l(V_l)`` over the levels whose design is well conditioned."""
+    r = Z.shape[1]
+    ZWZ = np.zeros((levels, r, r))
+    np.add.at(ZWZ, codes, weight[:, None, None] * Z[:, :, None] * Z[:, None, :])
+    ZWe = np.zeros((levels, r))
+    np.add.at(ZWe, codes, (weight * residual)[:, None] * Z)
+    conditioned = np.linalg.cond(ZWZ) < 1.0 / _MIN_RCOND
+    if conditioned.sum() < r + 2:
+        return None
+    inverse = np.linalg.inv(ZWZ[conditioned])
+    b = (inverse @ ZWe[conditioned][:, :, None])[:, :, 0]
+    return np.atleast_2d(np.cov(b, rowvar=False)) - inverse.mean(axis=0)
