@@ -16,7 +16,8 @@ def test_the_figures_and_their_baselines(monkeypatch):
     every figure runs and is set against its baseline. The figures' sizes and the studies'
     split into units of work are the quick form's; what is checked is that each figure is
     measured and named, which needs studies, not many."""
-    for name in ("CURVE_STUDIES", "PER_STUDY_STUDIES", "WARM_STUDIES", "DASK_STUDIES"):
+    for name in ("CURVE_STUDIES", "PER_STUDY_STUDIES", "POINT_STUDIES", "WARM_STUDIES",
+                 "DASK_STUDIES"):
         quick, full = getattr(bench, name)
         monkeypatch.setattr(bench, name, (max(2, quick // 2), full))   # power: >= 2
     figures = bench.run(quick=True)
