@@ -78,7 +78,7 @@ def mode2(pilot_protocol):
     """Mode 2 at the fixture's points, two and a half times the fixture's studies (50 noise
     draws of the observer per stimulus, as the letter test). The fixture's 200 studies carry
     most of the Monte Carlo error of the difference: with 500 studies here its SE is 8 %
-    above what 1000 would give, at half the cost."""
+    above what 1000 would give, at about 60 % of the test's cost."""
     return power(pilot_protocol, participants=make_fidelity.PARTICIPANTS,
                  studies=500, seed=5, draws=50)
 
