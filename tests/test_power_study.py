@@ -174,16 +174,17 @@ def test_without_random_effects_the_power_is_the_two_proportion_formulas(design)
 
 
 def test_the_fits_recover_the_generating_parameters(design):
-    """Mean estimates over 1000 studies of 40 participants within 2 SE, random intercepts:
+    """Mean estimates over 400 studies of 40 participants within 2 SE, random intercepts:
     the fixed effects and the participant variance of the truth, the digit variance of the
     truth times (G - 1) / G with G = 10 digits, the first-order downward bias of a
     maximum-likelihood variance (Searle, Casella & McCulloch 1992, Variance Components,
     sec. 3.7; with 40 participants that bias, 0.6 % of the variance, is within the Monte
-    Carlo error)."""
+    Carlo error). 400 studies: the digit variance without its factor, 10 % too high, is
+    2.8 SE off (measured), a fixed effect or an SD off by a tenth more than ten."""
     design = dataclasses.replace(design, structure="intercepts")
     model = model_from_parameters(design, log_odds={"pixel-only": -0.2, "crs": 0.5},
                                   participant_sd=0.5, digit_sd=0.6)
-    studies = 1000
+    studies = 400
     result = run_task(PowerTask(design, model, 21, (40,), (5,), (0, studies)))
     estimates = result.theta[0][:, [0, 1, 2, 4]].copy()       # no slopes in this model
     assert np.isfinite(estimates).all() and not result.reference.any()
@@ -235,15 +236,15 @@ def test_three_conditions_each_tested_against_the_reference_as_analyze_does():
 
 
 def test_a_studys_outcome_does_not_depend_on_how_the_studies_are_split(design):
-    """Studies 0-4 as one unit of work or as two: the same bits at every point, the null
+    """Studies 0-2 as one unit of work or as two: the same bits at every point, the null
     studies of the plan's bootstrap too (each study's fits start from its own numbers only,
     the next N's from its own curvature, so any chunking gives the same answer)."""
     model = model_from_parameters(design, {"pixel-only": 0.45, "crs": 0.6},
                                   participant_sd=0.4, digit_sd=0.3)
     points = dict(participants=(4, 6), repetitions=(1, 2))
-    whole = run_task(PowerTask(design, model, 3, studies=(0, 5), **points))
+    whole = run_task(PowerTask(design, model, 3, studies=(0, 3), **points))
     parts = [run_task(PowerTask(design, model, 3, studies=s, **points))
-             for s in ((0, 2), (2, 5))]
+             for s in ((0, 1), (1, 3))]
     assert np.isfinite(whole.null_statistic).any()
     for key in ("p_value", "theta", "loglike", "loglike_reduced", "boundary", "reference",
                 "null_statistic"):

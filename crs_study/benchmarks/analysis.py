@@ -9,15 +9,20 @@ interactive) and, for orientation, the primary GLMM test alone (full and reduced
 profile interval), both as ratios to loading; without ``--quick`` also the full report on 100
 participants x 400 trials with the BLAS threads as installed (target < 3 s: a dense 110 x 110
 solve per step once took 8-35 s there on a busy two-core machine with multithreaded OpenBLAS).
+
+``--quick`` checks that every figure runs: 10 participants x 100 trials, once, with the
+plan's resampling counts cut to :data:`QUICK_RESAMPLES` (below 20 participants the primary p
+is the parametric bootstrap, whose 1000 refits are nine tenths of the quick report's time).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 from pathlib import Path
 
 from crs_study.analysis.load import load_datasets, with_exclusions
-from crs_study.analysis.plan import default_plan_path, load_plan
+from crs_study.analysis.plan import AnalysisPlan, default_plan_path, load_plan
 from crs_study.analysis.primary import primary_test
 from crs_study.analysis.report import analyze, order_conditions
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
@@ -30,6 +35,9 @@ DESCRIPTION = "full analysis report on 40 participants x 400 trials, against loa
 TARGET_REPORT_S = 10.0
 #: Budget for the full report on 100 participants x 400 trials (s): a large study too.
 TARGET_LARGE_REPORT_S = 3.0
+#: The quick form's bootstrap counts: the primary test's replicates (its plan minimum is
+#: 19), the confusion matrix's and the psychometric fits' resamples.
+QUICK_RESAMPLES = 50
 
 
 def run(quick: bool) -> list[Figure]:
@@ -38,11 +46,12 @@ def run(quick: bool) -> list[Figure]:
     with tempfile.TemporaryDirectory() as folder:
         root = write_dataset(Path(folder) / "ds", SyntheticSpec(
             n_participants=participants, repetitions=repetitions, seed=2026))
-        plan_path = default_plan_path()
-        plan = load_plan(plan_path)
+        plan = load_plan(default_plan_path())
+        if quick:
+            plan = _quick_plan(plan)
         load = median_seconds(lambda: load_datasets([root]), repeat)
         counter = iter(range(1000))
-        report = median_seconds(lambda: analyze([root], plan_path,
+        report = median_seconds(lambda: analyze([root], plan,
                                                 Path(folder) / f"out{next(counter)}"), repeat)
         data = with_exclusions(load_datasets([root]), plan.exclusions)
         conditions, reference, _ = order_conditions(data.analysed, plan)
@@ -58,6 +67,18 @@ def run(quick: bool) -> list[Figure]:
     if not quick:
         figures.append(_large_report(repeat))
     return figures
+
+
+def _quick_plan(plan: AnalysisPlan) -> AnalysisPlan:
+    """The plan with :data:`QUICK_RESAMPLES` bootstrap resamples everywhere (the sequential
+    stop of the primary bootstrap no later than its last replicate)."""
+    n = QUICK_RESAMPLES
+    primary = dataclasses.replace(plan.primary, bootstrap_replicates=n,
+                                  bootstrap_stop_after=min(plan.primary.bootstrap_stop_after, n))
+    return dataclasses.replace(
+        plan, primary=primary,
+        confusion=dataclasses.replace(plan.confusion, bootstrap=n),
+        psychometric=dataclasses.replace(plan.psychometric, bootstrap=n))
 
 
 def _large_report(repeat: int) -> Figure:
