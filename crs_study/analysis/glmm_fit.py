@@ -60,7 +60,8 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     failed = boundary_failures(opt)
     terms = tuple(problem.terms)
     faces = []
-    for face in opt.faces:
+    # in the model's order, whichever order the optimiser met them (as batched fits list them)
+    for face in sorted(opt.faces, key=lambda f: f.block.indices[0]):
         described = describe_face(face, terms, theta, n_fixed)
         sentence = described.text
         if any(face is f for f in failed):
