@@ -214,18 +214,32 @@ def run_bootstrap_task(task: BootstrapTask) -> BootstrapChunk:
     def tiled(matrix):
         return None if matrix is None else np.tile(matrix, (S, 1, 1))
 
-    full_objective = rows.objective(Y)
-    full = fit_batch(full_objective, full_objective.moment_starts(),
-                     tiled(task.full_curvature))
     drop_index = rows.columns.index(task.dropped)
-    reduced = fit_batch(rows.objective(Y, task.dropped),
-                        np.delete(full.theta, drop_index, axis=1),
-                        tiled(task.reduced_curvature))
+    full_objective = rows.objective(Y)
+    full = fit_batch(full_objective, _higher(full_objective, full_objective.moment_starts(),
+                                             np.tile(task.full_start, (S, 1))),
+                     tiled(task.full_curvature))
+    reduced_objective = rows.objective(Y, task.dropped)
+    reduced = fit_batch(reduced_objective, _higher(
+        reduced_objective, np.delete(full.theta, drop_index, axis=1),
+        np.tile(np.delete(task.full_start, drop_index), (S, 1))),
+        tiled(task.reduced_curvature))
     statistics = 2.0 * (full.value - reduced.value)
     unsettled = np.flatnonzero(full.needs_reference | reduced.needs_reference)
     for s in unsettled:
         statistics[s] = _reference_statistic(rows, Y[s], task.dropped)
     return BootstrapChunk(task.replicates, np.maximum(statistics, 0.0), int(len(unsettled)))
+
+
+def _higher(objective, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Per study, whichever of two starts has the higher likelihood. A replicate's own
+    moments (or its full fit, for the reduced model) start it nearer its maximum on a study
+    of many participants; on a few, their moments are noisy and the observed fit's
+    estimates are the nearer start."""
+    a = objective.evaluate(first, grad=False)[0]
+    b = objective.evaluate(second, grad=False)[0]
+    return np.where((np.nan_to_num(a, nan=-np.inf) >= np.nan_to_num(b, nan=-np.inf))[:, None],
+                    first, second)
 
 
 def _reference_statistic(rows: StudyRows, y: np.ndarray, dropped: str) -> float:
