@@ -170,6 +170,23 @@ def _outer_sums(n: int, left_pos: np.ndarray, left_z: np.ndarray, right_pos: np.
     return _Sums(rows, bins, values, n, size)
 
 
+@dataclass(frozen=True)
+class _Loadings:
+    """Every term's loading (S, r_k, r_k), indexed by term, with the rest terms' applied as
+    one block-diagonal matrix ``Lambda_R`` (S, qR, qR; None without rest terms), built once
+    per evaluation and shared by every product of it."""
+
+    terms: list
+    rest: np.ndarray | None
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return self.terms[k]
+
+    def take(self, index) -> _Loadings:       # the studies ``index``
+        return _Loadings([T[index] for T in self.terms],
+                         None if self.rest is None else self.rest[index])
+
+
 class LaplaceLikelihood:
     """``l(beta, T_1..T_K)`` and its exact gradient for ``S`` response vectors at once.
 
@@ -253,15 +270,16 @@ class LaplaceLikelihood:
         return v[:, :self.q_large].reshape(len(v), self.n_large, self.r_large), \
             v[:, self.q_large:]
 
-    def _rest_matrix(self, loadings) -> np.ndarray:
-        """``Lambda_R`` (S, qR, qR): the rest terms' loadings, each repeated along the
-        diagonal once per level. One dense product with it applies every rest loading at
-        once: a BLAS call on a small matrix costs less than a loop over terms and levels."""
+    def _loadings(self, loadings: list[np.ndarray]) -> _Loadings:
+        """The loadings with ``Lambda_R`` (S, qR, qR), each rest term's loading repeated
+        along its diagonal once per level: one BLAS product applies them all."""
+        if not self.q_rest:
+            return _Loadings(loadings, None)
         S = len(loadings[self.large])
         out = np.zeros((S, self.q_rest, self.q_rest))
         values = np.concatenate([loadings[k].reshape(S, -1) for k in self.rest], axis=1)
         out[:, self.rest_rows, self.rest_cols] = values[:, self.rest_source]
-        return out
+        return _Loadings(loadings, out)
 
     def _effects(self, u: np.ndarray, loadings) -> tuple[np.ndarray, np.ndarray]:
         """``Lambda u`` in the design's space: (S, nL * rL) and (S, qR)."""
@@ -269,7 +287,7 @@ class LaplaceLikelihood:
         bL = _mm(uL, np.swapaxes(loadings[self.large], 1, 2)).reshape(len(u), -1)
         if not self.q_rest:
             return bL, uR
-        return bL, (self._rest_matrix(loadings) @ uR[:, :, None])[:, :, 0]
+        return bL, (loadings.rest @ uR[:, :, None])[:, :, 0]
 
     def _linear(self, offset, u, loadings) -> np.ndarray:
         """``X beta + Z Lambda u`` per row (S, n)."""
@@ -284,7 +302,7 @@ class LaplaceLikelihood:
         gL = _mm(gL, loadings[self.large]).reshape(S, -1)
         if not self.q_rest:
             return gL
-        gR = (self.rest_sums.to_bins(v)[:, None, :] @ self._rest_matrix(loadings))[:, 0]
+        gR = (self.rest_sums.to_bins(v)[:, None, :] @ loadings.rest)[:, 0]
         return np.concatenate([gL, gR], axis=1)
 
     def _h(self, Y, offset, u, loadings) -> np.ndarray:
@@ -292,10 +310,10 @@ class LaplaceLikelihood:
         return kernel(Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
 
     def modes(self, offset, loadings, u0, Y=None) -> np.ndarray:
-        """Penalised IRLS from ``u0``; each study stops after a full step shorter than
-        ``LAST_STEP`` (or any step below ``INNER_TOL``), frozen thereafter, so its answer never
-        depends on its batch. A step longer than ``FULL_STEP`` in some coordinate is halved
-        until ``h`` does not fall."""
+        """Penalised IRLS from ``u0`` (``loadings``: :class:`_Loadings`); each study stops
+        after a full step shorter than ``LAST_STEP`` (or any step below ``INNER_TOL``),
+        frozen thereafter, so its answer never depends on its batch. A step longer than
+        ``FULL_STEP`` in some coordinate is halved until ``h`` does not fall."""
         Y = self.Y if Y is None else Y
         u = u0.copy()
         active = np.arange(len(u))
@@ -303,7 +321,7 @@ class LaplaceLikelihood:
             if not len(active):
                 break
             o, ua, y = offset[active], u[active], Y[active]
-            T = [L[active] for L in loadings]
+            T = loadings.take(active)
             eta = self._linear(o, ua, T)
             p = expit(eta)
             mp = self.m * p
@@ -313,7 +331,7 @@ class LaplaceLikelihood:
             t = np.ones(len(active))
             long = np.flatnonzero(size > FULL_STEP)
             if len(long):
-                T_long = [L[long] for L in T]
+                T_long = T.take(long)
                 current = kernel(y[long], self.m, eta[long]).sum(axis=1) - 0.5 * np.einsum(
                     "sq,sq->s", ua[long], ua[long])
                 for _ in range(31):
@@ -333,12 +351,12 @@ class LaplaceLikelihood:
         """``(value (S,), d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` (the last two None when
         ``grad`` is false); updates the warm starts ``u``."""
         beta = np.asarray(beta, dtype=float)
-        loadings = [np.asarray(T, dtype=float) for T in loadings]
+        loadings = self._loadings([np.asarray(T, dtype=float) for T in loadings])
         offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
         u = self.modes(offset, loadings, self.u)
         bad = ~np.isfinite(u).all(axis=1)
         if bad.any():                       # a diverged start: retry those from 0
-            u[bad] = self.modes(offset[bad], [T[bad] for T in loadings],
+            u[bad] = self.modes(offset[bad], loadings.take(bad),
                                 np.zeros((bad.sum(), self.q)), self.Y[bad])
         self.u = u
         eta = self._linear(offset, u, loadings)
@@ -402,7 +420,7 @@ class _Factor:
             return
         self.WB = lik.B_sums.to_bins(w).reshape(S, nL, rL, qR)
         self.BL = _mm(TLt, self.WB)                                       # T_L' sum w zL zR'
-        self.LR = LR = lik._rest_matrix(loadings)                        # Lambda_R
+        self.LR = LR = loadings.rest                                      # Lambda_R
         B = (self.BL.reshape(S, nL * rL, qR) @ LR).reshape(S, nL, rL, qR)
         self.WC = lik.C_sums.to_bins(w).reshape(S, qR, qR)
         self.WC_LR = self.WC @ LR
