@@ -34,7 +34,7 @@ from crs_study.analysis.glmm_fit import _variances, describe_face
 from crs_study.analysis.glmm_laplace import LaplaceLikelihood
 from crs_study.analysis.glmm_newton import newton
 from crs_study.analysis.glmm_optimise import NEAR_ZERO, SLOPE_TOLERANCE, Face
-from crs_study.analysis.glmm_start import moment_start
+from crs_study.analysis.glmm_start import MomentStart
 from crs_study.analysis.glmm_terms import (
     ThetaLayout,
     loading,
@@ -74,11 +74,12 @@ class BatchObjective:
         return BatchObjective(self.likelihood.subset(index), self.layout)
 
     def moment_starts(self) -> np.ndarray:
-        """Each study's start read off its own data (:func:`~.glmm_start.moment_start`),
-        (S, n): nearer each study's maximum than any one start for all of them."""
+        """Each study's start read off its own data (S, n; :class:`~.glmm_start.MomentStart`,
+        the design's poolings found once): nearer each study's maximum than any one start
+        for all of them."""
         lik = self.likelihood
-        return np.array([moment_start(lik.X, y, lik.m, lik.terms, self.layout)
-                         for y in lik.Y])
+        start = MomentStart(lik.X, lik.m, lik.terms, self.layout)
+        return np.array([start(y) for y in lik.Y])
 
     def normalised(self, theta: np.ndarray) -> np.ndarray:
         return self.layout.normalised(theta)

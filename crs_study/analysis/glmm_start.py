@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from crs_study.analysis.glmm_data import row_codes
 from crs_study.analysis.glmm_terms import ThetaLayout, theta_of
 
 #: Smallest SD (logit scale) of a start's loading: away from the boundary, where the
@@ -39,41 +40,65 @@ MIN_START_SD = 0.1
 _MIN_RCOND = 1e-8
 
 
+class MomentStart:
+    """The start of any responses on one design (module docstring): the poolings (which
+    rows share ``x_i``, which share a level, ``z_ik`` and ``x_i``) are the design's, found
+    once; a call reads the logits of one study's successes. ``terms`` are the likelihood's
+    term rows (``codes``, ``levels``, ``Z``), in the layout's order."""
+
+    def __init__(self, X: np.ndarray, trials: np.ndarray, terms, layout: ThetaLayout):
+        self.m = np.asarray(trials, float)
+        self.layout = layout
+        self.fixed = _Pooling(X, self.m)
+        self.terms = []            # (pooling, levels, r) per term
+        for term_rows in terms:
+            self.terms.append((_Pooling(np.column_stack([term_rows.codes, term_rows.Z, X]),
+                                        self.m), term_rows.levels, term_rows.Z.shape[1]))
+
+    def __call__(self, successes: np.ndarray) -> np.ndarray:
+        """``(beta, theta_1, ...)`` for one study's successes."""
+        y = np.asarray(successes, float)
+        layout = self.layout
+        e, weight = self.fixed.logits(y)
+        beta = _weighted_fit(self.fixed.keys, e, weight)
+        if beta is None:
+            return np.r_[np.zeros(self.fixed.keys.shape[1]), layout.start()]
+        parts = [beta]
+        for (pooling, levels, r), term in zip(self.terms, layout.terms, strict=True):
+            keys = pooling.keys
+            e, weight = pooling.logits(y)
+            sigma = _level_moments(keys[:, 0].astype(int), levels, keys[:, 1:1 + r],
+                                   e - keys[:, 1 + r:] @ beta, weight)
+            if sigma is None:
+                parts.append(theta_of(term, np.eye(term.size)))
+                continue
+            if not term.correlated:
+                sigma = np.diag(np.diag(sigma))
+            values, vectors = np.linalg.eigh(sigma)
+            sigma = (vectors * np.maximum(values, MIN_START_SD ** 2)) @ vectors.T
+            parts.append(theta_of(term, np.linalg.cholesky(sigma)))
+        return np.concatenate(parts)
+
+
 def moment_start(X: np.ndarray, successes: np.ndarray, trials: np.ndarray, terms,
                  layout: ThetaLayout) -> np.ndarray:
-    """``(beta, theta_1, ...)`` for pooled rows (module docstring). ``terms`` are the
-    likelihood's term rows (``codes``, ``levels``, ``Z``), in the layout's order."""
-    y, m = np.asarray(successes, float), np.asarray(trials, float)
-    rows, e, weight = _pooled_logits(X, y, m)
-    beta = _weighted_fit(rows, e, weight)
-    if beta is None:
-        return np.r_[np.zeros(X.shape[1]), layout.start()]
-    parts = [beta]
-    for term_rows, term in zip(terms, layout.terms, strict=True):
-        Z = term_rows.Z
-        r = Z.shape[1]
-        keys, e, weight = _pooled_logits(np.column_stack([term_rows.codes, Z, X]), y, m)
-        sigma = _level_moments(keys[:, 0].astype(int), term_rows.levels, keys[:, 1:1 + r],
-                               e - keys[:, 1 + r:] @ beta, weight)
-        if sigma is None:
-            parts.append(theta_of(term, np.eye(term.size)))
-            continue
-        if not term.correlated:
-            sigma = np.diag(np.diag(sigma))
-        values, vectors = np.linalg.eigh(sigma)
-        sigma = (vectors * np.maximum(values, MIN_START_SD ** 2)) @ vectors.T
-        parts.append(theta_of(term, np.linalg.cholesky(sigma)))
-    return np.concatenate(parts)
+    """``(beta, theta_1, ...)`` of one study (:class:`MomentStart`)."""
+    return MomentStart(X, trials, terms, layout)(successes)
 
 
-def _pooled_logits(keys: np.ndarray, y: np.ndarray, m: np.ndarray):
-    """The distinct rows of ``keys``, each with the empirical logit of its pooled counts and
-    that logit's inverse sampling variance: pooled, a logit is less shrunk by the 1/2."""
-    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    y_, m_ = np.bincount(inverse, y), np.bincount(inverse, m)
-    e = np.log((y_ + 0.5) / (m_ - y_ + 0.5))
-    return unique, e, 1.0 / (1.0 / (y_ + 0.5) + 1.0 / (m_ - y_ + 0.5))
+class _Pooling:
+    """The distinct rows of ``keys`` (``row_codes``) and, per call, the empirical logit of
+    each one's pooled counts with that logit's inverse sampling variance: pooled, a logit
+    is less shrunk by the 1/2."""
+
+    def __init__(self, keys: np.ndarray, trials: np.ndarray):
+        self.inverse, self.keys = row_codes(np.asarray(keys, float))
+        self.m = np.bincount(self.inverse, trials)
+
+    def logits(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        y_, m_ = np.bincount(self.inverse, y, minlength=len(self.m)), self.m
+        e = np.log((y_ + 0.5) / (m_ - y_ + 0.5))
+        return e, 1.0 / (1.0 / (y_ + 0.5) + 1.0 / (m_ - y_ + 0.5))
 
 
 def _weighted_fit(X: np.ndarray, e: np.ndarray, weight: np.ndarray) -> np.ndarray | None:
