@@ -128,6 +128,11 @@ def run(quick: bool) -> list[Figure]:
     return figures
 
 
+def _observer_like(design):
+    """The generating model of figures 2 to 4 (:data:`_OBSERVER_LIKE`)."""
+    return model_from_parameters(design, _OBSERVER_LIKE, participant_sd=0.42, digit_sd=0.29)
+
+
 def _sizes(quick: bool) -> tuple[int, ...]:
     return QUICK_SIZES if quick else SIZES
 
@@ -186,8 +191,7 @@ def _per_study(quick: bool) -> list[Figure]:
     """Figure 2: seconds per study, ours in one process against lme4's refit loop."""
 
     design = design_from_protocol("digit_identification")
-    model = model_from_parameters(design, _OBSERVER_LIKE,
-                                  participant_sd=0.42, digit_sd=0.29)
+    model = _observer_like(design)
     studies, sizes = PER_STUDY_STUDIES[not quick], _sizes(quick)
     start = time.perf_counter()
     power("digit_identification", model=model, participants=sizes, studies=studies, jobs=1)
@@ -231,7 +235,7 @@ def point_figure(quick: bool) -> Figure:
     plan = load_plan(analysis_plan_path(protocol) or default_plan_path())
     chi2 = dataclasses.replace(plan, primary=dataclasses.replace(plan.primary, p_value="chi2"))
     design = design_from_protocol(protocol, plan)
-    model = model_from_parameters(design, _OBSERVER_LIKE, participant_sd=0.42, digit_sd=0.29)
+    model = _observer_like(design)
     studies, jobs = POINT_STUDIES[not quick], os.cpu_count() or 1
     seconds = []
     for rule in (plan, chi2):
@@ -251,8 +255,7 @@ def point_figure(quick: bool) -> Figure:
 def _dask(quick: bool) -> list[Figure]:
     """Figure 4: studies per second on a LocalCluster, 2 workers against 1."""
     design = design_from_protocol("digit_identification")
-    model = model_from_parameters(design, _OBSERVER_LIKE,
-                                  participant_sd=0.42, digit_sd=0.29)
+    model = _observer_like(design)
     studies, sizes = DASK_STUDIES[not quick], _sizes(quick)
     rates, busy = {}, 0.0
     for workers in (1, 2):
