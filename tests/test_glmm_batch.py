@@ -16,6 +16,7 @@ from scipy.special import gammaln
 from crs_study.analysis.glmm import fit_glmm
 from crs_study.analysis.glmm_batch import BatchObjective, fit_batch, study_fit
 from crs_study.analysis.glmm_laplace import LaplaceLikelihood, TermRows
+from crs_study.analysis.glmm_newton import newton
 from crs_study.analysis.glmm_simulate import simulate_cells, slope_covariance
 from crs_study.analysis.glmm_terms import RandomTerm, ThetaLayout
 
@@ -80,3 +81,35 @@ def test_a_study_is_fitted_alike_alone_and_in_a_batch():
         alone = fit_batch(_objective(frames[s:s + 1], "maximal"), start[:1])
         assert alone.theta[0].tobytes() == together.theta[s].tobytes()
         assert alone.value[0] == together.value[s]
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_a_face_fit_moves_a_free_diagonal_that_starts_at_zero(sign):
+    """On the rank-one face of a correlated term (its second column held at 0) the loading's
+    first column ``(a, b)`` is free: ``a`` at 0 is the intercept's SD at 0 with the slope's
+    at ``|b|``, an ordinary point of the face that a step may cross (the correlation then
+    turns from +1 to -1). Newton's method from ``a`` = 1e-38 must not treat it as a boundary
+    (each step shortened to a tenth of ``a``: a stall at the start, as found in power runs).
+    From either sign of ``a`` one of the two directions is across zero."""
+    frames = _studies(1, 0.8, 300)
+    objective = _objective(frames, "maximal")
+    n = objective.layout.size
+    fit = fit_batch(objective, np.tile(np.r_[0.0, 0.5, np.full(n - 2, 0.5)], (1, 1)))
+    start = fit.theta.copy()
+    start[0, 5:8] = [sign * 1e-38, 0.2, 0.0]                # the digits' (1 + c | digit) loading
+    held = np.zeros((1, n), dtype=bool)
+    held[0, 7] = True
+    theta, value, converged, iterations, _ = newton(objective, start, held)
+    assert converged[0] and iterations[0] < 20
+    assert abs(theta[0, 5]) > 1e-6 or abs(theta[0, 6]) > 1e-6     # it moved off the start
+    _, gradient = objective.evaluate(theta)
+    assert np.max(np.abs(gradient[0, ~held[0]])) < 1e-5
+
+
+def test_only_a_correlated_term_on_a_face_has_diagonals_that_may_cross_zero():
+    layout = ThetaLayout(2, TERMS["maximal"])
+    held = np.zeros((2, layout.size), dtype=bool)
+    held[1, 7] = True                                 # study 1: the digits' term on a face
+    marks = layout.diagonals(held)
+    assert marks[0].tolist() == layout.diagonal.tolist()
+    assert marks[1].tolist() == [False, False, True, False, True, False, False, False]

@@ -18,9 +18,12 @@ decides it, with its constants: a block near its boundary after the local fit (a
 is put on it (held at 0, or the term's loading of reduced rank), the rest refitted, and the
 variance-scale slope read there; no slope above ``SLOPE_TOLERANCE`` and a boundary fit no
 lower: the boundary is the estimate; an inward slope and an interior optimum higher than the
-boundary: the interior one; an inward slope and no higher interior optimum is where
-``maximise`` restarts from interior points: such a study is marked ``needs_reference`` and
-left to ``fit_glmm`` itself, as is every study whose Newton iteration stalls.
+boundary: the interior one; an inward slope where the interior iteration had not settled is
+where ``maximise`` restarts from interior points: Newton's method once more from the face
+moved inward along its rising direction (``RESTART_SIGMAS[0]``), its end taken when it is
+above the face's and, if near a face itself, that face decided as above. Any other study
+is marked ``needs_reference`` and left to ``fit_glmm`` itself, as is every study whose
+Newton iteration stalls.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ import pandas as pd
 from crs_study.analysis.glmm_fit import _variances, describe_face
 from crs_study.analysis.glmm_laplace import LaplaceLikelihood
 from crs_study.analysis.glmm_newton import newton
-from crs_study.analysis.glmm_optimise import NEAR_ZERO, SLOPE_TOLERANCE, Face
+from crs_study.analysis.glmm_optimise import NEAR_ZERO, RESTART_SIGMAS, SLOPE_TOLERANCE, Face
 from crs_study.analysis.glmm_start import MomentStart
 from crs_study.analysis.glmm_terms import (
     ThetaLayout,
@@ -84,9 +87,8 @@ class BatchObjective:
     def normalised(self, theta: np.ndarray) -> np.ndarray:
         return self.layout.normalised(theta)
 
-    @property
-    def diagonal(self) -> np.ndarray:
-        return self.layout.diagonal
+    def diagonals(self, held: np.ndarray) -> np.ndarray:
+        return self.layout.diagonals(held)
 
     @property
     def capped(self) -> np.ndarray:
@@ -162,11 +164,12 @@ def _on_faces(layout: ThetaLayout, theta: np.ndarray, deficiency: np.ndarray):
 def _face_slopes(objective: BatchObjective, theta: np.ndarray, deficiency: np.ndarray):
     """The variance-scale slope of every face (S, blocks), NaN where there is none: ``g(h) /
     2h`` for an SD, the largest eigenvalue of ``N' G N`` for a correlated term (as
-    :func:`~crs_study.analysis.glmm_optimise.rank_slope`), with the nulls (per block, per
-    study: (r, d) arrays)."""
+    :func:`~crs_study.analysis.glmm_optimise.rank_slope`), with the nulls and the directions
+    of steepest rise (per block, per study: (r, d) and (r,) arrays)."""
     layout = objective.layout
     slopes = np.full(deficiency.shape, np.nan)
     nulls: dict[tuple[int, int], np.ndarray] = {}
+    directions: dict[tuple[int, int], np.ndarray] = {}
     h = _SLOPE_STEP
     for b, block in enumerate(layout.blocks):
         rows = np.flatnonzero(deficiency[:, b])
@@ -194,10 +197,33 @@ def _face_slopes(objective: BatchObjective, theta: np.ndarray, deficiency: np.nd
             _, _, g_loadings = sub.likelihood.evaluate(theta[sel, :layout.n_fixed], loadings)
             G = g_loadings[term_index][:, :, r - d:]
             M = np.swapaxes(null, 1, 2) @ G / (2.0 * h)
-            slopes[sel, b] = np.linalg.eigvalsh(0.5 * (M + np.swapaxes(M, 1, 2)))[:, -1]
+            values, vectors = np.linalg.eigh(0.5 * (M + np.swapaxes(M, 1, 2)))
+            slopes[sel, b] = values[:, -1]
             for k, s in enumerate(sel):
                 nulls[(s, b)] = null[k]
-    return slopes, nulls
+                directions[(s, b)] = null[k] @ vectors[k, :, -1]
+    return slopes, nulls, directions
+
+
+def _inward(layout: ThetaLayout, theta: np.ndarray, slopes: np.ndarray, nulls: dict,
+            directions: dict, sigma: float) -> np.ndarray:
+    """``theta`` (S, n) on faces moved off those that rise (slope above
+    ``SLOPE_TOLERANCE``) by ``sigma`` (SD scale) along their directions, as
+    :func:`~crs_study.analysis.glmm_optimise.maximise` restarts inward."""
+    out = theta.copy()
+    for s, b in zip(*np.nonzero(np.nan_to_num(slopes, nan=-np.inf) > SLOPE_TOLERANCE),
+                    strict=True):
+        block = layout.blocks[b]
+        if not block.matrix:
+            out[s, block.indices[0]] = sigma
+            continue
+        term = layout.terms[block.term]
+        idx = list(block.indices)
+        T = loading(term, theta[s, idx])
+        d, null = directions[(s, b)], nulls[(s, b)]
+        cov = T @ T.T + sigma ** 2 * np.outer(d, d) + (0.1 * sigma) ** 2 * null @ null.T
+        out[s, idx] = theta_of(term, np.linalg.cholesky(cov))
+    return out
 
 
 def fit_batch(objective: BatchObjective, start: np.ndarray,
@@ -215,30 +241,59 @@ def fit_batch(objective: BatchObjective, start: np.ndarray,
     blocks = len(layout.blocks)
     deficiency = np.zeros((S, blocks), dtype=int)
     slopes = np.full((S, blocks), np.nan)
-    near = _near(layout, theta)
-    # Near a boundary Newton's method slows to a linear crawl (l ~ a s^2 + b s^4): a study
-    # that has not converged there is decided on the face, where the problem is regular.
-    check = np.flatnonzero(near.any(axis=1))
-    if len(check):
+    pending = np.arange(S)
+    restarted = np.zeros(S, dtype=bool)
+    for _ in range(2):          # the decision, and once more after a restart
+        near = _near(layout, theta[pending])
+        # Near a boundary Newton's method slows to a linear crawl (l ~ a s^2 + b s^4): a
+        # study that has not converged there is decided on the face, where the problem is
+        # regular.
+        check, near = pending[near.any(axis=1)], near[near.any(axis=1)]
+        if not len(check):
+            break
         sub = objective.subset(check)
-        b_start, b_held = _on_faces(layout, theta[check], near[check])
+        b_start, b_held = _on_faces(layout, theta[check], near)
         b_theta, b_value, b_ok, b_iter, _ = newton(sub, b_start, b_held)
         iterations[check] += b_iter
-        face_slopes, _ = _face_slopes(sub, b_theta, near[check])
+        face_slopes, nulls, directions = _face_slopes(sub, b_theta, near)
         inward = (np.nan_to_num(face_slopes, nan=-np.inf) > SLOPE_TOLERANCE).any(axis=1)
         best = value[check]
         tolerance = 1e-9 * (1.0 + np.abs(best))
         take_boundary = b_ok & ~inward & (b_value >= best - tolerance)
-        keep_interior = ~take_boundary & (best > b_value + tolerance) & converged[check]
+        # a restarted study's interior end near a face is not checked against the faces
+        # between (a correlated term near rank 0 but not on it): left to fit_glmm
+        keep_interior = (~take_boundary & (best > b_value + tolerance) & converged[check]
+                         & ~restarted[check])
         rows = check[take_boundary]
         theta[rows] = b_theta[take_boundary]
         value[rows] = b_value[take_boundary]
         at_zero[rows] = b_held[take_boundary]
-        deficiency[rows] = near[check][take_boundary]
+        deficiency[rows] = near[take_boundary]
         slopes[rows] = face_slopes[take_boundary]
         objective.warm[rows] = sub.warm[take_boundary]
         needs[check[take_boundary]] = False
         needs[check[~take_boundary & ~keep_interior]] = True
+        # The face rises inward yet the interior iteration did not settle there (it crawled
+        # toward the face from elsewhere): Newton's method again from the face moved inward,
+        # where ``maximise`` restarts. An interior maximum found there above the face's
+        # settles the study, unless it ends near a face itself: the next round decides that.
+        retry = np.flatnonzero(b_ok & inward & ~keep_interior & ~restarted[check])
+        if not len(retry):
+            break
+        part = sub.subset(retry)
+        position = {int(j): k for k, j in enumerate(retry)}
+        moved = _inward(layout, b_theta[retry], face_slopes[retry],
+                        {(position[j], b): v for (j, b), v in nulls.items() if j in position},
+                        {(position[j], b): v for (j, b), v in directions.items()
+                         if j in position}, RESTART_SIGMAS[0])
+        r_theta, r_value, r_ok, r_iter, _ = newton(part, moved, np.zeros_like(moved, bool))
+        iterations[check[retry]] += r_iter
+        higher = r_ok & (r_value > b_value[retry] + tolerance[retry])
+        pending = check[retry[higher]]
+        theta[pending], value[pending] = r_theta[higher], r_value[higher]
+        converged[pending] = restarted[pending] = True
+        objective.warm[pending] = part.warm[higher]
+        needs[pending] = False
     return BatchFit(theta, value, at_zero, deficiency, slopes, needs, iterations, N)
 
 

@@ -12,7 +12,9 @@ Hessian is not negative definite (eigenvalues reflected and floored) and no long
 The objective provides ``evaluate(theta, grad) -> (value (S,), gradient (S, n))``,
 ``subset(index)``, ``normalised(theta)`` (the parameters of the same model it prefers: lme4's
 non-negative diagonals) and ``warm``, an array (S, ...) of per-study state (the conditional
-modes) that is saved and restored around the trial points.
+modes) that is saved and restored around the trial points; optionally ``capped`` (the
+loading entries) and ``diagonals(held)`` (S, n), the diagonal loadings whose zero is a
+boundary of the problem with ``held`` held (:func:`_short_of_zero`).
 """
 
 from __future__ import annotations
@@ -68,7 +70,8 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     """
     S, n = theta0.shape
     free = ~held
-    diagonal = getattr(objective, "diagonal", None)
+    diagonals = getattr(objective, "diagonals", None)    # (S, n): zero is a boundary
+    diagonal = None if diagonals is None else diagonals(held)
     capped = getattr(objective, "capped", None)   # (n,) True for the loading entries
     theta = theta0.copy() if capped is None else np.where(   # a held value stays as given
         capped & free, np.clip(theta0, -THETA_CAP, THETA_CAP), theta0)
@@ -122,7 +125,7 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
         step = _solve(_held_out(N.copy(), moving) if pinned.any() else N, ga, moving)
         shortened = np.zeros(len(active), dtype=bool)
         if diagonal is not None:
-            step, shortened = _short_of_zero(step, th, diagonal)
+            step, shortened = _short_of_zero(step, th, diagonal[active])
         if capped is not None:
             step = np.where(capped & moving, np.clip(th + step, -THETA_CAP, THETA_CAP) - th,
                             step)
@@ -136,7 +139,7 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
         g[active] = np.where(ok[:, None], g_new, ga)
         go_on = ok.copy()
         if face_sd is not None and diagonal is not None:
-            go_on &= ~(shortened & (np.abs(th_new[:, diagonal]) < face_sd).any(axis=1))
+            go_on &= ~(shortened & (diagonal[active] & (np.abs(th_new) < face_sd)).any(axis=1))
         if not go_on.all():                    # stalled, or stopped at a face
             objective.warm[active[~go_on]] = sub.warm[~go_on]
             N_last[active[~go_on]] = N[~go_on]
@@ -198,11 +201,10 @@ def _short_of_zero(step: np.ndarray, theta: np.ndarray, diagonal: np.ndarray
     0 lands on the mirror image of the same model, and at 0 itself its gradient vanishes:
     crossing costs iterations and gains nothing. A boundary optimum is still approached
     geometrically, and the boundary is decided on its face. Returns the step and where it
-    was shortened."""
-    th, st = theta[:, diagonal], step[:, diagonal]
-    toward = (th != 0.0) & (th * st < 0.0)
+    was shortened. ``diagonal`` (S, n) marks the diagonals whose zero is a boundary."""
+    toward = diagonal & (theta != 0.0) & (theta * step < 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        room = np.where(toward, TO_ZERO * np.abs(th) / np.abs(st), np.inf)
+        room = np.where(toward, TO_ZERO * np.abs(theta) / np.abs(step), np.inf)
     t = np.minimum(1.0, room.min(axis=1, initial=np.inf))
     return step * t[:, None], t < 1.0
 

@@ -181,13 +181,11 @@ class _Single:
         return np.arange(self.problem.n_fixed + self.problem.model.n_variance) >= \
             self.problem.n_fixed
 
-    @property
-    def diagonal(self) -> np.ndarray:
+    def diagonals(self, held: np.ndarray) -> np.ndarray:
         layout = getattr(self.problem.model, "layout", None)
         if layout is not None:
-            return layout.diagonal
-        return np.arange(self.problem.n_fixed + self.problem.model.n_variance) >= \
-            self.problem.n_fixed            # a single intercept's SD
+            return layout.diagonals(held)
+        return np.broadcast_to(self.capped, held.shape)     # a single intercept's SD
 
 
 def local_fit(problem, start: np.ndarray, held: dict[int, float],

@@ -282,6 +282,22 @@ class ThetaLayout:
             out[cut] = [row == col for row, col in term.entries]
         return out
 
+    def diagonals(self, held: np.ndarray) -> np.ndarray:
+        """(S, size): the diagonal entries whose zero is a boundary of the problem with
+        ``held`` (S, size) held: all but those of a correlated term on a face (some entry
+        held). On a face the term's loading has its last columns at 0, and its covariance is
+        ``L L'`` of the free columns ``L``; a diagonal of ``L`` at 0 is an ordinary point of
+        that face (a rank-one ``v v'`` with ``v = (0, b)`` is the intercept's SD at 0 and the
+        slope's at ``|b|``, and ``v`` crossing it turns the correlation from +1 to -1), so a
+        step may cross it."""
+        out = np.broadcast_to(self.diagonal, held.shape).copy()
+        for block in self.blocks:
+            if block.matrix:
+                columns = list(block.indices)
+                on_face = held[:, columns].any(axis=1)
+                out[np.ix_(on_face, columns)] = False
+        return out
+
     def loadings(self, theta: np.ndarray) -> list[np.ndarray]:
         """``T_k`` (S, r_k, r_k) for parameter vectors ``theta`` (S, size)."""
         return [loading(t, theta[:, s]) for t, s in zip(self.terms, self.slices, strict=True)]
