@@ -118,6 +118,21 @@ class _Problem:
         g[: self.n_fixed] -= beta / self.prior_sd**2
         return value + pen, g
 
+    @property
+    def batched(self) -> bool:
+        """Whether :meth:`gradients` evaluates many points at once (crossed terms)."""
+        return hasattr(self.model, "gradients")
+
+    def gradients(self, thetas: np.ndarray) -> np.ndarray:
+        """The objective's gradient at each of ``thetas`` (K, size): batched where the
+        model can (:attr:`batched`), one evaluation after another otherwise."""
+        if not self.batched:
+            return np.array([self.objective(t)[1] for t in thetas])
+        g = self.model.gradients(thetas)
+        if self.prior_sd is not None:
+            g[:, : self.n_fixed] -= thetas[:, : self.n_fixed] / self.prior_sd**2
+        return g
+
 
 def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
              groups: str | Sequence[str] = (), *, random: str | Sequence[RandomTerm] | None = None,

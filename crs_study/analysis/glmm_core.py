@@ -245,6 +245,17 @@ class CrossedTerms:
             return float(value[0])
         return float(value[0]), g_beta[0], [g[0] for g in g_loadings]
 
+    def gradients(self, thetas: np.ndarray) -> np.ndarray:
+        """The gradient at each of ``thetas`` (K, size), in one batched evaluation, each from
+        the conditional modes of the last evaluation (left as they were): the points of a
+        differenced Hessian."""
+        layout = self.layout
+        thetas = np.asarray(thetas, dtype=float)
+        lik = self.likelihood.subset(np.zeros(len(thetas), dtype=int))
+        _, g_beta, g_loadings = lik.evaluate(thetas[:, :layout.n_fixed],
+                                             layout.loadings(thetas))
+        return np.concatenate([g_beta, layout.theta_gradient(g_loadings)], axis=1)
+
     def loglik(self, theta: np.ndarray, grad: bool = True):
         """The value (and gradient) at ``theta``; asked again at the point of the last
         evaluation (a fit reads its optimum several times), the numbers of that one."""

@@ -11,8 +11,10 @@ Hessian is not negative definite (eigenvalues reflected and floored) and no long
 
 The objective provides ``evaluate(theta, grad) -> (value (S,), gradient (S, n))``,
 ``subset(index)``, ``normalised(theta)`` (the parameters of the same model it prefers: lme4's
-non-negative diagonals) and ``warm``, an array (S, ...) of per-study state (the conditional
-modes) that is saved and restored around the trial points; optionally ``capped`` (the
+non-negative diagonals), ``warm``, an array (S, ...) of per-study state (the conditional
+modes) that is saved and restored around the trial points, and ``gradients(theta, rows)``
+(K, n), the gradient at each ``theta[i]`` of study ``rows[i]`` from that study's warm start
+(left as it was); optionally ``capped`` (the
 loading entries) and ``diagonals(held)`` (S, n), the diagonal loadings whose zero is a
 boundary of the problem with ``held`` held (:func:`_short_of_zero`).
 """
@@ -163,20 +165,20 @@ def _held_out(N: np.ndarray, free: np.ndarray) -> np.ndarray:
 
 def _negative_hessian(sub, theta, g, free) -> np.ndarray:
     """``-d2 l / dtheta2`` over the free coordinates by forward differences of the exact
-    gradient (identity rows and columns for the held ones)."""
+    gradient (identity rows and columns for the held ones): the points of every study and
+    coordinate in one call of ``sub.gradients``, each from its study's warm start."""
     S, n = theta.shape
-    warm = sub.warm.copy()
     H = np.zeros((S, n, n))
-    for j in range(n):
-        if not free[:, j].any():
-            continue
-        h = 1e-5 * np.maximum(1.0, np.abs(theta[:, j]))
-        shifted = theta.copy()
-        shifted[:, j] += h
-        sub.warm = warm.copy()
-        _, gj = sub.evaluate(shifted)
-        H[:, :, j] = (gj - g) / h[:, None]
-    sub.warm = warm
+    columns = [j for j in range(n) if free[:, j].any()]
+    if columns:
+        h = 1e-5 * np.maximum(1.0, np.abs(theta[:, columns]))            # (S, m)
+        shifted = np.repeat(theta[None], len(columns), axis=0)             # (m, S, n)
+        for k, j in enumerate(columns):
+            shifted[k, :, j] += h[:, k]
+        gj = sub.gradients(shifted.reshape(-1, n), np.tile(np.arange(S), len(columns)))
+        gj = gj.reshape(len(columns), S, n)
+        for k, j in enumerate(columns):
+            H[:, :, j] = (gj[k] - g) / h[:, k, None]
     return _held_out(-0.5 * (H + np.swapaxes(H, 1, 2)), free)
 
 

@@ -172,6 +172,10 @@ class _Single:
     def subset(self, index) -> _Single:
         return self
 
+    def gradients(self, theta: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        self.calls += len(theta)
+        return self.problem.gradients(theta)
+
     def normalised(self, theta: np.ndarray) -> np.ndarray:
         return normalise(self.problem, theta[0])[None]
 
