@@ -62,12 +62,10 @@ from scipy.special import expit
 
 #: Penalised IRLS stops when no coordinate of u moves more than this.
 INNER_TOL = 1e-11
-#: A full Newton step shorter than this is the last one: Newton's method converges
-#: quadratically on this strongly concave function, so the next step would be of the order
-#: of its square (1e-9). ``h`` is stationary at the mode, so such an error in ``u`` moves
-#: ``l`` only through ``log det H``, by about that much: a thousandth of the gradient
-#: tolerance of the fits. The evaluations of a differenced Hessian (parameters moved by
-#: 1e-5) then take one inner step, not two.
+#: A full Newton step shorter than this is the last one: on this strongly concave function
+#: the next would be of the order of its square (1e-9), which moves ``l`` only through
+#: ``log det H`` (``h`` is stationary at the mode): a thousandth of the fits' gradient
+#: tolerance. A differenced Hessian's points (moved 1e-5) then take one inner step, not two.
 LAST_STEP = 3e-5
 INNER_MAXITER = 60
 #: Newton steps longer than this (in any coordinate of u) are checked for ascent first;
