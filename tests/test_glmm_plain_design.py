@@ -1,6 +1,7 @@
 """The design of a formula of plain numeric columns is built without patsy; it must be the
 design patsy builds (the outside reference: patsy's ``dmatrix``), and every other formula
-must go to patsy."""
+must go to patsy. The columns a fit pools are factorised by counting where they are small
+whole numbers; the codes must be pandas'."""
 
 import numpy as np
 import pandas as pd
@@ -8,7 +9,7 @@ import patsy
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from crs_study.analysis.glmm_data import patsy_design, plain_design
+from crs_study.analysis.glmm_data import factorize, patsy_design, plain_design
 
 DATA = pd.DataFrame({"c": [0.0, 1.0, 0.0, 1.0, 1.0], "x": [1, 2, 3, 4, 5],
                      "flag": [True, False, True, False, True],
@@ -51,3 +52,21 @@ def test_a_bad_formula_still_gets_patsys_one_line_error():
     from crs_study.errors import AnalysisError
     with pytest.raises(AnalysisError, match="missing"):
         patsy_design(DATA, "1 + missing")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.integers(0, 30), st.integers(-5, 5),
+                          st.floats(-1e3, 1e3, allow_nan=False), st.sampled_from([0.0, 1.0])),
+                min_size=1, max_size=60),
+       st.sampled_from(["float", "int"]))
+def test_factorize_gives_pandas_sorted_codes(values, kind):
+    """The counting path for small whole numbers and pandas' hashing for the rest give
+    ``pandas.factorize(sort=True)``'s codes (the outside reference) and count."""
+    if kind == "int":
+        column = np.array([int(v) for v in values], dtype=np.int64)
+    else:
+        column = np.array(values, dtype=float)
+    codes, distinct = factorize(column)
+    expected, uniques = pd.factorize(column, sort=True)
+    np.testing.assert_array_equal(codes, expected)
+    assert distinct == len(uniques)
