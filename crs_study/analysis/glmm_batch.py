@@ -36,7 +36,13 @@ import pandas as pd
 from crs_study.analysis.glmm_fit import _variances, describe_face
 from crs_study.analysis.glmm_laplace import LaplaceLikelihood
 from crs_study.analysis.glmm_newton import newton
-from crs_study.analysis.glmm_optimise import NEAR_ZERO, RESTART_SIGMAS, SLOPE_TOLERANCE, Face
+from crs_study.analysis.glmm_optimise import (
+    NEAR_ZERO,
+    RESTART_SIGMAS,
+    SLOPE_TOLERANCE,
+    Face,
+    inward_loading,
+)
 from crs_study.analysis.glmm_start import MomentStart
 from crs_study.analysis.glmm_terms import (
     ThetaLayout,
@@ -224,10 +230,8 @@ def _inward(layout: ThetaLayout, theta: np.ndarray, slopes: np.ndarray, nulls: d
             continue
         term = layout.terms[block.term]
         idx = list(block.indices)
-        T = loading(term, theta[s, idx])
-        d, null = directions[(s, b)], nulls[(s, b)]
-        cov = T @ T.T + sigma ** 2 * np.outer(d, d) + (0.1 * sigma) ** 2 * null @ null.T
-        out[s, idx] = theta_of(term, np.linalg.cholesky(cov))
+        out[s, idx] = theta_of(term, inward_loading(loading(term, theta[s, idx]),
+                                                    directions[(s, b)], nulls[(s, b)], sigma))
     return out
 
 

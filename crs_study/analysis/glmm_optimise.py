@@ -365,11 +365,19 @@ def _inward(problem, theta: np.ndarray, faces: list[Face], sigma: float) -> np.n
             continue
         term = problem.model.layout.terms[face.block.term]
         idx = list(face.block.indices)
-        T = loading(term, theta[idx])
-        cov = (T @ T.T + sigma**2 * np.outer(face.direction, face.direction)
-               + (0.1 * sigma) ** 2 * face.null @ face.null.T)
-        out[idx] = theta_of(term, np.linalg.cholesky(cov))
+        out[idx] = theta_of(term, inward_loading(loading(term, theta[idx]), face.direction,
+                                                 face.null, sigma))
     return out
+
+
+def inward_loading(T: np.ndarray, direction: np.ndarray, null: np.ndarray,
+                   sigma: float) -> np.ndarray:
+    """The Cholesky factor of ``T T' + sigma^2 d d' + (sigma / 10)^2 N N'``: a covariance
+    of reduced rank moved off its face by ``sigma`` (SD scale) along the rising direction
+    ``d``, and a tenth of that along the rest of its null space ``N``."""
+    cov = (T @ T.T + sigma**2 * np.outer(direction, direction)
+           + (0.1 * sigma) ** 2 * null @ null.T)
+    return np.linalg.cholesky(cov)
 
 
 def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
