@@ -77,7 +77,7 @@ class BatchObjective:
             theta[:, :layout.n_fixed], layout.loadings(theta), grad)
         if not grad:
             return value, None
-        return value, np.concatenate([g_beta, layout.theta_gradient(g_loadings)], axis=1)
+        return value, layout.gradient(g_beta, g_loadings)
 
     def subset(self, index) -> BatchObjective:
         return BatchObjective(self.likelihood.subset(index), self.layout)
@@ -290,11 +290,9 @@ def fit_batch(objective: BatchObjective, start: np.ndarray,
         if not len(retry):
             break
         part = sub.subset(retry)
-        position = {int(j): k for k, j in enumerate(retry)}
-        moved = _inward(layout, b_theta[retry], face_slopes[retry],
-                        {(position[j], b): v for (j, b), v in nulls.items() if j in position},
-                        {(position[j], b): v for (j, b), v in directions.items()
-                         if j in position}, RESTART_SIGMAS[0])
+        rising = np.full(face_slopes.shape, np.nan)        # the retried studies' faces only
+        rising[retry] = face_slopes[retry]
+        moved = _inward(layout, b_theta, rising, nulls, directions, RESTART_SIGMAS[0])[retry]
         r_theta, r_value, r_ok, r_iter, _ = newton(part, moved, np.zeros_like(moved, bool))
         iterations[check[retry]] += r_iter
         higher = r_ok & (r_value > b_value[retry] + tolerance[retry])

@@ -254,7 +254,7 @@ class CrossedTerms:
         lik = self.likelihood.subset(np.zeros(len(thetas), dtype=int))
         _, g_beta, g_loadings = lik.evaluate(thetas[:, :layout.n_fixed],
                                              layout.loadings(thetas))
-        return np.concatenate([g_beta, layout.theta_gradient(g_loadings)], axis=1)
+        return layout.gradient(g_beta, g_loadings)
 
     def loglik(self, theta: np.ndarray, grad: bool = True):
         """The value (and gradient) at ``theta``; asked again at the point of the last
@@ -267,8 +267,7 @@ class CrossedTerms:
             return last[1] if not grad else (last[1], last[2].copy())
         value, g_beta, g_loadings = self.likelihood.evaluate(
             theta[None, :layout.n_fixed], layout.loadings(theta[None]), grad)
-        gradient = (np.r_[g_beta[0], layout.theta_gradient(g_loadings)[0]] if grad
-                    else None)
+        gradient = layout.gradient(g_beta, g_loadings)[0] if grad else None
         self._last = (theta, float(value[0]), gradient)
         if not grad:
             return float(value[0])

@@ -14,9 +14,9 @@ The objective provides ``evaluate(theta, grad) -> (value (S,), gradient (S, n))`
 non-negative diagonals), ``warm``, an array (S, ...) of per-study state (the conditional
 modes) that is saved and restored around the trial points, and ``gradients(theta, rows)``
 (K, n), the gradient at each ``theta[i]`` of study ``rows[i]`` from that study's warm start
-(left as it was); optionally ``capped`` (the
-loading entries) and ``diagonals(held)`` (S, n), the diagonal loadings whose zero is a
-boundary of the problem with ``held`` held (:func:`_short_of_zero`).
+(left as it was); optionally ``capped`` (the loading entries) and ``diagonals(held)`` (S,
+n), the diagonal loadings whose zero is a boundary of the problem with ``held`` held
+(:func:`_short_of_zero`).
 """
 
 from __future__ import annotations

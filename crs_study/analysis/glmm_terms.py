@@ -302,10 +302,12 @@ class ThetaLayout:
         """``T_k`` (S, r_k, r_k) for parameter vectors ``theta`` (S, size)."""
         return [loading(t, theta[:, s]) for t, s in zip(self.terms, self.slices, strict=True)]
 
-    def theta_gradient(self, loading_gradients: list[np.ndarray]) -> np.ndarray:
-        """``dl/dtheta`` (S, n_theta) from ``dl/dT_k`` (S, r_k, r_k): the entries theta sets."""
+    def gradient(self, beta_gradient: np.ndarray, loading_gradients: list[np.ndarray]
+                 ) -> np.ndarray:
+        """The gradient over the whole parameter vector (S, size): ``dl/dbeta`` (S, p), then
+        from each ``dl/dT_k`` (S, r_k, r_k) the entries theta sets."""
         parts = [theta_of(t, g) for t, g in zip(self.terms, loading_gradients, strict=True)]
-        return np.concatenate(parts, axis=1) if parts else np.zeros((0, 0))
+        return np.concatenate([beta_gradient, *parts], axis=1)
 
     def start(self) -> np.ndarray:
         """lme4's start: every ``T_k`` the identity (SDs 1, correlations 0)."""
