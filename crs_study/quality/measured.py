@@ -50,6 +50,10 @@ GAP_SPACINGS = 2.5
 NOISE_NEIGHBOURS = {True: 6, False: 12}
 #: Fewest measured points the support of a shape may hold.
 MIN_SUPPORT_POINTS = 10
+#: Points are triangulated moved by up to this many spacings, from a fixed seed, so that a
+#: regular grid is in general position (see :meth:`SampledSurface.at`).
+JITTER_SPACINGS = 1e-6
+JITTER_SEED = 20140527
 #: A top fits a quadratic when the fit misses by less than twice the noise plus this
 #: fraction of the top's height; the summit of a top that does not (a plateau, a kink, a
 #: ridge) is the set of points within three noise levels plus this fraction of the top.
@@ -174,17 +178,23 @@ class SampledSurface:
             values = np.interp(points[:, 0], self._coords[:, 0], self.heights)
         else:
             if self._interpolator is None:
-                # triangulate the points about the nodes only (the support, not the field);
-                # joggled (Qhull's QJ): a DIC's regular grid has four points on every circle,
-                # and the degenerate triangulation made the first evaluation 10x slower
+                # triangulate the points about the nodes only (the support, not the field).
+                # A DIC's regular grid has four points on every circle and straight rows on
+                # its edge: degenerate for Delaunay (ten times slower to evaluate, and Qhull's
+                # own joggle is seeded by the clock and leaves slivers that are flat in the
+                # stored coordinates, whose barycentric weights overflow). The points are
+                # moved by a fixed, seeded millionth of a spacing and triangulated and
+                # interpolated at those very coordinates: reproducible, and every value a
+                # convex combination of measured heights.
                 from scipy.interpolate import LinearNDInterpolator
                 from scipy.spatial import Delaunay
 
                 centre = points.mean(axis=0)
                 reach = float(np.max(np.hypot(*(points - centre).T)))
                 self._subset = self.near(centre, reach + GAP_SPACINGS * 2 * self.spacing)
-                triangulation = Delaunay(self._coords[self._subset],
-                                         qhull_options="Qbb Qc Qz Q12 QJ")
+                coords = self._coords[self._subset]
+                jitter = np.random.default_rng(JITTER_SEED).uniform(-1.0, 1.0, coords.shape)
+                triangulation = Delaunay(coords + JITTER_SPACINGS * self.spacing * jitter)
                 self._interpolator = LinearNDInterpolator(triangulation,
                                                           self.heights[self._subset])
             values = self._interpolator(points)
