@@ -306,7 +306,8 @@ class KeypadResponder(Responder):
         deadline = None if time_limit_s is None else stimulus.offset_time + time_limit_s
         choices = set(stimulus.symbol_choices)
         answers = sorted(k for k, s in self.keys.items() if s in choices)
-        self.screen.show(state=self.texts.answer)
+        if deadline is None:  # else the first count-down draws the call to answer with it
+            self.screen.show(state=self.texts.answer)
         while True:
             self._count_down(deadline)
             tick = None if deadline is None else min(deadline, time.monotonic() + 1.0)
