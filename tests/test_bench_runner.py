@@ -15,3 +15,5 @@ def test_bench_runner_quick_runs_to_its_figure(tmp_path):
     lines = [line for line in done.stdout.splitlines() if "dry-run session s per wall s" in line]
     assert len(lines) == 1, done.stdout
     assert ("ok" in lines[0]) != ("MISSED" in lines[0])  # reported, never asserted
+    stamps = [line for line in done.stdout.splitlines() if "keypad key stamp" in line]
+    assert len(stamps) == 1 and ("ok" in stamps[0]) != ("MISSED" in stamps[0]), done.stdout
