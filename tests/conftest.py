@@ -5,9 +5,18 @@ from __future__ import annotations
 import os
 import signal
 
-import numpy as np
 import pytest
 from hypothesis import settings
+
+# One BLAS thread per test process, set before numpy loads OpenBLAS: the suite runs one worker
+# per core, and a second BLAS thread per worker only oversubscribes the cores; OpenBLAS's
+# threads spin while they wait, and beside another worker's BLAS calls a test of small
+# matrix work ran ten to a hundred times slower. Processes the tests start inherit it, as the
+# product's own worker processes set it (power_analysis.backends, quality.sweep).
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
+import numpy as np  # noqa: E402  (after the variables above)
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 

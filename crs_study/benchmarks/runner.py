@@ -31,7 +31,10 @@ from types import SimpleNamespace
 import numpy as np
 
 from crs_study.benchmarks import Figure
+from crs_study.clock import RealClock
 from crs_study.paths import shipped_file
+from crs_study.session.responders.base import StimulusRecord
+from crs_study.session.responders.keypad import KeypadResponder
 from crs_study.session.runner import run_session
 from crs_study.session.spec import SessionSpec
 
@@ -85,10 +88,6 @@ def _key_stamps(keys: int) -> Figure:
     import select
     import termios  # POSIX terminals, as the keypad's own
     import tty
-
-    from crs_study.clock import RealClock
-    from crs_study.session.responders.base import StimulusRecord
-    from crs_study.session.responders.keypad import KeypadResponder
 
     trial = SimpleNamespace(index=0, digit=7, symbol=7, block=1, condition="crs",
                             trial_type="test")
