@@ -22,9 +22,12 @@ import csv
 import importlib.util
 import io
 import os
+import select
 import statistics
 import tempfile
+import termios
 import time
+import tty
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -85,10 +88,6 @@ def run(quick: bool) -> list[Figure]:
 
 def _key_stamps(keys: int) -> Figure:
     """The keypad's stamp delay on a pty, median over ``keys`` keys, against select()."""
-    import select
-    import termios  # POSIX terminals, as the keypad's own
-    import tty
-
     trial = SimpleNamespace(index=0, digit=7, symbol=7, block=1, condition="crs",
                             trial_type="test")
     clock = RealClock()
