@@ -71,3 +71,11 @@ def _a_board_register_of_its_own(tmp_path_factory, monkeypatch):
     """Every test (and every process it starts) remembers board identities in a file of its
     own, never the machine's ~/.crs-study/boards.json (``device check`` reads it)."""
     monkeypatch.setenv("CRS_STUDY_BOARDS", str(tmp_path_factory.mktemp("boards") / "boards.json"))
+
+
+def pytest_collection_modifyitems(config, items):
+    """Test files with a slow test go first, each file's tests in their order: the workers
+    take one file at a time in this order, so the long files start while the many short
+    ones fill the gaps, instead of one long file running alone at the end of the suite."""
+    slow_files = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow_files)

@@ -59,6 +59,7 @@ def _kill_when_rows(command: list[str], tsv_glob: str, root: Path, rows: int) ->
         child.wait()
 
 
+@pytest.mark.slow
 def test_a_killed_dry_run_is_interrupted_not_tampered(tmp_path):
     # the GLMM is not read: the plan's random intercept per participant is enough
     protocol, dataset = quick_analysis_protocol(tmp_path, repetitions=30), tmp_path / "ds"

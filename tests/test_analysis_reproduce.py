@@ -48,6 +48,7 @@ def test_the_same_data_give_the_same_numbers_even_moved_elsewhere(analysed, tmp_
     assert (moved / "derivatives/crs-study/results.json").read_bytes() == earlier.read_bytes()
 
 
+@pytest.mark.slow
 def test_a_changed_number_is_named_with_both_values(analysed, tmp_path):
     results = json.loads((analysed / "derivatives/crs-study/results.json").read_text())
     comparison = results["comparisons"][0]

@@ -90,6 +90,7 @@ _start = start_command
 _wait_for = wait_for_stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["register-only", "dataset-wait"])
 def test_a_withdrawal_stops_the_running_session_at_the_next_trial(tmp_path, how):
     protocol = tiny_protocol(tmp_path, digits=(1, 7), practice=0, iti=1.5)

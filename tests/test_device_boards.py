@@ -98,6 +98,7 @@ def readme_device_steps() -> list[str]:
             if line.startswith("crs-study device ")]
 
 
+@pytest.mark.slow
 def test_the_readmes_device_steps_run_against_virtual_boards(tmp_path, monkeypatch):
     steps = readme_device_steps()
     assert [s.split()[2] for s in steps] == ["identify", "check", "sweep", "calibrate"]

@@ -31,6 +31,7 @@ def _run(model, **where):
                  seed=7, **where)
 
 
+@pytest.mark.slow
 def test_one_job_two_jobs_and_a_dask_cluster_give_identical_results(model, monkeypatch):
     """One point of 24 studies in tasks of 8 (three tasks, so the pools and the cluster each
     share them out; below 20 studies the bootstrap-calibrated p, against as many null

@@ -84,6 +84,7 @@ def wait_for(condition, seconds: float, what: str):
     raise AssertionError(f"{what} within {seconds} s")
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(1200)  # a busy machine: three power processes start (imports alone 10 s)
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
 def test_sigkill_of_power_with_two_jobs_leaves_no_worker_and_a_rerun_gives_the_curve(
@@ -128,6 +129,7 @@ def test_a_busy_pool_worker_dies_with_its_killed_parent(tmp_path):
         kill_all(descendants(parent.pid) | {parent.pid} | set(locals().get("workers", ())))
 
 
+@pytest.mark.slow
 def test_sigkill_of_power_on_a_dask_cluster_leaves_no_client_and_a_rerun_gives_the_curve(
         tmp_path, uninterrupted):
     from distributed import Client, LocalCluster

@@ -196,6 +196,7 @@ def test_the_fits_recover_the_generating_parameters(design):
     assert np.all(np.abs(mean - expected) < 2 * se), (mean, expected, se)
 
 
+@pytest.mark.slow
 def test_the_maximal_fits_recover_the_random_slopes(design):
     """The plan's maximal model, singular fits kept: mean estimates over 300 studies of 30
     participants within 2.5 SE of the truth, every variance times its first-order ML factor

@@ -117,6 +117,7 @@ def test_with_twenty_four_the_chi2_lr_test_holds_the_level_intercepts_do_not(des
         assert rejected.mean() > 4 * design.alpha, rejected.mean()
 
 
+@pytest.mark.slow
 def test_power_decides_as_each_studys_own_bootstrap_would(design):
     """The same 24 studies of 6 participants with an effect: power's reference (24 null
     studies of the point, drawn once from the generating model) and each study's own
