@@ -9,10 +9,11 @@ import pytest
 from hypothesis import settings
 
 # One BLAS thread per test process, set before numpy loads OpenBLAS: the suite runs one worker
-# per core, and a second BLAS thread per worker only oversubscribes the cores; OpenBLAS's
-# threads spin while they wait, and beside another worker's BLAS calls a test of small
-# matrix work ran ten to a hundred times slower. Processes the tests start inherit it, as the
-# product's own worker processes set it (power_analysis.backends, quality.sweep).
+# per core, and a second BLAS thread per worker only oversubscribes the cores. OpenBLAS's
+# threads spin while they wait: beside another worker's BLAS calls the quality tests ran 10
+# to 250 times slower (a helper thread burned 46 s of CPU in one 98 s test). Processes the
+# tests start inherit it, as the product's own worker processes set it
+# (power_analysis.backends, quality.sweep).
 for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 

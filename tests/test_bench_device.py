@@ -46,12 +46,12 @@ def test_the_bench_reports_the_wire_figures_against_their_baselines(figures):
     assert status == int(any(f["passed"] is False for f in figs))  # 1: a target missed
 
 
-def test_the_frame_rate_reaches_95_percent_of_the_wire_bound(figures):
+def test_frames_leave_back_to_back_near_the_wire_bound(figures):
     # SerialDevice on two paced ports, every channel changing: frames leave back to back
     _, (rate, *_) = figures
     assert rate["target"] == "ratio >= 0.95"
-    # back to back: the bench's target is 0.95 of the bound (reported, a busy machine's late
-    # wake-ups may miss it); a bound this test holds on a machine five times oversubscribed
+    # the bench's target, 0.95 of the bound, is reported (a busy machine's late wake-ups may
+    # miss it); back to back is far above 0.8 (0.98 measured beside the full suite)
     assert rate["ratio"] >= 0.8, rate
     assert rate["passed"] == (rate["ratio"] >= 0.95)
 
