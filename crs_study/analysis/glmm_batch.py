@@ -41,7 +41,7 @@ from crs_study.analysis.glmm_optimise import (
     RESTART_SIGMAS,
     SLOPE_TOLERANCE,
     Face,
-    inward_loading,
+    inward_entries,
 )
 from crs_study.analysis.glmm_start import MomentStart
 from crs_study.analysis.glmm_terms import (
@@ -225,13 +225,9 @@ def _inward(layout: ThetaLayout, theta: np.ndarray, slopes: np.ndarray, nulls: d
     for s, b in zip(*np.nonzero(np.nan_to_num(slopes, nan=-np.inf) > SLOPE_TOLERANCE),
                     strict=True):
         block = layout.blocks[b]
-        if not block.matrix:
-            out[s, block.indices[0]] = sigma
-            continue
-        term = layout.terms[block.term]
         idx = list(block.indices)
-        out[s, idx] = theta_of(term, inward_loading(loading(term, theta[s, idx]),
-                                                    directions[(s, b)], nulls[(s, b)], sigma))
+        out[s, idx] = inward_entries(layout, block, theta[s, idx], directions.get((s, b)),
+                                     nulls.get((s, b)), sigma)
     return out
 
 

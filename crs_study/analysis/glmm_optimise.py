@@ -359,25 +359,28 @@ def _slopes(problem, theta: np.ndarray, faces: list[Face]) -> list[Face]:
 def _inward(problem, theta: np.ndarray, faces: list[Face], sigma: float) -> np.ndarray:
     """``theta`` moved off the rising faces by ``sigma`` (SD scale) along their directions."""
     out = theta.copy()
+    layout = getattr(problem.model, "layout", None)
     for face in faces:
-        if not face.block.matrix:
-            out[face.held[0]] = sigma
-            continue
-        term = problem.model.layout.terms[face.block.term]
         idx = list(face.block.indices)
-        out[idx] = theta_of(term, inward_loading(loading(term, theta[idx]), face.direction,
-                                                 face.null, sigma))
+        out[idx] = inward_entries(layout, face.block, theta[idx], face.direction, face.null,
+                                  sigma)
     return out
 
 
-def inward_loading(T: np.ndarray, direction: np.ndarray, null: np.ndarray,
-                   sigma: float) -> np.ndarray:
-    """The Cholesky factor of ``T T' + sigma^2 d d' + (sigma / 10)^2 N N'``: a covariance
-    of reduced rank moved off its face by ``sigma`` (SD scale) along the rising direction
-    ``d``, and a tenth of that along the rest of its null space ``N``."""
+def inward_entries(layout, block: Block, values: np.ndarray, direction: np.ndarray | None,
+                   null: np.ndarray | None, sigma: float) -> np.ndarray:
+    """A block's entries of theta (``values``) moved off its face by ``sigma`` (SD scale):
+    an SD set to ``sigma``; a correlated term's loading replaced by the Cholesky factor of
+    ``T T' + sigma^2 d d' + (sigma / 10)^2 N N'``, its covariance of reduced rank moved
+    along the rising direction ``d`` and a tenth of that along the rest of its null space
+    ``N``."""
+    if not block.matrix:
+        return np.full(len(values), sigma)
+    term = layout.terms[block.term]
+    T = loading(term, values)
     cov = (T @ T.T + sigma**2 * np.outer(direction, direction)
            + (0.1 * sigma) ** 2 * null @ null.T)
-    return np.linalg.cholesky(cov)
+    return theta_of(term, np.linalg.cholesky(cov))
 
 
 def maximise(problem, start: np.ndarray, held: dict[int, float] | None = None,
