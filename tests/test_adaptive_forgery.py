@@ -8,11 +8,10 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from _cli import crs_study
 from _session_helpers import adaptive_protocol
 
 from crs_study.analysis.load import load_datasets
@@ -30,10 +29,6 @@ def recorded(request, tmp_path_factory):
     assert done.returncode == 0, done.stderr
     return protocol, folder / "ds"
 
-
-def crs_study(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "crs_study", *map(str, args)],
-                          capture_output=True, text=True, timeout=300)
 
 
 def one_error(stderr: str) -> bool:

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import pytest
+from _cli import crs_study
 from _session_helpers import quick_analysis_protocol, tiny_protocol
 from analysis_fixtures import edit_sidecar
 
@@ -34,11 +35,6 @@ from crs_study.dataset import SessionPaths
 from crs_study.errors import DatasetError
 from crs_study.session.runner import run_session
 from crs_study.session.spec import SessionSpec
-
-
-def crs_study(*args, timeout: float = 180):
-    return subprocess.run([sys.executable, "-m", "crs_study", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout)
 
 
 def _kill_when_rows(command: list[str], tsv_glob: str, root: Path, rows: int) -> None:

@@ -18,21 +18,15 @@ import json
 import os
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from _cli import crs_study
 from _session_helpers import quick_analysis_protocol
 
 from crs_study.analysis.load import load_datasets
 from crs_study.dataset import SessionPaths
 from crs_study.errors import DatasetError
-
-
-def crs_study(*args, timeout: float = 120):
-    return subprocess.run([sys.executable, "-m", "crs_study", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +108,8 @@ def test_an_unreadable_trial_file_is_a_warning_naming_the_participant(dataset, d
 
 def test_an_unreadable_session_is_reported_by_the_command_too(dataset, tmp_path):
     _fifo(_sim02(dataset))
-    done = crs_study("analyze", dataset, "--out", tmp_path / "out", timeout=60)
+    done = crs_study("analyze", dataset, "--out", tmp_path / "out", process=True,
+                     timeout=60)
     assert done.returncode == 0, done.stderr
     assert "named pipe" in done.stderr and "participant 'sim02'" in done.stderr
 
@@ -179,11 +174,12 @@ def test_a_named_pipe_for_the_outputs_record_is_one_line_not_a_hang(dataset, tmp
     record = registry_path(dataset)
     record.unlink(missing_ok=True)
     os.mkfifo(record)
-    done = crs_study("analyze", dataset, "--out", tmp_path / "out", timeout=60)
+    done = crs_study("analyze", dataset, "--out", tmp_path / "out", process=True,
+                     timeout=60)
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert "record of analysis outputs (a named pipe, not a file)" in done.stderr
     withdraw = crs_study("consent", "withdraw", "--participant", "sim02", "--dataset", dataset,
-                         "--dry-run", timeout=60)
+                         "--dry-run", process=True, timeout=60)
     assert withdraw.returncode == 2 and "a named pipe, not a file" in withdraw.stderr
 
 

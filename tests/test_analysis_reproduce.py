@@ -8,10 +8,9 @@ from __future__ import annotations
 import copy
 import json
 import shutil
-import subprocess
-import sys
 
 import pytest
+from _cli import crs_study
 from _session_helpers import tiny_protocol
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -19,11 +18,6 @@ from hypothesis import strategies as st
 from crs_study.analysis import analyze
 from crs_study.analysis.reproduce import compare_results
 from crs_study.errors import AnalysisError
-
-
-def crs_study(*args, timeout: float = 120):
-    return subprocess.run([sys.executable, "-m", "crs_study", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

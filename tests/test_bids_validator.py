@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from _cli import crs_study as run_crs_study
 from _session_helpers import record_consent, tiny_letter_protocol, tiny_protocol
 
 
@@ -41,8 +42,7 @@ def valid_report(dataset) -> dict:
 
 
 def crs_study(*args: str) -> subprocess.CompletedProcess:
-    done = subprocess.run([sys.executable, "-m", "crs_study", *args], capture_output=True,
-                          text=True, timeout=300)
+    done = run_crs_study(*args)
     assert done.returncode == 0, done.stderr
     return done
 

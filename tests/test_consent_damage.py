@@ -4,42 +4,22 @@ said out loud. Each case is a real ``crs-study`` process on a real register."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
-import os
 import stat
 import subprocess
-import sys
-import warnings
 from pathlib import Path
 
 import pytest
-
-from crs_study.cli import main
+from _cli import crs_study as run_crs_study
 
 FORM = "consent_form"
 
 
 def crs_study(*args, register: Path, process: bool = False) -> subprocess.CompletedProcess:
     """``crs-study ARGS`` with ``register`` as the consent register: a process of its own
-    when ``process`` (the reproductions), else :func:`main` in this one (the same code,
-    without the 2-3 s of imports a process costs on a busy machine)."""
-    args = [str(a) for a in args]
-    if process:
-        env = {**os.environ, "CRS_STUDY_CONSENT_DIR": str(register)}
-        return subprocess.run([sys.executable, "-m", "crs_study", *args], env=env,
-                              capture_output=True, text=True, timeout=120)
-    out, err = io.StringIO(), io.StringIO()
-    with pytest.MonkeyPatch.context() as patch, warnings.catch_warnings():
-        warnings.simplefilter("default")   # shown as the command shows them, not raised
-        patch.setenv("CRS_STUDY_CONSENT_DIR", str(register))
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                code = main(args)
-            except SystemExit as exit_:
-                code = exit_.code
-    return subprocess.CompletedProcess(args, code, out.getvalue(), err.getvalue())
+    when ``process`` (the reproductions), else in this one (:mod:`_cli`)."""
+    return run_crs_study(*args, process=process, env={"CRS_STUDY_CONSENT_DIR": str(register)},
+                         timeout=120)
 
 
 def record(register: Path, label: str, *more: str, process: bool = False

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from _cli import crs_study
 from _session_helpers import (
     PauseAt,
     quick_analysis_protocol,
@@ -30,11 +31,6 @@ from crs_study.errors import ConsentError, DatasetError, DeviceError
 from crs_study.protocol.plan import plan_seed
 from crs_study.session.runner import run_session
 from crs_study.session.spec import SessionSpec
-
-
-def crs_study(*args: str, cwd: Path | None = None, timeout: float = 120):
-    return subprocess.run([sys.executable, "-m", "crs_study", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout, cwd=cwd)
 
 
 def run_args(protocol: Path, dataset: Path, participant: str, *extra: str) -> list[str]:
