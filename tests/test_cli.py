@@ -40,6 +40,14 @@ def test_building_the_parser_loads_no_heavy_library():
                         ("scipy", "matplotlib", "pandas", "statsmodels")) == []
 
 
+def test_a_session_and_a_withdrawal_load_no_pandas():
+    """`crs-study run`, `dry-run` and `consent` start without pandas (half a second of CPU
+    at every start; only the tables of a notebook need it)."""
+    code = "; ".join(f"import crs_study.commands.{name}"
+                     for name in ("run", "dry_run", "consent", "validate"))
+    assert loaded_after(code, ("pandas", "matplotlib", "statsmodels")) == []
+
+
 def test_unknown_bench_area_is_one_line(capsys):
     assert main(["bench", "no-such-area"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

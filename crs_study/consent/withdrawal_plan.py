@@ -38,8 +38,6 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import pandas as pd
-
 from crs_study._files import sha256_file
 from crs_study.dataset import bids
 from crs_study.dataset.outputs import read_outputs
@@ -94,8 +92,10 @@ class DatasetWithdrawal:
                 "outputs": list(self.outputs), "output_runs": list(self.output_runs),
                 "output_dirs": list(self.output_dirs), "notes": list(self.notes)}
 
-    def to_frame(self) -> pd.DataFrame:
+    def to_frame(self):
         """One row per action: ``action`` (remove, rows, note), ``path``, ``reason``."""
+        import pandas as pd  # only here: sessions and withdrawals need no pandas
+
         rows = [("remove", p, self.why.get(p, "")) for p in self.paths]
         rows += [("rows", p, f"participant_id sub-{self.participant}") for p in self.rows]
         rows += [("remove", p, "analysis output outside the dataset") for p in self.outputs]
