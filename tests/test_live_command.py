@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli import crs_study
 
 from crs_study.clock import VirtualClock
 from crs_study.device import open_device
@@ -101,9 +102,8 @@ def test_live_and_live_send_processes_json(tmp_path):
     assert result["latency"]["wire"]["n"] >= 1  # how many: the machine's load decides
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sink:  # held: ours alone
         sink.bind(("127.0.0.1", 0))
-        replay = subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{sink.getsockname()[1]}",
-                                       "--replay", str(record)],
-                                capture_output=True, text=True, timeout=30)
+        replay = crs_study("live-send", "--to", f"127.0.0.1:{sink.getsockname()[1]}",
+                           "--replay", record)
     assert replay.returncode == 0 and "sent 40 packets" in replay.stdout, replay.stderr
 
 
@@ -117,8 +117,9 @@ def test_a_signal_leaves_the_boards_neutral_and_the_ports_free(boards, layout2d,
         line = live.stderr.readline()
         assert "listening on" in line
         port = announced_port(line)
-        subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--hold",
-                              "--centre", "0,0", "--seconds", "0.4"], check=True, timeout=30)
+        sent = crs_study("live-send", "--to", f"127.0.0.1:{port}", "--hold", "--centre", "0,0",
+                         "--seconds", "0.4")
+        assert sent.returncode == 0, sent.stderr
         assert len(a.wait_for(2)) >= 2  # the start's neutral pose, then the bump
         live.send_signal(signum)
         out, err = live.communicate(timeout=30)
@@ -179,8 +180,9 @@ def test_the_live_view_fits_80_by_24_and_redraws_in_place(tmp_path):
     with Tmux(command, Path(os.getcwd()), width=80, height=24) as term:
         screen = term.wait_for("waiting for packets", timeout=60)
         port = announced_port(screen)  # the view's title: crs-study live  127.0.0.1:PORT
-        subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{port}", "--stroke",
-                              "--speed-mm-s", "100"], check=True, timeout=60)
+        sent = crs_study("live-send", "--to", f"127.0.0.1:{port}", "--stroke", "--speed-mm-s",
+                         "100")
+        assert sent.returncode == 0, sent.stderr
         screen = term.wait_for("73 received", timeout=60)
         time.sleep(1.0)  # several redraws after the last packet
         screen = term.screen()

@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 import pytest
+from _cli import crs_study
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -40,12 +41,12 @@ def recording(tmp_path, packets, name: str = "r.jsonl", raw: str = "") -> str:
 
 
 def replay(path: str, *options: str) -> subprocess.CompletedProcess:
-    """``live-send --replay path`` to a socket of ours (held open: no other test's)."""
+    """``live-send --replay path`` to a socket of ours (held open: no other test's), in this
+    process."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sink:
         sink.bind(("127.0.0.1", 0))
-        return subprocess.run(CLI + ["live-send", "--to", f"127.0.0.1:{sink.getsockname()[1]}",
-                                     "--replay", path, "--json", *options],
-                              capture_output=True, text=True, timeout=120)
+        return crs_study("live-send", "--to", f"127.0.0.1:{sink.getsockname()[1]}",
+                         "--replay", path, "--json", *options)
 
 
 def one_line_error(done: subprocess.CompletedProcess, message: str) -> None:
