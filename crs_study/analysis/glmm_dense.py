@@ -38,9 +38,10 @@ from crs_study.analysis.glmm_laplace import (
 )
 
 #: Most random effects (``q``) of a model fitted with ``H`` whole; beyond, the Schur
-#: complement's per-level blocks (``glmm_laplace``) cost less than ``O(q^3)``. Measured
-#: (``crs-study bench glmm``): 50 participants and 10 symbols (q = 60) fit faster whole.
-DENSE_MAX_Q = 64
+#: complement's per-level blocks (``glmm_laplace``) cost less. Measured (CPU time, the
+#: machine shared): 50 participants and 10 symbols (q = 60) took 5x longer whole, LAPACK's
+#: factorisations of 60 x 60 running threaded; 12 and 10 (q = 22) a third less.
+DENSE_MAX_Q = 32
 
 
 def solve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -214,7 +215,7 @@ class DenseLaplace:
         """The exact gradient (``glmm_laplace``'s docstring) from ``G_i = H^-1[P_i, P_i]``:
         ``(H^-1 a_i)`` at row ``i``'s positions is ``G_i V_i``, ``d_i = V_i' G_i V_i``."""
         r = self.Y - self.m * p
-        H_inv = solve(H, np.broadcast_to(self.eye, H.shape))
+        H_inv = np.linalg.inv(H)
         G = H_inv[:, self.P[:, :, None], self.P[:, None, :]]      # (S, n, R, R)
         GV = np.einsum("snab,snb->sna", G, V)
         q = w * (1.0 - 2.0 * p) * np.einsum("sna,sna->sn", GV, V)
