@@ -296,8 +296,7 @@ def _whole_key(columns: np.ndarray) -> np.ndarray | None:
             not np.array_equal(columns, np.floor(columns)):
         return None
     radix = (high + 1).astype(np.int64)
-    weights = np.r_[np.cumprod(radix[::-1])[-2::-1], 1] if len(radix) > 1 else np.ones(1,
-                                                                                    np.int64)
+    weights = np.r_[np.cumprod(radix[::-1])[-2::-1], 1]    # prod_{l > j} radix_l
     return columns.astype(np.int64) @ weights
 
 
