@@ -17,7 +17,8 @@ with the random effects integrated out; the binomial constants are added by the 
   curvature depend on ``(beta, sigma)`` and are differentiated implicitly.
 * :class:`CrossedTerms` -- any random terms (intercepts, slopes, correlated or not, crossed
   factors), Laplace only (as lme4): the likelihood of :mod:`crs_study.analysis.glmm_laplace`
-  for one response vector, its parameters laid out as lme4's theta
+  for one response vector (of :mod:`crs_study.analysis.glmm_dense`, the same numbers, for
+  crossed intercepts of few levels), its parameters laid out as lme4's theta
   (:class:`~crs_study.analysis.glmm_terms.ThetaLayout`).
 * :class:`NoRandom` -- plain logistic regression (used for the penalised fallback).
 """
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit
 
+from crs_study.analysis.glmm_dense import DENSE_MAX_Q, DenseLaplace
 from crs_study.analysis.glmm_laplace import LaplaceLikelihood, TermRows
 from crs_study.analysis.glmm_terms import RandomTerm, ThetaLayout
 
@@ -229,7 +231,11 @@ class CrossedTerms:
         Z = data.Z or tuple(np.ones((n, 1)) for _ in data.group_codes)
         rows = [TermRows(codes, levels, z) for codes, levels, z in
                 zip(data.group_codes, data.n_levels, Z, strict=True)]
-        self.likelihood = LaplaceLikelihood(data.X, data.trials, data.successes, rows)
+        # crossed intercepts of few levels (a demo's participants and symbols): H whole
+        dense = (all(r.size == 1 for r in rows)
+                 and sum(r.levels * r.size for r in rows) <= DENSE_MAX_Q)
+        self.likelihood = (DenseLaplace if dense else LaplaceLikelihood)(
+            data.X, data.trials, data.successes, rows)
         self.layout = ThetaLayout(data.X.shape[1], terms)
         self.n_variance = self.layout.n_theta
         self._last = None     # (theta, value, gradient or None) of the last evaluation

@@ -53,10 +53,10 @@ _PLAIN_FORMULA = re.compile(r"^\s*(?:(?P<intercept>[01])\s*(?:\+\s*|$))?"
                             r"(?P<columns>[A-Za-z_]\w*(?:\s*\+\s*[A-Za-z_]\w*)*)?\s*$")
 
 
-def plain_design(data: pd.DataFrame, formula: str) -> pd.DataFrame | None:
-    """The design patsy builds for a sum of numeric columns (the intercept first, named
-    ``Intercept``, unless the formula starts with ``0``), or None for any other formula,
-    which patsy reads. A fit's several designs cost more through patsy than the fit."""
+def plain_columns(data: pd.DataFrame, formula: str) -> tuple[list[str], bool] | None:
+    """``(columns, intercept)`` of a formula that is a sum of numeric columns without
+    missing values (``intercept`` unless it starts with ``0``), or None for any other
+    formula, which patsy reads."""
     match = _PLAIN_FORMULA.match(formula)
     if match is None or not formula.strip():
         return None
@@ -70,11 +70,33 @@ def plain_design(data: pd.DataFrame, formula: str) -> pd.DataFrame | None:
         if not (pd.api.types.is_numeric_dtype(column) and not pd.api.types.is_bool_dtype(
                 column)) or column.isna().any():
             return None
-    design = pd.DataFrame({name: data[name].to_numpy(dtype=float) for name in names},
-                          index=data.index)
-    if match["intercept"] != "0":
-        design.insert(0, "Intercept", 1.0)
-    return design if design.shape[1] else None
+    intercept = match["intercept"] != "0"
+    return (names, intercept) if names or intercept else None
+
+
+def plain_matrix(data: pd.DataFrame, formula: str) -> tuple[np.ndarray, list[str]] | None:
+    """The design patsy builds for a sum of numeric columns (:func:`plain_columns`) as
+    ``(matrix, column names)``, the intercept first, named ``Intercept``; None for any
+    other formula."""
+    plain = plain_columns(data, formula)
+    if plain is None:
+        return None
+    names, intercept = plain
+    X = np.empty((len(data), len(names) + intercept))
+    if intercept:
+        X[:, 0] = 1.0
+    for j, name in enumerate(names):
+        X[:, j + intercept] = data[name].to_numpy(dtype=float)
+    return X, ["Intercept"] * intercept + names
+
+
+def plain_design(data: pd.DataFrame, formula: str) -> pd.DataFrame | None:
+    """:func:`plain_matrix` as patsy's data frame (the data's index), or None. A fit's
+    several designs cost more through patsy than the fit."""
+    plain = plain_matrix(data, formula)
+    if plain is None:
+        return None
+    return pd.DataFrame(plain[0], columns=plain[1], index=data.index)
 
 
 def patsy_design(data: pd.DataFrame, formula: str,
@@ -139,9 +161,12 @@ def fixed_design(data: pd.DataFrame, fixed) -> tuple[np.ndarray, list[str]]:
         if "~" in fixed:
             raise AnalysisError(f"fixed is the right-hand side of a formula (e.g. 'condition'), "
                                 f"got {fixed!r}; give the response as response=")
-        design = patsy_design(data, fixed, "fixed-effects formula")
-        X = design.to_numpy(dtype=float)
-        names = list(design.columns)
+        plain = plain_matrix(data, fixed)
+        if plain is None:
+            design = patsy_design(data, fixed, "fixed-effects formula")
+            X, names = design.to_numpy(dtype=float), list(design.columns)
+        else:
+            X, names = plain
     else:
         raise AnalysisError(f"fixed must be a formula string or a DataFrame, got "
                             f"{type(fixed).__name__}")
@@ -170,7 +195,10 @@ def drop_aliased(X: np.ndarray, names: list[str], notes: list[str]):
 
 def response_arrays(data: pd.DataFrame, response: str, trials: str | None):
     """Successes, trials and the binomial constant ``sum log C(trials, successes)``."""
-    y = pd.to_numeric(data[response], errors="coerce").to_numpy(dtype=float)
+    column = data[response]
+    y = (column.to_numpy(dtype=float) if isinstance(column.dtype, np.dtype)
+         and column.dtype.kind in "iuf"
+         else pd.to_numeric(column, errors="coerce").to_numpy(dtype=float))
     bad = ~np.isfinite(y)
     if bad.any():
         first = data[response].to_numpy()[bad][0]
@@ -195,10 +223,13 @@ def group_codes(data: pd.DataFrame, terms: list[RandomTerm], notes: list[str]):
     codes, kept = [], []
     for term in terms:
         g = term.group
-        if data[g].isna().any():
-            raise AnalysisError(f"group column {g!r} has {int(data[g].isna().sum())} missing "
+        column = data[g]
+        # a categorical column's levels in its categories' order, any other's sorted
+        c, levels = pd.factorize(column if isinstance(column.dtype, pd.CategoricalDtype)
+                                 else column.to_numpy(), sort=True)
+        if (c < 0).any():        # factorize codes a missing value -1
+            raise AnalysisError(f"group column {g!r} has {int((c < 0).sum())} missing "
                                 f"value(s)")
-        c, levels = pd.factorize(data[g], sort=True)
         if len(levels) < 2:
             shown = term.shown_group()  # as the report names it: participant
             what = "random intercept" if term.is_intercept else f"random term {term.label()}"
@@ -254,6 +285,21 @@ def factorize(column: np.ndarray) -> tuple[np.ndarray, int]:
     return codes, len(uniques)
 
 
+def _whole_key(columns: np.ndarray) -> np.ndarray | None:
+    """Each row's mixed-radix number ``sum_j c_j prod_{l > j} (max_l + 1)`` when every entry
+    is a small non-negative whole number (level codes, 0/1 designs): ordered as the rows,
+    as the column-wise codes' key is, in one pass; None otherwise."""
+    if columns.dtype.kind not in "iuf" or not columns.size:
+        return None
+    high = columns.max(axis=0)
+    if columns.min() < 0 or np.prod(high + 1.0) > 4.0 * len(columns) + 1.0 or \
+            not np.array_equal(columns, np.floor(columns)):
+        return None
+    radix = (high + 1).astype(np.int64)
+    weights = np.r_[np.cumprod(radix[::-1])[-2::-1], 1]    # prod_{l > j} radix_l
+    return columns.astype(np.int64) @ weights
+
+
 def row_codes(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Index of each row's distinct value (rows of a 2-D array) and one row per distinct value.
 
@@ -262,10 +308,12 @@ def row_codes(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ``np.unique`` per column; the distinct rows come in sorted key order, as ``np.unique``
     gives them, so the pooled rows do not depend on the order of the data.
     """
-    key = np.zeros(len(columns), dtype=np.int64)
-    for col in columns.T:
-        inverse, distinct = factorize(col)
-        key = key * distinct + inverse
+    key = _whole_key(columns)
+    if key is None:
+        key = np.zeros(len(columns), dtype=np.int64)
+        for col in columns.T:
+            inverse, distinct = factorize(col)
+            key = key * distinct + inverse
     inverse, distinct = factorize(key)
     first = np.empty(distinct, dtype=np.intp)
     first[inverse[::-1]] = np.arange(len(key) - 1, -1, -1)

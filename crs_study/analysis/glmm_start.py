@@ -111,13 +111,18 @@ def _level_moments(codes: np.ndarray, levels: int, Z: np.ndarray, residual: np.n
                    weight: np.ndarray) -> np.ndarray | None:
     """``cov_l(b_l) - mean_l(V_l)`` over the levels whose design is well conditioned."""
     r = Z.shape[1]
-    ZWZ = np.zeros((levels, r, r))
-    np.add.at(ZWZ, codes, weight[:, None, None] * Z[:, :, None] * Z[:, None, :])
-    ZWe = np.zeros((levels, r))
-    np.add.at(ZWe, codes, (weight * residual)[:, None] * Z)
-    conditioned = np.linalg.cond(ZWZ) < 1.0 / _MIN_RCOND
+    cells = codes[:, None] * r + np.arange(r)                       # (n, r)
+    ZWZ = np.bincount((cells[:, :, None] * r + np.arange(r)).ravel(),
+                      (weight[:, None, None] * Z[:, :, None] * Z[:, None, :]).ravel(),
+                      minlength=levels * r * r).reshape(levels, r, r)
+    ZWe = np.bincount(cells.ravel(), ((weight * residual)[:, None] * Z).ravel(),
+                      minlength=levels * r).reshape(levels, r)
+    if r == 1:      # a 1 x 1 block is well conditioned unless it is 0
+        conditioned = ZWZ[:, 0, 0] > 0
+    else:
+        conditioned = np.linalg.cond(ZWZ) < 1.0 / _MIN_RCOND
     if conditioned.sum() < r + 2:
         return None
-    inverse = np.linalg.inv(ZWZ[conditioned])
+    inverse = 1.0 / ZWZ[conditioned] if r == 1 else np.linalg.inv(ZWZ[conditioned])
     b = (inverse @ ZWe[conditioned][:, :, None])[:, :, 0]
     return np.atleast_2d(np.cov(b, rowvar=False)) - inverse.mean(axis=0)

@@ -269,6 +269,7 @@ class ThetaLayout:
             start += term.n_theta
         self.size = start
         self.blocks = tuple(blocks)
+        self.intercepts = all(term.size == 1 for term in self.terms)
 
     @property
     def n_theta(self) -> int:
@@ -300,12 +301,17 @@ class ThetaLayout:
 
     def loadings(self, theta: np.ndarray) -> list[np.ndarray]:
         """``T_k`` (S, r_k, r_k) for parameter vectors ``theta`` (S, size)."""
+        if self.intercepts:      # each T_k is its one theta entry
+            return [theta[:, s, None, None].astype(float) for s in range(self.n_fixed, self.size)]
         return [loading(t, theta[:, s]) for t, s in zip(self.terms, self.slices, strict=True)]
 
     def gradient(self, beta_gradient: np.ndarray, loading_gradients: list[np.ndarray]
                  ) -> np.ndarray:
         """The gradient over the whole parameter vector (S, size): ``dl/dbeta`` (S, p), then
         from each ``dl/dT_k`` (S, r_k, r_k) the entries theta sets."""
+        if self.intercepts:
+            return np.concatenate([beta_gradient, *(g[:, :, 0] for g in loading_gradients)],
+                                  axis=1)
         parts = [theta_of(t, g) for t, g in zip(self.terms, loading_gradients, strict=True)]
         return np.concatenate([beta_gradient, *parts], axis=1)
 

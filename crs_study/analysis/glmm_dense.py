@@ -1,0 +1,231 @@
+"""The Laplace log-likelihood of a binomial GLMM with few random effects, ``H`` formed whole.
+
+The same function as :class:`~crs_study.analysis.glmm_laplace.LaplaceLikelihood` (the model,
+the penalised IRLS with its stopping rules, the exact gradient: see that module's
+docstring), computed another way. With ``A = Z Lambda`` the ``n x q`` design of the
+spherical random effects (row ``i`` is ``a_i'``)::
+
+    H = A' W A + I,    log det H = 2 sum_j log L_jj   (H = L L', Cholesky)
+
+formed whole: ``q x q`` for ``q`` random effects (12 participants and 10 symbols: 22). There
+the Schur complement's split into per-level blocks saves nothing and costs a few dozen
+array operations per solve, each a Python call on a few hundred numbers; the whole matrix
+costs one sum and one factorisation (Golub & Van Loan 2013, Matrix Computations, sec.
+4.2), ``O(q^3)``, so it is chosen only for small ``q`` (:data:`DENSE_MAX_Q`).
+
+``A`` itself is never formed: row ``i`` has ``R = sum_k r_k`` nonzeros (one level of each
+term), so ``A u``, ``A' v`` and ``A' W A`` are gathers and ``bincount`` sums over ``n R``
+(``n R^2``) entries, with no BLAS call on an ``n``-long axis (OpenBLAS threads those, and
+on a shared machine its threads spin). The gradient's row quantities read off the entries of
+``H^-1`` at each row's own positions ``P_i``: ``G_i = H^-1[P_i, P_i]`` (R x R), so
+``(H^-1 a_i)`` at ``P_i`` is ``G_i V_i`` and ``d_i = a_i' H^-1 a_i = V_i' G_i V_i`` (``V_i``
+the nonzeros of ``a_i``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import lapack
+from scipy.special import expit
+
+from crs_study.analysis.glmm_laplace import (
+    FULL_STEP,
+    INNER_MAXITER,
+    INNER_TOL,
+    LAST_STEP,
+    TermRows,
+    kernel,
+)
+
+#: Most random effects (``q``) of a model fitted with ``H`` whole; beyond, the Schur
+#: complement's per-level blocks (``glmm_laplace``) cost less. Measured (CPU time, the
+#: machine shared): 50 participants and 10 symbols (q = 60) took 5x longer whole, LAPACK's
+#: factorisations of 60 x 60 running threaded; 12 and 10 (q = 22) a third less.
+DENSE_MAX_Q = 32
+
+
+def solve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``H^-1 b`` per study for positive-definite ``H`` (S, q, q), ``b`` (S, q) or (S, q, k)
+    (LAPACK's ``dposv``, Cholesky: a tenth of ``numpy.linalg.solve``'s call overhead on
+    one small matrix); NaN where ``H`` is not positive definite (a diverged point)."""
+    out = np.empty(b.shape)
+    for s in range(len(H)):
+        _, out[s], info = lapack.dposv(H[s], b[s])
+        if info:
+            out[s] = np.nan
+    return out
+
+
+def log_det(H: np.ndarray) -> np.ndarray:
+    """``log det H`` per study (S,) from the Cholesky factor (LAPACK's ``dpotrf``); raises
+    ``LinAlgError``, as ``numpy.linalg.cholesky``, where ``H`` is not positive definite."""
+    out = np.empty(len(H))
+    for s in range(len(H)):
+        chol, info = lapack.dpotrf(H[s])
+        if info:
+            raise np.linalg.LinAlgError("Matrix is not positive definite")
+        out[s] = 2.0 * np.log(np.diagonal(chol)).sum()
+    return out
+
+
+class DenseLaplace:
+    """``l(beta, T_1..T_K)`` and its exact gradient for ``S`` response vectors at once, as
+    :class:`~crs_study.analysis.glmm_laplace.LaplaceLikelihood` (same arguments, same
+    :meth:`evaluate`, :meth:`subset` and warm starts ``u``), with ``H`` formed whole.
+
+    Row ``i`` of ``A`` has ``R = sum_k r_k`` nonzeros, at positions ``P_i`` (term ``k``'s:
+    its level's effects) with values ``V_i`` (term ``k``'s: ``T_k' z_ik``), so every product
+    with ``A`` is a gather or a ``bincount`` over ``n R`` (``H``: ``n R^2``) entries, and
+    only the factorisation of ``H`` is dense: no BLAS call on an ``n``-long axis.
+    """
+
+    def __init__(self, X: np.ndarray, trials: np.ndarray, Y: np.ndarray,
+                 terms: list[TermRows]):
+        self.X = np.asarray(X, dtype=float)
+        self.m = np.asarray(trials, dtype=float)
+        Y = np.asarray(Y, dtype=float)
+        self.Y = Y[None] if Y.ndim == 1 else Y
+        if not terms:
+            raise ValueError("the Laplace likelihood needs a random term")
+        self.terms = terms
+        positions, self.columns, start = [], [], 0
+        for t in terms:
+            positions.append(start + t.codes[:, None] * t.size + np.arange(t.size))
+            self.columns.append(slice(sum(c.stop - c.start for c in self.columns),
+                                      sum(c.stop - c.start for c in self.columns) + t.size))
+            start += t.levels * t.size
+        self.q = start
+        self.P = np.concatenate(positions, axis=1)                       # (n, R)
+        self.diagonal = all(t.size == 1 for t in terms)
+        self.Z = np.concatenate([t.Z for t in terms], axis=1)            # (n, R)
+        self.pairs = (self.P[:, :, None] * self.q + self.P[:, None, :]).ravel()  # (n R R)
+        self.eye = np.eye(self.q)
+        self.u = np.zeros((len(self.Y), self.q))
+
+    @property
+    def n_studies(self) -> int:
+        return len(self.Y)
+
+    def subset(self, index) -> DenseLaplace:
+        """The studies ``index`` (their warm starts included) as a likelihood of their own."""
+        out = DenseLaplace.__new__(DenseLaplace)
+        out.__dict__.update(self.__dict__)
+        out.Y = self.Y[index]
+        out.u = self.u[index].copy()
+        return out
+
+    def values(self, loadings: list[np.ndarray]) -> np.ndarray:
+        """``V`` (S, n, R): row ``i``'s nonzeros of ``A``, term ``k``'s ``T_k' z_ik``."""
+        if self.diagonal:
+            return self.Z * np.concatenate([T[:, 0] for T in loadings], axis=1)[:, None, :]
+        return np.concatenate([np.einsum("nb,sba->sna", t.Z, T)
+                               for t, T in zip(self.terms, loadings, strict=True)], axis=2)
+
+    def _bins(self, flat: np.ndarray, bins: np.ndarray, size: int) -> np.ndarray:
+        """Sums of ``flat`` (S, n k) into ``size`` bins per study, bins ``bins`` (n k)."""
+        S = len(flat)
+        if S == 1:
+            return np.bincount(bins, flat[0], minlength=size)[None]
+        index = (np.arange(S)[:, None] * size + bins).ravel()
+        return np.bincount(index, flat.ravel(), minlength=S * size).reshape(S, size)
+
+    def _times(self, u: np.ndarray, V: np.ndarray) -> np.ndarray:
+        """``A u`` (S, n)."""
+        return np.einsum("snr,snr->sn", V, u[:, self.P])
+
+    def _adjoint(self, v: np.ndarray, V: np.ndarray) -> np.ndarray:
+        """``A' v`` (S, q) for row values ``v`` (S, n)."""
+        return self._bins((v[:, :, None] * V).reshape(len(v), -1), self.P.ravel(), self.q)
+
+    def _H(self, w: np.ndarray, V: np.ndarray) -> np.ndarray:
+        """``A' W A + I`` (S, q, q)."""
+        S = len(w)
+        outer = (w[:, :, None, None] * V[:, :, :, None] * V[:, :, None, :]).reshape(S, -1)
+        return self._bins(outer, self.pairs, self.q * self.q).reshape(S, self.q, self.q) \
+            + self.eye
+
+    def _h(self, Y, offset, u, V) -> np.ndarray:
+        eta = offset + self._times(u, V)
+        return kernel(Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
+
+    def modes(self, offset, V, u0, Y=None) -> np.ndarray:
+        """Penalised IRLS from ``u0``, with the stopping and step-halving rules of
+        :meth:`~crs_study.analysis.glmm_laplace.LaplaceLikelihood.modes`."""
+        Y = self.Y if Y is None else Y
+        u = u0.copy()
+        active = np.arange(len(u))
+        everyone = True
+        for _ in range(INNER_MAXITER):
+            if not len(active):
+                break
+            if everyone:
+                o, ua, y, Va = offset, u, Y, V
+            else:
+                o, ua, y, Va = offset[active], u[active], Y[active], V[active]
+            eta = o + self._times(ua, Va)
+            p = expit(eta)
+            mp = self.m * p
+            H = self._H(mp * (1.0 - p), Va)
+            rhs = self._adjoint(y - mp, Va) - ua
+            step = solve(H, rhs)
+            size = np.max(np.abs(step), axis=1)
+            t = np.ones(len(active))
+            long = np.flatnonzero(size > FULL_STEP)
+            if len(long):
+                current = kernel(y[long], self.m, eta[long]).sum(axis=1) - 0.5 * np.einsum(
+                    "sq,sq->s", ua[long], ua[long])
+                for _ in range(31):
+                    value = self._h(y[long], o[long], ua[long] + t[long, None] * step[long],
+                                    Va[long])
+                    worse = ~(value >= current - 1e-12 * (1.0 + np.abs(current)))
+                    if not worse.any():
+                        break
+                    t[long[worse]] *= 0.5
+            u[active] = ua + t[:, None] * step
+            done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
+            if done.any():
+                active = active[~done]
+                everyone = False
+        return u
+
+    def evaluate(self, beta: np.ndarray, loadings: list[np.ndarray], grad: bool = True):
+        """``(value (S,), d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` (the last two None when
+        ``grad`` is false); updates the warm starts ``u``."""
+        beta = np.asarray(beta, dtype=float)
+        V = self.values([np.asarray(T, dtype=float) for T in loadings])
+        offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
+        u = self.modes(offset, V, self.u)
+        bad = ~np.isfinite(u).all(axis=1)
+        if bad.any():                       # a diverged start: retry those from 0
+            u[bad] = self.modes(offset[bad], V[bad], np.zeros((bad.sum(), self.q)),
+                                self.Y[bad])
+        self.u = u
+        eta = offset + self._times(u, V)
+        p = expit(eta)
+        w = self.m * p * (1.0 - p)
+        H = self._H(w, V)
+        logdet = log_det(H)
+        value = (kernel(self.Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
+                 - 0.5 * logdet)
+        if not grad:
+            return value, None, None
+        return (value,) + self._gradient(u, p, w, V, H)
+
+    def _gradient(self, u, p, w, V, H):
+        """The exact gradient (``glmm_laplace``'s docstring) from ``G_i = H^-1[P_i, P_i]``:
+        ``(H^-1 a_i)`` at row ``i``'s positions is ``G_i V_i``, ``d_i = V_i' G_i V_i``."""
+        r = self.Y - self.m * p
+        H_inv = np.linalg.inv(H)
+        G = H_inv[:, self.P[:, :, None], self.P[:, None, :]]      # (S, n, R, R)
+        GV = np.einsum("snab,snb->sna", G, V)
+        q = w * (1.0 - 2.0 * p) * np.einsum("sna,sna->sn", GV, V)
+        s = (H_inv @ self._adjoint(q, V)[:, :, None])[:, :, 0]
+        rho = r - 0.5 * q + 0.5 * w * self._times(s, V)
+        g_beta = (self.X.T @ rho[:, :, None])[:, :, 0]
+        Q = (rho[:, :, None] * u[:, self.P] - w[:, :, None] * GV
+             - 0.5 * r[:, :, None] * s[:, self.P])                # (S, n, R)
+        if self.diagonal:      # intercepts (r_k = 1): every term's sum at once
+            sums = np.einsum("nr,snr->sr", self.Z, Q)
+            return g_beta, [sums[:, k, None, None] for k in range(len(self.terms))]
+        return g_beta, [np.einsum("na,snb->sab", t.Z, Q[:, :, cut])
+                        for t, cut in zip(self.terms, self.columns, strict=True)]
