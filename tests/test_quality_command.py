@@ -87,7 +87,9 @@ def test_points_a_model_cannot_compute_are_reported(tmp_path, capsys):
     # resolution 100000 was killed out of memory; jobs 0 was taken silently
     (["--resolution", "100000"], "--resolution: expected a whole number in 4..96, got 100000"),
     (["--jobs", "0"], "--jobs: expected a whole number in 1..64, got 0"),
-    (["--out", "/proc/crs-study-nope"], "/proc/crs-study-nope"),
+    # refused before the sweep (it was refused after a minute of surfaces)
+    (["--out", "/proc/crs-study-nope"], "--out: cannot write in /proc"),
+    (["--speed-accuracy", "--out", "/proc/crs-study-nope"], "--out: cannot write in /proc"),
     (["--device", "crs1d", "--layouts", "hex"], "the device 'crs1d' is a 1d lattice"),
     (["--device", "no-such-device"], "no-such-device"),
 ])

@@ -27,7 +27,7 @@ import os
 import sys
 from pathlib import Path
 
-from crs_study._files import os_errors, sha256_bytes
+from crs_study._files import check_writable, os_errors, sha256_bytes
 from crs_study.benchmarks.display import (
     format_table,
     plot_speed_accuracy,
@@ -121,12 +121,14 @@ def run(args: argparse.Namespace) -> int:
                                     f"got {value!r}")
     cache = None if args.no_cache else (args.cache_dir or default_cache_dir())
     jobs = args.jobs or min(4, os.cpu_count() or 1)
+    out = args.out if args.out is not None else (None if args.json else Path("quality"))
+    if out is not None:   # before the sweep's minutes, not after them
+        check_writable(out, DisplayModelError)
     # points beyond a lattice's own covering limit are reported, not computed
     points = sweep(args.models, args.layouts, args.d_over_l,
                    Settings(order=args.order, resolution=args.resolution, **device),
                    cache_dir=cache, jobs=jobs)
 
-    out = args.out if args.out is not None else (None if args.json else Path("quality"))
     written = _write(points, out) if out is not None else []
     if args.json:
         for p in points:
@@ -176,8 +178,10 @@ def _write(points: list, out: Path) -> list[Path]:
 
 def _speed_accuracy(args: argparse.Namespace) -> int:
     """Time per surface against error versus the reference, chart and table."""
-    rows = speed_accuracy_rows(quick=True)
     out = args.out if args.out is not None else (None if args.json else Path("quality"))
+    if out is not None:
+        check_writable(out, DisplayModelError)
+    rows = speed_accuracy_rows(quick=True)
     written = []
     if out is not None:
         import matplotlib
