@@ -28,14 +28,8 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.special import expit
 
-from crs_study.analysis.glmm_laplace import (
-    FULL_STEP,
-    INNER_MAXITER,
-    INNER_TOL,
-    LAST_STEP,
-    TermRows,
-    kernel,
-)
+from crs_study.analysis.glmm_irls import INNER_MAXITER, INNER_TOL, LAST_STEP, kernel, step_fractions
+from crs_study.analysis.glmm_laplace import TermRows
 
 #: Most random effects (``q``) of a model fitted with ``H`` whole; beyond, the Schur
 #: complement's per-level blocks (``glmm_laplace``) cost less. Measured (CPU time, the
@@ -169,18 +163,9 @@ class DenseLaplace:
             rhs = self._adjoint(y - mp, Va) - ua
             step = solve(H, rhs)
             size = np.max(np.abs(step), axis=1)
-            t = np.ones(len(active))
-            long = np.flatnonzero(size > FULL_STEP)
-            if len(long):
-                current = kernel(y[long], self.m, eta[long]).sum(axis=1) - 0.5 * np.einsum(
-                    "sq,sq->s", ua[long], ua[long])
-                for _ in range(31):
-                    value = self._h(y[long], o[long], ua[long] + t[long, None] * step[long],
-                                    Va[long])
-                    worse = ~(value >= current - 1e-12 * (1.0 + np.abs(current)))
-                    if not worse.any():
-                        break
-                    t[long[worse]] *= 0.5
+            t = step_fractions(size, y, self.m, eta, ua, lambda long, tl, o=o, ua=ua, y=y,
+                               step=step, Va=Va: self._h(y[long], o[long], ua[long] + tl[:, None]
+                                                         * step[long], Va[long]))
             u[active] = ua + t[:, None] * step
             done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
             if done.any():

@@ -60,22 +60,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.special import expit
 
-#: Penalised IRLS stops when no coordinate of u moves more than this.
-INNER_TOL = 1e-11
-#: A full Newton step shorter than this is the last one: on this strongly concave function
-#: the next would be of the order of its square (1e-9), which moves ``l`` only through
-#: ``log det H`` (``h`` is stationary at the mode): a thousandth of the fits' gradient
-#: tolerance. A differenced Hessian's points (moved 1e-5) then take one inner step, not two.
-LAST_STEP = 3e-5
-INNER_MAXITER = 60
-#: Newton steps longer than this (in any coordinate of u) are checked for ascent first;
-#: shorter ones lie where Newton's method on this strongly concave function converges.
-FULL_STEP = 0.05
-
-
-def kernel(y: np.ndarray, m: np.ndarray, eta: np.ndarray) -> np.ndarray:
-    """``y eta - m log(1 + e^eta)``, elementwise and stable."""
-    return y * eta - m * np.logaddexp(0.0, eta)
+from crs_study.analysis.glmm_irls import (
+    INNER_MAXITER,
+    INNER_TOL,
+    LAST_STEP,
+    kernel,
+    step_fractions,
+)
 
 
 @dataclass(frozen=True)
@@ -329,19 +320,9 @@ class LaplaceLikelihood:
             factor = _Factor(self, mp * (1.0 - p), T)
             step = factor.solve(self._adjoint(y - mp, T) - ua)
             size = np.max(np.abs(step), axis=1)
-            t = np.ones(len(active))
-            long = np.flatnonzero(size > FULL_STEP)
-            if len(long):
-                T_long = T.take(long)
-                current = kernel(y[long], self.m, eta[long]).sum(axis=1) - 0.5 * np.einsum(
-                    "sq,sq->s", ua[long], ua[long])
-                for _ in range(31):
-                    value = self._h(y[long], o[long], ua[long] + t[long, None] * step[long],
-                                    T_long)
-                    worse = ~(value >= current - 1e-12 * (1.0 + np.abs(current)))
-                    if not worse.any():
-                        break
-                    t[long[worse]] *= 0.5
+            t = step_fractions(size, y, self.m, eta, ua, lambda long, tl, o=o, ua=ua, y=y,
+                               step=step, T=T: self._h(y[long], o[long], ua[long] + tl[:, None]
+                                                       * step[long], T.take(long)))
             u[active] = ua + t[:, None] * step
             done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
             active = active[~done]
