@@ -28,7 +28,14 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.special import expit
 
-from crs_study.analysis.glmm_irls import INNER_MAXITER, INNER_TOL, LAST_STEP, kernel, step_fractions
+from crs_study.analysis.glmm_irls import (
+    INNER_MAXITER,
+    INNER_TOL,
+    LAST_STEP,
+    StudyBatch,
+    kernel,
+    step_fractions,
+)
 from crs_study.analysis.glmm_laplace import TermRows
 
 #: Most random effects (``q``) of a model fitted with ``H`` whole; beyond, the Schur
@@ -62,7 +69,7 @@ def log_det(H: np.ndarray) -> np.ndarray:
     return out
 
 
-class DenseLaplace:
+class DenseLaplace(StudyBatch):
     """``l(beta, T_1..T_K)`` and its exact gradient for ``S`` response vectors at once, as
     :class:`~crs_study.analysis.glmm_laplace.LaplaceLikelihood` (same arguments, same
     :meth:`evaluate`, :meth:`subset` and warm starts ``u``), with ``H`` formed whole.
@@ -95,18 +102,6 @@ class DenseLaplace:
         self.pairs = (self.P[:, :, None] * self.q + self.P[:, None, :]).ravel()  # (n R R)
         self.eye = np.eye(self.q)
         self.u = np.zeros((len(self.Y), self.q))
-
-    @property
-    def n_studies(self) -> int:
-        return len(self.Y)
-
-    def subset(self, index) -> DenseLaplace:
-        """The studies ``index`` (their warm starts included) as a likelihood of their own."""
-        out = DenseLaplace.__new__(DenseLaplace)
-        out.__dict__.update(self.__dict__)
-        out.Y = self.Y[index]
-        out.u = self.u[index].copy()
-        return out
 
     def values(self, loadings: list[np.ndarray]) -> np.ndarray:
         """``V`` (S, n, R): row ``i``'s nonzeros of ``A``, term ``k``'s ``T_k' z_ik``."""

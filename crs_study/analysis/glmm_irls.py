@@ -44,3 +44,23 @@ def step_fractions(size, y, m, eta, u, h_at) -> np.ndarray:
             break
         t[long[worse]] *= 0.5
     return t
+
+
+class StudyBatch:
+    """What the Laplace likelihoods share as batches of ``S`` response vectors ``Y`` (S, n)
+    with their warm starts ``u`` (S, q): their number, and a subset as a batch of its own."""
+
+    Y: np.ndarray
+    u: np.ndarray
+
+    @property
+    def n_studies(self) -> int:
+        return len(self.Y)
+
+    def subset(self, index):
+        """The studies ``index`` (their warm starts included) as a likelihood of their own."""
+        out = type(self).__new__(type(self))
+        out.__dict__.update(self.__dict__)
+        out.Y = self.Y[index]
+        out.u = self.u[index].copy()
+        return out

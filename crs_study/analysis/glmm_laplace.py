@@ -64,6 +64,7 @@ from crs_study.analysis.glmm_irls import (
     INNER_MAXITER,
     INNER_TOL,
     LAST_STEP,
+    StudyBatch,
     kernel,
     step_fractions,
 )
@@ -179,7 +180,7 @@ class _Loadings:
                          None if self.rest is None else self.rest[index])
 
 
-class LaplaceLikelihood:
+class LaplaceLikelihood(StudyBatch):
     """``l(beta, T_1..T_K)`` and its exact gradient for ``S`` response vectors at once.
 
     ``X`` (n, p) the fixed design of the (pooled) rows, ``trials`` (n,), ``Y`` (S, n) the
@@ -243,18 +244,6 @@ class LaplaceLikelihood:
         if not rows:
             return (np.zeros(0, dtype=int),) * 3
         return np.concatenate(rows), np.concatenate(cols), np.concatenate(source)
-
-    @property
-    def n_studies(self) -> int:
-        return len(self.Y)
-
-    def subset(self, index) -> LaplaceLikelihood:
-        """The studies ``index`` (their warm starts included) as a likelihood of their own."""
-        out = LaplaceLikelihood.__new__(LaplaceLikelihood)
-        out.__dict__.update(self.__dict__)
-        out.Y = self.Y[index]
-        out.u = self.u[index].copy()
-        return out
 
     # ------------------------------------------------------------------ pieces
     def _split(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
