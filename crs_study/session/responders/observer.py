@@ -310,16 +310,17 @@ class PerceptualObserver(Responder):
             return np.zeros((0, 2))
         chosen = np.unique(np.round(np.linspace(0, n - 1, min(n, o.max_sensed_frames)))
                            .astype(int))
+        surfaces = [z for z in (self.sensed_surface(stimulus.condition, stimulus.setpoints[k])
+                                for k in chosen) if z is not None]
+        if surfaces and o.noise_mm > 0:
+            # every frame's noise in one draw and one filter along the grid's two axes: the
+            # same numbers, bit for bit, as a draw and a filter per frame in turn
+            noise = rng.normal(0.0, o.noise_mm, (len(surfaces), *surfaces[0].shape))
+            if self._sigma_cells > 0:
+                noise = gaussian_filter(noise, self._sigma_cells, mode="nearest", axes=(1, 2))
+            surfaces = [z + frame_noise for z, frame_noise in zip(surfaces, noise, strict=True)]
         peaks = []
-        for k in chosen:
-            z = self.sensed_surface(stimulus.condition, stimulus.setpoints[k])
-            if z is None:
-                continue
-            if o.noise_mm > 0:
-                noise = rng.normal(0.0, o.noise_mm, z.shape)
-                if self._sigma_cells > 0:
-                    noise = gaussian_filter(noise, self._sigma_cells, mode="nearest")
-                z = z + noise
+        for z in surfaces:
             top = float(z.max())
             if top < o.detect_mm:
                 continue  # flat: the pen is lifted
