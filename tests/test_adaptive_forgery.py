@@ -30,7 +30,6 @@ def recorded(request, tmp_path_factory):
     return protocol, folder / "ds"
 
 
-
 def one_error(stderr: str) -> bool:
     """One error line, the last (the protocol's odd-value warnings may come before it)."""
     errors = [line for line in stderr.splitlines() if ": error: " in line]

@@ -1,6 +1,8 @@
 """A damaged consent register: a torn last line is repaired, a withdrawal always goes through,
 consent is never granted from a damaged register; a second consent for a label is a renewal
-said out loud. Each case is a real ``crs-study`` process on a real register."""
+said out loud. Each case runs the ``crs-study`` command on a real register: the
+reproductions as processes of their own, the rest through its ``main`` in the test's
+process."""
 
 from __future__ import annotations
 

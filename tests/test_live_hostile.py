@@ -1,9 +1,10 @@
-"""Hostile input to the live link as the user meets it: damaged recordings replayed by a real
-``crs-study live-send`` process, sequence numbers that wrap or restart sent over real UDP to a
-real ``crs-study live`` process, and a second signal while ``live`` closes.
+"""Hostile input to the live link as the user meets it: damaged recordings replayed by
+``crs-study live-send`` (its ``main``, in the test's process), sequence numbers that wrap or
+restart sent over real UDP to a real ``crs-study live`` process, and a second signal while
+``live`` closes.
 
 Every damaged recording is a one-line error (exit 2) or is replayed at a sane pace, never a
-traceback, a hang or a huge allocation (each process has a generous timeout; none is timed).
+traceback, a hang or a huge allocation (each live process has a generous timeout; none is timed).
 """
 
 from __future__ import annotations
