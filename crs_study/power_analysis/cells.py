@@ -1,10 +1,9 @@
-"""What the batched fits of one point share: its cells, the plan's terms and the starts.
+"""What the batched fits of one point share: its cells and the plan's terms.
 
 Every simulated study of a point has the same cells (participant x symbol x condition, with
 the design's trials), so the fits' design matrices are built once per point
-(:class:`PointCells`) and every study differs only in its successes. A study's fits start
-from its generating model (:func:`planned_start`): the fixed effects and the covariances
-the studies were drawn from, as lme4's theta (:func:`theta_start`).
+(:class:`PointCells`) and every study differs only in its successes; a reduced model starts
+from the covariances of the fit it reduces, as lme4's theta (:func:`theta_start`).
 """
 
 from __future__ import annotations
@@ -18,7 +17,6 @@ from crs_study.analysis.glmm_laplace import LaplaceLikelihood, TermRows
 from crs_study.analysis.glmm_terms import RandomTerm, ThetaLayout, theta_of
 from crs_study.analysis.structure import planned_terms
 from crs_study.power_analysis.design import PowerDesign
-from crs_study.power_analysis.model import GenerativeModel
 from crs_study.power_analysis.simulate import cells_frame
 
 
@@ -71,16 +69,6 @@ def planned_power_terms(design: PowerDesign) -> tuple[RandomTerm, ...]:
     if not design.symbol_effect:      # a single symbol: fit_glmm drops that factor
         terms = [t for t in terms if t.group == "participant_id"]
     return tuple(terms)
-
-
-def planned_start(design: PowerDesign, model: GenerativeModel) -> np.ndarray:
-    """The start of the plan's model for studies drawn from ``model``: its fixed effects
-    and covariances (:meth:`~GenerativeModel.start`)."""
-    columns = ("Intercept",) + tuple(f"condition[{k}]" for k in design.comparisons)
-    covariances = {"participant_id": model.start_covariance("participant"),
-                   design.symbol_column: model.start_covariance("symbol")}
-    return theta_start(planned_power_terms(design), model.start(design), covariances,
-                        columns)
 
 
 def curvature_shape(design: PowerDesign) -> tuple[int, int]:

@@ -19,8 +19,9 @@ the generating model without the comparison's effect (:func:`calibrated_pvalues`
 bootstrap's reference distribution computed once per point, not per study.
 
 Two paths give the fits. The batched path (:func:`crs_study.analysis.glmm_batch.fit_batch`)
-fits all studies of a point at once, from the generating parameters, to the maximum
-``fit_glmm`` finds (its boundary rule included); a study it does not settle (a condition at
+fits all studies of a point at once to the maximum ``fit_glmm`` finds (its boundary rule
+included), each model of each study from where ``fit_glmm`` starts it, the moment start
+of its own data (:mod:`crs_study.analysis.glmm_start`); a study it does not settle (a condition at
 0 % or 100 %, where ``fit_glmm`` tests at the supremum; a Newton iteration that stalls; a
 plan with adaptive quadrature) goes the reference path:
 :func:`crs_study.analysis.primary.fit_primary` itself on the study's cells. The chi2 p is
@@ -49,7 +50,6 @@ from crs_study.power_analysis.cells import (
     curvature_shape,
     fitted_covariances,
     planned_power_terms,
-    planned_start,
     recorded,
     theta_start,
 )
@@ -154,8 +154,8 @@ def _points(task: PowerTask, draws: list[tuple[GenerativeModel, int, bool]]
             ) -> list[dict[str, np.ndarray]]:
     """The outcome arrays of the task's studies drawn from each ``(model, seed, every)``
     at each point (``every`` False: only where the plan's test is the bootstrap). The
-    draws' studies of a point are fitted as one batch (fewer, larger array operations),
-    each from its own model's start: a study's fits depend on its own data alone."""
+    draws' studies of a point are fitted as one batch (fewer array operations, each on
+    more studies): a study's fits depend on its own data alone."""
     design, studies = task.design, range(*task.studies)
     S = len(studies)
     outs = [outcomes(design, (len(task.points), S)) for _ in draws]
@@ -173,8 +173,6 @@ def _points(task: PowerTask, draws: list[tuple[GenerativeModel, int, bool]]
         if not here:
             continue
         Y = np.concatenate([cumulative[k][:, :n, r - 1] for k in here]).astype(float)
-        starts = np.concatenate([np.tile(planned_start(design, draws[k][0]), (S, 1))
-                                 for k in here])
         # The full model's curvature at the previous N of the same study, scaled by the
         # participants (the information grows with them): a per-study start for the fits'
         # Hessian, so a study's answer still depends on nothing but its own data (zeros,
@@ -183,7 +181,7 @@ def _points(task: PowerTask, draws: list[tuple[GenerativeModel, int, bool]]
         curvature = None if all(x is None for x in last) else np.concatenate(
             [np.zeros((S,) + curvature_shape(design)) if x is None else x[1] * (n / x[0])
              for x in last])
-        point = decide_studies(design, draws[here[0]][0], Y, r, curvature, starts)
+        point = decide_studies(design, draws[here[0]][0], Y, r, curvature)
         for b, k in enumerate(here):
             part = slice(b * S, (b + 1) * S)
             previous[(k, r)] = (n, point["curvature"][part])
@@ -244,13 +242,14 @@ def outcomes(design: PowerDesign, shape: tuple[int, ...]) -> dict[str, np.ndarra
 
 
 def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
-                   repetitions: int, curvature: np.ndarray | None = None,
-                   starts: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                   repetitions: int, curvature: np.ndarray | None = None
+                   ) -> dict[str, np.ndarray]:
     """Test studies ``Y`` (S, P, D, C) of one point as ``analyze`` would; arrays as in
     :class:`TaskResult` (without the point axis), and ``curvature`` (S, n, n) the planned
     model's last negative-Hessian approximation (zeros where none), which a next point may
-    pass back as its start. ``starts`` (S, n): each study's start of the plan's model
-    (default: :func:`planned_start` of ``model``).
+    pass back as its start. ``model`` (the generating model) is not read: every fit starts
+    from its study's own data, as ``fit_glmm`` starts (the moment start of
+    :mod:`crs_study.analysis.glmm_start`).
 
     The plan's model first, for every study at once; a study whose fit calls for the plan's
     reduction rule (:func:`~crs_study.analysis.structure.reduction_reasons`) moves on to the
@@ -271,10 +270,8 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
     separated = ((per_condition == 0) | (per_condition == possible)).any(axis=1)
     fast = np.flatnonzero(~separated) if design.method == "laplace" else np.arange(0)
     settled = np.zeros(S, dtype=bool)
-    if starts is None:
-        starts = np.tile(planned_start(design, model), (S, 1))
-    queue: list[tuple[tuple[RandomTerm, ...], list[int], list[np.ndarray]]] = [
-        (planned, list(fast), list(starts[fast]))]
+    queue: list[tuple[tuple[RandomTerm, ...], list[int], list[np.ndarray] | None]] = [
+        (planned, list(fast), None)]
     steps_taken: dict[int, set[str]] = {int(s): set() for s in fast}
     final: dict[tuple[RandomTerm, ...], list[tuple[int, np.ndarray, float, bool]]] = {}
     while queue:
@@ -285,6 +282,8 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
         objective = cells.objective(terms, Y[index_array])
         warm = (curvature[index_array] if terms == planned and curvature is not None
                 else None)
+        if starts is None:           # the plan's model: each study from its moment start
+            starts = objective.moment_starts()
         fit = fit_batch(objective, np.array(starts), warm)
         if terms == planned:
             out["curvature"][index_array] = fit.curvature
@@ -317,8 +316,12 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
         reduced_values = np.empty((len(index), K))
         objective = cells.objective(terms, Y[index])
         for j in range(K):
-            reduced = fit_batch(cells.objective(terms, Y[index], drop=j + 1),
-                                np.delete(theta, j + 1, axis=1))
+            # from the study's moment start, where fit_glmm starts the reduced model: the
+            # model without an effect can have several maxima (the effect taken up by the
+            # participants' or the symbols' slopes), and a start carried over from the full
+            # model's maximum ends on another peak more often than fit_glmm does
+            dropped = cells.objective(terms, Y[index], drop=j + 1)
+            reduced = fit_batch(dropped, dropped.moment_starts())
             needs |= reduced.needs_reference
             reduced_values[:, j] = reduced.value
         keep = ~needs
