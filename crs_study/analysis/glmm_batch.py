@@ -52,14 +52,6 @@ from crs_study.analysis.glmm_terms import (
 )
 
 MIN_START_SIGMA = 0.25
-#: Studies evaluated together at most: a block's arrays (studies x cells, studies x levels
-#: x effects) stay in the processor's cache. On the shipped protocol's maximal model at 12
-#: participants (240 cells, 44 random effects), the 800 gradients of a Hessian by
-#: differences of 100 studies took 0.17-0.24 ms a study in blocks of 64, 0.18-0.24 in
-#: blocks of 100, 0.20-0.28 in blocks of 48 and 0.33-0.38 in one block (five runs each on
-#: a shared 2-core machine). A study's numbers are its own whatever its block: every sum
-#: runs over its own cells in a fixed order.
-STUDIES_PER_BLOCK = 64
 _SLOPE_STEP = 1e-3  # glmm_optimise._SLOPE_STEP: the slope is read at sigma = 1e-3
 
 
@@ -79,21 +71,7 @@ class BatchObjective:
         return self.likelihood.n_studies
 
     def evaluate(self, theta: np.ndarray, grad: bool = True):
-        """``(value (S,), gradient (S, n) or None)`` at ``theta`` (S, n), in blocks of at
-        most :data:`STUDIES_PER_BLOCK` studies."""
-        if len(theta) <= STUDIES_PER_BLOCK:
-            return self._evaluate(theta, grad)
-        values, gradients = [], []
-        for start in range(0, len(theta), STUDIES_PER_BLOCK):
-            rows = slice(start, start + STUDIES_PER_BLOCK)
-            block = self.subset(rows)
-            value, gradient = block._evaluate(theta[rows], grad)
-            self.warm[rows] = block.warm
-            values.append(value)
-            gradients.append(gradient)
-        return np.concatenate(values), np.concatenate(gradients) if grad else None
-
-    def _evaluate(self, theta: np.ndarray, grad: bool):
+        """``(value (S,), gradient (S, n) or None)`` at ``theta`` (S, n)."""
         layout = self.layout
         value, g_beta, g_loadings = self.likelihood.evaluate(
             theta[:, :layout.n_fixed], layout.loadings(theta), grad)

@@ -181,7 +181,7 @@ def _points(task: PowerTask, draws: list[tuple[GenerativeModel, int, bool]]
         curvature = None if all(x is None for x in last) else np.concatenate(
             [np.zeros((S,) + curvature_shape(design)) if x is None else x[1] * (n / x[0])
              for x in last])
-        point = decide_studies(design, draws[here[0]][0], Y, r, curvature)
+        point = decide_studies(design, task.model, Y, r, curvature)
         for b, k in enumerate(here):
             part = slice(b * S, (b + 1) * S)
             previous[(k, r)] = (n, point["curvature"][part])
