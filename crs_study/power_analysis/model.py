@@ -160,20 +160,28 @@ class GenerativeModel:
         """The log-odds (L, D, C) of a participant of ability ``z`` and slope draws ``w``
         (C - 1 standard normals; None: zeros), typical symbols."""
         C = self.base.shape[2]
-        draws = np.r_[z, np.zeros(C - 1) if w is None else np.asarray(w, dtype=float)]
+        w = np.zeros(C - 1) if w is None else np.asarray(w, dtype=float)
+        return self.participants_logits(np.array([z], dtype=float), w[None])[0]
+
+    def participants_logits(self, z: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """:meth:`participant_logits` of ``P`` participants at once: ``z`` (P,), ``w`` (P,
+        C - 1); (P, L, D, C)."""
+        draws = np.column_stack([z, w])                                      # (P, C)
         if self.ability is None:
-            effect = psd_factor(self.covariance("participant")) @ draws
-            return self.base + effect[0] + np.r_[0.0, effect[1:]]
-        sides = np.asarray(self.benefit_sides or (0.0,) * C)
-        offsets = self.ability_sd * z + 0.5 * self.benefit_sd * sides * draws[1]
+            effect = draws @ psd_factor(self.covariance("participant")).T     # (P, C)
+            slopes = np.column_stack([np.zeros(len(z)), effect[:, 1:]])
+            return (self.base[None] + effect[:, 0, None, None, None]) + slopes[:, None, None]
+        sides = np.asarray(self.benefit_sides or (0.0,) * draws.shape[1])
+        offsets = self.ability_sd * z[:, None] + 0.5 * self.benefit_sd * sides * draws[:, 1:2]
         grid = self.ability_grid
         step = grid[1] - grid[0]
-        out = np.empty(self.base.shape)
-        for c, offset in enumerate(offsets):
-            g = int(np.clip(np.floor((offset - grid[0]) / step), 0, len(grid) - 2))
-            t = (offset - grid[g]) / step
-            out[..., c] = (1.0 - t) * self.ability[g, ..., c] + t * self.ability[g + 1, ..., c]
-        return out
+        g = np.clip(np.floor((offsets - grid[0]) / step), 0, len(grid) - 2).astype(int)
+        t = ((offsets - grid[g]) / step)[:, None, None, :]                  # (P, 1, 1, C)
+        by_condition = np.moveaxis(self.ability, -1, 1)                      # (G, C, L, D)
+        columns = np.arange(draws.shape[1])
+        low = np.moveaxis(by_condition[g, columns], 1, -1)                  # (P, L, D, C)
+        high = np.moveaxis(by_condition[g + 1, columns], 1, -1)
+        return (1.0 - t) * low + t * high
 
     def start(self, design: PowerDesign) -> np.ndarray:
         """The fixed effects nearest this model (treatment-coded means over symbols and

@@ -55,13 +55,14 @@ def simulate_studies(model: GenerativeModel, seed: int, studies: range | list[in
                                  stream(seed, study, 3).standard_normal((D, C - 1))])
         effects = draws @ symbol_factor.T                                   # (D, C)
         symbol_shift = (effects[:, :1] + np.c_[np.zeros(D), effects[:, 1:]])[None]
-        for k in range(n_participants):
-            rng = stream(seed, study, 1, k)
-            z = rng.standard_normal()
-            w = stream(seed, study, 2, k).standard_normal(C - 1)
-            p = expit(model.participant_logits(z, w) + symbol_shift)
-            hits = rng.random((repetitions, L, D, C)) < p[None]
-            out[i, k] = np.cumsum(hits.sum(axis=1), axis=0)
+        rngs = [stream(seed, study, 1, k) for k in range(n_participants)]
+        z = np.array([rng.standard_normal() for rng in rngs])
+        w = np.array([stream(seed, study, 2, k).standard_normal(C - 1)
+                      for k in range(n_participants)]).reshape(n_participants, C - 1)
+        p = expit(model.participants_logits(z, w) + symbol_shift)           # (P, L, D, C)
+        uniforms = np.array([rng.random((repetitions, L, D, C)) for rng in rngs])
+        hits = uniforms < p[:, None]
+        out[i] = np.cumsum(hits.sum(axis=2), axis=1)
     return out
 
 

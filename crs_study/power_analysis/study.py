@@ -19,8 +19,9 @@ the generating model without the comparison's effect (:func:`calibrated_pvalues`
 bootstrap's reference distribution computed once per point, not per study.
 
 Two paths give the fits. The batched path (:func:`crs_study.analysis.glmm_batch.fit_batch`)
-fits all studies of a point at once, from the generating parameters, to the maximum
-``fit_glmm`` finds (its boundary rule included); a study it does not settle (a condition at
+fits all studies of a point at once to the maximum ``fit_glmm`` finds (its boundary rule
+included), each model of each study from where ``fit_glmm`` starts it, the moment start
+of its own data (:mod:`crs_study.analysis.glmm_start`); a study it does not settle (a condition at
 0 % or 100 %, where ``fit_glmm`` tests at the supremum; a Newton iteration that stalls; a
 plan with adaptive quadrature) goes the reference path:
 :func:`crs_study.analysis.primary.fit_primary` itself on the study's cells. The chi2 p is
@@ -39,12 +40,19 @@ from scipy import stats
 
 from crs_study.analysis.accuracy import floor_p
 from crs_study.analysis.glmm import GlmmFitError
-from crs_study.analysis.glmm_batch import BatchObjective, fit_batch, study_fit
-from crs_study.analysis.glmm_laplace import LaplaceLikelihood, TermRows
+from crs_study.analysis.glmm_batch import fit_batch, study_fit
 from crs_study.analysis.glmm_result import P_FLOOR
-from crs_study.analysis.glmm_terms import RandomTerm, ThetaLayout, theta_of
+from crs_study.analysis.glmm_terms import RandomTerm
 from crs_study.analysis.primary import fisher_comparisons, fit_primary
-from crs_study.analysis.structure import planned_terms, reduce_terms, reduction_reasons
+from crs_study.analysis.structure import reduce_terms, reduction_reasons
+from crs_study.power_analysis.cells import (
+    PointCells,
+    curvature_shape,
+    fitted_covariances,
+    planned_power_terms,
+    recorded,
+    theta_start,
+)
 from crs_study.power_analysis.design import PowerDesign
 from crs_study.power_analysis.model import GenerativeModel, fitted_covariance
 from crs_study.power_analysis.simulate import cells_frame, simulate_studies
@@ -104,28 +112,33 @@ def run_task(task: PowerTask) -> TaskResult:
     the plan's test is the parametric bootstrap, the same number of null studies too, whose
     LR statistics calibrate the test (:func:`calibrated_pvalues`)."""
     start = time.process_time()
-    design, model = task.design, task.model
-    studies = range(*task.studies)
-    out = _points(design, model, task.seed, studies, task.points)
-    out["null_statistic"] = null_statistics(task)
+    out, *nulls = _points(task, [(task.model, task.seed, True)] + _null_draws(task))
+    out["null_statistic"] = _null_statistic(task, nulls)
     return TaskResult(task.studies, seconds=time.process_time() - start, **out)
+
+
+def _null_draws(task: PowerTask) -> list[tuple[GenerativeModel, int, bool]]:
+    """What the null studies of comparison ``j`` are drawn from: ``model.without_effect(j)``
+    with :func:`null_seed`, at the points where the plan's test is the bootstrap."""
+    return [(task.model.without_effect(j), null_seed(task.seed, j), False)
+            for j in range(len(task.design.comparisons))]
+
+
+def _null_statistic(task: PowerTask, nulls: list[dict[str, np.ndarray]]) -> np.ndarray:
+    """(point, study, comparison): the LR statistics of the null studies (NaN where the
+    plan's test is not the bootstrap)."""
+    statistic = np.full((len(task.points), task.n_studies, len(nulls)), np.nan)
+    for i, (n, _) in enumerate(task.points):
+        for j, null in enumerate(nulls if task.design.bootstrapped(n) else ()):
+            statistic[i, :, j] = lr_statistic(null, i, j)
+    return statistic
 
 
 def null_statistics(task: PowerTask) -> np.ndarray:
     """(point, study, comparison): the LR statistics of the task's null studies where the
     plan's test is the bootstrap (NaN elsewhere); null study ``s`` of comparison ``j`` is
     drawn from ``model.without_effect(j)`` with :func:`null_seed`."""
-    design, model = task.design, task.model
-    studies = range(*task.studies)
-    points = [(n, r) for n, r in task.points if design.bootstrapped(n)]
-    K = len(design.comparisons)
-    statistic = np.full((len(task.points), len(studies), K), np.nan)
-    for j in range(K if points else 0):
-        null = _points(design, model.without_effect(j), null_seed(task.seed, j), studies,
-                       points)
-        for i, point in enumerate(points):
-            statistic[task.points.index(point), :, j] = lr_statistic(null, i, j)
-    return statistic
+    return _null_statistic(task, _points(task, _null_draws(task)))
 
 
 def run_null_task(task: PowerTask) -> TaskResult:
@@ -137,27 +150,44 @@ def run_null_task(task: PowerTask) -> TaskResult:
     return TaskResult(task.studies, seconds=time.process_time() - start, **out)
 
 
-def _points(design: PowerDesign, model: GenerativeModel, seed: int, studies: range,
-            points: list[tuple[int, int]]) -> dict[str, np.ndarray]:
-    """The outcome arrays of ``studies`` drawn from ``model`` at each point."""
-    out = outcomes(design, (len(points), len(studies)))
-    if not points:
-        return out
-    cumulative = simulate_studies(model, seed, studies, max(n for n, _ in points),
-                                  max(r for _, r in points))
-    previous: dict[int, tuple[int, np.ndarray]] = {}     # per repetitions: (N, curvature)
-    for i, (n, r) in enumerate(points):
-        Y = cumulative[:, :n, r - 1].astype(float)
+def _points(task: PowerTask, draws: list[tuple[GenerativeModel, int, bool]]
+            ) -> list[dict[str, np.ndarray]]:
+    """The outcome arrays of the task's studies drawn from each ``(model, seed, every)``
+    at each point (``every`` False: only where the plan's test is the bootstrap). The
+    draws' studies of a point are fitted as one batch (fewer array operations, each on
+    more studies): a study's fits depend on its own data alone."""
+    design, studies = task.design, range(*task.studies)
+    S = len(studies)
+    outs = [outcomes(design, (len(task.points), S)) for _ in draws]
+    wanted = [[every or design.bootstrapped(n) for n, _ in task.points]
+              for _, _, every in draws]
+    cumulative = {}
+    for k, (model, seed, _) in enumerate(draws):
+        points = [p for p, w in zip(task.points, wanted[k], strict=True) if w]
+        if points:
+            cumulative[k] = simulate_studies(model, seed, studies, max(n for n, _ in points),
+                                             max(r for _, r in points))
+    previous: dict[tuple[int, int], tuple[int, np.ndarray]] = {}   # (draw, reps): (N, curv.)
+    for i, (n, r) in enumerate(task.points):
+        here = [k for k in cumulative if wanted[k][i]]
+        if not here:
+            continue
+        Y = np.concatenate([cumulative[k][:, :n, r - 1] for k in here]).astype(float)
         # The full model's curvature at the previous N of the same study, scaled by the
         # participants (the information grows with them): a per-study start for the fits'
-        # Hessian, so a study's answer still depends on nothing but its own data.
-        last = previous.get(r)
-        start_curvature = None if last is None else last[1] * (n / last[0])
-        point = decide_studies(design, model, Y, r, start_curvature)
-        previous[r] = (n, point.pop("curvature"))
-        for key, value in point.items():
-            out[key][i] = value
-    return out
+        # Hessian, so a study's answer still depends on nothing but its own data (zeros,
+        # where there is none, are a start the fits replace by differences).
+        last = [previous.get((k, r)) for k in here]
+        curvature = None if all(x is None for x in last) else np.concatenate(
+            [np.zeros((S,) + curvature_shape(design)) if x is None else x[1] * (n / x[0])
+             for x in last])
+        point = decide_studies(design, task.model, Y, r, curvature)
+        for b, k in enumerate(here):
+            part = slice(b * S, (b + 1) * S)
+            previous[(k, r)] = (n, point["curvature"][part])
+            for key, value in outs[k].items():
+                value[i] = point[key][part]
+    return outs
 
 
 def null_seed(seed: int, comparison: int) -> int:
@@ -211,94 +241,15 @@ def outcomes(design: PowerDesign, shape: tuple[int, ...]) -> dict[str, np.ndarra
             "loglike_reduced": np.full(shape + (K,), np.nan)}
 
 
-@dataclass(frozen=True)
-class _Cells:
-    """The rows the fits of one point share: every (participant, symbol, condition) cell."""
-
-    X: np.ndarray           # (n, C) treatment-coded design of each cell
-    trials: np.ndarray      # (n,)
-    participant: np.ndarray
-    symbol: np.ndarray
-    P: int
-    D: int
-    columns: tuple[str, ...]
-
-    @classmethod
-    def of(cls, design: PowerDesign, P: int, D: int, trials: np.ndarray) -> _Cells:
-        C = len(design.conditions)
-        p, d, c = (a.ravel() for a in np.meshgrid(np.arange(P), np.arange(D), np.arange(C),
-                                                  indexing="ij"))
-        X = design.fixed_design()[c]
-        columns = ("Intercept",) + tuple(f"condition[{k}]" for k in design.comparisons)
-        return cls(X, np.broadcast_to(trials, (P, D, C)).ravel().astype(float), p, d, P, D,
-                   columns)
-
-    def objective(self, terms: tuple[RandomTerm, ...], Y: np.ndarray,
-                  drop: int | None = None) -> BatchObjective:
-        """The batch objective of ``Y`` (S, P, D, C) under ``terms`` (fixed column ``drop``
-        left out: a reduced model)."""
-        rows = []
-        for term in terms:
-            codes, levels = ((self.participant, self.P) if term.group == "participant_id"
-                             else (self.symbol, self.D))
-            Z = self.X[:, [self.columns.index(c) for c in term.columns]]
-            rows.append(TermRows(codes, levels, Z))
-        X = self.X if drop is None else np.delete(self.X, drop, axis=1)
-        likelihood = LaplaceLikelihood(X, self.trials, Y.reshape(len(Y), -1), rows)
-        return BatchObjective(likelihood, ThetaLayout(X.shape[1], terms))
-
-
-def planned_power_terms(design: PowerDesign) -> tuple[RandomTerm, ...]:
-    """The terms the plan asks for on the design's data (every participant and symbol sees
-    every condition, so condition varies within both)."""
-    P, D, C = 2, len(design.symbols), len(design.conditions)
-    cells = cells_frame(design, np.ones((P, D, C)), np.ones((D, C)))
-    columns = {"participant": "participant_id", "symbol": design.symbol_column,
-               "digit": design.symbol_column}
-    terms, _ = planned_terms(design.random_spec, cells,
-                             [f"condition[{c}]" for c in design.comparisons], columns)
-    if not design.symbol_effect:      # a single symbol: fit_glmm drops that factor
-        terms = [t for t in terms if t.group == "participant_id"]
-    return tuple(terms)
-
-
-def _theta_start(terms, beta: np.ndarray, covariances: dict[str, np.ndarray],
-                 columns: tuple[str, ...]) -> np.ndarray:
-    """A start for ``terms``: ``beta`` and each term's part of the covariance given per
-    grouping column over ``columns`` (the Cholesky factor; the SDs of an uncorrelated term)."""
-    parts = [beta]
-    for term in terms:
-        index = [columns.index(c) for c in term.columns]
-        cov = covariances[term.group][np.ix_(index, index)]
-        if term.correlated and term.size > 1:
-            T = np.linalg.cholesky(cov + 1e-4 * np.eye(len(index)))
-        else:
-            T = np.diag(np.sqrt(np.clip(np.diag(cov), 0.0, None)))
-        parts.append(theta_of(term, T))
-    return np.concatenate(parts)
-
-
-def _fitted_covariances(objective: BatchObjective, theta: np.ndarray,
-                        columns: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """Each grouping column's covariance over ``columns`` at a study's fit (0 where the
-    fitted terms have no effect)."""
-    layout = objective.layout
-    out = {}
-    for term, sigma in zip(layout.terms, layout.covariances(theta), strict=True):
-        full = np.zeros((len(columns), len(columns)))
-        index = [columns.index(c) for c in term.columns]
-        full[np.ix_(index, index)] = sigma
-        out[term.group] = full
-    return out
-
-
 def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
                    repetitions: int, curvature: np.ndarray | None = None
                    ) -> dict[str, np.ndarray]:
     """Test studies ``Y`` (S, P, D, C) of one point as ``analyze`` would; arrays as in
     :class:`TaskResult` (without the point axis), and ``curvature`` (S, n, n) the planned
     model's last negative-Hessian approximation (zeros where none), which a next point may
-    pass back as its start.
+    pass back as its start. ``model`` (the generating model) is not read: every fit starts
+    from its study's own data, as ``fit_glmm`` starts (the moment start of
+    :mod:`crs_study.analysis.glmm_start`).
 
     The plan's model first, for every study at once; a study whose fit calls for the plan's
     reduction rule (:func:`~crs_study.analysis.structure.reduction_reasons`) moves on to the
@@ -309,23 +260,18 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
     S, P, D, C = Y.shape
     K = len(design.comparisons)
     trials = design.cell_trials(repetitions)
-    cells = _Cells.of(design, P, D, trials)
+    cells = PointCells.of(design, P, D, trials)
     planned = planned_power_terms(design)
     spec = design.random_spec
     out = outcomes(design, (S,))
-    size = ThetaLayout(C, planned).size
-    out["curvature"] = np.zeros((S, size, size))
+    out["curvature"] = np.zeros((S,) + curvature_shape(design))
     per_condition = Y.sum(axis=(1, 2))                                  # (S, C)
     possible = trials.sum(axis=0) * Y.shape[1]
     separated = ((per_condition == 0) | (per_condition == possible)).any(axis=1)
     fast = np.flatnonzero(~separated) if design.method == "laplace" else np.arange(0)
     settled = np.zeros(S, dtype=bool)
-    beta = model.start(design)
-    covariances = {"participant_id": model.start_covariance("participant"),
-                   design.symbol_column: model.start_covariance("symbol")}
-    start = _theta_start(planned, beta, covariances, cells.columns)
-    queue: list[tuple[tuple[RandomTerm, ...], list[int], list[np.ndarray]]] = [
-        (planned, list(fast), [start] * len(fast))]
+    queue: list[tuple[tuple[RandomTerm, ...], list[int], list[np.ndarray] | None]] = [
+        (planned, list(fast), None)]
     steps_taken: dict[int, set[str]] = {int(s): set() for s in fast}
     final: dict[tuple[RandomTerm, ...], list[tuple[int, np.ndarray, float, bool]]] = {}
     while queue:
@@ -336,6 +282,8 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
         objective = cells.objective(terms, Y[index_array])
         warm = (curvature[index_array] if terms == planned and curvature is not None
                 else None)
+        if starts is None:           # the plan's model: each study from its moment start
+            starts = objective.moment_starts()
         fit = fit_batch(objective, np.array(starts), warm)
         if terms == planned:
             out["curvature"][index_array] = fit.curvature
@@ -352,10 +300,10 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
                     (s, fit.theta[j], float(fit.value[j]), bool(fit.at_zero[j].any())))
                 continue
             new_terms = tuple(step[0])
-            fitted = _fitted_covariances(objective, fit.theta[j], cells.columns)
+            fitted = fitted_covariances(objective, fit.theta[j], cells.columns)
             group = following.setdefault(new_terms, ([], []))
             group[0].append(s)
-            group[1].append(_theta_start(new_terms, fit.theta[j, :C], fitted, cells.columns))
+            group[1].append(theta_start(new_terms, fit.theta[j, :C], fitted, cells.columns))
             out["reduced"][s] = True
         queue += [(t, i, st) for t, (i, st) in following.items()]
     constant = binomial_constant(Y, trials)
@@ -368,8 +316,12 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
         reduced_values = np.empty((len(index), K))
         objective = cells.objective(terms, Y[index])
         for j in range(K):
-            reduced = fit_batch(cells.objective(terms, Y[index], drop=j + 1),
-                                np.delete(theta, j + 1, axis=1))
+            # from the study's moment start, where fit_glmm starts the reduced model: the
+            # model without an effect can have several maxima (the effect taken up by the
+            # participants' or the symbols' slopes), and a start carried over from the full
+            # model's maximum ends on another peak more often than fit_glmm does
+            dropped = cells.objective(terms, Y[index], drop=j + 1)
+            reduced = fit_batch(dropped, dropped.moment_starts())
             needs |= reduced.needs_reference
             reduced_values[:, j] = reduced.value
         keep = ~needs
@@ -380,7 +332,7 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
         out["p_value"][ok] = lr_pvalue(statistic[keep])
         out["kind"][ok] = LR
         out["log_odds"][ok] = theta[keep, 1:K + 1]
-        out["theta"][ok] = [_recorded(objective, t, names, design) for t in theta[keep]]
+        out["theta"][ok] = [recorded(objective, t, names, design) for t in theta[keep]]
         out["converged"][ok] = True
         out["boundary"][ok] = np.array([b for *_, b in studies])[keep]
         settled[ok] = True
@@ -390,21 +342,6 @@ def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
             out[key][s] = value
         out["reference"][s] = True
     return out
-
-
-def _recorded(objective: BatchObjective, theta: np.ndarray, names: list[str],
-              design: PowerDesign) -> np.ndarray:
-    """One study's fixed effects and random-effect SDs in :func:`recorded_parameters`'
-    order."""
-    C = len(design.conditions)
-    covariances = _fitted_covariances(objective, theta,
-                                      ("Intercept",) + tuple(names[1:C]))
-    sds = []
-    for group in ("participant_id", design.symbol_column) if design.symbol_effect else (
-            "participant_id",):
-        cov = covariances.get(group, np.zeros((C, C)))
-        sds += np.sqrt(np.clip(np.diag(cov), 0.0, None)).tolist()
-    return np.r_[theta[:C], sds]
 
 
 def binomial_constant(Y: np.ndarray, trials: np.ndarray) -> np.ndarray:
