@@ -57,7 +57,7 @@ def test_studies_are_decided_as_analyze_decides_them(design, monkeypatch):
                                   participant_sd=0.3, digit_sd=0.3)
     Y = simulate_studies(model, 3, range(5), 4, 2)[:, :, -1].astype(float)
     Y[4, :, :, 1] = 2.0                         # every CRS trial of study 4 right
-    out = decide_studies(design, model, Y, 2)
+    out = decide_studies(design, Y, 2)
     assert out["kind"][4, 0] == SEPARATED and out["reference"][4]
     assert (out["kind"][:4, 0] == LR).all() and out["boundary"][:4].any()
     for s in range(5):
@@ -228,7 +228,7 @@ def test_three_conditions_each_tested_against_the_reference_as_analyze_does():
     model = model_from_parameters(design, {"a": 0.5, "b": 0.6, "c": 0.7},
                                   participant_sd=0.4, digit_sd=0.3)
     Y = simulate_studies(model, 8, range(6), 5, 2)[:, :, -1].astype(float)
-    out = decide_studies(design, model, Y, 2)
+    out = decide_studies(design, Y, 2)
     assert (~out["reference"]).sum() >= 4 and (out["kind"] == LR).all()
     for s in range(6):
         expected = decide_trials(design, cells_frame(design, Y[s], design.cell_trials(2)))
@@ -263,7 +263,7 @@ def test_near_singular_studies_are_settled_by_the_batch_at_fit_glmms_maximum(des
                                   participant_sd=0.42, digit_sd=0.29)
     R = design.repetitions
     Y = simulate_studies(model, 7, range(20), 12, R)[:, :, R - 1].astype(float)
-    out = decide_studies(design, model, Y, R)
+    out = decide_studies(design, Y, R)
     assert out["reference"].sum() <= 1
     assert out["boundary"].sum() >= 8
     for s in np.flatnonzero(~out["reference"]):

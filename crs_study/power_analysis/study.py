@@ -181,7 +181,7 @@ def _points(task: PowerTask, draws: list[tuple[GenerativeModel, int, bool]]
         curvature = None if all(x is None for x in last) else np.concatenate(
             [np.zeros((S,) + curvature_shape(design)) if x is None else x[1] * (n / x[0])
              for x in last])
-        point = decide_studies(design, task.model, Y, r, curvature)
+        point = decide_studies(design, Y, r, curvature)
         for b, k in enumerate(here):
             part = slice(b * S, (b + 1) * S)
             previous[(k, r)] = (n, point["curvature"][part])
@@ -241,15 +241,14 @@ def outcomes(design: PowerDesign, shape: tuple[int, ...]) -> dict[str, np.ndarra
             "loglike_reduced": np.full(shape + (K,), np.nan)}
 
 
-def decide_studies(design: PowerDesign, model: GenerativeModel, Y: np.ndarray,
-                   repetitions: int, curvature: np.ndarray | None = None
-                   ) -> dict[str, np.ndarray]:
+def decide_studies(design: PowerDesign, Y: np.ndarray, repetitions: int,
+                   curvature: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Test studies ``Y`` (S, P, D, C) of one point as ``analyze`` would; arrays as in
     :class:`TaskResult` (without the point axis), and ``curvature`` (S, n, n) the planned
     model's last negative-Hessian approximation (zeros where none), which a next point may
-    pass back as its start. ``model`` (the generating model) is not read: every fit starts
-    from its study's own data, as ``fit_glmm`` starts (the moment start of
-    :mod:`crs_study.analysis.glmm_start`).
+    pass back as its start. Every fit starts from its study's own data, as ``fit_glmm``
+    starts (the moment start of :mod:`crs_study.analysis.glmm_start`), never from the
+    generating model.
 
     The plan's model first, for every study at once; a study whose fit calls for the plan's
     reduction rule (:func:`~crs_study.analysis.structure.reduction_reasons`) moves on to the
