@@ -185,19 +185,10 @@ class GenerativeModel:
 
     def start(self, design: PowerDesign) -> np.ndarray:
         """The fixed effects nearest this model (treatment-coded means over symbols and
-        levels): the warm start of the fits' ``beta``."""
+        levels): a start for ``beta`` where a fit has no data of its own to start from (the
+        validity bench's null fits)."""
         mean = self.base.mean(axis=(0, 1))
         return np.r_[mean[0], mean[1:] - mean[0]]
-
-    def start_covariance(self, who: str) -> np.ndarray:
-        """The warm start of a term's covariance: the model's, or for the symbols of a model
-        whose symbols' differences are all in ``base`` (``symbol_cov`` None, ``digit_sd`` 0),
-        the spread of ``base`` over symbols."""
-        cov = self.covariance(who)
-        if who == "symbol" and self.symbol_cov is None and self.digit_sd == 0:
-            cov = cov.copy()
-            cov[0, 0] = float(np.var(self.base.mean(axis=(0, 2))))
-        return cov
 
     def accuracy(self) -> np.ndarray:
         """P(correct) of the typical participant per condition (symbols and levels averaged,
