@@ -29,12 +29,8 @@ from scipy.linalg import lapack
 from scipy.special import expit
 
 from crs_study.analysis.glmm_irls import (
-    INNER_MAXITER,
-    INNER_TOL,
-    LAST_STEP,
     StudyBatch,
     kernel,
-    step_fractions,
 )
 from crs_study.analysis.glmm_laplace import TermRows
 
@@ -133,40 +129,12 @@ class DenseLaplace(StudyBatch):
         return self._bins(outer, self.pairs, self.q * self.q).reshape(S, self.q, self.q) \
             + self.eye
 
-    def _h(self, Y, offset, u, V) -> np.ndarray:
-        eta = offset + self._times(u, V)
-        return kernel(Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
+    def _linear(self, offset, u, V) -> np.ndarray:
+        """``X beta + A u`` (S, n)."""
+        return offset + self._times(u, V)
 
-    def modes(self, offset, V, u0, Y=None) -> np.ndarray:
-        """Penalised IRLS from ``u0``, with the stopping and step-halving rules of
-        :meth:`~crs_study.analysis.glmm_laplace.LaplaceLikelihood.modes`."""
-        Y = self.Y if Y is None else Y
-        u = u0.copy()
-        active = np.arange(len(u))
-        everyone = True
-        for _ in range(INNER_MAXITER):
-            if not len(active):
-                break
-            if everyone:
-                o, ua, y, Va = offset, u, Y, V
-            else:
-                o, ua, y, Va = offset[active], u[active], Y[active], V[active]
-            eta = o + self._times(ua, Va)
-            p = expit(eta)
-            mp = self.m * p
-            H = self._H(mp * (1.0 - p), Va)
-            rhs = self._adjoint(y - mp, Va) - ua
-            step = solve(H, rhs)
-            size = np.max(np.abs(step), axis=1)
-            t = step_fractions(size, y, self.m, eta, ua, lambda long, tl, o=o, ua=ua, y=y,
-                               step=step, Va=Va: self._h(y[long], o[long], ua[long] + tl[:, None]
-                                                         * step[long], Va[long]))
-            u[active] = ua + t[:, None] * step
-            done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
-            if done.any():
-                active = active[~done]
-                everyone = False
-        return u
+    def _newton_step(self, w, rhs, V) -> np.ndarray:
+        return solve(self._H(w, V), rhs)
 
     def evaluate(self, beta: np.ndarray, loadings: list[np.ndarray], grad: bool = True):
         """``(value (S,), d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` (the last two None when
@@ -174,13 +142,8 @@ class DenseLaplace(StudyBatch):
         beta = np.asarray(beta, dtype=float)
         V = self.values([np.asarray(T, dtype=float) for T in loadings])
         offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
-        u = self.modes(offset, V, self.u)
-        bad = ~np.isfinite(u).all(axis=1)
-        if bad.any():                       # a diverged start: retry those from 0
-            u[bad] = self.modes(offset[bad], V[bad], np.zeros((bad.sum(), self.q)),
-                                self.Y[bad])
-        self.u = u
-        eta = offset + self._times(u, V)
+        u = self._settled_modes(offset, V)
+        eta = self._linear(offset, u, V)
         p = expit(eta)
         w = self.m * p * (1.0 - p)
         H = self._H(w, V)

@@ -8,6 +8,7 @@ using lme4", J Stat Softw 67(1), sec. 5.2, penalised iteratively reweighted leas
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import expit
 
 #: Penalised IRLS stops when no coordinate of u moves more than this.
 INNER_TOL = 1e-11
@@ -48,10 +49,16 @@ def step_fractions(size, y, m, eta, u, h_at) -> np.ndarray:
 
 class StudyBatch:
     """What the Laplace likelihoods share as batches of ``S`` response vectors ``Y`` (S, n)
-    with their warm starts ``u`` (S, q): their number, and a subset as a batch of its own."""
+    with their warm starts ``u`` (S, q): their number, a subset as a batch of its own, and
+    penalised IRLS for the modes. A likelihood supplies, for its own form of the design at
+    the current loadings (``design``): :meth:`_take` (its studies ``index``),
+    :meth:`_linear` (``X beta + Z Lambda u`` per row), :meth:`_adjoint` (``Lambda' Z' v``)
+    and :meth:`_newton_step`."""
 
     Y: np.ndarray
     u: np.ndarray
+    m: np.ndarray
+    q: int
 
     @property
     def n_studies(self) -> int:
@@ -64,3 +71,62 @@ class StudyBatch:
         out.Y = self.Y[index]
         out.u = self.u[index].copy()
         return out
+
+    def _take(self, design, index):
+        return design[index]
+
+    def _linear(self, offset, u, design) -> np.ndarray:
+        raise NotImplementedError
+
+    def _adjoint(self, v, design) -> np.ndarray:
+        raise NotImplementedError
+
+    def _newton_step(self, w, rhs, design) -> np.ndarray:
+        """``H^-1 rhs`` per study, ``H = Lambda' Z' W Z Lambda + I`` at weights ``w``."""
+        raise NotImplementedError
+
+    def _h(self, Y, offset, u, design) -> np.ndarray:
+        eta = self._linear(offset, u, design)
+        return kernel(Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
+
+    def modes(self, offset, design, u0, Y=None) -> np.ndarray:
+        """Penalised IRLS from ``u0``; each study stops after a full step shorter than
+        ``LAST_STEP`` (or any step below ``INNER_TOL``), frozen thereafter, so its answer
+        never depends on its batch. A step longer than ``FULL_STEP`` in some coordinate is
+        halved until ``h`` does not fall (:func:`step_fractions`)."""
+        Y = self.Y if Y is None else Y
+        u = u0.copy()
+        active = np.arange(len(u))
+        everyone = True
+        for _ in range(INNER_MAXITER):
+            if not len(active):
+                break
+            if everyone:
+                o, ua, y, D = offset, u, Y, design
+            else:
+                o, ua, y, D = offset[active], u[active], Y[active], self._take(design, active)
+            eta = self._linear(o, ua, D)
+            p = expit(eta)
+            mp = self.m * p
+            step = self._newton_step(mp * (1.0 - p), self._adjoint(y - mp, D) - ua, D)
+            size = np.max(np.abs(step), axis=1)
+            t = step_fractions(size, y, self.m, eta, ua, lambda long, tl, o=o, ua=ua, y=y,
+                               step=step, D=D: self._h(y[long], o[long], ua[long] + tl[:, None]
+                                                       * step[long], self._take(D, long)))
+            u[active] = ua + t[:, None] * step
+            done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
+            if done.any():
+                active = active[~done]
+                everyone = False
+        return u
+
+    def _settled_modes(self, offset, design) -> np.ndarray:
+        """The modes from the warm starts, a diverged start retried from 0; kept as the
+        warm starts of the next evaluation."""
+        u = self.modes(offset, design, self.u)
+        bad = ~np.isfinite(u).all(axis=1)
+        if bad.any():
+            u[bad] = self.modes(offset[bad], self._take(design, bad),
+                                np.zeros((bad.sum(), self.q)), self.Y[bad])
+        self.u = u
+        return u

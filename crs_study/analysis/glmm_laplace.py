@@ -61,12 +61,8 @@ import scipy.sparse as sp
 from scipy.special import expit
 
 from crs_study.analysis.glmm_irls import (
-    INNER_MAXITER,
-    INNER_TOL,
-    LAST_STEP,
     StudyBatch,
     kernel,
-    step_fractions,
 )
 
 
@@ -286,36 +282,11 @@ class LaplaceLikelihood(StudyBatch):
         gR = (self.rest_sums.to_bins(v)[:, None, :] @ loadings.rest)[:, 0]
         return np.concatenate([gL, gR], axis=1)
 
-    def _h(self, Y, offset, u, loadings) -> np.ndarray:
-        eta = self._linear(offset, u, loadings)
-        return kernel(Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
+    def _take(self, loadings, index) -> _Loadings:
+        return loadings.take(index)
 
-    def modes(self, offset, loadings, u0, Y=None) -> np.ndarray:
-        """Penalised IRLS from ``u0`` (``loadings``: :class:`_Loadings`); each study stops
-        after a full step shorter than ``LAST_STEP`` (or any step below ``INNER_TOL``),
-        frozen thereafter, so its answer never depends on its batch. A step longer than
-        ``FULL_STEP`` in some coordinate is halved until ``h`` does not fall."""
-        Y = self.Y if Y is None else Y
-        u = u0.copy()
-        active = np.arange(len(u))
-        for _ in range(INNER_MAXITER):
-            if not len(active):
-                break
-            o, ua, y = offset[active], u[active], Y[active]
-            T = loadings.take(active)
-            eta = self._linear(o, ua, T)
-            p = expit(eta)
-            mp = self.m * p
-            factor = _Factor(self, mp * (1.0 - p), T)
-            step = factor.solve(self._adjoint(y - mp, T) - ua)
-            size = np.max(np.abs(step), axis=1)
-            t = step_fractions(size, y, self.m, eta, ua, lambda long, tl, o=o, ua=ua, y=y,
-                               step=step, T=T: self._h(y[long], o[long], ua[long] + tl[:, None]
-                                                       * step[long], T.take(long)))
-            u[active] = ua + t[:, None] * step
-            done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
-            active = active[~done]
-        return u
+    def _newton_step(self, w, rhs, loadings) -> np.ndarray:
+        return _Factor(self, w, loadings).solve(rhs)
 
     # ------------------------------------------------------------------ objective
     def evaluate(self, beta: np.ndarray, loadings: list[np.ndarray], grad: bool = True):
@@ -324,12 +295,7 @@ class LaplaceLikelihood(StudyBatch):
         beta = np.asarray(beta, dtype=float)
         loadings = self._loadings([np.asarray(T, dtype=float) for T in loadings])
         offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
-        u = self.modes(offset, loadings, self.u)
-        bad = ~np.isfinite(u).all(axis=1)
-        if bad.any():                       # a diverged start: retry those from 0
-            u[bad] = self.modes(offset[bad], loadings.take(bad),
-                                np.zeros((bad.sum(), self.q)), self.Y[bad])
-        self.u = u
+        u = self._settled_modes(offset, loadings)
         eta = self._linear(offset, u, loadings)
         p = expit(eta)
         w = self.m * p * (1.0 - p)
