@@ -194,7 +194,11 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
     if method == "agq" and kept and not single_intercept:
         raise AnalysisError(f"adaptive quadrature needs a single random intercept (as lme4's "
                             f"nAGQ > 1); got {structure_label(kept)}: use method='laplace'")
-    direction = separation_direction(X, y, m, row_codes)
+    binomial = (pool(X, y, m, codes, Z) if aggregate else
+                unpooled(X, y, m, codes, Z))
+    # the pooled rows hold the same distinct design rows with the same sums: the same program
+    direction = separation_direction(binomial.X, binomial.successes, binomial.trials,
+                                     row_codes)
     separated = [] if direction is None else [
         n for n, d in zip(names, direction, strict=True) if d != 0]
     prior_sd = None
@@ -218,8 +222,6 @@ def fit_glmm(data: pd.DataFrame, response: str, fixed: str | pd.DataFrame = "1",
                                user_constant)
             return fit_glm(X, y, m, names, user_constant, len(data), response, fixed_text,
                            groups_done, notes, problem)
-        binomial = (pool(X, y, m, codes, Z) if aggregate else
-                    unpooled(X, y, m, codes, Z))
         if not kept:
             model = NoRandom(binomial)
         elif single_intercept:

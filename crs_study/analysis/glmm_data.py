@@ -138,8 +138,8 @@ def drop_unused_levels(data: pd.DataFrame, fixed, notes: list[str]) -> pd.DataFr
         return data
     tokens = set(re.findall(r"[A-Za-z_][A-Za-z0-9_.]*", fixed))
     out = data
-    for col in data.columns:
-        if col in tokens and isinstance(data[col].dtype, pd.CategoricalDtype):
+    for col in [c for c in data.columns if c in tokens]:     # a column read costs: named only
+        if isinstance(data[col].dtype, pd.CategoricalDtype):
             present = set(data[col].dropna().unique())
             unused = [c for c in data[col].cat.categories if c not in present]
             if unused:
@@ -225,12 +225,17 @@ def group_codes(data: pd.DataFrame, terms: list[RandomTerm], notes: list[str]):
         g = term.group
         column = data[g]
         # a categorical column's levels in its categories' order, any other's sorted
-        c, levels = pd.factorize(column if isinstance(column.dtype, pd.CategoricalDtype)
-                                 else column.to_numpy(), sort=True)
+        if isinstance(column.dtype, pd.CategoricalDtype):
+            c, levels = pd.factorize(column, sort=True)
+            count = len(levels)
+        else:
+            values = column.to_numpy()
+            c, count = factorize(values)
+            levels = values[:1]       # the one level, where there is one
         if (c < 0).any():        # factorize codes a missing value -1
             raise AnalysisError(f"group column {g!r} has {int((c < 0).sum())} missing "
                                 f"value(s)")
-        if len(levels) < 2:
+        if count < 2:
             shown = term.shown_group()  # as the report names it: participant
             what = "random intercept" if term.is_intercept else f"random term {term.label()}"
             notes.append(f"grouping factor {shown!r} has a single level ({levels[0]!r}): its "

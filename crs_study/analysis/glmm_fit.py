@@ -101,10 +101,11 @@ def optimise(problem, nobs: int, response: str, fixed: str, groups: tuple[str, .
     names = problem.names
     loglike = float(problem.model.loglik(theta, grad=False)) + problem.user_constant
     variances = _variances(terms, theta[n_fixed:])
+    index = pd.Index(names)     # one index for the three: each conversion of a list costs
     return GlmmResult(
-        params=pd.Series(theta[:n_fixed], index=names, name="estimate"),
-        bse=pd.Series(np.sqrt(np.diag(cov)), index=names, name="std_error"),
-        cov_params=pd.DataFrame(cov, index=names, columns=names),
+        params=pd.Series(theta[:n_fixed], index=index, name="estimate"),
+        bse=pd.Series(np.sqrt(np.diag(cov)), index=index, name="std_error"),
+        cov_params=pd.DataFrame(cov, index=index, columns=index),
         variance_components=variances,
         loglike=loglike, nobs=nobs, n_groups=n_groups, method=method,
         n_quadrature=n_quadrature, converged=converged,
@@ -136,7 +137,7 @@ def _variances(terms, theta: np.ndarray) -> pd.Series:
         for j, column in enumerate(term.columns):
             index.append(term.group if term.is_intercept else f"{term.group}:{column}")
             values.append(float(sigma[j, j]))
-    return pd.Series(values, index=index, name="variance", dtype=float)
+    return pd.Series(np.array(values), index=pd.Index(index), name="variance")
 
 
 def describe_face(face, terms, theta: np.ndarray, n_fixed: int) -> BoundaryFace:
@@ -265,10 +266,11 @@ def fit_glm(X, y, m, names, user_constant, nobs, response, fixed, groups, notes,
     eta = X @ fit.params
     loglike = float(np.sum(y * eta - m * np.logaddexp(0.0, eta))) + user_constant
     cov = np.asarray(fit.cov_params())
+    index = pd.Index(names)
     return GlmmResult(
-        params=pd.Series(fit.params, index=names, name="estimate"),
-        bse=pd.Series(np.sqrt(np.diag(cov)), index=names, name="std_error"),
-        cov_params=pd.DataFrame(cov, index=names, columns=names),
+        params=pd.Series(fit.params, index=index, name="estimate"),
+        bse=pd.Series(np.sqrt(np.diag(cov)), index=index, name="std_error"),
+        cov_params=pd.DataFrame(cov, index=index, columns=index),
         variance_components=pd.Series([], index=[], name="variance", dtype=float),
         loglike=loglike, nobs=nobs, n_groups={}, method="glm", n_quadrature=0,
         converged=bool(fit.converged), n_function_evaluations=int(fit.fit_history["iteration"]),

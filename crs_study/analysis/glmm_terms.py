@@ -323,6 +323,9 @@ class ThetaLayout:
     def normalised(self, theta: np.ndarray) -> np.ndarray:
         """``theta`` (..., size) with every ``T_k``'s diagonal made non-negative."""
         out = np.asarray(theta, dtype=float).copy()
+        if self.intercepts:       # each T_k is its one entry: its sign alone
+            out[..., self.n_fixed:] = np.abs(out[..., self.n_fixed:])
+            return out
         for term, cut in zip(self.terms, self.slices, strict=True):
             out[..., cut] = normalised(term, out[..., cut])
         return out
