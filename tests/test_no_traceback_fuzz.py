@@ -321,8 +321,11 @@ def test_consent_register_lines(tmp_path, monkeypatch, line):
 
 # --- the command line's numeric options ----------------------------------------------------
 
+# a valid value runs the command in full: "0_1" (an underscore Python's int and float accept)
+# and "0.25" (a fraction) are valid for a duration or a count yet short as one, where 1_000
+# or 2.5 would keep a live session or a sweep running for minutes or seconds
 NUMBERS = st.sampled_from(["nan", "inf", "-inf", "-1", "0", "1e308", "99999999999999999999",
-                           "1e-320", "-0", "", "0x10", "1_000", "1e400", "2.5"])
+                           "1e-320", "-0", "", "0x10", "0_1", "1e400", "0.25"])
 OPTIONS = [
     (["dry-run", "pilot", "--out", "{tmp}/o"], "--participants"),
     (["dry-run", "pilot", "--out", "{tmp}/o", "--participants", "1"], "--session"),
