@@ -122,20 +122,13 @@ def test_ctrl_c_is_a_safe_pause(tmp_path, signum):
     assert [r["AtTrial"] for r in resumes] == [1]
 
 
-def test_a_started_process_takes_ctrl_c_as_from_a_terminal():
-    """What the Ctrl-C tests rely on: a process the suite starts raises KeyboardInterrupt on
-    SIGINT (the suite's conftest undoes a SIGINT ignored since the suite started)."""
-    probe = [sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT))"]
-    shown = subprocess.run(probe, capture_output=True, text=True, check=True).stdout
-    assert shown.strip() == "<built-in function default_int_handler>"
-
-
 def test_ctrl_c_reaches_started_processes_when_the_suite_runs_in_the_background():
     """``pytest ... &`` in a shell script: the shell starts pytest with SIGINT ignored (POSIX,
     asynchronous commands without job control), which every process it starts inherited, so
-    a Ctrl-C test's session ran to its end and exited 0. The test above, run that way in an
-    xdist worker, as the suite runs."""
-    test = f"{Path(__file__).resolve()}::test_a_started_process_takes_ctrl_c_as_from_a_terminal"
+    a Ctrl-C test's session ran to its end and exited 0. The probe of
+    ``test_sigint_probe.py``, run that way in an xdist worker, as the suite runs."""
+    probe = Path(__file__).resolve().with_name("test_sigint_probe.py")
+    test = f"{probe}::test_a_started_process_takes_ctrl_c_as_from_a_terminal"
     pytest_command = shlex.join([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                  "-n", "1", test])
     script = f"{pytest_command} & wait $!"
