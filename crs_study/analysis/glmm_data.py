@@ -301,7 +301,7 @@ def _whole_key(columns: np.ndarray) -> np.ndarray | None:
             not np.array_equal(columns, np.floor(columns)):
         return None
     radix = (high + 1).astype(np.int64)
-    weights = np.r_[np.cumprod(radix[::-1])[-2::-1], 1]    # prod_{l > j} radix_l
+    weights = np.append(np.cumprod(radix[:0:-1])[::-1], 1)    # prod_{l > j} radix_l
     return columns.astype(np.int64) @ weights
 
 

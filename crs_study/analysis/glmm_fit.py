@@ -132,10 +132,15 @@ def _variances(terms, theta: np.ndarray) -> pd.Series:
     index, values = [], []
     start = 0
     for term in terms:
+        if term.is_intercept:            # T is its one entry: the variance is its square
+            index.append(term.group)
+            values.append(float(theta[start]) ** 2)
+            start += 1
+            continue
         sigma = covariance(term, theta[start:start + term.n_theta])
         start += term.n_theta
         for j, column in enumerate(term.columns):
-            index.append(term.group if term.is_intercept else f"{term.group}:{column}")
+            index.append(f"{term.group}:{column}")
             values.append(float(sigma[j, j]))
     return pd.Series(np.array(values), index=pd.Index(index), name="variance")
 

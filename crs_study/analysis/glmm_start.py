@@ -72,6 +72,9 @@ class MomentStart:
             if sigma is None:
                 parts.append(theta_of(term, np.eye(term.size)))
                 continue
+            if r == 1:       # its one eigenvalue floored, its Cholesky factor the root
+                parts.append(np.sqrt(np.maximum(sigma[0], MIN_START_SD ** 2)))
+                continue
             if not term.correlated:
                 sigma = np.diag(np.diag(sigma))
             values, vectors = np.linalg.eigh(sigma)
@@ -125,4 +128,5 @@ def _level_moments(codes: np.ndarray, levels: int, Z: np.ndarray, residual: np.n
         return None
     inverse = 1.0 / ZWZ[conditioned] if r == 1 else np.linalg.inv(ZWZ[conditioned])
     b = (inverse @ ZWe[conditioned][:, :, None])[:, :, 0]
-    return np.atleast_2d(np.cov(b, rowvar=False)) - inverse.mean(axis=0)
+    centred = b - b.mean(axis=0)     # numpy.cov's sample covariance, without its overhead
+    return centred.T @ centred * (1.0 / (len(b) - 1)) - inverse.mean(axis=0)
