@@ -133,7 +133,8 @@ class DenseLaplace(StudyBatch):
     def _H(self, w: np.ndarray, V: np.ndarray) -> np.ndarray:
         """``A' W A + I`` (S, q, q)."""
         S = len(w)
-        outer = (w[:, :, None, None] * V[:, :, :, None] * V[:, :, None, :]).reshape(S, -1)
+        # (w V_a) V_b: the weighted row first, three axes, then the one four-axis product
+        outer = ((w[:, :, None] * V)[:, :, :, None] * V[:, :, None, :]).reshape(S, -1)
         return self._bins(outer, self.pairs, self.q * self.q).reshape(S, self.q, self.q) \
             + self.eye
 
@@ -165,7 +166,8 @@ class DenseLaplace(StudyBatch):
         """The exact gradient (``glmm_laplace``'s docstring) from ``G_i = H^-1[P_i, P_i]``:
         ``(H^-1 a_i)`` at row ``i``'s positions is ``G_i V_i``, ``d_i = V_i' G_i V_i``."""
         r = self.Y - self.m * p
-        G = H_inv[:, self.P[:, :, None], self.P[:, None, :]]      # (S, n, R, R)
+        S, (n, R) = len(H_inv), self.P.shape      # G (S, n, R, R): one gather on the flat H^-1
+        G = H_inv.reshape(S, -1)[:, self.pairs].reshape(S, n, R, R)
         GV = G[..., 0] * V[:, :, None, 0]      # R is a few terms' sizes: a sum beats einsum
         for b in range(1, V.shape[2]):
             GV += G[..., b] * V[:, :, None, b]
