@@ -20,7 +20,7 @@ def test_the_figures_and_their_baselines(monkeypatch):
                  "DASK_STUDIES"):
         quick, full = getattr(bench, name)
         monkeypatch.setattr(bench, name, (max(2, quick // 2), full))   # power: >= 2
-    figures = bench.run(quick=True)
+    figures = list(bench.run(quick=True))
     curve, per_study, *rest = figures
     assert curve.name.startswith(f"default curve, 2 sizes x {bench.CURVE_STUDIES[0]} studies, ")
     assert curve.baseline_name == "fit_primary loop (extrapolated)" and curve.baseline > 0

@@ -1,9 +1,11 @@
 """Benchmarks run by ``crs-study bench``.
 
 Each module here provides ``AREA`` (a short name, e.g. ``"render"``), ``DESCRIPTION`` and
-``run(quick: bool) -> list[Figure]``. Every figure is a ratio against a baseline measured in
-the same run on the same machine, so numbers from a noisy two-core laptop stay comparable;
-timings are medians of repeats.
+``run(quick: bool)``, an iterable of :class:`Figure` (an area whose figures take minutes
+yields each as it is measured, so ``crs-study bench`` prints it then and an interrupted run
+keeps what it measured). Every figure is a ratio against a baseline measured in the same run
+on the same machine, so numbers from a noisy two-core laptop stay comparable; timings are
+medians of repeats.
 """
 
 from __future__ import annotations

@@ -46,6 +46,7 @@ import subprocess
 import tempfile
 import time
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -129,17 +130,17 @@ def trials_with_slopes(participants: int, per_condition: int, seed: int = 2026) 
     return rows[["participant", "digit", "condition", "c", "correct"]]
 
 
-def run(quick: bool) -> list[Figure]:
+def run(quick: bool) -> Iterator[Figure]:
+    """Each figure as it is measured."""
     repeat = 3 if quick else 7
     data = trials_with_slopes(40, 200)
     lme4 = lme4_seconds(data)
-    figures = _maximal_figures(data, repeat, quick, lme4.get("elapsed"))
-    figures.append(bootstrap_figure(data, BOOTSTRAP_REPLICATES[not quick], lme4.get("pair"),
-                                    judged=not quick))
-    figures += _intercepts_against_peer(repeat)
-    figures += _orientation(repeat, quick)
-    figures.append(_analyze_large(quick))
-    return figures
+    yield from _maximal_figures(data, repeat, quick, lme4.get("elapsed"))
+    yield bootstrap_figure(data, BOOTSTRAP_REPLICATES[not quick], lme4.get("pair"),
+                           judged=not quick)
+    yield from _intercepts_against_peer(repeat)
+    yield from _orientation(repeat, quick)
+    yield _analyze_large(quick)
 
 
 def _as_trials(data: pd.DataFrame) -> pd.DataFrame:

@@ -55,10 +55,10 @@ def run(args: argparse.Namespace) -> int:
         for fig in areas[name].run(quick=args.quick, **extra):
             failed += fig.passed is False
             if args.json:
-                print(json.dumps(fig.to_dict()))
+                print(json.dumps(fig.to_dict()), flush=True)
                 continue
             verdict = "" if fig.passed is None else ("  ok" if fig.passed else "  MISSED")
             print(f"{fig.area:9s} {fig.name:48s} {fig.value:12.4g} {fig.unit:6s} "
                   f"ratio {fig.ratio:10.4g} vs {fig.baseline_name} ({fig.baseline:.4g})"
-                  f"  {fig.target}{verdict}")
+                  f"  {fig.target}{verdict}", flush=True)
     return 1 if failed else 0
