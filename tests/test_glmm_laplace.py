@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from scipy.special import expit
 
 from crs_study.analysis.glmm_core import BinomialData, CrossedTerms, SingleFactor
-from crs_study.analysis.glmm_laplace import LaplaceLikelihood, TermRows, kernel, small_inverse
+from crs_study.analysis.glmm_irls import kernel
+from crs_study.analysis.glmm_laplace import LaplaceLikelihood, TermRows, small_inverse
 from crs_study.analysis.glmm_terms import RandomTerm
 
 

@@ -26,11 +26,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import lapack
-from scipy.special import expit
 
 from crs_study.analysis.glmm_irls import (
     StudyBatch,
-    kernel,
 )
 from crs_study.analysis.glmm_laplace import TermRows
 
@@ -86,13 +84,7 @@ class DenseLaplace(StudyBatch):
 
     def __init__(self, X: np.ndarray, trials: np.ndarray, Y: np.ndarray,
                  terms: list[TermRows]):
-        self.X = np.asarray(X, dtype=float)
-        self.m = np.asarray(trials, dtype=float)
-        Y = np.asarray(Y, dtype=float)
-        self.Y = Y[None] if Y.ndim == 1 else Y
-        if not terms:
-            raise ValueError("the Laplace likelihood needs a random term")
-        self.terms = terms
+        super().__init__(X, trials, Y, terms)
         positions, self.columns, start = [], [], 0
         for t in terms:
             positions.append(start + t.codes[:, None] * t.size + np.arange(t.size))
@@ -145,22 +137,12 @@ class DenseLaplace(StudyBatch):
     def _newton_step(self, w, rhs, V) -> np.ndarray:
         return solve(self._H(w, V), rhs)
 
-    def evaluate(self, beta: np.ndarray, loadings: list[np.ndarray], grad: bool = True):
-        """``(value (S,), d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` (the last two None when
-        ``grad`` is false); updates the warm starts ``u``."""
-        beta = np.asarray(beta, dtype=float)
-        V = self.values([np.asarray(T, dtype=float) for T in loadings])
-        offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
-        u = self._settled_modes(offset, V)
-        eta = self._linear(offset, u, V)
-        p = expit(eta)
-        w = self.m * p * (1.0 - p)
-        logdet, H_inv = factor(self._H(w, V), grad)
-        value = (kernel(self.Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
-                 - 0.5 * logdet)
-        if not grad:
-            return value, None, None
-        return (value,) + self._gradient(u, p, w, V, H_inv)
+    def _design(self, loadings: list[np.ndarray]) -> np.ndarray:
+        return self.values(loadings)
+
+    def _curvature(self, w, V, full: bool):
+        """``(log det H, H^-1)`` (:func:`factor`; ``H^-1`` only when ``full``)."""
+        return factor(self._H(w, V), full)
 
     def _gradient(self, u, p, w, V, H_inv):
         """The exact gradient (``glmm_laplace``'s docstring) from ``G_i = H^-1[P_i, P_i]``:

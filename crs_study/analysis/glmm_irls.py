@@ -7,6 +7,8 @@ using lme4", J Stat Softw 67(1), sec. 5.2, penalised iteratively reweighted leas
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import numpy as np
 from scipy.special import expit
 
@@ -47,18 +49,33 @@ def step_fractions(size, y, m, eta, u, h_at) -> np.ndarray:
     return t
 
 
-class StudyBatch:
+class StudyBatch(ABC):
     """What the Laplace likelihoods share as batches of ``S`` response vectors ``Y`` (S, n)
-    with their warm starts ``u`` (S, q): their number, a subset as a batch of its own, and
-    penalised IRLS for the modes. A likelihood supplies, for its own form of the design at
-    the current loadings (``design``): :meth:`_take` (its studies ``index``),
-    :meth:`_linear` (``X beta + Z Lambda u`` per row), :meth:`_adjoint` (``Lambda' Z' v``)
-    and :meth:`_newton_step`."""
+    with their warm starts ``u`` (S, q): their number, a subset as a batch of its own,
+    penalised IRLS for the modes and the Laplace value at them (:meth:`evaluate`). A
+    likelihood supplies its own form of the design at the current loadings (``design``,
+    :meth:`_design`) and for it :meth:`_take` (its studies ``index``), :meth:`_linear` (``X
+    beta + Z Lambda u`` per row), :meth:`_adjoint` (``Lambda' Z' v``), :meth:`_newton_step`,
+    :meth:`_curvature` (``log det H`` and what the gradient needs of ``H``) and
+    :meth:`_gradient`."""
 
+    X: np.ndarray
     Y: np.ndarray
     u: np.ndarray
     m: np.ndarray
     q: int
+
+    def __init__(self, X: np.ndarray, trials: np.ndarray, Y: np.ndarray, terms: list):
+        """The data every Laplace likelihood holds: the fixed design ``X`` (n, p), the
+        ``trials`` (n,), the successes ``Y`` (S, n; one study as (n,)) and the random
+        terms' rows (at least one)."""
+        self.X = np.asarray(X, dtype=float)
+        self.m = np.asarray(trials, dtype=float)
+        Y = np.asarray(Y, dtype=float)
+        self.Y = Y[None] if Y.ndim == 1 else Y
+        if not terms:
+            raise ValueError("the Laplace likelihood needs a random term")
+        self.terms = terms
 
     @property
     def n_studies(self) -> int:
@@ -75,15 +92,49 @@ class StudyBatch:
     def _take(self, design, index):
         return design[index]
 
+    @abstractmethod
+    def _design(self, loadings: list[np.ndarray]):
+        """The likelihood's form of ``Z Lambda`` at ``loadings`` (``T_k`` (S, r_k, r_k))."""
+
+    @abstractmethod
     def _linear(self, offset, u, design) -> np.ndarray:
-        raise NotImplementedError
+        """``X beta + Z Lambda u`` (S, n) from ``offset = X beta``."""
 
+    @abstractmethod
     def _adjoint(self, v, design) -> np.ndarray:
-        raise NotImplementedError
+        """``Lambda' Z' v`` (S, q) for row values ``v`` (S, n)."""
 
+    @abstractmethod
     def _newton_step(self, w, rhs, design) -> np.ndarray:
         """``H^-1 rhs`` per study, ``H = Lambda' Z' W Z Lambda + I`` at weights ``w``."""
-        raise NotImplementedError
+
+    @abstractmethod
+    def _curvature(self, w, design, full: bool):
+        """``(log det H (S,), curvature)`` at weights ``w``; ``curvature`` is what
+        :meth:`_gradient` reads of ``H`` (only when ``full``)."""
+
+    @abstractmethod
+    def _gradient(self, u, p, w, design, curvature):
+        """``(d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` at the modes ``u``."""
+
+    def evaluate(self, beta: np.ndarray, loadings: list[np.ndarray], grad: bool = True):
+        """``(value (S,), d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` (the last two None when
+        ``grad`` is false); updates the warm starts ``u``. The Laplace approximation at the
+        modes ``u`` (Bates et al. 2015, sec. 5.2): ``sum_i kernel_i - u'u / 2 - log det H /
+        2``."""
+        beta = np.asarray(beta, dtype=float)
+        design = self._design([np.asarray(T, dtype=float) for T in loadings])
+        offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
+        u = self._settled_modes(offset, design)
+        eta = self._linear(offset, u, design)
+        p = expit(eta)
+        w = self.m * p * (1.0 - p)
+        logdet, curvature = self._curvature(w, design, grad)
+        value = (kernel(self.Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
+                 - 0.5 * logdet)
+        if not grad:
+            return value, None, None
+        return (value,) + self._gradient(u, p, w, design, curvature)
 
     def _h(self, Y, offset, u, design) -> np.ndarray:
         eta = self._linear(offset, u, design)

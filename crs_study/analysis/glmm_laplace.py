@@ -58,11 +58,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.special import expit
 
 from crs_study.analysis.glmm_irls import (
     StudyBatch,
-    kernel,
 )
 
 
@@ -187,13 +185,7 @@ class LaplaceLikelihood(StudyBatch):
 
     def __init__(self, X: np.ndarray, trials: np.ndarray, Y: np.ndarray,
                  terms: list[TermRows]):
-        self.X = np.asarray(X, dtype=float)
-        self.m = np.asarray(trials, dtype=float)
-        Y = np.asarray(Y, dtype=float)
-        self.Y = Y[None] if Y.ndim == 1 else Y
-        if not terms:
-            raise ValueError("the Laplace likelihood needs a random term")
-        self.terms = terms
+        super().__init__(X, trials, Y, terms)
         self.large = int(np.argmax([t.levels * t.size for t in terms]))
         self.rest = [k for k in range(len(terms)) if k != self.large]
         big = terms[self.large]
@@ -289,22 +281,14 @@ class LaplaceLikelihood(StudyBatch):
         return _Factor(self, w, loadings).solve(rhs)
 
     # ------------------------------------------------------------------ objective
-    def evaluate(self, beta: np.ndarray, loadings: list[np.ndarray], grad: bool = True):
-        """``(value (S,), d/dbeta (S, p), [d/dT_k (S, r_k, r_k)])`` (the last two None when
-        ``grad`` is false); updates the warm starts ``u``."""
-        beta = np.asarray(beta, dtype=float)
-        loadings = self._loadings([np.asarray(T, dtype=float) for T in loadings])
-        offset = (self.X @ beta[:, :, None])[:, :, 0]      # per study: no batch-wide BLAS
-        u = self._settled_modes(offset, loadings)
-        eta = self._linear(offset, u, loadings)
-        p = expit(eta)
-        w = self.m * p * (1.0 - p)
-        factor = _Factor(self, w, loadings, full=grad)
-        value = (kernel(self.Y, self.m, eta).sum(axis=1) - 0.5 * np.einsum("sq,sq->s", u, u)
-                 - 0.5 * factor.logdet)
-        if not grad:
-            return value, None, None
-        return (value,) + self._gradient(u, p, w, loadings, factor)
+    def _design(self, loadings: list[np.ndarray]) -> _Loadings:
+        return self._loadings(loadings)
+
+    def _curvature(self, w, loadings, full: bool):
+        """``(log det H, the factorisation)`` (:class:`_Factor`: its inverse's blocks only
+        when ``full``)."""
+        factor = _Factor(self, w, loadings, full=full)
+        return factor.logdet, factor
 
     def _gradient(self, u, p, w, loadings, factor: _Factor):
         """The exact gradient (module docstring), every sum over rows a sparse product."""
