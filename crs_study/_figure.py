@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 
+import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
@@ -42,3 +43,11 @@ def new_axes(size: tuple[float, float] = (5.0, 4.0)) -> ChartAxes:
     """One Axes on a new :class:`ChartFigure` of ``size`` inches, constrained layout."""
     figure = ChartFigure(figsize=size, layout="constrained")
     return figure.add_subplot(axes_class=ChartAxes)
+
+
+def new_axes_grid(rows: int, columns: int, size: tuple[float, float]) -> np.ndarray:
+    """``rows x columns`` Axes (a 2-D array) on one new :class:`ChartFigure` of ``size``
+    inches, constrained layout; any one of them displays as the whole figure."""
+    figure = ChartFigure(figsize=size, layout="constrained")
+    return figure.subplots(rows, columns, squeeze=False,
+                           subplot_kw={"axes_class": ChartAxes})

@@ -157,9 +157,8 @@ def test_device_option_computes_that_devices_lattice_with_its_section(tmp_path, 
 
 
 def test_chart_marks_collapse_and_missing_models_and_labels_every_panel():
-    import matplotlib
+    import matplotlib.pyplot as plt
 
-    matplotlib.use("Agg")
     from crs_study.quality.report import plot_quality
     from crs_study.quality.sweep import Point
 
@@ -168,7 +167,10 @@ def test_chart_marks_collapse_and_missing_models_and_labels_every_panel():
                Point("hex", "beam", 0.3, note="beam 1: ... the beam collapses; reduce ...")]
     points += [Point("square", "nearest", 0.1, 0.038, 0.15, 1),
                Point("square", "beam", 0.1, note="beam: lattice 'square' not supported")]
+    before = plt.get_fignums()
     axes = plot_quality(points)
+    assert plt.get_fignums() == before        # drawn without pyplot: nothing left behind
+    assert axes[1, 1]._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"   # a notebook's picture
     for ax in axes.ravel():
         assert ax.get_legend() is not None
     hex_labels = [line.get_label() for line in axes[0, 1].get_lines()]

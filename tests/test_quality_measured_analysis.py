@@ -137,7 +137,22 @@ def test_the_2d_display_report(tmp_path):
     result = analyze_measurement(folder)
     assert [p.channel for p in result.residual_map.flagged] == ["A:10"]
     assert result.registration.rms_mm < 0.1 and len(result.registration.pixels) == 19
-    files = write_report(result, folder / "derivatives")
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    backend = matplotlib.get_backend()
+    matplotlib.use("svg")             # the user's own choice, which the report must keep
+    try:
+        figures = plt.get_fignums()
+        files = write_report(result, folder / "derivatives")
+        charts = [result.plot()[1], result.plot_residual_map()]    # as a notebook calls them
+        # drawn without pyplot: no figure is left behind, and each chart displays as a
+        # picture with no magic
+        assert (matplotlib.get_backend(), plt.get_fignums()) == ("svg", figures)
+    finally:
+        matplotlib.use(backend)
+    for ax in charts:
+        assert ax._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
     for key in ("report", "results", "shapes", "chart", "residual_map"):
         assert files[key].is_file()
     assert files["chart"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -59,6 +59,7 @@ import math
 
 import numpy as np
 
+from crs_study._figure import new_axes
 from crs_study.benchmarks import Figure, median_seconds
 from crs_study.display import get_model
 from crs_study.errors import DisplayModelError
@@ -164,13 +165,8 @@ def format_table(rows: list[dict], markdown: bool = False) -> str:
 
 def plot_speed_accuracy(rows: list[dict], ax=None):
     """Time per surface (x, log) against RMS error vs the reference (y, log), per model."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     if ax is None:
-        _, ax = plt.subplots(figsize=(6, 4))
+        ax = new_axes((6, 4))
     markers = {"1d": "o", "2d": "s"}
     for r in rows:
         if "error" in r:

@@ -160,16 +160,10 @@ def _device_settings(args: argparse.Namespace) -> dict:
 
 
 def _write(points: list, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     out.mkdir(parents=True, exist_ok=True)
     chart = out / "quality.png"
     axes = plot_quality(points)
     axes.flat[0].figure.savefig(chart, dpi=120)
-    plt.close(axes.flat[0].figure)
     csv_path, md_path = out / "quality.csv", out / "quality.md"
     csv_path.write_text(to_csv(points), encoding="utf-8")
     md_path.write_text(to_markdown(points), encoding="utf-8")
@@ -184,16 +178,10 @@ def _speed_accuracy(args: argparse.Namespace) -> int:
     rows = speed_accuracy_rows(quick=True)
     written = []
     if out is not None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
         out.mkdir(parents=True, exist_ok=True)
         ax = plot_speed_accuracy(rows)
         chart = out / "speed_accuracy.png"
         ax.figure.savefig(chart, dpi=120, bbox_inches="tight")
-        plt.close(ax.figure)
         table = out / "speed_accuracy.md"
         table.write_text(format_table(rows, markdown=True) + "\n", encoding="utf-8")
         written = [chart, table]

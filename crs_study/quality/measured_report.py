@@ -1,6 +1,6 @@
 """The report of a measurement: the chart in the style of the paper's Fig. 2d, the residual
 map, and the text. Charts are pure functions of a :class:`~crs_study.quality.
-measured_result.MeasuredQuality` (Agg-safe; given axes or new ones).
+measured_result.MeasuredQuality` (given axes, or new ones made without pyplot).
 
 The chart follows Fig. 2d of Wang, Meng & Chen, "Continuity reinforcement skeleton for
 pixel-based haptic display" (and Fig. 4f-g in 2D): D_S (left) and D_P (right) against d/l,
@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from crs_study._figure import new_axes, new_axes_grid
 from crs_study._files import make_dirs, write_atomically
 from crs_study.quality.criteria import THEORY, theory
 
@@ -32,10 +33,8 @@ _PAPER_LABEL = {"nearest": "paper: pixel display", "linear": "paper: linear conn
 
 def plot_measured(result: MeasuredQuality, axes=None):
     """D_S (left) and D_P (right) against d/l (module docstring); returns the two axes."""
-    import matplotlib.pyplot as plt
-
     if axes is None:
-        _, axes = plt.subplots(1, 2, figsize=(10, 4.2), constrained_layout=True)
+        axes = new_axes_grid(1, 2, (10, 4.2))
     axes = np.asarray(axes).ravel()
     top = max(r.d_over_l for r in result.rows) * 1.25 if result.rows else 0.5
     grid = np.linspace(0.0, top, 60)
@@ -88,8 +87,6 @@ def plot_residual_map(result: MeasuredQuality, ax=None):
     """Each pixel's offset at neutral and its stroke's error at the protocol's bump height,
     (gain - 1) z_f (mm), against the limits; a named servo marked. 2D: each pixel at its
     place, coloured by the sum; 1D: bars along the line. Returns the axes."""
-    import matplotlib.pyplot as plt
-
     pixels = result.residual_map.pixels
     height = result.height_mm
     offset = np.array([p.offset_mm if math.isfinite(p.offset_mm) else 0.0 for p in pixels])
@@ -101,11 +98,11 @@ def plot_residual_map(result: MeasuredQuality, ax=None):
                                 "every servo within its limits")
     if result.lattice == "1d":
         if ax is None:
-            _, ax = plt.subplots(figsize=(7.5, 4.0), constrained_layout=True)
+            ax = new_axes((7.5, 4.0))
         _residual_bars(ax, pixels, offset, stroke, result)
     else:
         if ax is None:
-            _, ax = plt.subplots(figsize=(6.4, 5.6), constrained_layout=True)
+            ax = new_axes((6.4, 5.6))
         _residual_hexagons(ax, pixels, offset + stroke, height, result)
     ax.set_title(title, fontsize=8, wrap=True)
     return ax
@@ -213,22 +210,15 @@ def report_markdown(result: MeasuredQuality, figures: dict[str, str]) -> str:
 
 def write_report(result: MeasuredQuality, out: str | Path) -> dict[str, Path]:
     """``report.md``, ``results.json``, ``shapes.csv`` and ``figures/*.png`` in ``out``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     out = Path(out)
     make_dirs(out / "figures")
     files = {}
     axes = plot_measured(result)
     files["chart"] = out / "figures" / "measured_quality.png"
     axes[0].figure.savefig(files["chart"], dpi=120)
-    plt.close(axes[0].figure)
     ax = plot_residual_map(result)
     files["residual_map"] = out / "figures" / "residual_map.png"
     ax.figure.savefig(files["residual_map"], dpi=120)
-    plt.close(ax.figure)
     files["results"] = out / "results.json"
     write_atomically(files["results"], result.to_json())
     files["shapes"] = out / "shapes.csv"

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from crs_study._figure import new_axes_grid
 from crs_study.quality.criteria import THEORY, theory
 from crs_study.quality.sweep import Point
 
@@ -70,13 +71,10 @@ def plot_quality(points: Sequence[Point], axes: np.ndarray | None = None) -> np.
     legend. A d/l where a model failed (the beam collapsing under the paper's uncapped feed)
     is an x on the axis; models with no rule for a lattice are named in the panel's corner.
     """
-    import matplotlib.pyplot as plt
-
     lattices = [lat for lat in ("1d", "square", "hex") if any(p.layout == lat for p in points)]
     models = list(dict.fromkeys(p.model for p in points))
     if axes is None:
-        _, axes = plt.subplots(2, max(1, len(lattices)), figsize=(4.2 * max(1, len(lattices)), 7),
-                               squeeze=False, constrained_layout=True)
+        axes = new_axes_grid(2, max(1, len(lattices)), (4.2 * max(1, len(lattices)), 7))
     colours = {m: f"C{i}" for i, m in enumerate(models)}
     for col, lattice in enumerate(lattices):
         for row, quantity in enumerate(QUANTITIES):
