@@ -88,10 +88,11 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
     sub = objective.subset(active)
     for iteration in range(MAX_ITERATIONS):
         th, v, ga = theta[active], value[active], g[active]
-        pinned = np.zeros_like(held[active])
         if capped is not None:     # at the cap, a gradient pushing outward is satisfied
             pinned = capped & (np.abs(th) >= THETA_CAP) & (th * ga > 0)
             ga = np.where(pinned, 0.0, ga)
+        else:
+            pinned = np.zeros_like(held[active])
         done = np.max(np.abs(ga), axis=1) < GRADIENT_TOL
         bad = ~np.isfinite(v) | ~np.isfinite(ga).all(axis=1)
         converged[active[done & ~bad]] = True
@@ -120,19 +121,21 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
                 rows = np.flatnonzero(unusable)
                 N[rows] = _negative_hessian(sub.subset(rows), th[rows], ga[rows],
                                             free[active][rows])
-        moving = free[active] & ~pinned
+        free_a = free[active]
+        moving = free_a & ~pinned
         # the step of the problem with the pinned loadings held (their rows and columns
         # out of N), not the full step clipped: clipping leaves a direction that is no
         # longer Newton's and the iteration crawls along the cap
         step = _solve(_held_out(N.copy(), moving) if pinned.any() else N, ga, moving)
         shortened = np.zeros(len(active), dtype=bool)
-        if diagonal is not None:
-            step, shortened = _short_of_zero(step, th, diagonal[active])
+        diagonal_a = None if diagonal is None else diagonal[active]
+        if diagonal_a is not None:
+            step, shortened = _short_of_zero(step, th, diagonal_a)
         if capped is not None:
             step = np.where(capped & moving, np.clip(th + step, -THETA_CAP, THETA_CAP) - th,
                             step)
         th_new, v_new, g_new, ok = _line_search(sub, th, v, step)
-        g_new = np.where(free[active], g_new, 0.0)
+        g_new = np.where(free_a, g_new, 0.0)
         N = _bfgs(N, th_new - th, ga - g_new, ok)
         theta[active] = np.where(ok[:, None], th_new, th)
         value[active] = np.where(ok, v_new, v)
@@ -140,8 +143,8 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
                              < FAST * np.max(np.abs(ga), axis=1))
         g[active] = np.where(ok[:, None], g_new, ga)
         go_on = ok.copy()
-        if face_sd is not None and diagonal is not None:
-            go_on &= ~(shortened & (diagonal[active] & (np.abs(th_new) < face_sd)).any(axis=1))
+        if face_sd is not None and diagonal_a is not None:
+            go_on &= ~(shortened & (diagonal_a & (np.abs(th_new) < face_sd)).any(axis=1))
         if not go_on.all():                    # stalled, or stopped at a face
             objective.warm[active[~go_on]] = sub.warm[~go_on]
             N_last[active[~go_on]] = N[~go_on]
