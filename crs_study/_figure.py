@@ -45,9 +45,19 @@ def new_axes(size: tuple[float, float] = (5.0, 4.0)) -> ChartAxes:
     return figure.add_subplot(axes_class=ChartAxes)
 
 
-def new_axes_grid(rows: int, columns: int, size: tuple[float, float]) -> np.ndarray:
-    """``rows x columns`` Axes (a 2-D array) on one new :class:`ChartFigure` of ``size``
-    inches, constrained layout; any one of them displays as the whole figure."""
+class ChartGrid(np.ndarray):
+    """An array of :class:`ChartAxes` on one figure (``axes[row, column]``, as pyplot's
+    ``subplots`` gives them) that IPython displays as the PNG of that figure: a multi-panel
+    chart returned as the last expression of a cell shows as a picture, as one Axes does."""
+
+    def _repr_png_(self) -> bytes | None:
+        first = self.flat[0] if self.size else None
+        return first._repr_png_() if isinstance(first, ChartAxes) else None
+
+
+def new_axes_grid(rows: int, columns: int, size: tuple[float, float]) -> ChartGrid:
+    """``rows x columns`` Axes (a 2-D :class:`ChartGrid`) on one new :class:`ChartFigure` of
+    ``size`` inches, constrained layout."""
     figure = ChartFigure(figsize=size, layout="constrained")
-    return figure.subplots(rows, columns, squeeze=False,
-                           subplot_kw={"axes_class": ChartAxes})
+    return np.asarray(figure.subplots(rows, columns, squeeze=False,
+                                      subplot_kw={"axes_class": ChartAxes})).view(ChartGrid)

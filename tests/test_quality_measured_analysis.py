@@ -145,7 +145,7 @@ def test_the_2d_display_report(tmp_path):
     try:
         figures = plt.get_fignums()
         files = write_report(result, folder / "derivatives")
-        charts = [result.plot()[1], result.plot_residual_map()]    # as a notebook calls them
+        charts = [result.plot(), result.plot()[1], result.plot_residual_map()]   # as a notebook
         # drawn without pyplot: no figure is left behind, and each chart displays as a
         # picture with no magic
         assert (matplotlib.get_backend(), plt.get_fignums()) == ("svg", figures)

@@ -35,7 +35,7 @@ def plot_measured(result: MeasuredQuality, axes=None):
     """D_S (left) and D_P (right) against d/l (module docstring); returns the two axes."""
     if axes is None:
         axes = new_axes_grid(1, 2, (10, 4.2))
-    axes = np.asarray(axes).ravel()
+    axes = np.asanyarray(axes).ravel()     # a ChartGrid stays one (it displays)
     top = max(r.d_over_l for r in result.rows) * 1.25 if result.rows else 0.5
     grid = np.linspace(0.0, top, 60)
     width = 0.012 * top
