@@ -8,56 +8,76 @@ Axes>``) until ``%matplotlib inline``. These subclasses add ``_repr_png_``, the 
 calls for ``image/png`` output (IPython documentation, "Rich display"), to the figure and to
 its Axes: the chart returned by a ``plot`` method displays as a picture, with no magic, as
 the last expression of a cell.
+
+matplotlib is imported when the first chart is made, not with this module: a module that can
+draw (a measurement's report, the ``quality`` command) starts half a second sooner, and its
+``--help`` without matplotlib. The two classes are made then (:func:`chart_classes`) and are
+this module's attributes from then on (``crs_study._figure.ChartFigure``, as pickle finds
+them).
 """
 
 from __future__ import annotations
 
+import functools
 import io
 
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
 
 #: Resolution of the notebook picture (the saved PNGs choose their own).
 NOTEBOOK_DPI = 100
 
 
-class ChartFigure(Figure):
-    """A Figure that IPython displays as a PNG."""
+@functools.cache
+def chart_classes() -> tuple[type, type]:
+    """``(ChartFigure, ChartAxes)``: a Figure that IPython displays as a PNG, and Axes that
+    display as the PNG of their whole figure; matplotlib is imported on the first call."""
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
-    def _repr_png_(self) -> bytes:
-        buffer = io.BytesIO()
-        self.savefig(buffer, format="png", dpi=NOTEBOOK_DPI, metadata={"Software": None})
-        return buffer.getvalue()
+    class ChartFigure(Figure):
+        def _repr_png_(self) -> bytes:
+            buffer = io.BytesIO()
+            self.savefig(buffer, format="png", dpi=NOTEBOOK_DPI, metadata={"Software": None})
+            return buffer.getvalue()
+
+    class ChartAxes(Axes):
+        def _repr_png_(self) -> bytes | None:
+            figure = self.figure
+            return figure._repr_png_() if isinstance(figure, ChartFigure) else None
+
+    for made in (ChartFigure, ChartAxes):
+        made.__module__, made.__qualname__ = __name__, made.__name__
+    return ChartFigure, ChartAxes
 
 
-class ChartAxes(Axes):
-    """Axes that IPython displays as the PNG of their whole figure."""
+def __getattr__(name: str) -> type:
+    """``ChartFigure`` and ``ChartAxes`` (:func:`chart_classes`)."""
+    if name in ("ChartFigure", "ChartAxes"):
+        return chart_classes()[name == "ChartAxes"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-    def _repr_png_(self) -> bytes | None:
-        figure = self.figure
-        return figure._repr_png_() if isinstance(figure, ChartFigure) else None
 
-
-def new_axes(size: tuple[float, float] = (5.0, 4.0)) -> ChartAxes:
-    """One Axes on a new :class:`ChartFigure` of ``size`` inches, constrained layout."""
-    figure = ChartFigure(figsize=size, layout="constrained")
-    return figure.add_subplot(axes_class=ChartAxes)
+def new_axes(size: tuple[float, float] = (5.0, 4.0)):
+    """One ``ChartAxes`` on a new ``ChartFigure`` of ``size`` inches, constrained layout."""
+    chart_figure, chart_axes = chart_classes()
+    figure = chart_figure(figsize=size, layout="constrained")
+    return figure.add_subplot(axes_class=chart_axes)
 
 
 class ChartGrid(np.ndarray):
-    """An array of :class:`ChartAxes` on one figure (``axes[row, column]``, as pyplot's
+    """An array of ``ChartAxes`` on one figure (``axes[row, column]``, as pyplot's
     ``subplots`` gives them) that IPython displays as the PNG of that figure: a multi-panel
     chart returned as the last expression of a cell shows as a picture, as one Axes does."""
 
     def _repr_png_(self) -> bytes | None:
         first = self.flat[0] if self.size else None
-        return first._repr_png_() if isinstance(first, ChartAxes) else None
+        return first._repr_png_() if isinstance(first, chart_classes()[1]) else None
 
 
 def new_axes_grid(rows: int, columns: int, size: tuple[float, float]) -> ChartGrid:
-    """``rows x columns`` Axes (a 2-D :class:`ChartGrid`) on one new :class:`ChartFigure` of
+    """``rows x columns`` Axes (a 2-D :class:`ChartGrid`) on one new ``ChartFigure`` of
     ``size`` inches, constrained layout."""
-    figure = ChartFigure(figsize=size, layout="constrained")
+    chart_figure, chart_axes = chart_classes()
+    figure = chart_figure(figsize=size, layout="constrained")
     return np.asarray(figure.subplots(rows, columns, squeeze=False,
-                                      subplot_kw={"axes_class": ChartAxes})).view(ChartGrid)
+                                      subplot_kw={"axes_class": chart_axes})).view(ChartGrid)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import json
 import math
+import subprocess
+import sys
 
 import pytest
 
@@ -180,3 +182,27 @@ def test_chart_marks_collapse_and_missing_models_and_labels_every_panel():
     square = axes[0, 0]
     assert [t.get_text() for t in square.texts] == ["no beam model on this lattice"]
     assert not any("collapses" in line.get_label() for line in square.get_lines())
+
+
+def test_a_module_that_can_draw_starts_without_matplotlib():
+    """matplotlib (half a second) is imported with the first chart, not with the modules that
+    can draw one: the quality command, a measurement session and its report."""
+    modules = ("crs_study.commands.quality", "crs_study.session.measurement",
+               "crs_study.quality.measured_report")
+    code = (f"import sys\nfor name in {modules!r}: __import__(name)\n"
+            "print('matplotlib' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True)
+    assert done.stdout.strip() == "False", done.stderr
+
+
+def test_a_chart_pickles_and_still_displays():
+    import pickle
+
+    from crs_study._figure import ChartFigure, new_axes
+
+    ax = new_axes()
+    ax.plot([0, 1], [1, 0])
+    figure = pickle.loads(pickle.dumps(ax.figure))
+    assert isinstance(figure, ChartFigure)
+    assert figure._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
