@@ -57,11 +57,14 @@ def __getattr__(name: str) -> type:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
+def _new_figure(size: tuple[float, float]):
+    """A new ``ChartFigure`` of ``size`` inches, constrained layout."""
+    return chart_classes()[0](figsize=size, layout="constrained")
+
+
 def new_axes(size: tuple[float, float] = (5.0, 4.0)):
     """One ``ChartAxes`` on a new ``ChartFigure`` of ``size`` inches, constrained layout."""
-    chart_figure, chart_axes = chart_classes()
-    figure = chart_figure(figsize=size, layout="constrained")
-    return figure.add_subplot(axes_class=chart_axes)
+    return _new_figure(size).add_subplot(axes_class=chart_classes()[1])
 
 
 class ChartGrid(np.ndarray):
@@ -77,7 +80,6 @@ class ChartGrid(np.ndarray):
 def new_axes_grid(rows: int, columns: int, size: tuple[float, float]) -> ChartGrid:
     """``rows x columns`` Axes (a 2-D :class:`ChartGrid`) on one new ``ChartFigure`` of
     ``size`` inches, constrained layout."""
-    chart_figure, chart_axes = chart_classes()
-    figure = chart_figure(figsize=size, layout="constrained")
-    return np.asarray(figure.subplots(rows, columns, squeeze=False,
-                                      subplot_kw={"axes_class": chart_axes})).view(ChartGrid)
+    axes = _new_figure(size).subplots(rows, columns, squeeze=False,
+                                      subplot_kw={"axes_class": chart_classes()[1]})
+    return np.asarray(axes).view(ChartGrid)
