@@ -363,8 +363,7 @@ def test_cli_bad_plan_is_one_line(tmp_path, capsys):
 def test_conditions_outside_the_plan_are_analysed_after_the_planned_ones():
     import pandas as pd
 
-    from crs_study.analysis.plan import AnalysisPlan
-    from crs_study.analysis.report import order_conditions
+    from crs_study.analysis.plan import AnalysisPlan, order_conditions
 
     plan = AnalysisPlan.from_dict({"plan": {"name": "x", "conditions": ["pixel-only", "crs"]}})
     trials = pd.DataFrame({"condition": ["zeta", "crs", "pixel-only", "alpha"]})

@@ -42,6 +42,9 @@ LAZY = {
                                 "when the bench runs",
     "crs_study.analysis": "its entry points on first use, so that importing "
                           "crs_study.analysis.glmm does not import matplotlib (the charts)",
+    "crs_study.power_analysis": "its entry points on first use, so that a worker process "
+                                "that unpickles a power task imports the fits, not the "
+                                "reports and charts (tests/test_power_backends.py)",
     "crs_study": "the Python API on first use, so that import crs_study stays quick and the "
                  "command line loads only what a command needs",
 }

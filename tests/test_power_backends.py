@@ -3,6 +3,9 @@ to the unit of work, never to the worker: docs/conventions.md)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -141,3 +144,16 @@ def test_a_local_cluster_starts_beside_another_program_on_8787(model):
             taken.listen()
         with backends.local_cluster(1) as client:
             assert client.submit(sum, [1, 2]).result() == 3
+
+
+def test_a_worker_imports_the_fits_not_the_reports_and_charts():
+    """A spawned worker unpickles its task from crs_study.power_analysis.study: that import
+    leaves out matplotlib and the analysis report (a second of every worker's start in the
+    timed power point, measured with python -X importtime)."""
+    code = ("import sys, crs_study.power_analysis.study\n"
+            "print(sorted(m for m in ('matplotlib', 'crs_study.analysis.report', "
+            "'crs_study.analysis.charts', 'crs_study.power_analysis.api') "
+            "if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True)
+    assert done.stdout.strip() == "[]", done.stderr

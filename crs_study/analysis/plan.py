@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
+
 from crs_study._toml import Section, read_toml
 from crs_study.analysis.glmm_core import MAX_QUADRATURE
 from crs_study.analysis.structure import (
@@ -344,3 +346,29 @@ def _psychometric(section: Section) -> PsychometricPlan:
     )
     section.done()
     return plan
+
+
+def order_conditions(trials: pd.DataFrame, plan: AnalysisPlan) -> tuple[list[str], str,
+                                                                         list[str]]:
+    """Conditions present (plan order first), the reference, and notes on mismatches."""
+    present = list(pd.unique(trials["condition"]))
+    notes = []
+    ordered = [c for c in plan.conditions if c in present]
+    extra = sorted(c for c in present if c not in plan.conditions)
+    missing = [c for c in plan.conditions if c not in present]
+    if missing:
+        notes.append(f"missing condition(s) {missing}: the plan names them but no analysed "
+                     f"trial has them; compared only {ordered + extra}")
+    if extra and plan.conditions:
+        notes.append(f"condition(s) {extra} are not in the plan; analysed after the planned ones")
+    ordered += extra
+    if not ordered:
+        raise AnalysisError("no trial is left to analyse after the exclusions "
+                            "(see the exclusion counts)")
+    reference = plan.reference_condition(ordered)
+    if reference not in ordered:
+        notes.append(f"reference condition {reference!r} has no trials; used {ordered[0]!r} "
+                     "as the reference instead")
+        reference = ordered[0]
+    ordered.remove(reference)
+    return [reference, *ordered], reference, notes

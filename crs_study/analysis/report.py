@@ -48,7 +48,7 @@ from crs_study.analysis.accuracy import AccuracyResult, analyse_accuracy, chance
 from crs_study.analysis.confusion import Confusions, analyse_confusions
 from crs_study.analysis.headline import headline
 from crs_study.analysis.jsonable import to_jsonable
-from crs_study.analysis.plan import AnalysisPlan
+from crs_study.analysis.plan import AnalysisPlan, order_conditions
 from crs_study.analysis.plan_lock import LockCheck, check_plan_lock
 from crs_study.analysis.primary import PrimaryResult, primary_test
 from crs_study.analysis.psychometric import PsychometricResult, analyse_psychometric
@@ -337,32 +337,6 @@ def analyze_dataset(dataset_dir: str | Path, plan_path: str | Path | None = None
                     out_dir: str | Path | None = None) -> Analysis:
     """Analyse one dataset and write the report (``analyze([dataset_dir], ...)``)."""
     return analyze([dataset_dir], plan_path, out_dir)
-
-
-def order_conditions(trials: pd.DataFrame, plan: AnalysisPlan) -> tuple[list[str], str,
-                                                                         list[str]]:
-    """Conditions present (plan order first), the reference, and notes on mismatches."""
-    present = list(pd.unique(trials["condition"]))
-    notes = []
-    ordered = [c for c in plan.conditions if c in present]
-    extra = sorted(c for c in present if c not in plan.conditions)
-    missing = [c for c in plan.conditions if c not in present]
-    if missing:
-        notes.append(f"missing condition(s) {missing}: the plan names them but no analysed "
-                     f"trial has them; compared only {ordered + extra}")
-    if extra and plan.conditions:
-        notes.append(f"condition(s) {extra} are not in the plan; analysed after the planned ones")
-    ordered += extra
-    if not ordered:
-        raise AnalysisError("no trial is left to analyse after the exclusions "
-                            "(see the exclusion counts)")
-    reference = plan.reference_condition(ordered)
-    if reference not in ordered:
-        notes.append(f"reference condition {reference!r} has no trials; used {ordered[0]!r} "
-                     "as the reference instead")
-        reference = ordered[0]
-    ordered.remove(reference)
-    return [reference, *ordered], reference, notes
 
 
 #: The steps of :func:`run_analyses`, as ``progress`` names them.

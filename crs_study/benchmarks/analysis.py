@@ -22,9 +22,9 @@ import tempfile
 from pathlib import Path
 
 from crs_study.analysis.load import load_datasets, with_exclusions
-from crs_study.analysis.plan import AnalysisPlan, default_plan_path, load_plan
+from crs_study.analysis.plan import AnalysisPlan, default_plan_path, load_plan, order_conditions
 from crs_study.analysis.primary import primary_test
-from crs_study.analysis.report import analyze, order_conditions
+from crs_study.analysis.report import analyze
 from crs_study.analysis.synthetic import SyntheticSpec, write_dataset
 from crs_study.benchmarks import Figure, median_seconds
 

@@ -23,11 +23,28 @@ The stages, in the order they build on each other:
 
 from __future__ import annotations
 
-from crs_study.power_analysis.api import power
-from crs_study.power_analysis.design import PowerDesign, PowerError, design_from_protocol
-from crs_study.power_analysis.model import GenerativeModel, model_from_parameters, model_from_pilot
-from crs_study.power_analysis.observer import model_from_observer
-from crs_study.power_analysis.result import PowerResult
+from importlib import import_module
 
-__all__ = ["GenerativeModel", "PowerDesign", "PowerError", "PowerResult", "design_from_protocol",
-           "model_from_observer", "model_from_parameters", "model_from_pilot", "power"]
+#: The entry points, each loaded from its module on first use: a worker process that runs a
+#: power task unpickles it from :mod:`~crs_study.power_analysis.study`, and importing that
+#: must not import the whole analysis with its reports and charts (a second of every
+#: worker's start, in the timed power point).
+_EXPORTS = {
+    "power": "crs_study.power_analysis.api",
+    "PowerDesign": "crs_study.power_analysis.design",
+    "PowerError": "crs_study.power_analysis.design",
+    "design_from_protocol": "crs_study.power_analysis.design",
+    "GenerativeModel": "crs_study.power_analysis.model",
+    "model_from_parameters": "crs_study.power_analysis.model",
+    "model_from_pilot": "crs_study.power_analysis.model",
+    "model_from_observer": "crs_study.power_analysis.observer",
+    "PowerResult": "crs_study.power_analysis.result",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'crs_study.power_analysis' has no attribute {name!r}")

@@ -23,8 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from crs_study.analysis.plan import SYMBOL_EFFECTS, AnalysisPlan, default_plan_path, load_plan
-from crs_study.analysis.report import order_conditions
+from crs_study.analysis.plan import (
+    SYMBOL_EFFECTS,
+    AnalysisPlan,
+    default_plan_path,
+    load_plan,
+    order_conditions,
+)
 from crs_study.analysis.structure import REDUCTION_STEPS, RandomSpec
 from crs_study.errors import CrsStudyError
 from crs_study.paths import resolve_protocol
