@@ -8,6 +8,8 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from crs_study.power_analysis import (
     PowerError,
@@ -36,13 +38,13 @@ def _run(model, **where):
 
 @pytest.mark.slow
 def test_one_job_two_jobs_and_a_dask_cluster_give_identical_results(model, monkeypatch):
-    """One point of 24 studies in tasks of 8 (three tasks, so the pools and the cluster each
-    share them out; below 20 studies the bootstrap-calibrated p, against as many null
-    studies, could never be below 0.05): the same bits everywhere, the bootstrap's null
-    studies too. One point is enough: a task computes every point of its studies itself
-    (how the points of a chunk hand on their starts is the same in any process, and
-    tests/test_power_study.py checks it against the chunking); what differs here is the
-    process, the pool or the cluster that runs each task."""
+    """One point of 24 studies in tasks of 8 and, at the end, 4 (five tasks, so the pools
+    and the cluster each share them out; below 20 studies the bootstrap-calibrated p,
+    against as many null studies, could never be below 0.05): the same bits everywhere,
+    the bootstrap's null studies too. One point is enough: a task computes every point of
+    its studies itself (how the points of a chunk hand on their starts is the same in any
+    process, and tests/test_power_study.py checks it against the chunking); what differs
+    here is the process, the pool or the cluster that runs each task."""
     from distributed import Client, LocalCluster
 
     monkeypatch.setattr(api, "STUDIES_PER_TASK", 8)
@@ -144,6 +146,21 @@ def test_a_local_cluster_starts_beside_another_program_on_8787(model):
             taken.listen()
         with backends.local_cluster(1) as client:
             assert client.submit(sum, [1, 2]).result() == 3
+
+
+@given(st.integers(1, 5000))
+def test_the_units_of_work_cover_every_study_once_the_last_ones_half_size(studies):
+    """Units of 50 studies in order, the last two units' worth (and what is left over) in
+    units of 25: whatever the workers, the last units to finish are short ones."""
+    bounds = [task.studies for task in api._tasks(None, None, 7, (4,), (1,), studies)]
+    assert bounds[0][0] == 0 and bounds[-1][1] == studies
+    assert all(a[1] == b[0] for a, b in zip(bounds[:-1], bounds[1:], strict=True))
+    sizes = [end - start for start, end in bounds]
+    assert all(size > 0 for size in sizes)
+    whole = [size for size in sizes if size == api.STUDIES_PER_TASK]
+    assert sizes[:len(whole)] == whole            # the whole units first
+    assert all(size <= api.STUDIES_PER_TASK // 2 for size in sizes[len(whole):])
+    assert len(whole) == max(0, studies // api.STUDIES_PER_TASK - 2)
 
 
 def test_a_worker_imports_the_fits_not_the_reports_and_charts():

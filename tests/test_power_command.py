@@ -48,7 +48,7 @@ def test_the_answer_in_one_line_the_json_and_the_chart(protocol, tmp_path, capsy
     assert (out / "power.png").read_bytes()[:4] == b"\x89PNG"
     progress = [line for line in captured.err.splitlines() if line.startswith("[")]
     assert progress[-1].startswith("[" + "#" * 30 + "] 100 %  120/120 studies")
-    assert len(progress) == 3 and "s left" in progress[0]      # a line per task done
+    assert len(progress) == 5 and "s left" in progress[0]   # a line per task: 4 x 25 and 20
     assert captured.err.startswith("predicting the simulated observer's accuracy of 6 "
                                    "stimuli (4 noise draws each)")
 

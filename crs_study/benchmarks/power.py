@@ -80,7 +80,7 @@ POINT_STUDIES = (4, 1000)
 LOOP_STUDIES = (1, 10)
 #: Studies at N = 4 that warm the Dask workers before the timing: (quick, full).
 WARM_STUDIES = (2, 50)
-#: The Dask figure runs the default --studies (1000: 20 units of work of STUDIES_PER_TASK).
+#: The Dask figure runs the default --studies (1000: 22 units of work, power_analysis.api._tasks).
 #: With 400 (8 units) two workers often got 5 and 3, a 1.6x ceiling that measured the
 #: split, not Dask: 1.50-1.82x over four runs, against 1.97-1.98x with 1000.
 DASK_STUDIES = (8, 1000)
