@@ -165,12 +165,13 @@ def test_the_units_of_work_cover_every_study_once_the_last_ones_half_size(studie
 
 def test_a_worker_imports_the_fits_not_the_reports_and_charts():
     """A spawned worker unpickles its task from crs_study.power_analysis.study: that import
-    leaves out matplotlib and the analysis report (a second of every worker's start in the
-    timed power point, measured with python -X importtime)."""
+    leaves out matplotlib, the analysis report and the protocol package with the device's
+    modules it imports (a second of every worker's start in the timed power point, measured
+    with python -X importtime)."""
     code = ("import sys, crs_study.power_analysis.study\n"
             "print(sorted(m for m in ('matplotlib', 'crs_study.analysis.report', "
-            "'crs_study.analysis.charts', 'crs_study.power_analysis.api') "
-            "if m in sys.modules))")
+            "'crs_study.analysis.charts', 'crs_study.power_analysis.api', "
+            "'crs_study.protocol', 'crs_study.device', 'serial') if m in sys.modules))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           check=True)
     assert done.stdout.strip() == "[]", done.stderr

@@ -149,8 +149,8 @@ def test_the_default_range_is_chosen_from_the_effect_so_the_curve_crosses_the_ta
     search than the command's, to keep the test short.)"""
     from crs_study.power_analysis import api
     from crs_study.power_analysis.backends import open_backend
-    from crs_study.power_analysis.design import design_from_protocol
     from crs_study.power_analysis.model import model_from_parameters
+    from crs_study.power_analysis.protocol_design import design_from_protocol
 
     monkeypatch.setattr(api, "SEARCH_STUDIES", 20)
     monkeypatch.setattr(api, "SEARCH_MAX", 128)

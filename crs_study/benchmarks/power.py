@@ -47,7 +47,7 @@ from crs_study.benchmarks import Figure
 from crs_study.paths import resolve_protocol
 from crs_study.power_analysis import model_from_parameters, power
 from crs_study.power_analysis.backends import local_cluster
-from crs_study.power_analysis.design import design_from_protocol
+from crs_study.power_analysis.protocol_design import design_from_protocol
 from crs_study.power_analysis.simulate import simulate_studies
 from crs_study.power_analysis.study import cells_frame, decide_trials
 from crs_study.protocol import analysis_plan_path, load_protocol

@@ -10,6 +10,7 @@ Dask cluster; the result has the curve with its Monte Carlo intervals, ``to_fram
 The stages, in the order they build on each other:
 
 * :mod:`~crs_study.power_analysis.design`: the protocol's design and the plan's test; ranges;
+  :mod:`~crs_study.power_analysis.protocol_design`: that design read from a protocol;
 * :mod:`~crs_study.power_analysis.model`: the generating model (pilot, parameters);
   :mod:`~crs_study.power_analysis.observer`: the observer's predicted accuracies (mode 2);
 * :mod:`~crs_study.power_analysis.simulate`: studies with common random numbers;
@@ -33,7 +34,7 @@ _EXPORTS = {
     "power": "crs_study.power_analysis.api",
     "PowerDesign": "crs_study.power_analysis.design",
     "PowerError": "crs_study.power_analysis.design",
-    "design_from_protocol": "crs_study.power_analysis.design",
+    "design_from_protocol": "crs_study.power_analysis.protocol_design",
     "GenerativeModel": "crs_study.power_analysis.model",
     "model_from_parameters": "crs_study.power_analysis.model",
     "model_from_pilot": "crs_study.power_analysis.model",

@@ -11,15 +11,11 @@ from pathlib import Path
 from typing import Any
 
 from crs_study.power_analysis.backends import Backend, Progress, open_backend
-from crs_study.power_analysis.design import (
-    PowerDesign,
-    PowerError,
-    design_from_protocol,
-    parse_range,
-)
+from crs_study.power_analysis.design import PowerDesign, PowerError, parse_range
 from crs_study.power_analysis.fidelity import run_full
 from crs_study.power_analysis.model import GenerativeModel, model_from_pilot
 from crs_study.power_analysis.observer import DEFAULT_DRAWS, model_from_observer, predict
+from crs_study.power_analysis.protocol_design import design_from_protocol
 from crs_study.power_analysis.result import PowerResult, merge
 from crs_study.power_analysis.study import PowerTask, run_null_task, run_task
 

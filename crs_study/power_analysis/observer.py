@@ -45,8 +45,9 @@ from crs_study.clock import VirtualClock
 from crs_study.device import open_device
 from crs_study.paths import resolve_protocol
 from crs_study.power_analysis.backends import Backend
-from crs_study.power_analysis.design import PowerDesign, PowerError, symbol_keys
+from crs_study.power_analysis.design import PowerDesign, PowerError
 from crs_study.power_analysis.model import GenerativeModel
+from crs_study.power_analysis.protocol_design import symbol_keys
 from crs_study.protocol import load_protocol
 from crs_study.session.responders.base import StimulusRecord
 from crs_study.session.responders.observer import (
@@ -138,7 +139,7 @@ def predict(protocol: Any, draws: int = DEFAULT_DRAWS, seed: int = 0, backend: A
 
     The noise of draw ``j`` of cell (level ``l``, symbol ``d``, condition ``c``) comes from
     ``default_rng([seed, l, k, c, j])``, ``k`` the symbol's position in its stimulus set
-    (:func:`~crs_study.power_analysis.design.symbol_keys`: the digit itself for the digit
+    (:func:`~crs_study.power_analysis.protocol_design.symbol_keys`: the digit itself for the digit
     set), so the answer is the same on any backend: the (level, symbol) pairs are mapped like
     the studies (``backend``: an open
     :class:`~crs_study.power_analysis.backends.Backend`; None: in this process).
