@@ -49,13 +49,13 @@ listed before it (checked: ``[tool.importlinter]`` in pyproject.toml):
 ``api``        the API functions that join stages (``validate``, ``run_session``)
 ``commands``, ``cli``, ``benchmarks``   the command line and ``crs-study bench``
 
-Below them, the foundations: ``errors``, ``_files``, ``_toml``, ``_toml_lines``, ``clock``,
-``signals`` and ``paths`` (the shipped protocols, plans and consent forms).
+Below them, the foundations: ``errors``, ``_files``, ``_toml``, ``_toml_lines``, ``_lazy``,
+``clock``, ``signals`` and ``paths`` (the shipped protocols, plans and consent forms).
 """
 
-from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
+from crs_study._lazy import lazy_exports
 from crs_study.errors import CrsStudyError
 
 try:
@@ -91,15 +91,5 @@ API = {
 
 __all__ = ["CrsStudyError", "__version__", *API]
 
-
-def __getattr__(name: str):
-    if name in API:
-        # loaded on first use (see the module docstring); kept once loaded
-        value = getattr(import_module(API[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'crs_study' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(API))
+# loaded on first use (see the module docstring); kept once loaded
+__getattr__, __dir__ = lazy_exports(__name__, API, globals())

@@ -12,7 +12,7 @@ reanalysis against an earlier ``results.json``); they are imported lazily so tha
 
 from __future__ import annotations
 
-from importlib import import_module
+from crs_study._lazy import lazy_exports
 
 _EXPORTS = {
     "analyze": "crs_study.analysis.report",
@@ -33,8 +33,4 @@ _EXPORTS = {
 
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'crs_study.analysis' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

@@ -24,7 +24,7 @@ The stages, in the order they build on each other:
 
 from __future__ import annotations
 
-from importlib import import_module
+from crs_study._lazy import lazy_exports
 
 #: The entry points, each loaded from its module on first use: a worker process that runs a
 #: power task unpickles it from :mod:`~crs_study.power_analysis.study`, and importing that
@@ -44,8 +44,4 @@ _EXPORTS = {
 
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'crs_study.power_analysis' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
