@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
+import tempfile
 
 import pytest
 from hypothesis import settings
@@ -18,6 +20,20 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
 import numpy as np  # noqa: E402  (after the variables above)
+
+# Compiled modules are kept for the run, outside the checkout. Where the environment says
+# PYTHONDONTWRITEBYTECODE (this project's CI machines do), every process of the suite, each
+# worker's collection, each command a test starts and each worker process those start, would
+# otherwise compile every module it imports from source again, and rewrite every test module's
+# asserts again: measured, 3 % of the suite's CPU time (collection alone: 18 s a worker
+# against 9 s). The cache lives in the temporary folder, so the clone stays as it was; the
+# processes the tests start inherit it.
+if sys.dont_write_bytecode:
+    sys.dont_write_bytecode = False
+    sys.pycache_prefix = sys.pycache_prefix or os.path.join(
+        tempfile.gettempdir(), f"crs-study-pycache-{os.getuid() if hasattr(os, 'getuid') else 0}")
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ["PYTHONPYCACHEPREFIX"] = sys.pycache_prefix
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 

@@ -14,6 +14,7 @@ clone) and no files of the project's working notes outside the repository.
 from __future__ import annotations
 
 import ast
+import functools
 import importlib
 import re
 from pathlib import Path
@@ -104,19 +105,22 @@ def resolve_path(path: str) -> str | None:
     return None if (ROOT / path).exists() else "no such file or folder"
 
 
-DOCUMENTS = documents()
+@functools.cache
+def scanned_documents() -> dict[str, str]:
+    """:func:`documents`, read once, when a test first asks (not as every worker collects)."""
+    return documents()
 
 
 def names(pattern: re.Pattern[str]) -> list[tuple[str, str]]:
-    return sorted({(match.group(0), where) for where, text in DOCUMENTS.items()
+    return sorted({(match.group(0), where) for where, text in scanned_documents().items()
                    for match in pattern.finditer(text)})
 
 
 def test_the_documents_are_found():
     # the scan reads what it should: the docs pages, a protocol, a data file, a docstring
     assert {"docs/physics.md", "protocols/digit_identification.toml", "README.md",
-            "crs_study/data/digits.toml", "crs_study/live/README.md"} <= set(DOCUMENTS)
-    assert any(where.startswith("crs_study/live/session.py:") for where in DOCUMENTS)
+            "crs_study/data/digits.toml", "crs_study/live/README.md"} <= set(scanned_documents())
+    assert any(where.startswith("crs_study/live/session.py:") for where in scanned_documents())
     assert len(names(DOTTED)) > 100 and len(names(PATH)) > 20
 
 
