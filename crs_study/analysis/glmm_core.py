@@ -268,7 +268,7 @@ class CrossedTerms:
         layout = self.layout
         theta = np.array(theta, dtype=float)
         last = self._last
-        if last is not None and np.array_equal(last[0], theta) and (last[2] is not None
+        if last is not None and bool((last[0] == theta).all()) and (last[2] is not None
                                                                     or not grad):
             return last[1] if not grad else (last[1], last[2].copy())
         value, g_beta, g_loadings = self.likelihood.evaluate(

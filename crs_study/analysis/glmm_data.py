@@ -67,7 +67,12 @@ def plain_columns(data: pd.DataFrame, formula: str) -> tuple[list[str], bool] | 
         if name not in data.columns or name == "Intercept" or keyword.iskeyword(name):
             return None
         column = data[name]
-        if not (pd.api.types.is_numeric_dtype(column) and not pd.api.types.is_bool_dtype(
+        dtype = column.dtype
+        if isinstance(dtype, np.dtype):     # numeric but not bool, no NaN (pandas' checks)
+            if dtype.kind not in "iufc" or (dtype.kind in "fc"
+                                            and np.isnan(column.to_numpy()).any()):
+                return None
+        elif not (pd.api.types.is_numeric_dtype(column) and not pd.api.types.is_bool_dtype(
                 column)) or column.isna().any():
             return None
     intercept = match["intercept"] != "0"
@@ -181,7 +186,8 @@ def drop_aliased(X: np.ndarray, names: list[str], notes: list[str]):
 
     if X.shape[1] == 0:
         raise AnalysisError("the fixed-effects design has no columns")
-    _, R, piv = qr(X, mode="economic", pivoting=True)
+    # X is finite (fixed_design checked it): no second scan
+    _, R, piv = qr(X, mode="economic", pivoting=True, check_finite=False)
     diag = np.abs(np.diag(R))
     rank = int(np.sum(diag > max(X.shape) * np.finfo(float).eps * diag[0])) if diag[0] else 0
     if rank == X.shape[1]:

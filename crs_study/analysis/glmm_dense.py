@@ -51,15 +51,17 @@ def solve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def factor(H: np.ndarray, inverse: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def factor(H: np.ndarray, inverse: bool, eye: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray | None]:
     """``log det H`` per study (S,) from the Cholesky factor, and with ``inverse`` ``H^-1``
     (S, q, q): LAPACK's ``dposv`` on the identity gives the factor and the inverse in one
     call (a third of ``numpy.linalg.inv``'s time on one small matrix); raises
-    ``LinAlgError``, as ``numpy.linalg.cholesky``, where ``H`` is not positive definite."""
+    ``LinAlgError``, as ``numpy.linalg.cholesky``, where ``H`` is not positive definite.
+    ``eye``: the q x q identity, when the caller keeps one (LAPACK does not overwrite it)."""
     S, q = H.shape[:2]
     diagonals = np.empty((S, q))
     out = np.empty(H.shape) if inverse else None
-    eye = np.eye(q)
+    eye = np.eye(q) if eye is None else eye
     for s in range(S):
         if inverse:
             chol, out[s], info = lapack.dposv(H[s], eye)
@@ -142,7 +144,7 @@ class DenseLaplace(StudyBatch):
 
     def _curvature(self, w, V, full: bool):
         """``(log det H, H^-1)`` (:func:`factor`; ``H^-1`` only when ``full``)."""
-        return factor(self._H(w, V), full)
+        return factor(self._H(w, V), full, self.eye)
 
     def _gradient(self, u, p, w, V, H_inv):
         """The exact gradient (``glmm_laplace``'s docstring) from ``G_i = H^-1[P_i, P_i]``:

@@ -161,11 +161,19 @@ class StudyBatch(ABC):
             mp = self.m * p
             step = self._newton_step(mp * (1.0 - p), self._adjoint(y - mp, D) - ua, D)
             size = np.max(np.abs(step), axis=1)
-            t = step_fractions(size, y, self.m, eta, ua, lambda long, tl, o=o, ua=ua, y=y,
-                               step=step, D=D: self._h(y[long], o[long], ua[long] + tl[:, None]
-                                                       * step[long], self._take(D, long)))
-            u[active] = ua + t[:, None] * step
-            done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
+            if not (size > FULL_STEP).any():   # every step short: each taken whole
+                if everyone:
+                    u += step
+                else:
+                    u[active] = ua + step
+                done = size < LAST_STEP        # INNER_TOL < LAST_STEP
+            else:
+                t = step_fractions(size, y, self.m, eta, ua,
+                                   lambda long, tl, o=o, ua=ua, y=y, step=step, D=D: self._h(
+                                       y[long], o[long], ua[long] + tl[:, None] * step[long],
+                                       self._take(D, long)))
+                u[active] = ua + t[:, None] * step
+                done = (size * t < INNER_TOL) | ((t == 1.0) & (size < LAST_STEP))
             if done.any():
                 active = active[~done]
                 everyone = False

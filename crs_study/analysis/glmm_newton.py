@@ -90,11 +90,13 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
         th, v, ga = theta[active], value[active], g[active]
         if capped is not None:     # at the cap, a gradient pushing outward is satisfied
             pinned = capped & (np.abs(th) >= THETA_CAP) & (th * ga > 0)
-            ga = np.where(pinned, 0.0, ga)
+            if pinned.any():
+                ga = np.where(pinned, 0.0, ga)
         else:
             pinned = np.zeros_like(held[active])
-        done = np.max(np.abs(ga), axis=1) < GRADIENT_TOL
-        bad = ~np.isfinite(v) | ~np.isfinite(ga).all(axis=1)
+        largest = np.max(np.abs(ga), axis=1)     # NaN or inf where any entry is
+        done = largest < GRADIENT_TOL
+        bad = ~(np.isfinite(v) & np.isfinite(largest))
         converged[active[done & ~bad]] = True
         keep = ~done & ~bad
         if not keep.all():
@@ -102,11 +104,11 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
             if N is not None:
                 N_last[active[~keep]] = N[~keep]
             active, th, v, ga = active[keep], th[keep], v[keep], ga[keep]
+            largest, pinned = largest[keep], pinned[keep]
             sub = sub.subset(np.flatnonzero(keep))
             N = None if N is None else N[keep]
         if not len(active):
             break
-        pinned = pinned[keep]
         iterations[active] += 1
         if N is None:
             N = _negative_hessian(sub, th, ga, free[active])
@@ -137,11 +139,13 @@ def newton(objective, theta0: np.ndarray, held: np.ndarray,
         th_new, v_new, g_new, ok = _line_search(sub, th, v, step)
         g_new = np.where(free_a, g_new, 0.0)
         N = _bfgs(N, th_new - th, ga - g_new, ok)
-        theta[active] = np.where(ok[:, None], th_new, th)
-        value[active] = np.where(ok, v_new, v)
-        fast[active] = ok & (np.max(np.abs(g_new), axis=1)
-                             < FAST * np.max(np.abs(ga), axis=1))
-        g[active] = np.where(ok[:, None], g_new, ga)
+        if ok.all():
+            theta[active], value[active], g[active] = th_new, v_new, g_new
+        else:
+            theta[active] = np.where(ok[:, None], th_new, th)
+            value[active] = np.where(ok, v_new, v)
+            g[active] = np.where(ok[:, None], g_new, ga)
+        fast[active] = ok & (np.max(np.abs(g_new), axis=1) < FAST * largest)
         go_on = ok.copy()
         if face_sd is not None and diagonal_a is not None:
             go_on &= ~(shortened & (diagonal_a & (np.abs(th_new) < face_sd)).any(axis=1))
@@ -208,6 +212,8 @@ def _short_of_zero(step: np.ndarray, theta: np.ndarray, diagonal: np.ndarray
     geometrically, and the boundary is decided on its face. Returns the step and where it
     was shortened. ``diagonal`` (S, n) marks the diagonals whose zero is a boundary."""
     toward = diagonal & (theta != 0.0) & (theta * step < 0.0)
+    if not toward.any():
+        return step, np.zeros(len(step), dtype=bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         room = np.where(toward, TO_ZERO * np.abs(theta) / np.abs(step), np.inf)
     t = np.minimum(1.0, room.min(axis=1, initial=np.inf))
@@ -237,6 +243,8 @@ def _line_search(sub, theta, value, step):
     trial = theta + step
     v, g = sub.evaluate(trial)
     ok = _not_lower(v, value)
+    if ok.all():         # every full step taken (the usual case): nothing to halve
+        return trial, v, g, ok
     candidate = np.where(ok[:, None], trial, theta)
     new_value = np.where(ok, v, value)
     new_g = np.where(ok[:, None], g, 0.0)
