@@ -288,7 +288,8 @@ def factorize(column: np.ndarray) -> tuple[np.ndarray, int]:
     counted instead of hashed, several times cheaper on the few thousand rows of a study."""
     if column.dtype.kind in "iuf" and len(column):
         low, high = column.min(), column.max()
-        if low >= 0 and high <= 4 * len(column) and np.array_equal(column, np.floor(column)):
+        if low >= 0 and high <= 4 * len(column) and (
+                column.dtype.kind != "f" or np.array_equal(column, np.floor(column))):
             whole = column.astype(np.intp)
             present = np.bincount(whole) > 0
             return (np.cumsum(present) - 1)[whole], int(present.sum())

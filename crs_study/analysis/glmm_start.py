@@ -128,5 +128,6 @@ def _level_moments(codes: np.ndarray, levels: int, Z: np.ndarray, residual: np.n
         return None
     inverse = 1.0 / ZWZ[conditioned] if r == 1 else np.linalg.inv(ZWZ[conditioned])
     b = (inverse @ ZWe[conditioned][:, :, None])[:, :, 0]
-    centred = b - b.mean(axis=0)     # numpy.cov's sample covariance, without its overhead
-    return centred.T @ centred * (1.0 / (len(b) - 1)) - inverse.mean(axis=0)
+    # numpy.cov's sample covariance, without its overhead (a sum over n is numpy.mean's sum)
+    centred = b - b.sum(axis=0) / len(b)
+    return centred.T @ centred * (1.0 / (len(b) - 1)) - inverse.sum(axis=0) / len(inverse)

@@ -6,7 +6,10 @@ participant intercept SD 0.7, a by-participant condition slope of SD 0.6 (correl
 digit intercept SD 0.3, condition effect 0.7 on the logit scale; the demo's shape, 12
 participants x 100 trials (1,200); 50 x 200 (10,000 trials); and a synthetic dataset of 100
 participants x 400 trials for ``analyze``. Times are medians of repeats, CPU time where a
-peer's is (``time.process_time``), so a busy neighbour counts less.
+peer's is (``time.process_time``), so a busy neighbour counts less. Ours and the ``glmm``
+package's are timed in alternating blocks of about a tenth of a second each
+(:func:`alternating_cpu`), so that a change of the machine's speed during the run (this
+project's virtual machine varies by a third within minutes) falls on both alike.
 
 Targets:
 
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import statistics
 import subprocess
 import tempfile
 import time
@@ -106,6 +110,25 @@ if (!inherits(ci, "try-error")) cat(sprintf("elapsed %.6f\n", pair + profile))
 
 def _cpu(func, repeat: int) -> float:
     return median_seconds(func, repeat=repeat, timer=time.process_time)
+
+
+def alternating_cpu(first, second, blocks: int, block_s: float = 0.1) -> tuple[float, float]:
+    """Median CPU seconds per call of ``first`` and of ``second``, timed in ``blocks``
+    alternating blocks of about ``block_s`` each (the calls a block holds fixed from one
+    untimed call of each)."""
+    numbers = []
+    for func in (first, second):
+        start = time.process_time()
+        func()
+        numbers.append(max(1, round(block_s / max(time.process_time() - start, 1e-6))))
+    times: tuple[list[float], list[float]] = ([], [])
+    for _ in range(blocks):
+        for func, number, out in zip((first, second), numbers, times, strict=True):
+            start = time.process_time()
+            for _ in range(number):
+                func()
+            out.append((time.process_time() - start) / number)
+    return statistics.median(times[0]), statistics.median(times[1])
 
 
 def _quiet(func):
@@ -260,9 +283,9 @@ def _peer_figure(label: str, data: pd.DataFrame, peer, repeat: int) -> Figure:
     def ours():
         return fit_glmm(data, "correct", "c", ["participant", "digit"])
 
-    t_ours = _cpu(ours, repeat)
     name = f"intercepts fit, {label}"
     if peer is None:
+        t_ours = _cpu(ours, repeat)
         return Figure(AREA, f"{name}; glmm package not timed (not installed)", t_ours, "s",
                       "ours", t_ours)
     columns = {"correct": data["correct"].to_numpy(float), "c": data["c"].to_numpy(),
@@ -273,7 +296,7 @@ def _peer_figure(label: str, data: pd.DataFrame, peer, repeat: int) -> Figure:
         return _quiet(lambda: peer.fit(columns, "correct ~ c + (1 | participant) + (1 | digit)",
                                        family="binomial"))
 
-    t_peer = _cpu(theirs, repeat)
+    t_ours, t_peer = alternating_cpu(ours, theirs, 2 * repeat + 1)
     gap = abs(ours().loglike - float(theirs().loglik))
     return Figure(AREA, f"{name}: glmm package / ours (log-likelihoods {gap:.0e} apart)",
                   t_ours, "s", "glmm package", t_peer, f"glmm / ours >= {TARGET_PEER_RATIO:g}",
