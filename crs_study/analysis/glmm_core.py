@@ -268,8 +268,9 @@ class CrossedTerms:
         layout = self.layout
         theta = np.array(theta, dtype=float)
         last = self._last
-        if last is not None and bool((last[0] == theta).all()) and (last[2] is not None
-                                                                    or not grad):
+        same = last is not None and last[0].shape == theta.shape and bool(
+            (last[0] == theta).all())      # numpy.array_equal, without its overhead
+        if same and (last[2] is not None or not grad):
             return last[1] if not grad else (last[1], last[2].copy())
         value, g_beta, g_loadings = self.likelihood.evaluate(
             theta[None, :layout.n_fixed], layout.loadings(theta[None]), grad)
