@@ -22,11 +22,11 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402  (after the variables above)
 
 # Compiled modules are kept for the run, outside the checkout. Where the environment says
-# PYTHONDONTWRITEBYTECODE (this project's CI machines do), every process of the suite, each
-# worker's collection, each command a test starts and each worker process those start, would
-# otherwise compile every module it imports from source again, and rewrite every test module's
-# asserts again: measured, 3 % of the suite's CPU time (collection alone: 18 s a worker
-# against 9 s). The cache lives in the temporary folder, so the clone stays as it was; the
+# PYTHONDONTWRITEBYTECODE (this project's development machine does), every process of the
+# suite (each worker's collection, each command a test starts and each worker process those
+# start) would otherwise compile every module it imports from source again, and rewrite every
+# test module's asserts again: measured, 3 % of the suite's CPU time (collection alone: 18 s
+# a worker against 9 s). The cache lives in the temporary folder, so the clone stays as it was; the
 # processes the tests start inherit it.
 if sys.dont_write_bytecode:
     sys.dont_write_bytecode = False
