@@ -26,8 +26,8 @@ import numpy as np  # noqa: E402  (after the variables above)
 # suite (each worker's collection, each command a test starts and each worker process those
 # start) would otherwise compile every module it imports from source again, and rewrite every
 # test module's asserts again: measured, 3 % of the suite's CPU time (collection alone: 18 s
-# a worker against 9 s). The cache lives in the temporary folder, so the clone stays as it was; the
-# processes the tests start inherit it.
+# a worker against 9 s). The cache lives in the temporary folder, so the clone stays as it
+# was; the processes the tests start inherit it.
 if sys.dont_write_bytecode:
     sys.dont_write_bytecode = False
     sys.pycache_prefix = sys.pycache_prefix or os.path.join(
