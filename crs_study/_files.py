@@ -194,13 +194,25 @@ def append_durably(path: str | Path, data: bytes, *, create: bool = False, sync:
 
 
 def cut_tail(path: str | Path, data: bytes, keep: int, backup: str | Path, *,
-             mode: int | None = None) -> None:
+             mode: int | None = None, backups: str | None = None) -> None:
     """Truncate ``path`` (whose bytes are ``data``) to ``keep`` bytes, saving the rest in
     ``backup`` first (with ``mode``, as :func:`write_atomically`): the cut bytes are durable
     in their backup before the file is truncated, and the truncation is fsynced, so a crash
-    at any point keeps every byte somewhere."""
+    at any point keeps every byte somewhere.
+
+    ``backups`` is the name pattern of this file's backups beside ``backup`` (for instance
+    ``beh-torn-*.bin``). A kill while a backup was written leaves its temporary file
+    (``.<name>.tmp``) and cuts nothing, so those bytes are still in ``path``; each backup
+    has a name of its own, so no later write takes the temporary over. Once this cut is
+    done, the temporaries of the pattern are removed: the new backup holds their bytes.
+    """
+    backup = Path(backup)
     write_atomically(backup, data[keep:], mode=mode)
     with open(path, "r+b") as handle:
         handle.truncate(keep)
         handle.flush()
         os.fsync(handle.fileno())
+    if backups is not None:
+        for leftover in backup.parent.glob(f".{backups}.tmp"):
+            with contextlib.suppress(FileNotFoundError):
+                leftover.unlink()

@@ -57,6 +57,8 @@ def test_a_torn_consent_line_fails_closed_then_any_consent_command_sets_it_aside
     whole = path.read_bytes()
     torn = b'{"event": "consent", "experimenter": "AB", "form_pa'   # a power cut mid-append
     path.write_bytes(whole + torn)
+    killed = register / ".register-torn-20260101T000000000000Z.bin.tmp"  # an earlier repair,
+    killed.write_bytes(torn[:9])                                 # killed before its rename
     refused = session(register, "p1", tmp_path / "ds", process=True)
     assert "register.jsonl:2: not a consent register line" in one_error_line(refused)
     assert not (tmp_path / "ds").exists()                      # nothing ran, nothing written
@@ -68,6 +70,7 @@ def test_a_torn_consent_line_fails_closed_then_any_consent_command_sets_it_aside
     assert path.read_bytes() == whole
     (backup,) = register.glob("register-torn-*.bin")
     assert backup.read_bytes() == torn
+    assert not killed.exists()
     assert stat.S_IMODE(backup.stat().st_mode) == 0o600         # it may hold a name
     assert session(register, "p1", tmp_path / "ds").returncode == 0
 

@@ -112,6 +112,27 @@ def test_torn_tail_is_cut_and_kept(store, tail):
     assert [b.read_bytes() for b in backups] == [tail]
 
 
+def test_a_backup_killed_before_its_rename_is_cleared_by_the_next_cut(store):
+    """A kill inside the backup's atomic write leaves ``.<backup>.tmp`` and cuts nothing; the
+    backup names differ by time, so only the next cut of the same file can clear it."""
+    store.create()
+    store.append_row(_row(0))
+    good = store.paths.tsv.read_bytes()
+    tail = b"1\tpractice\t0"
+    with open(store.paths.tsv, "ab") as handle:
+        handle.write(tail)
+    store.paths.source_dir.mkdir(parents=True)
+    killed = store.paths.source_dir / f".{store.paths.torn_backup('beh', '1').name}.tmp"
+    killed.write_bytes(tail[:4])
+    other = store.paths.source_dir / f".{store.paths.torn_backup('frames', '1').name}.tmp"
+    other.write_bytes(b"not this file's")
+    assert len(SessionStore(store.paths).recover_rows()) == 1
+    assert store.paths.tsv.read_bytes() == good
+    (backup,) = store.paths.source_dir.glob("*_beh-torn-*.bin")
+    assert backup.read_bytes() == tail
+    assert sorted(p.name for p in store.paths.source_dir.glob(".*")) == [other.name]
+
+
 def test_torn_header_starts_over(store):
     store.paths.beh_dir.mkdir(parents=True, exist_ok=True)
     store.paths.tsv.write_bytes(b"trial_index\ttri")

@@ -31,6 +31,7 @@ register and removes the participant's data, is :mod:`crs_study.consent.withdraw
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import re
@@ -221,7 +222,8 @@ class Register:
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
         backup = path.with_name(f"{path.stem}-torn-{stamp}.bin")
         with os_errors(ConsentError, "repair the consent register", path):
-            cut_tail(path, data, keep, backup, mode=0o600)
+            cut_tail(path, data, keep, backup, mode=0o600,
+                     backups=f"{glob.escape(path.stem)}-torn-*.bin")
         line = data[:keep].count(b"\n") + 1
         said = (f"{path}:{line}: a torn last line ({len(tail)} bytes, cut off mid-write, as "
                 f"by a power cut) was set aside in {backup}")

@@ -377,7 +377,8 @@ class SessionStore:
         backup = self.paths.torn_backup(what, stamp)
         with os_errors(DatasetError, "cut the torn tail of", path):
             make_dirs(self.paths.source_dir)
-            cut_tail(path, data, keep, backup)
+            cut_tail(path, data, keep, backup,
+                     backups=self.paths.torn_backup(what, "*").name)
 
     # --- writing ---
     def _append(self, path: Path, data: bytes, create: bool = False) -> None:
