@@ -6,9 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
+from statsmodels.stats.multitest import multipletests
 
+from crs_study.analysis.plan import CORRECTIONS
 from crs_study.analysis.secondary import (
+    adjusted_p_values,
     mcnemar_midp,
     mcnemar_test,
     paired_t,
@@ -143,6 +148,21 @@ def test_per_digit_holm_matches_its_definition():
     expected[order] = holm                                            # Holm 1979
     assert table["p_adjusted"].to_numpy() == pytest.approx(expected)
     assert (table["n_pairs"] == 36).all()
+
+
+# p-values as the per-symbol tests give them: ties (symbols alike), ones, tiny values
+P_VALUES = st.lists(st.sampled_from([1.0, 0.5, 0.25, 0.05, 1e-300]) | st.floats(0.0, 1.0),
+                    max_size=30).map(lambda p: np.array(p, dtype=float))
+
+
+@settings(max_examples=300, deadline=None)
+@given(P_VALUES, st.sampled_from([c for c in CORRECTIONS if c != "none"]))
+def test_adjusted_p_values_are_statsmodels_multipletests_bit_for_bit(p, correction):
+    # outside reference: statsmodels' multipletests (Holm's is computed without it)
+    with np.errstate(divide="ignore"):
+        reference = multipletests(p, alpha=0.05, method=correction)[1]
+    assert np.array_equal(adjusted_p_values(p, 0.05, correction), reference)
+    assert np.array_equal(adjusted_p_values(p, 0.05, "none"), p)
 
 
 def test_secondary_tests_run_every_planned_test():
