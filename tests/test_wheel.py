@@ -10,6 +10,7 @@ run from an empty folder. Before the defaults shipped as package data this faile
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import subprocess
@@ -40,8 +41,26 @@ def _run(command: list[str], cwd: Path, timeout: float = 240,
 
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory) -> Path:
-    """A fresh venv with the wheel of this source tree installed; its ``bin`` folder."""
-    base = tmp_path_factory.mktemp("wheel")
+    """A fresh venv with the wheel of this source tree installed; its ``bin`` folder.
+
+    Built once per run: the suite's worker processes share the base of their temporary
+    folders, and the first to take the lock there builds while the others wait, then use
+    its venv (read-only: each test runs in a folder of its own)."""
+    run = tmp_path_factory.getbasetemp()      # a worker's: popen-gwN in the run's folder
+    run = run.parent if "PYTEST_XDIST_WORKER" in os.environ else run
+    shared = run / "wheel-venv"
+    with open(run / "wheel-venv.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)          # released when the file is closed
+        if not (shared / "built").exists():
+            shutil.rmtree(shared, ignore_errors=True)    # a build that failed part-way
+            shared.mkdir()
+            _build(shared)
+            (shared / "built").touch()
+    return shared / "venv" / "bin"
+
+
+def _build(base: Path) -> None:
+    """The wheel of a copy of this source tree, installed in a fresh venv in ``base``."""
     source = base / "source"
     source.mkdir()
     for name in ("pyproject.toml", "README.md"):
@@ -65,7 +84,6 @@ def installed(tmp_path_factory) -> Path:
     for folder in ("protocols", "analysis", "consent"):
         for path in (REPO / "crs_study" / "data" / folder).iterdir():
             assert f"crs_study/data/{folder}/{path.name}" in shipped
-    return venv / "bin"
 
 
 def test_crs_study_demo_from_an_empty_folder(installed, tmp_path):
