@@ -18,6 +18,12 @@ import pytest
 
 from crs_study.device import codec, decoder
 
+#: How long a test waits for bytes to be written or to arrive before it calls the wire
+#: stuck. A frame takes milliseconds; a worker thread of a machine running the suite beside
+#: other work can wait a second or more for a core (a 1 s wait failed once in 2400 tests), so
+#: this bounds a hang, never a speed (speed is `crs-study bench device`'s).
+STALLED_S = 30.0
+
 
 class PtyBoard:
     """The board end of a pty pair: decodes host frames, answers battery requests."""

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from _pty_helpers import STALLED_S
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -302,7 +303,7 @@ def test_no_pulse_outside_limits_reaches_either_devices_wire(layout1d, cals, fra
                     pass  # refused: nothing of it may reach the wire (checked below)
                 device.clock.sleep(0.07)
                 if device is serial_device:
-                    assert device.wait_sent(1.0)  # every accepted frame written, none merged
+                    assert device.wait_sent(STALLED_S)  # every accepted frame written, none merged
     wire, skipped = decoder.decode_all(bytes(port.data))
     received = [f.message for f in wire] + [r.message for r in sim_device.boards[0].received]
     moves = [m for m in received if isinstance(m, codec.ServoMove)]

@@ -10,7 +10,7 @@ import threading
 import time
 
 import pytest
-from _pty_helpers import boards_fixture, url_of  # noqa: F401 - the boards fixture
+from _pty_helpers import STALLED_S, boards_fixture, url_of  # noqa: F401 - the boards fixture
 
 from crs_study.cli import main
 from crs_study.device import codec, decoder, protocol_lscsim
@@ -624,7 +624,7 @@ def test_frames_go_to_the_controller_the_file_names_even_when_unbalanced(tmp_pat
         try:
             device.send(np.full(layout.n_actuators, 4.0))
             if clock is None:
-                assert device.wait_sent(2.0)
+                assert device.wait_sent(STALLED_S)
             else:
                 clock.advance(0.2)
                 device.displayed_setpoints()

@@ -11,7 +11,12 @@ import time
 
 import numpy as np
 import pytest
-from _pty_helpers import base0_reversed, boards_fixture, url_of  # noqa: F401 - the fixture
+from _pty_helpers import (  # noqa: F401 - the fixture
+    STALLED_S,
+    base0_reversed,
+    boards_fixture,
+    url_of,
+)
 
 from crs_study.benchmarks.device import PacedPort
 from crs_study.clock import RealClock
@@ -164,7 +169,7 @@ def test_channel_base_0_and_a_reversed_servo_on_the_wire(layout1d, boards):
     setpoints = np.linspace(0.5, 8.5, layout.n_actuators)
     with SerialDevice.from_url(url_of([board]), layout, **FAST) as device:
         device.send(setpoints)
-        assert device.wait_sent(1.0)
+        assert device.wait_sent(STALLED_S)
     first = board.wait_for(2)[0]
     assert [i for i, _ in first.positions] == list(range(7))
     assert dict(first.positions)[2] == round(2000 - 1000 * setpoints[2] / 9)  # reversed
@@ -202,7 +207,7 @@ def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout2d, b
         # allows a machine several times oversubscribed
         assert max(r.latency_s for r in reports) <= 4 * FRAME_S + 0.1
         last_wanted = device.pulse_map.to_pulses(np.full(37, 1.2))
-        assert device.wait_sent(1.0)
+        assert device.wait_sent(STALLED_S)
     moves = pair[0].moves()
     assert len(moves) < 12  # merged, not queued
     wanted_a = last_wanted[device.split.members[0]].tolist()
@@ -219,13 +224,13 @@ def test_full_refresh_resends_every_channel(layout1d, boards):
     (board,) = boards(1)
     with SerialDevice.from_url(url_of([board]), layout1d, pace=False, refresh_s=0.5) as device:
         device.send(np.zeros(7))
-        assert device.wait_sent(1.0)
+        assert device.wait_sent(STALLED_S)
         time.sleep(0.6)
         assert len(board.wait_for(2, timeout=0.1)) == 1  # the held pose: not rewritten
         device.send(np.zeros(7))  # nothing changed, but the refresh is due: every channel
-        assert device.wait_sent(1.0)
+        assert device.wait_sent(STALLED_S)
         device.send(np.zeros(7))  # right after: nothing changed, nothing written
-        assert device.wait_sent(1.0)
+        assert device.wait_sent(STALLED_S)
         moves = board.wait_for(3, timeout=0.3)
         assert len(moves) == 2 and all(len(m.positions) == 7 for m in moves)
 
@@ -238,7 +243,7 @@ def test_controllers_are_written_concurrently(layout2d):
                           SerialOptions(check_battery=False, refresh_s=0.0))
     with device:
         device.send(np.full(37, 1.0))
-        assert device.wait_sent(2.0)
+        assert device.wait_sent(STALLED_S)
     (a_start, a_end, _), (b_start, b_end, _) = ports[0].writes[0], ports[1].writes[0]
     assert a_start < b_end and b_start < a_end  # the two writes overlap in time
 
@@ -318,14 +323,14 @@ def test_writer_waits_for_the_output_buffer_and_reports_one_that_never_drains(la
     device.open()
     try:
         device.send(np.zeros(7))
-        assert device.wait_sent(1.0) and len(port.writes) == 1
+        assert device.wait_sent(STALLED_S) and len(port.writes) == 1
         port.backlog = OUT_WAITING_LOW_BYTES + 1  # the wire is behind: nothing more is written
         for k in range(1, 4):
             device.send(np.full(7, float(k)))  # merged while the writer waits
         time.sleep(0.1)
         assert len(port.writes) == 1
         port.backlog = OUT_WAITING_LOW_BYTES  # drained: the newest frame goes, once
-        assert device.wait_sent(1.0) and len(port.writes) == 2
+        assert device.wait_sent(STALLED_S) and len(port.writes) == 2
         assert decoder.decode_all(bytes(port.data))[0][-1].message.positions[0] == (1, 1333)
         port.backlog = 100  # stuck (flow control held, a wedged adapter)
         device.send(np.full(7, 4.0))
