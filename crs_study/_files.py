@@ -193,8 +193,8 @@ def append_durably(path: str | Path, data: bytes, *, create: bool = False, sync:
         fsync_dir(path.parent)
 
 
-def cut_tail(path: str | Path, data: bytes, keep: int, backup: str | Path, *,
-             mode: int | None = None, backups: str | None = None) -> None:
+def cut_tail(path: str | Path, data: bytes, keep: int, backup: str | Path, *, backups: str,
+             mode: int | None = None) -> None:
     """Truncate ``path`` (whose bytes are ``data``) to ``keep`` bytes, saving the rest in
     ``backup`` first (with ``mode``, as :func:`write_atomically`): the cut bytes are durable
     in their backup before the file is truncated, and the truncation is fsynced, so a crash
@@ -212,7 +212,6 @@ def cut_tail(path: str | Path, data: bytes, keep: int, backup: str | Path, *,
         handle.truncate(keep)
         handle.flush()
         os.fsync(handle.fileno())
-    if backups is not None:
-        for leftover in backup.parent.glob(f".{backups}.tmp"):
-            with contextlib.suppress(FileNotFoundError):
-                leftover.unlink()
+    for leftover in backup.parent.glob(f".{backups}.tmp"):
+        with contextlib.suppress(FileNotFoundError):
+            leftover.unlink()
