@@ -13,6 +13,7 @@ import pty
 import select
 import threading
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -60,13 +61,25 @@ class PtyBoard:
     def moves(self) -> list[codec.ServoMove]:
         return [f.message for f in self.frames if isinstance(f.message, codec.ServoMove)]
 
-    def wait_for(self, count: int, timeout: float = 2.0) -> list[codec.ServoMove]:
-        deadline = time.monotonic() + timeout
-        while len(self.moves()) < count and time.monotonic() < deadline:
-            time.sleep(0.005)
-        return self.moves()
+    def wait_until(self, holds: Callable[[list[codec.ServoMove]], bool],
+                   timeout: float = STALLED_S) -> list[codec.ServoMove]:
+        """The moves decoded so far, once ``holds(moves)`` is true (or at the timeout).
 
-    def wait_for_bytes(self, count: int, timeout: float = 2.0) -> bool:
+        This end decodes in a thread of its own, so the last frame of a writer that has
+        already closed its port can still be on its way to :meth:`moves`: a test that checks
+        the last move waits until it is the one expected, not until a count of moves."""
+        deadline = time.monotonic() + timeout
+        moves = self.moves()
+        while not holds(moves) and time.monotonic() < deadline:
+            time.sleep(0.005)
+            moves = self.moves()
+        return moves
+
+    def wait_for(self, count: int, timeout: float = STALLED_S) -> list[codec.ServoMove]:
+        """The moves decoded so far, once there are ``count`` (or at the timeout)."""
+        return self.wait_until(lambda moves: len(moves) >= count, timeout)
+
+    def wait_for_bytes(self, count: int, timeout: float = STALLED_S) -> bool:
         """Wait until ``count`` bytes have arrived; False on timeout."""
         deadline = time.monotonic() + timeout
         while len(self.raw) < count and time.monotonic() < deadline:

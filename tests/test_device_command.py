@@ -81,7 +81,8 @@ def test_sweep_moves_one_channel_through_its_range(boards):
     (board,) = boards(1)
     assert main(["device", "sweep", "--device", url_of([board]), "--layout", "crs1d",
                  "--channel", "A:2", "--seconds", "0.3", "--frame-rate", "20"]) == 0
-    moves = board.wait_for(4)
+    # the sweep's frames (50 ms each), then close()'s slow neutral move (500 ms)
+    moves = board.wait_until(lambda m: len(m) >= 4 and m[-1].time_ms == 500)
     pulses = [dict(m.positions).get(2) for m in moves if m.time_ms == 50]
     pulses = [p for p in pulses if p is not None]
     assert max(pulses) == 2000 and min(pulses) <= 1100  # up to full travel and back
@@ -108,7 +109,8 @@ def test_calibrate_records_endpoints_into_a_new_device_file(boards, tmp_path, mo
     assert (cal.zero_us, cal.full_us) == (1010, 1951)
     assert (layout.actuators[1].calibration.zero_us, layout.actuators[1].calibration.full_us) \
         == (1000, 2000)
-    positions = [dict(m.positions).get(1) for m in board.wait_for(5)]
+    moves = board.wait_until(lambda m: {1010, 1951} <= {dict(x.positions).get(1) for x in m})
+    positions = [dict(m.positions).get(1) for m in moves]
     assert 1010 in positions and 1951 in positions
     # the original is untouched and the copy is never overwritten silently
     assert main(["device", "calibrate", "--device", url_of([board]), "--layout", "crs1d",
@@ -348,6 +350,14 @@ def test_serial_flags_reach_the_simulator_or_are_refused_never_ignored(flags, me
 # SIGTERM and SIGHUP (a kill, a closed terminal) end an action as Ctrl-C does
 
 
+def _last_move_once_neutral(board):
+    """The board's last move, once it is the neutral pose after at least one move before it
+    (the decoding end reads in a thread of its own: close()'s move can still be on its way
+    when the command has returned)."""
+    neutral = _neutral_pulses("crs1d")
+    return board.wait_until(lambda m: len(m) >= 2 and m[-1].positions == neutral)[-1]
+
+
 def _neutral_pulses(layout_name: str) -> tuple[tuple[int, int], ...]:
     from crs_study.device.calibration import PulseMap
 
@@ -403,7 +413,7 @@ def test_a_signal_during_a_sweep_ends_in_neutral_with_exit_130(boards, signum):
         process.wait()
     assert process.returncode == 130, err
     assert err == "crs-study device: interrupted\n"  # one line, no traceback
-    last = board.wait_for(len(board.moves()))[-1]
+    last = board.wait_until(lambda m: m[-1].time_ms == 500)[-1]   # after the sweep's frames
     assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
 
 
@@ -432,7 +442,7 @@ def test_sigterm_in_every_action_sends_neutral_and_releases_the_port(action, boa
     assert main(["device", action, "--device", url_of([board]), "--layout", "crs1d",
                  *extra.get(action, [])]) == 130
     assert capsys.readouterr().err == "crs-study device: interrupted\n"
-    last = board.wait_for(2)[-1]
+    last = _last_move_once_neutral(board)
     assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
     assert _released(board.path)
     assert not (tmp_path / "c.toml").exists()
@@ -471,7 +481,7 @@ def test_a_second_signal_while_closing_waits_for_the_neutral_pose(boards, monkey
     monkeypatch.setattr(RealClock, "sleep_until", sleep_until)
     monkeypatch.setattr(SerialDevice, "_neutral_on_close", neutral_on_close)
     assert main(["device", "sweep", "--device", url_of([board]), "--layout", "crs1d"]) == 130
-    last = board.wait_for(2)[-1]
+    last = _last_move_once_neutral(board)
     assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
     assert _released(board.path)
 

@@ -130,8 +130,10 @@ def test_a_signal_leaves_the_boards_neutral_and_the_ports_free(boards, layout2d,
     neutral = PulseMap.from_layout(layout2d).to_pulses(layout2d.neutral_setpoints())
     for board, name in ((a, "A"), (b, "B")):
         ids = {x.channel: x.index for x in layout2d.actuators if x.controller == name}
-        last = dict(board.wait_for(2)[-1].positions)
-        assert last == {i: neutral[k] for i, k in ids.items()}  # every channel neutral
+        expected = {i: neutral[k] for i, k in ids.items()}
+        # close()'s move can still be on its way to the decoding thread: wait for it
+        moves = board.wait_until(lambda m, e=expected: len(m) >= 2 and dict(m[-1].positions) == e)
+        assert dict(moves[-1].positions) == expected  # every channel neutral
     # the ports are free again: another program may open them at once
     import serial
 

@@ -246,14 +246,15 @@ def test_pty_boards_through_the_serial_code(boards, layout2d):
                            predict=PredictConfig(method="off"))
     assert result.ok and result.source == "host model" and result.frames.written >= 5
     assert a.wait_for(result.frames.written // 2) and b.wait_for(1)
-    time.sleep(0.2)
     # the codec's own decoding, board by board: the first move is the start's neutral pose,
     # the last the close's, and in between the boards moved along the stroke
     pulse_map = PulseMap.from_layout(layout2d)
     neutral = pulse_map.to_pulses(layout2d.neutral_setpoints())
     for board, name in ((a, "A"), (b, "B")):
-        moves = board.moves()
         ids = {a_.channel: a_.index for a_ in layout2d.actuators if a_.controller == name}
+        expected = {i: neutral[k] for i, k in ids.items()}
+        # close()'s move can still be on its way to the decoding thread: wait for it
+        moves = board.wait_until(lambda m, e=expected: len(m) >= 2 and dict(m[-1].positions) == e)
         for move in (moves[0], moves[-1]):
             assert {i: p for i, p in move.positions} == {i: neutral[k] for i, k in ids.items()}
     rows = result.to_frame()
