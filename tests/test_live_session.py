@@ -256,7 +256,7 @@ def test_pty_boards_through_the_serial_code(boards, layout2d):
         # close()'s move can still be on its way to the decoding thread: wait for it
         moves = board.wait_until(lambda m, e=expected: len(m) >= 2 and dict(m[-1].positions) == e)
         for move in (moves[0], moves[-1]):
-            assert {i: p for i, p in move.positions} == {i: neutral[k] for i, k in ids.items()}
+            assert dict(move.positions) == expected
     rows = result.to_frame()
     last = rows.iloc[-1]
     x, y, z = trace.xyz[int(last.sequence)]
