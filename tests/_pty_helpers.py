@@ -75,6 +75,12 @@ class PtyBoard:
             moves = self.moves()
         return moves
 
+    def wait_for_last(self, holds: Callable[[codec.ServoMove], bool], count: int = 1,
+                      timeout: float = STALLED_S) -> list[codec.ServoMove]:
+        """The moves decoded so far, once there are ``count`` or more and the last one
+        satisfies ``holds`` (close()'s neutral pose, as a rule), or at the timeout."""
+        return self.wait_until(lambda moves: len(moves) >= count and holds(moves[-1]), timeout)
+
     def wait_for(self, count: int, timeout: float = STALLED_S) -> list[codec.ServoMove]:
         """The moves decoded so far, once there are ``count`` (or at the timeout)."""
         return self.wait_until(lambda moves: len(moves) >= count, timeout)

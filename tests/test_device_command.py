@@ -82,7 +82,7 @@ def test_sweep_moves_one_channel_through_its_range(boards):
     assert main(["device", "sweep", "--device", url_of([board]), "--layout", "crs1d",
                  "--channel", "A:2", "--seconds", "0.3", "--frame-rate", "20"]) == 0
     # the sweep's frames (50 ms each), then close()'s slow neutral move (500 ms)
-    moves = board.wait_until(lambda m: len(m) >= 4 and m[-1].time_ms == 500)
+    moves = board.wait_for_last(lambda m: m.time_ms == 500, count=4)
     pulses = [dict(m.positions).get(2) for m in moves if m.time_ms == 50]
     pulses = [p for p in pulses if p is not None]
     assert max(pulses) == 2000 and min(pulses) <= 1100  # up to full travel and back
@@ -355,7 +355,7 @@ def _last_move_once_neutral(board):
     (the decoding end reads in a thread of its own: close()'s move can still be on its way
     when the command has returned)."""
     neutral = _neutral_pulses("crs1d")
-    return board.wait_until(lambda m: len(m) >= 2 and m[-1].positions == neutral)[-1]
+    return board.wait_for_last(lambda m: m.positions == neutral, count=2)[-1]
 
 
 def _neutral_pulses(layout_name: str) -> tuple[tuple[int, int], ...]:
@@ -413,7 +413,7 @@ def test_a_signal_during_a_sweep_ends_in_neutral_with_exit_130(boards, signum):
         process.wait()
     assert process.returncode == 130, err
     assert err == "crs-study device: interrupted\n"  # one line, no traceback
-    last = board.wait_until(lambda m: m[-1].time_ms == 500)[-1]   # after the sweep's frames
+    last = board.wait_for_last(lambda m: m.time_ms == 500)[-1]   # after the sweep's frames
     assert last.time_ms == 500 and last.positions == _neutral_pulses("crs1d")
 
 

@@ -131,8 +131,7 @@ def test_a_signal_leaves_the_boards_neutral_and_the_ports_free(boards, layout2d,
     for board, name in ((a, "A"), (b, "B")):
         ids = {x.channel: x.index for x in layout2d.actuators if x.controller == name}
         expected = {i: neutral[k] for i, k in ids.items()}
-        # close()'s move can still be on its way to the decoding thread: wait for it
-        moves = board.wait_until(lambda m, e=expected: len(m) >= 2 and dict(m[-1].positions) == e)
+        moves = board.wait_for_last(lambda m, e=expected: dict(m.positions) == e, count=2)
         assert dict(moves[-1].positions) == expected  # every channel neutral
     # the ports are free again: another program may open them at once
     import serial

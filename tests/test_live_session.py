@@ -253,8 +253,7 @@ def test_pty_boards_through_the_serial_code(boards, layout2d):
     for board, name in ((a, "A"), (b, "B")):
         ids = {a_.channel: a_.index for a_ in layout2d.actuators if a_.controller == name}
         expected = {i: neutral[k] for i, k in ids.items()}
-        # close()'s move can still be on its way to the decoding thread: wait for it
-        moves = board.wait_until(lambda m, e=expected: len(m) >= 2 and dict(m[-1].positions) == e)
+        moves = board.wait_for_last(lambda m, e=expected: dict(m.positions) == e, count=2)
         for move in (moves[0], moves[-1]):
             assert dict(move.positions) == expected
     rows = result.to_frame()

@@ -139,9 +139,9 @@ def test_frames_arrive_complete_changed_only_and_in_order(layout2d, boards):
             assert report.bytes_sent == (10, 0) and report.channels_sent == 1
             expected.append(((3, 1000 + 10 * k),))
             pair[0].wait_for(k + 1)
-    # close()'s moves can still be on their way to the decoding threads: wait for them
-    a_moves = pair[0].wait_until(lambda m: len(m) >= 31 and m[-1].time_ms == 500)
-    b_moves = pair[1].wait_until(lambda m: len(m) >= 2 and m[-1].time_ms == 500)
+    # then close()'s neutral pose, with its slow move
+    a_moves = pair[0].wait_for_last(lambda m: m.time_ms == 500, count=31)
+    b_moves = pair[1].wait_for_last(lambda m: m.time_ms == 500, count=2)
     assert a_moves[0] == codec.ServoMove(tuple((ch, 1000) for ch in range(1, 20)), 50)
     assert [m.positions for m in a_moves[1:30]] == expected
     assert len(b_moves) >= 1 and b_moves[0].positions == tuple((ch, 1000) for ch in range(1, 19))
@@ -210,7 +210,7 @@ def test_frames_faster_than_the_wire_merge_and_latency_stays_bounded(layout2d, b
         assert max(r.latency_s for r in reports) <= 4 * FRAME_S + 0.1
         last_wanted = device.pulse_map.to_pulses(np.full(37, 1.2))
         assert device.wait_sent(STALLED_S)
-    moves = pair[0].wait_until(lambda m: len(m) >= 2 and m[-1].time_ms == 500)   # close()'s
+    moves = pair[0].wait_for_last(lambda m: m.time_ms == 500, count=2)   # close()'s
     assert len(moves) < 12  # merged, not queued
     wanted_a = last_wanted[device.split.members[0]].tolist()
     assert [p for _, p in moves[-2].positions] == wanted_a  # the newest frame went out
@@ -274,7 +274,7 @@ def test_vanished_port_raises_within_one_frame_period_and_close_releases(layout2
     assert any("controller B" in f and "neutral pose not sent" in f for f in device.faults)
     assert not device.ports[1].serial.is_open and not device.ports[0].serial.is_open
     # the healthy controller still got its neutral pose
-    assert pair[0].wait_until(lambda m: m and m[-1].time_ms == 500)[-1].time_ms == 500
+    assert pair[0].wait_for_last(lambda m: m.time_ms == 500)[-1].time_ms == 500
 
 
 def test_stalled_writer_is_reported_not_waited_for(layout1d):
